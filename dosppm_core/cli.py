@@ -1,0 +1,139 @@
+"""The `dosppm` command line."""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+import warnings
+
+from .scene import SceneError
+
+
+def _error(msg: str, code: int = 2) -> int:
+    print(f"dosppm: error: {msg}", file=sys.stderr)
+    return code
+
+
+def add_render_parser(sub) -> None:
+    from . import builtin
+    p = sub.add_parser("render", help="render a scene with SPPM")
+    p.add_argument("scene", nargs="?", default=builtin.DEFAULT,
+                   help=f"built-in scene name, .toml or Mitsuba .xml file (default {builtin.DEFAULT})")
+    stop = p.add_mutually_exclusive_group()
+    stop.add_argument("--time", type=float, metavar="S", help="render for S seconds (default 30)")
+    stop.add_argument("--photons", type=float, metavar="N", help="render until N photons are emitted")
+    stop.add_argument("--iterations", type=int, metavar="K", help="render K iterations")
+    p.add_argument("--out", default="out.exr", help="output EXR (a PNG preview is written beside it)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--gather", choices=("grid", "hash"), default="grid")
+    p.add_argument("--alpha", type=float, default=0.7, help="radius reduction (eq. 1-2)")
+    p.add_argument("--radius", type=float, help="initial radius in scene units (default: from scene and pixel size)")
+    p.add_argument("--max-depth", type=int, default=10, help="surfaces a path may hit")
+    p.add_argument("--photons-per-iteration", type=int, default=100_000)
+    p.add_argument("--photon-batch", type=int, default=1_000_000, help="deposits per statistics update")
+    p.add_argument("--width", type=int)
+    p.add_argument("--height", type=int)
+    p.add_argument("--threads", type=int, default=os.cpu_count() or 1)
+    p.add_argument("--log", help="append JSON-lines progress records here")
+    p.add_argument("--exposure", type=float, default=0.0, help="PNG preview exposure in stops")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_render)
+
+
+def cmd_render(args) -> int:
+    from .film_io import write_exr, write_png
+    from .loaders import load_scene
+    from .progress import ProgressReporter, kernels_cached
+    from .render import Renderer, RenderSettings
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            scene = load_scene(args.scene, width=args.width, height=args.height)
+        for w in caught:
+            print(f"dosppm: warning: {w.message}", file=sys.stderr)
+        settings = RenderSettings(seed=args.seed, alpha=args.alpha, radius=args.radius,
+                                  max_depth=args.max_depth, gather=args.gather,
+                                  photons_per_iteration=args.photons_per_iteration,
+                                  photon_batch=args.photon_batch, threads=args.threads)
+        settings.validate()
+    except (SceneError, ValueError, OSError) as e:
+        return _error(str(e))
+    limit = _limit(args)
+    say = (lambda *a: None) if args.quiet else (lambda *a: print(*a, file=sys.stderr))
+    say(f"scene {scene.name}: {scene.triangle_count:,} triangles, {len(scene.lights.kind)} lights, "
+        f"{scene.camera.width}x{scene.camera.height}")
+    if not kernels_cached():
+        say("compiling kernels (first run on this machine; cached afterwards, about a minute)...")
+    renderer = Renderer(scene, settings)
+    reporter = ProgressReporter(limit, args.log, quiet=args.quiet)
+    interrupted = False
+    try:
+        while not _done(renderer, limit):
+            reporter(renderer.run_iteration())
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        reporter.close()
+        renderer.close()
+    _write_outputs(renderer, args.out, args.exposure, write_exr, write_png)
+    p = renderer.progress()
+    say(f"{'interrupted: ' if interrupted else ''}wrote {args.out} after {p.iteration} iterations, "
+        f"{p.photons_emitted:,} photons, {p.seconds:.1f} s")
+    return 130 if interrupted else 0
+
+
+def _limit(args) -> tuple[str, float]:
+    if args.photons is not None:
+        return ("photons", args.photons)
+    if args.iterations is not None:
+        return ("iterations", args.iterations)
+    return ("seconds", args.time if args.time is not None else 30.0)
+
+
+def _done(renderer, limit) -> bool:
+    kind, value = limit
+    p = renderer.progress()
+    if p.iteration == 0:
+        return False
+    return {"seconds": p.seconds, "photons": p.photons_emitted,
+            "iterations": p.iteration}[kind] >= value
+
+
+def _write_outputs(renderer, out: str, exposure: float, write_exr, write_png) -> None:
+    stats = renderer.stats
+    h, w = stats.height, stats.width
+    layers = {"radius": stats.radius.reshape(h, w).astype("float32"),
+              "photon_count": stats.photon_count.reshape(h, w).astype("float32")}
+    img = renderer.image()
+    os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
+    write_exr(out, img, layers)
+    write_png(os.path.splitext(out)[0] + ".png", img, exposure=exposure)
+
+
+def cmd_scenes(args) -> int:
+    from . import builtin
+    for name, text in builtin.SCENES.items():
+        mark = " (default)" if name == builtin.DEFAULT else ""
+        print(f"{name:18s} {text}{mark}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="dosppm", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+    add_render_parser(sub)
+    sub.add_parser("scenes", help="list the built-in scenes").set_defaults(func=cmd_scenes)
+    from . import cli_tools
+    cli_tools.add_reference_parser(sub)
+    cli_tools.add_compare_parser(sub)
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    return args.func(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

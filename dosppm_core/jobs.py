@@ -1,0 +1,88 @@
+"""Job records: the arrays that move between the steps of the pipeline.
+
+The same records serve single-process SPPM, out-of-core OSPPM and the
+distributed service; only the transport between steps differs. Every
+record is a bundle of equally long numpy arrays, so it can be sliced,
+concatenated and framed for the wire without conversion.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+# Why a path ended, as counted per step (the server's exact accounting).
+CONTINUES, ESCAPED, ABSORBED, MAX_DEPTH, STORED = 0, 1, 2, 3, 4
+END_NAMES = ("continues", "escaped", "absorbed", "max_depth", "stored")
+
+
+class _Record:
+    """Struct-of-arrays helpers shared by all records."""
+
+    def __len__(self) -> int:
+        return int(getattr(self, fields(self)[0].name).shape[0])
+
+    def take(self, index) -> "_Record":
+        return type(self)(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
+
+    @classmethod
+    def concat(cls, parts: list) -> "_Record":
+        parts = [p for p in parts if p is not None]
+        if not parts:
+            return cls.empty()
+        return cls(**{f.name: np.concatenate([getattr(p, f.name) for p in parts])
+                      for f in fields(cls)})
+
+    def arrays(self) -> dict:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    @classmethod
+    def empty(cls) -> "_Record":
+        return cls(**{name: np.empty((0,) + shape, dtype)
+                      for name, (dtype, shape) in cls.SCHEMA.items()})
+
+
+@dataclass
+class RayBatch(_Record):
+    """Paths in flight. Photon paths carry flux in `weight` and pixel -1;
+    eye paths carry the camera weight and their pixel. `rng` is each path's
+    own counter-based state, so a path traces the same wherever it goes."""
+    origin: np.ndarray      # float32 (n, 3)
+    direction: np.ndarray   # float32 (n, 3), unit
+    weight: np.ndarray      # float32 (n, 3)
+    pixel: np.ndarray       # int32 (n,)
+    depth: np.ndarray       # int32 (n,): surfaces hit so far
+    rng: np.ndarray         # uint64 (n,)
+
+    SCHEMA = {"origin": (np.float32, (3,)), "direction": (np.float32, (3,)),
+              "weight": (np.float32, (3,)), "pixel": (np.int32, ()),
+              "depth": (np.int32, ()), "rng": (np.uint64, ())}
+
+
+@dataclass
+class PhotonDeposits(_Record):
+    """Photons stored on non-specular surfaces. `incoming` points back
+    toward where the photon came from; `normal` faces that side."""
+    position: np.ndarray    # float32 (n, 3)
+    incoming: np.ndarray    # float32 (n, 3)
+    normal: np.ndarray      # float32 (n, 3)
+    flux: np.ndarray        # float32 (n, 3)
+
+    SCHEMA = {"position": (np.float32, (3,)), "incoming": (np.float32, (3,)),
+              "normal": (np.float32, (3,)), "flux": (np.float32, (3,))}
+
+
+@dataclass
+class HitPoints(_Record):
+    """Where eye paths met their first non-specular surface. `normal`
+    faces `outgoing` (toward the camera along the path)."""
+    position: np.ndarray    # float32 (n, 3)
+    normal: np.ndarray      # float32 (n, 3)
+    outgoing: np.ndarray    # float32 (n, 3)
+    weight: np.ndarray      # float32 (n, 3): camera path throughput
+    material: np.ndarray    # int32 (n,)
+    pixel: np.ndarray       # int32 (n,)
+
+    SCHEMA = {"position": (np.float32, (3,)), "normal": (np.float32, (3,)),
+              "outgoing": (np.float32, (3,)), "weight": (np.float32, (3,)),
+              "material": (np.int32, ()), "pixel": (np.int32, ())}

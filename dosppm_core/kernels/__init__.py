@@ -1,0 +1,2 @@
+"""numba kernels. Each takes and returns whole batches as arrays; all are
+compiled with cache=True so the compile cost is paid once per machine."""

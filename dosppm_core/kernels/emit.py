@@ -1,0 +1,154 @@
+"""Generation of new paths: eye rays from the camera, photons from lights."""
+import math
+
+import numba as nb
+import numpy as np
+
+from ..scene import LIGHT_POINT, LIGHT_TRIANGLE
+from .bsdf import cosine_hemisphere, to_world
+from .rng import EYE_STREAM, next_float, path_state
+
+
+@nb.njit(cache=True)
+def concentric_disk(u1, u2):
+    a, b = 2.0 * u1 - 1.0, 2.0 * u2 - 1.0
+    if a == 0.0 and b == 0.0:
+        return 0.0, 0.0
+    if abs(a) > abs(b):
+        r, phi = a, (math.pi / 4.0) * (b / a)
+    else:
+        r, phi = b, (math.pi / 2.0) - (math.pi / 4.0) * (a / b)
+    return r * math.cos(phi), r * math.sin(phi)
+
+
+@nb.njit(cache=True, parallel=True)
+def generate_eye_rays(frame, width, seed, iteration, pixel_start, count):
+    """One eye ray per pixel in [pixel_start, pixel_start + count) of
+    iteration `iteration`: box-filtered jitter and an optional thin lens.
+    `frame` is `Camera.frame()`. Returns origin, direction, rng state."""
+    origin = np.empty((count, 3), np.float32)
+    direction = np.empty((count, 3), np.float32)
+    states = np.empty(count, np.uint64)
+    pos, right, up, fwd = frame[0], frame[1], frame[2], frame[3]
+    tan_x, tan_y = frame[4, 0], frame[4, 1]
+    aperture, focus, near = frame[5, 0], frame[5, 1], frame[5, 2]
+    job = EYE_STREAM + np.uint64(iteration)
+    for i in nb.prange(count):
+        pixel = pixel_start + i
+        st = path_state(np.uint64(seed), job, np.uint64(pixel))
+        st, ux = next_float(st)
+        st, uy = next_float(st)
+        col, row = pixel % width, pixel // width
+        height = frame[4, 2]
+        sx = (2.0 * (col + ux) / width - 1.0) * tan_x
+        sy = (1.0 - 2.0 * (row + uy) / height) * tan_y
+        d = np.empty(3)
+        for k in range(3):
+            d[k] = fwd[k] + sx * right[k] + sy * up[k]
+        o = np.empty(3)
+        for k in range(3):
+            o[k] = pos[k]
+        if aperture > 0.0:
+            st, u1 = next_float(st)
+            st, u2 = next_float(st)
+            lx, ly = concentric_disk(u1, u2)
+            for k in range(3):
+                focus_point = pos[k] + d[k] * focus
+                o[k] = pos[k] + aperture * (lx * right[k] + ly * up[k])
+                d[k] = focus_point - o[k]
+        inv = 1.0 / math.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+        cos_f = (d[0] * fwd[0] + d[1] * fwd[1] + d[2] * fwd[2]) * inv
+        for k in range(3):
+            direction[i, k] = d[k] * inv
+            origin[i, k] = o[k] + d[k] * inv * (near / cos_f)
+        states[i] = st
+    return origin, direction, states
+
+
+@nb.njit(cache=True)
+def _select_light(cdf, u):
+    lo, hi = 0, cdf.shape[0] - 1
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if cdf[mid] <= u:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@nb.njit(cache=True, parallel=True)
+def emit_photons(kind, p0, p1, p2, value, cone, power, cdf, seed, job, count, eps):
+    """Photons of emission job `job`, lights chosen in proportion to power.
+
+    Each photon's flux is radiant power / pdf, so the image is the sum over
+    photons divided by the number emitted (eq. 5's N_e). Surface photons
+    start `eps` off their light along its normal (Embree's tnear is 0).
+    Returns origin, direction, flux, rng state.
+    """
+    origin = np.empty((count, 3), np.float32)
+    direction = np.empty((count, 3), np.float32)
+    flux = np.empty((count, 3), np.float32)
+    states = np.empty(count, np.uint64)
+    total = power.sum()
+    for i in nb.prange(count):
+        st = path_state(np.uint64(seed), np.uint64(job), np.uint64(i))
+        st, ul = next_float(st)
+        st, u1 = next_float(st)
+        st, u2 = next_float(st)
+        st, u3 = next_float(st)
+        st, u4 = next_float(st)
+        li = _select_light(cdf, ul)
+        p_sel = power[li] / total
+        if kind[li] == LIGHT_TRIANGLE:
+            o, d, scale = _emit_triangle(p0[li], p1[li], p2[li], u1, u2, u3, u4, eps)
+        elif kind[li] == LIGHT_POINT:
+            z = 1.0 - 2.0 * u1
+            r = math.sqrt(max(0.0, 1.0 - z * z))
+            phi = 2.0 * math.pi * u2
+            o = (p0[li, 0], p0[li, 1], p0[li, 2])
+            d = (r * math.cos(phi), r * math.sin(phi), z)
+            scale = 4.0 * math.pi
+        else:
+            o, d, scale = _emit_spot(p0[li], p1[li], cone[li], u1, u2)
+        for k in range(3):
+            origin[i, k] = o[k]
+            direction[i, k] = d[k]
+            flux[i, k] = value[li, k] * scale / p_sel
+        states[i] = st
+    return origin, direction, flux, states
+
+
+@nb.njit(cache=True)
+def _emit_triangle(a, b, c, u1, u2, u3, u4, eps):
+    """Uniform point, cosine direction about the CCW normal. Returns the
+    factor pi * area that turns radiance into flux / pdf."""
+    su = math.sqrt(u1)
+    ba, bb = 1.0 - su, u2 * su
+    e1 = (b[0] - a[0], b[1] - a[1], b[2] - a[2])
+    e2 = (c[0] - a[0], c[1] - a[1], c[2] - a[2])
+    nx = e1[1] * e2[2] - e1[2] * e2[1]
+    ny = e1[2] * e2[0] - e1[0] * e2[2]
+    nz = e1[0] * e2[1] - e1[1] * e2[0]
+    nl = math.sqrt(nx * nx + ny * ny + nz * nz)
+    nx, ny, nz = nx / nl, ny / nl, nz / nl
+    x, y, z = cosine_hemisphere(u3, u4)
+    d = to_world(x, y, z, nx, ny, nz)
+    o = (a[0] + ba * e1[0] + bb * e2[0] + eps * nx,
+         a[1] + ba * e1[1] + bb * e2[1] + eps * ny,
+         a[2] + ba * e1[2] + bb * e2[2] + eps * nz)
+    return o, d, math.pi * 0.5 * nl
+
+
+@nb.njit(cache=True)
+def _emit_spot(pos, axis, cone, u1, u2):
+    """Uniform direction in the cutoff cone, weighted by Mitsuba's falloff
+    (1 inside the beam, linear in angle to 0 at the cutoff)."""
+    cos_cut, cutoff, beam = cone[0], cone[2], cone[3]
+    z = 1.0 - u1 * (1.0 - cos_cut)
+    r = math.sqrt(max(0.0, 1.0 - z * z))
+    phi = 2.0 * math.pi * u2
+    d = to_world(r * math.cos(phi), r * math.sin(phi), z, axis[0], axis[1], axis[2])
+    theta = math.acos(min(1.0, z))
+    fall = 1.0 if theta <= beam else max(0.0, (cutoff - theta) / (cutoff - beam))
+    return (pos[0], pos[1], pos[2]), d, fall * 2.0 * math.pi * (1.0 - cos_cut)

@@ -1,0 +1,191 @@
+"""One bounce of a batch of photon or eye paths, after intersection.
+
+Each kernel reads the closest hits of a batch and writes, per ray, what
+happened: a deposit or a hit point, the continuing ray, and why the path
+ended (codes in `dosppm_core.jobs`). Compaction is left to the caller so
+that the same step serves a whole scene or one chunk.
+"""
+import math
+
+import numba as nb
+import numpy as np
+
+from ..jobs import ABSORBED, CONTINUES, ESCAPED, MAX_DEPTH, STORED
+from .bsdf import is_specular, sample_bsdf
+from .rng import next_float
+
+
+@nb.njit(cache=True)
+def surface(v0, v1, v2, u, v):
+    """Hit position (from barycentrics, float64: more exact than o + t d)
+    and the unit CCW geometric normal, from the triangle's vertex rows."""
+    w = 1.0 - u - v
+    p0 = w * np.float64(v0[0]) + u * np.float64(v1[0]) + v * np.float64(v2[0])
+    p1 = w * np.float64(v0[1]) + u * np.float64(v1[1]) + v * np.float64(v2[1])
+    p2 = w * np.float64(v0[2]) + u * np.float64(v1[2]) + v * np.float64(v2[2])
+    a0, a1, a2 = np.float64(v1[0]) - v0[0], np.float64(v1[1]) - v0[1], np.float64(v1[2]) - v0[2]
+    b0, b1, b2 = np.float64(v2[0]) - v0[0], np.float64(v2[1]) - v0[1], np.float64(v2[2]) - v0[2]
+    nx = a1 * b2 - a2 * b1
+    ny = a2 * b0 - a0 * b2
+    nz = a0 * b1 - a1 * b0
+    nl = math.sqrt(nx * nx + ny * ny + nz * nz)
+    return p0, p1, p2, nx / nl, ny / nl, nz / nl
+
+
+@nb.njit(cache=True)
+def offset_origin(p0, p1, p2, n0, n1, n2, w0, w1, w2, eps_rel, eps_abs):
+    """Spawn point off the surface on the side of direction w. Embree's
+    tnear is 0, so without this a ray re-hits its own triangle; the offset
+    is relative to |p| so scenes far from the origin still clear float32."""
+    eps = eps_rel * max(abs(p0), abs(p1), abs(p2)) + eps_abs
+    if n0 * w0 + n1 * w1 + n2 * w2 < 0.0:
+        eps = -eps
+    return p0 + eps * n0, p1 + eps * n1, p2 + eps * n2
+
+
+@nb.njit(cache=True, parallel=True)
+def scatter_photons(origin, direction, flux, depth, states, prim, u, v,
+                    vertices, triangles, tri_material, mat_kind, mat_refl, mat_ior,
+                    mat_rough, mat_two_sided, cull_lo, cull_hi, max_depth,
+                    eps_rel, eps_abs):
+    """Deposit photons at non-specular hits (if inside the cull box) and
+    scatter them with Russian roulette. Returns (end, deposited, culled,
+    dep_pos, dep_in, dep_n, new_origin, new_dir, new_flux, states); a
+    deposit's flux is the arriving `flux`."""
+    n = origin.shape[0]
+    end = np.empty(n, np.int8)
+    deposited = np.zeros(n, np.bool_)
+    culled = np.zeros(n, np.bool_)
+    dep_pos = np.empty((n, 3), np.float32)
+    dep_in = np.empty((n, 3), np.float32)
+    dep_n = np.empty((n, 3), np.float32)
+    new_o = np.empty((n, 3), np.float32)
+    new_d = np.empty((n, 3), np.float32)
+    new_f = np.empty((n, 3), np.float32)
+    out_states = states.copy()
+    for i in nb.prange(n):
+        tri = prim[i]
+        if tri < 0:
+            end[i] = ESCAPED
+            continue
+        t0, t1, t2 = triangles[tri, 0], triangles[tri, 1], triangles[tri, 2]
+        p0, p1, p2, n0, n1, n2 = surface(vertices[t0], vertices[t1], vertices[t2],
+                                         np.float64(u[i]), np.float64(v[i]))
+        w0, w1, w2 = -direction[i, 0], -direction[i, 1], -direction[i, 2]
+        m = tri_material[tri]
+        kind = mat_kind[m]
+        front = n0 * w0 + n1 * w1 + n2 * w2 > 0.0
+        if not is_specular(kind):
+            if not front and not mat_two_sided[m]:
+                end[i] = ABSORBED   # the black back of a one-sided surface
+                continue
+            inside = True
+            for k in range(3):
+                pk = p0 if k == 0 else (p1 if k == 1 else p2)
+                if pk < cull_lo[k] or pk > cull_hi[k]:
+                    inside = False
+            if inside:
+                s = 1.0 if front else -1.0
+                deposited[i] = True
+                dep_pos[i, 0], dep_pos[i, 1], dep_pos[i, 2] = p0, p1, p2
+                dep_in[i, 0], dep_in[i, 1], dep_in[i, 2] = w0, w1, w2
+                dep_n[i, 0], dep_n[i, 1], dep_n[i, 2] = s * n0, s * n1, s * n2
+            else:
+                culled[i] = True
+        if depth[i] + 1 >= max_depth:
+            end[i] = MAX_DEPTH
+            continue
+        st = states[i]
+        st, u1 = next_float(st)
+        st, u2 = next_float(st)
+        st, u3 = next_float(st)
+        st, ur = next_float(st)
+        out_states[i] = st
+        ok, d0, d1, d2, scale, spec = sample_bsdf(kind, mat_two_sided[m], np.float64(mat_ior[m]),
+                                                  np.float64(mat_rough[m]), n0, n1, n2, w0, w1, w2,
+                                                  u1, u2, u3, False)
+        if not ok:
+            end[i] = ABSORBED
+            continue
+        # Russian roulette on the throughput change (pbrt-v4's SPPM rule):
+        # survivors are boosted so the expected flux is unchanged.
+        old_max = max(flux[i, 0], flux[i, 1], flux[i, 2])
+        nf0 = flux[i, 0] * mat_refl[m, 0] * scale
+        nf1 = flux[i, 1] * mat_refl[m, 1] * scale
+        nf2 = flux[i, 2] * mat_refl[m, 2] * scale
+        q = max(0.0, 1.0 - max(nf0, nf1, nf2) / old_max) if old_max > 0 else 1.0
+        if ur < q:
+            end[i] = ABSORBED
+            continue
+        keep = 1.0 / (1.0 - q)
+        new_f[i, 0], new_f[i, 1], new_f[i, 2] = nf0 * keep, nf1 * keep, nf2 * keep
+        dl = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        new_d[i, 0], new_d[i, 1], new_d[i, 2] = d0 / dl, d1 / dl, d2 / dl
+        new_o[i, 0], new_o[i, 1], new_o[i, 2] = offset_origin(
+            p0, p1, p2, n0, n1, n2, d0, d1, d2, eps_rel, eps_abs)
+        end[i] = CONTINUES
+    return (end, deposited, culled, dep_pos, dep_in, dep_n, new_o, new_d, new_f, out_states)
+
+
+@nb.njit(cache=True, parallel=True)
+def advance_eye_paths(direction, weight, depth, states, prim, u, v,
+                      vertices, triangles, tri_material, mat_kind, mat_refl, mat_emit,
+                      mat_ior, mat_rough, mat_two_sided, max_depth, eps_rel, eps_abs):
+    """Record emission seen along eye paths, store a hit point at the first
+    non-specular surface, and continue through mirrors and glass. Returns
+    (end, emitted, hp_pos, hp_n, new_origin, new_dir, new_weight, states);
+    a hit point is stored where end == STORED (its outgoing direction is
+    -direction, its material tri_material[prim])."""
+    n = direction.shape[0]
+    end = np.empty(n, np.int8)
+    emitted = np.zeros((n, 3), np.float32)
+    hp_pos = np.empty((n, 3), np.float32)
+    hp_n = np.empty((n, 3), np.float32)
+    new_o = np.empty((n, 3), np.float32)
+    new_d = np.empty((n, 3), np.float32)
+    new_w = np.empty((n, 3), np.float32)
+    out_states = states.copy()
+    for i in nb.prange(n):
+        tri = prim[i]
+        if tri < 0:
+            end[i] = ESCAPED
+            continue
+        t0, t1, t2 = triangles[tri, 0], triangles[tri, 1], triangles[tri, 2]
+        p0, p1, p2, n0, n1, n2 = surface(vertices[t0], vertices[t1], vertices[t2],
+                                         np.float64(u[i]), np.float64(v[i]))
+        w0, w1, w2 = -direction[i, 0], -direction[i, 1], -direction[i, 2]
+        m = tri_material[tri]
+        kind = mat_kind[m]
+        front = n0 * w0 + n1 * w1 + n2 * w2 > 0.0
+        if front:  # one-sided emitters, as in Mitsuba
+            for k in range(3):
+                emitted[i, k] = weight[i, k] * mat_emit[m, k]
+        if not is_specular(kind):
+            if not front and not mat_two_sided[m]:
+                end[i] = ABSORBED
+                continue
+            s = 1.0 if front else -1.0
+            hp_pos[i, 0], hp_pos[i, 1], hp_pos[i, 2] = p0, p1, p2
+            hp_n[i, 0], hp_n[i, 1], hp_n[i, 2] = s * n0, s * n1, s * n2
+            end[i] = STORED
+            continue
+        if depth[i] + 1 >= max_depth:
+            end[i] = MAX_DEPTH
+            continue
+        st = states[i]
+        st, u1 = next_float(st)
+        out_states[i] = st
+        ok, d0, d1, d2, scale, spec = sample_bsdf(kind, mat_two_sided[m], np.float64(mat_ior[m]),
+                                                  np.float64(mat_rough[m]), n0, n1, n2, w0, w1, w2,
+                                                  u1, 0.5, 0.5, True)
+        if not ok:
+            end[i] = ABSORBED
+            continue
+        for k in range(3):
+            new_w[i, k] = weight[i, k] * mat_refl[m, k] * scale
+        dl = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        new_d[i, 0], new_d[i, 1], new_d[i, 2] = d0 / dl, d1 / dl, d2 / dl
+        new_o[i, 0], new_o[i, 1], new_o[i, 2] = offset_origin(
+            p0, p1, p2, n0, n1, n2, d0, d1, d2, eps_rel, eps_abs)
+        end[i] = CONTINUES
+    return end, emitted, hp_pos, hp_n, new_o, new_d, new_w, out_states

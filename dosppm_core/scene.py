@@ -1,0 +1,356 @@
+"""The scene: flat arrays that every kernel, chunk and process shares.
+
+A scene is triangles (one material id each), a material table, a light table
+and a camera. Every loader (TOML scene files, Mitsuba XML, the built-in
+procedural scenes) goes through `SceneBuilder`, which owns validation, so a
+bad scene gets the same one-line error whatever it came from.
+
+Colours are linear RGB triples. Emission belongs to the material: an emissive
+mesh is an area light of that radiance, emitting on the side its triangle
+winding faces (counter-clockwise = front), as in Mitsuba.
+"""
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+
+# Material kinds, as stored in `MaterialTable.kind` and read by the kernels.
+DIFFUSE, MIRROR, GLASS, GLOSSY = 0, 1, 2, 3
+MATERIAL_KINDS = {"diffuse": DIFFUSE, "mirror": MIRROR, "glass": GLASS, "glossy": GLOSSY}
+
+# Light kinds, as stored in `LightTable.kind`.
+LIGHT_TRIANGLE, LIGHT_POINT, LIGHT_SPOT = 0, 1, 2
+
+
+class SceneError(ValueError):
+    """A user mistake in a scene; the message is one line naming where it is."""
+
+
+def _rgb(value, where: str) -> np.ndarray:
+    arr = np.asarray(value, dtype=np.float64).reshape(-1)
+    if arr.size == 1:
+        arr = np.repeat(arr, 3)
+    if arr.size != 3 or not np.all(np.isfinite(arr)):
+        raise SceneError(f"{where}: expected an RGB triple of finite numbers, got {value!r}")
+    return arr
+
+
+@dataclass
+class Material:
+    """One surface description.
+
+    kind: 'diffuse' (Lambertian, albedo `reflectance`), 'mirror' (perfect
+    specular, `reflectance`), 'glass' (smooth dielectric with `ior`, Fresnel
+    reflection/refraction; `reflectance` tints both), 'glossy' (one GGX
+    microfacet reflection lobe of `roughness` = alpha, tinted by
+    `reflectance`). `two_sided=False` makes the back of a diffuse, mirror or
+    glossy surface black, as Mitsuba does without its `twosided` wrapper.
+    """
+    name: str
+    kind: str = "diffuse"
+    reflectance: tuple = (0.5, 0.5, 0.5)
+    ior: float = 1.5
+    roughness: float = 0.1
+    emission: tuple = (0.0, 0.0, 0.0)
+    two_sided: bool = True
+
+    def validate(self, where: str) -> None:
+        if self.kind not in MATERIAL_KINDS:
+            raise SceneError(f"{where}: unknown material kind {self.kind!r} "
+                             f"(known: {', '.join(MATERIAL_KINDS)})")
+        refl = _rgb(self.reflectance, f"{where}.reflectance")
+        if np.any(refl < 0) or (self.kind != "glass" and np.any(refl > 1)):
+            raise SceneError(f"{where}.reflectance: must lie in [0, 1], got {tuple(refl)}")
+        if not (math.isfinite(self.ior) and self.ior > 0):
+            raise SceneError(f"{where}.ior: must be a positive number, got {self.ior!r}")
+        if not (math.isfinite(self.roughness) and 1e-4 <= self.roughness <= 1.0):
+            raise SceneError(f"{where}.roughness: must lie in [1e-4, 1], got {self.roughness!r}")
+        if np.any(_rgb(self.emission, f"{where}.emission") < 0):
+            raise SceneError(f"{where}.emission: must be non-negative")
+
+
+@dataclass
+class Camera:
+    """Perspective camera; `aperture_radius > 0` gives a thin lens focused at
+    `focus_distance`. `fov_deg` is measured along `fov_axis`
+    ('x', 'y', 'smaller' or 'larger'), as in Mitsuba."""
+    position: tuple
+    look_at: tuple
+    up: tuple
+    fov_deg: float
+    width: int
+    height: int
+    fov_axis: str = "x"
+    aperture_radius: float = 0.0
+    focus_distance: float = 1.0
+    near_clip: float = 0.0
+
+    def validate(self, where: str = "camera") -> None:
+        for name in ("position", "look_at", "up"):
+            _rgb(getattr(self, name), f"{where}.{name}")
+        if self.width is None or self.height is None:
+            raise SceneError(f"{where}: missing resolution (width and height)")
+        if int(self.width) < 1 or int(self.height) < 1:
+            raise SceneError(f"{where}: resolution must be positive, got {self.width}x{self.height}")
+        if not (0 < self.fov_deg < 180):
+            raise SceneError(f"{where}.fov: must lie in (0, 180) degrees, got {self.fov_deg!r}")
+        if self.fov_axis not in ("x", "y", "smaller", "larger"):
+            raise SceneError(f"{where}.fov_axis: must be x, y, smaller or larger, got {self.fov_axis!r}")
+        fwd = np.subtract(self.look_at, self.position)
+        if np.linalg.norm(fwd) == 0 or np.linalg.norm(np.cross(fwd, self.up)) == 0:
+            raise SceneError(f"{where}: look_at must differ from position and not be parallel to up")
+        if self.aperture_radius < 0 or (self.aperture_radius > 0 and self.focus_distance <= 0):
+            raise SceneError(f"{where}: thin lens needs aperture >= 0 and focus_distance > 0")
+
+    def frame(self) -> np.ndarray:
+        """Rows: position, right, up, forward (unit), (tan_x, tan_y, height),
+        (aperture, focus, near clip), a (6, 3) float64 array for the eye-ray kernel. Image right is
+        forward x up, so Mitsuba scenes come out unmirrored."""
+        pos = np.asarray(self.position, np.float64)
+        fwd = np.asarray(self.look_at, np.float64) - pos
+        fwd /= np.linalg.norm(fwd)
+        right = np.cross(fwd, np.asarray(self.up, np.float64))
+        right /= np.linalg.norm(right)
+        up = np.cross(right, fwd)
+        t = math.tan(math.radians(self.fov_deg) / 2)
+        w, h = int(self.width), int(self.height)
+        axis = self.fov_axis
+        if axis == "smaller":
+            axis = "x" if w <= h else "y"
+        elif axis == "larger":
+            axis = "x" if w >= h else "y"
+        tan_x, tan_y = (t, t * h / w) if axis == "x" else (t * w / h, t)
+        lens = (self.aperture_radius, self.focus_distance, self.near_clip)
+        return np.array([pos, right, up, fwd, (tan_x, tan_y, h), lens], dtype=np.float64)
+
+
+@dataclass
+class MaterialTable:
+    """Struct-of-arrays view of the materials, indexed by material id."""
+    kind: np.ndarray          # int32 (m,)
+    reflectance: np.ndarray   # float32 (m, 3)
+    emission: np.ndarray      # float32 (m, 3)
+    ior: np.ndarray           # float32 (m,)
+    roughness: np.ndarray     # float32 (m,)
+    two_sided: np.ndarray     # bool (m,)
+    names: list
+
+    @classmethod
+    def from_materials(cls, mats: list[Material]) -> "MaterialTable":
+        return cls(
+            kind=np.array([MATERIAL_KINDS[m.kind] for m in mats], np.int32),
+            reflectance=np.array([_rgb(m.reflectance, m.name) for m in mats], np.float32).reshape(-1, 3),
+            emission=np.array([_rgb(m.emission, m.name) for m in mats], np.float32).reshape(-1, 3),
+            ior=np.array([m.ior for m in mats], np.float32),
+            roughness=np.array([m.roughness for m in mats], np.float32),
+            two_sided=np.array([m.two_sided for m in mats], np.bool_),
+            names=[m.name for m in mats],
+        )
+
+
+@dataclass
+class LightTable:
+    """Every light as one row, for power-proportional selection.
+
+    Triangle lights store their vertices in p0..p2 and radiance in `value`;
+    point and spot lights store position in p0, intensity (W/sr) in `value`,
+    and spots their unit axis in p1 and (cos cutoff, cos beam, cutoff rad,
+    beam rad) in `cone`. `power` is the emitted flux per row (RGB mean), and
+    `cdf` its normalised running sum.
+    """
+    kind: np.ndarray     # int32 (L,)
+    p0: np.ndarray       # float64 (L, 3)
+    p1: np.ndarray
+    p2: np.ndarray
+    value: np.ndarray    # float64 (L, 3)
+    cone: np.ndarray     # float64 (L, 4)
+    power: np.ndarray    # float64 (L,)
+    cdf: np.ndarray      # float64 (L,)
+
+    @property
+    def total_power(self) -> float:
+        return float(self.power.sum())
+
+
+@dataclass
+class Scene:
+    vertices: np.ndarray        # float32 (nv, 3)
+    triangles: np.ndarray       # int32 (nt, 3)
+    tri_material: np.ndarray    # int32 (nt,)
+    materials: MaterialTable
+    lights: LightTable
+    camera: Camera
+    name: str = "scene"
+    source: str = "<memory>"
+
+    @property
+    def triangle_count(self) -> int:
+        return int(self.triangles.shape[0])
+
+    def bounds(self) -> np.ndarray:
+        """(2, 3) float64 box of the geometry and the point/spot lights."""
+        pts = [self.vertices.astype(np.float64)]
+        delta = self.lights.kind != LIGHT_TRIANGLE
+        if np.any(delta):
+            pts.append(self.lights.p0[delta])
+        allp = np.concatenate(pts)
+        return np.stack([allp.min(0), allp.max(0)])
+
+    def diagonal(self) -> float:
+        b = self.bounds()
+        return float(np.linalg.norm(b[1] - b[0]))
+
+
+@dataclass
+class _Mesh:
+    vertices: np.ndarray
+    faces: np.ndarray
+    material: int
+
+
+@dataclass
+class SceneBuilder:
+    """Collects meshes, materials, lights and a camera, then validates them
+    into a `Scene`. `source` names the file for error messages."""
+    source: str = "<memory>"
+    name: str = "scene"
+    _materials: list = field(default_factory=list)
+    _material_ids: dict = field(default_factory=dict)
+    _meshes: list = field(default_factory=list)
+    _delta_lights: list = field(default_factory=list)
+    camera: Camera | None = None
+
+    def add_material(self, material: Material, where: str | None = None) -> int:
+        where = where or f"{self.source}: material {material.name!r}"
+        material.validate(where)
+        if material.name in self._material_ids:
+            raise SceneError(f"{where}: duplicate material name {material.name!r}")
+        self._material_ids[material.name] = len(self._materials)
+        self._materials.append(material)
+        return self._material_ids[material.name]
+
+    def material_id(self, name: str, where: str) -> int:
+        try:
+            return self._material_ids[name]
+        except KeyError:
+            raise SceneError(f"{where}: unknown material {name!r}") from None
+
+    def add_mesh(self, vertices, faces, material: str | int, where: str,
+                 transform: np.ndarray | None = None) -> None:
+        """Add triangles. `transform` is a 4x4 object-to-world matrix."""
+        v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+        f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+        if not np.all(np.isfinite(v)):
+            raise SceneError(f"{where}: vertices contain NaN or Inf")
+        if f.size and (f.min() < 0 or f.max() >= len(v)):
+            raise SceneError(f"{where}: face index out of range (0..{len(v) - 1})")
+        if transform is not None:
+            t = np.asarray(transform, np.float64)
+            v = v @ t[:3, :3].T + t[:3, 3]
+            if not np.all(np.isfinite(v)):
+                raise SceneError(f"{where}: transform produced NaN or Inf vertices")
+        mid = material if isinstance(material, int) else self.material_id(material, where)
+        self._meshes.append(_Mesh(v, f, mid))
+
+    def add_point_light(self, position, intensity, where: str) -> None:
+        pos, val = _rgb(position, f"{where}.position"), _rgb(intensity, f"{where}.intensity")
+        if np.any(val < 0):
+            raise SceneError(f"{where}.intensity: must be non-negative")
+        self._delta_lights.append((LIGHT_POINT, pos, np.zeros(3), val, np.zeros(4)))
+
+    def add_spot_light(self, position, target, intensity, cutoff_deg: float,
+                       beam_width_deg: float | None, where: str) -> None:
+        """Mitsuba's spot: full intensity inside `beam_width_deg`, falling
+        linearly in angle to zero at `cutoff_deg`."""
+        pos, tgt = _rgb(position, f"{where}.position"), _rgb(target, f"{where}.target")
+        val = _rgb(intensity, f"{where}.intensity")
+        axis = tgt - pos
+        if np.linalg.norm(axis) == 0:
+            raise SceneError(f"{where}: target equals position")
+        if not (0 < cutoff_deg < 180):
+            raise SceneError(f"{where}.cutoff_angle: must lie in (0, 180), got {cutoff_deg}")
+        beam = cutoff_deg * 0.75 if beam_width_deg is None else beam_width_deg
+        if not (0 < beam <= cutoff_deg):
+            raise SceneError(f"{where}.beam_width: must lie in (0, cutoff_angle], got {beam}")
+        c, b = math.radians(cutoff_deg), math.radians(beam)
+        cone = np.array([math.cos(c), math.cos(b), c, b])
+        self._delta_lights.append((LIGHT_SPOT, pos, axis / np.linalg.norm(axis), val, cone))
+
+    # -- building ---------------------------------------------------------
+    def build(self) -> Scene:
+        if self.camera is None:
+            raise SceneError(f"{self.source}: no camera")
+        self.camera.validate(f"{self.source}: camera")
+        if not self._meshes:
+            raise SceneError(f"{self.source}: no geometry")
+        verts, tris, mats = self._merge_meshes()
+        mtable = MaterialTable.from_materials(self._materials)
+        lights = self._light_table(verts, tris, mats, mtable)
+        if lights.kind.size == 0 or lights.total_power <= 0:
+            raise SceneError(f"{self.source}: no light (no emissive material, point or spot light)")
+        return Scene(verts.astype(np.float32), tris.astype(np.int32), mats.astype(np.int32),
+                     mtable, lights, self.camera, self.name, self.source)
+
+    def _merge_meshes(self):
+        offsets = np.cumsum([0] + [len(m.vertices) for m in self._meshes])
+        verts = np.concatenate([m.vertices for m in self._meshes])
+        tris = np.concatenate([m.faces + o for m, o in zip(self._meshes, offsets)])
+        mats = np.concatenate([np.full(len(m.faces), m.material, np.int32) for m in self._meshes])
+        area2 = np.linalg.norm(_triangle_cross(verts, tris), axis=1)
+        # Degenerate: zero area relative to the edge lengths (a sliver with
+        # collapsed vertices); Embree never hits them and lights must not emit.
+        edge = np.linalg.norm(verts[tris[:, 1]] - verts[tris[:, 0]], axis=1) + \
+            np.linalg.norm(verts[tris[:, 2]] - verts[tris[:, 0]], axis=1)
+        keep = area2 > 1e-12 * np.maximum(edge * edge, 1e-300)
+        dropped = int((~keep).sum())
+        if dropped:
+            warnings.warn(f"{self.source}: dropped {dropped} degenerate triangle(s)", stacklevel=3)
+        if not np.any(keep):
+            raise SceneError(f"{self.source}: every triangle is degenerate")
+        return verts, tris[keep], mats[keep]
+
+    def _light_table(self, verts, tris, mats, mtable: MaterialTable) -> LightTable:
+        emit = mtable.emission.astype(np.float64)[mats]
+        lit = np.flatnonzero(emit.max(axis=1) > 0)
+        p0, p1, p2 = (verts[tris[lit, k]] for k in range(3))
+        area = 0.5 * np.linalg.norm(np.cross(p1 - p0, p2 - p0), axis=1)
+        rows_kind = [np.full(len(lit), LIGHT_TRIANGLE, np.int32)]
+        rows = [p0, p1, p2, emit[lit], np.zeros((len(lit), 4))]
+        # One-sided Lambertian emitter: flux = pi * L * area per channel.
+        power = [math.pi * area * emit[lit].mean(axis=1)]
+        for kind, pos, axis, val, cone in self._delta_lights:
+            rows_kind.append(np.array([kind], np.int32))
+            for i, x in enumerate((pos, axis, np.zeros(3), val, cone)):
+                rows[i] = np.concatenate([rows[i], x[None]])
+            power.append(np.array([val.mean() * _delta_solid_angle(kind, cone)]))
+        power = np.concatenate(power)
+        total = power.sum()
+        cdf = np.cumsum(power) / total if total > 0 else np.zeros_like(power)
+        if cdf.size:
+            cdf[-1] = 1.0
+        return LightTable(np.concatenate(rows_kind), rows[0], rows[1], rows[2], rows[3],
+                          rows[4], power, cdf)
+
+
+def _delta_solid_angle(kind: int, cone: np.ndarray) -> float:
+    """Integral of the angular falloff over the sphere: 4 pi for a point
+    light; for a spot, the full cone to the beam plus the linear ramp."""
+    if kind == LIGHT_POINT:
+        return 4 * math.pi
+    cutoff, beam = cone[2], cone[3]
+    full = 2 * math.pi * (1 - math.cos(beam))
+    # Ramp: integral of 2 pi sin(t) (cutoff - t) / (cutoff - beam) dt over
+    # [beam, cutoff], by parts: ((cutoff - beam) cos(beam) - (sin(cutoff) - sin(beam))).
+    ramp = 0.0
+    if cutoff > beam:
+        w = cutoff - beam
+        ramp = 2 * math.pi * (w * math.cos(beam) - (math.sin(cutoff) - math.sin(beam))) / w
+    return full + ramp
+
+
+def _triangle_cross(verts: np.ndarray, tris: np.ndarray) -> np.ndarray:
+    v0 = verts[tris[:, 0]]
+    return np.cross(verts[tris[:, 1]] - v0, verts[tris[:, 2]] - v0)

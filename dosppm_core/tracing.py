@@ -1,0 +1,115 @@
+"""Tracing steps: new paths, and one bounce of a batch against one
+aggregate. Chunked and distributed modes call the same steps; only what
+happens to the continuing rays between steps differs."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .accel import Accelerator
+from .jobs import CONTINUES, STORED, HitPoints, PhotonDeposits, RayBatch
+from .kernels import emit, paths
+from .scene import Scene
+
+NO_CULL = np.array([[-np.inf] * 3, [np.inf] * 3])
+EPS_REL = 2e-5   # spawn offset relative to |p|: ~300 float32 ulps
+END_KINDS = 5
+
+
+@dataclass
+class SurfaceData:
+    """The arrays the bounce kernels read: geometry and materials."""
+    vertices: np.ndarray
+    triangles: np.ndarray
+    tri_material: np.ndarray
+    kind: np.ndarray
+    reflectance: np.ndarray
+    emission: np.ndarray
+    ior: np.ndarray
+    roughness: np.ndarray
+    two_sided: np.ndarray
+    eps_abs: float
+
+    @classmethod
+    def from_scene(cls, scene: Scene) -> "SurfaceData":
+        m = scene.materials
+        return cls(scene.vertices, scene.triangles, scene.tri_material, m.kind,
+                   m.reflectance, m.emission, m.ior, m.roughness, m.two_sided,
+                   1e-6 * scene.diagonal())
+
+
+def emit_photon_job(scene: Scene, seed: int, job: int, count: int, eps_abs: float) -> RayBatch:
+    """The `count` photons of emission job `job` (a pure function of its
+    arguments, so a job can be re-emitted and traces the same photons)."""
+    L = scene.lights
+    o, d, f, st = emit.emit_photons(L.kind, L.p0, L.p1, L.p2, L.value, L.cone, L.power,
+                                    L.cdf, np.uint64(seed), np.uint64(job), count, eps_abs)
+    return RayBatch(o, d, f, np.full(count, -1, np.int32), np.zeros(count, np.int32), st)
+
+
+def eye_ray_job(scene: Scene, seed: int, iteration: int, pixel_start: int, count: int) -> RayBatch:
+    """Eye rays of pixels [pixel_start, pixel_start + count) of one iteration."""
+    frame = scene.camera.frame()
+    o, d, st = emit.generate_eye_rays(frame, int(scene.camera.width), np.uint64(seed),
+                                      np.uint64(iteration), pixel_start, count)
+    pixel = np.arange(pixel_start, pixel_start + count, dtype=np.int32)
+    return RayBatch(o, d, np.ones((count, 3), np.float32), pixel, np.zeros(count, np.int32), st)
+
+
+def photon_step(accel: Accelerator, surf: SurfaceData, batch: RayBatch,
+                cull_box: np.ndarray, max_depth: int):
+    """One bounce. Returns (deposits, continuing batch, end counts, culled)."""
+    prim, _t, u, v = accel.intersect(batch.origin, batch.direction)
+    (end, dep, culled, dpos, din, dn, no, nd, nf, st) = paths.scatter_photons(
+        batch.origin, batch.direction, batch.weight, batch.depth, batch.rng, prim, u, v,
+        surf.vertices, surf.triangles, surf.tri_material, surf.kind, surf.reflectance,
+        surf.ior, surf.roughness, surf.two_sided, cull_box[0], cull_box[1], max_depth,
+        EPS_REL, surf.eps_abs)
+    deposits = PhotonDeposits(dpos[dep], din[dep], dn[dep], batch.weight[dep])
+    go = end == CONTINUES
+    nxt = RayBatch(no[go], nd[go], nf[go], batch.pixel[go], batch.depth[go] + 1, st[go])
+    return deposits, nxt, np.bincount(end, minlength=END_KINDS), int(culled.sum())
+
+
+def eye_step(accel: Accelerator, surf: SurfaceData, batch: RayBatch, max_depth: int):
+    """One bounce of eye paths. Returns (hit points, emitted (pixel, rgb),
+    continuing batch, end counts)."""
+    prim, _t, u, v = accel.intersect(batch.origin, batch.direction)
+    end, emitted, hpos, hn, no, nd, nw, st = paths.advance_eye_paths(
+        batch.direction, batch.weight, batch.depth, batch.rng, prim, u, v,
+        surf.vertices, surf.triangles, surf.tri_material, surf.kind, surf.reflectance,
+        surf.emission, surf.ior, surf.roughness, surf.two_sided, max_depth,
+        EPS_REL, surf.eps_abs)
+    s = end == STORED
+    hits = HitPoints(hpos[s], hn[s], -batch.direction[s], batch.weight[s],
+                     surf.tri_material[prim[s]], batch.pixel[s])
+    lit = np.flatnonzero(emitted.any(axis=1))
+    go = end == CONTINUES
+    nxt = RayBatch(no[go], nd[go], nw[go], batch.pixel[go], batch.depth[go] + 1, st[go])
+    return hits, (batch.pixel[lit], emitted[lit]), nxt, np.bincount(end, minlength=END_KINDS)
+
+
+def trace_photons(accel, surf, batch, cull_box, max_depth):
+    """Follow a photon batch until every path ends (one aggregate)."""
+    deposits, ends, culled = [], np.zeros(END_KINDS, np.int64), 0
+    while len(batch):
+        dep, batch, e, c = photon_step(accel, surf, batch, cull_box, max_depth)
+        deposits.append(dep)
+        ends += e
+        culled += c
+    ends[0] = 0
+    return PhotonDeposits.concat(deposits), ends, culled
+
+
+def trace_eye(accel, surf, batch, max_depth):
+    """Follow eye paths until each stores a hit point or ends."""
+    hits, pix, rgb, ends = [], [], [], np.zeros(END_KINDS, np.int64)
+    while len(batch):
+        h, (p, e), batch, c = eye_step(accel, surf, batch, max_depth)
+        hits.append(h)
+        pix.append(p)
+        rgb.append(e)
+        ends += c
+    ends[0] = 0
+    return HitPoints.concat(hits), (np.concatenate(pix), np.concatenate(rgb)), ends
