@@ -185,6 +185,7 @@ class Scene:
     camera: Camera
     name: str = "scene"
     source: str = "<memory>"
+    render_settings: dict = field(default_factory=dict)  # hints a scene file carries
 
     @property
     def triangle_count(self) -> int:
