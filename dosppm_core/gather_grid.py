@@ -18,17 +18,17 @@ NORMAL_COS = 0.5   # photon and hit point must lie on similarly facing surfaces
 _P1, _P2, _P3 = 73856093, 19349663, 83492791
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def cell_key(ix, iy, iz):
     return (np.int64(ix) << 42) | (np.int64(iy) << 21) | np.int64(iz)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def slot_of(ix, iy, iz, mask):
     return ((ix * _P1) ^ (iy * _P2) ^ (iz * _P3)) & mask
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def build_grid(hp_pos, hp_radius, lo, cell, dims):
     """Returns (slot_start, entry_hp, entry_key, mask): a CSR table from
     hash slot to the hit points registered in the cells hashing there."""
@@ -70,7 +70,7 @@ def build_grid(hp_pos, hp_radius, lo, cell, dims):
     return start, entry_hp, entry_key, mask
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, parallel=True, error_model="numpy")
 def gather_photons(ph_pos, ph_in, ph_n, ph_flux, start, entry_hp, entry_key, mask,
                    lo, cell, dims, hp_pos, hp_n, hp_out, hp_weight, hp_mat, hp_radius,
                    mat_kind, mat_refl, mat_rough, threads):

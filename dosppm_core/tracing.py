@@ -61,33 +61,28 @@ def photon_step(accel: Accelerator, surf: SurfaceData, batch: RayBatch,
                 cull_box: np.ndarray, max_depth: int):
     """One bounce. Returns (deposits, continuing batch, end counts, culled)."""
     prim, _t, u, v = accel.intersect(batch.origin, batch.direction)
-    (end, dep, culled, dpos, din, dn, no, nd, nf, st) = paths.scatter_photons(
+    ends, culled, dep, (g, no, nd, nf, st) = paths.scatter_photons(
         batch.origin, batch.direction, batch.weight, batch.depth, batch.rng, prim, u, v,
         surf.vertices, surf.triangles, surf.tri_material, surf.kind, surf.reflectance,
         surf.ior, surf.roughness, surf.two_sided, cull_box[0], cull_box[1], max_depth,
         EPS_REL, surf.eps_abs)
-    deposits = PhotonDeposits(dpos[dep], din[dep], dn[dep], batch.weight[dep])
-    go = end == CONTINUES
-    nxt = RayBatch(no[go], nd[go], nf[go], batch.pixel[go], batch.depth[go] + 1, st[go])
-    return deposits, nxt, np.bincount(end, minlength=END_KINDS), int(culled.sum())
+    nxt = RayBatch(no, nd, nf, batch.pixel[g], batch.depth[g] + 1, st)
+    return PhotonDeposits(*dep), nxt, ends, culled
 
 
 def eye_step(accel: Accelerator, surf: SurfaceData, batch: RayBatch, max_depth: int):
     """One bounce of eye paths. Returns (hit points, emitted (pixel, rgb),
     continuing batch, end counts)."""
     prim, _t, u, v = accel.intersect(batch.origin, batch.direction)
-    end, emitted, hpos, hn, no, nd, nw, st = paths.advance_eye_paths(
+    ends, (lit, rgb), (h, hpos, hn), (g, no, nd, nw, st) = paths.advance_eye_paths(
         batch.direction, batch.weight, batch.depth, batch.rng, prim, u, v,
         surf.vertices, surf.triangles, surf.tri_material, surf.kind, surf.reflectance,
         surf.emission, surf.ior, surf.roughness, surf.two_sided, max_depth,
         EPS_REL, surf.eps_abs)
-    s = end == STORED
-    hits = HitPoints(hpos[s], hn[s], -batch.direction[s], batch.weight[s],
-                     surf.tri_material[prim[s]], batch.pixel[s])
-    lit = np.flatnonzero(emitted.any(axis=1))
-    go = end == CONTINUES
-    nxt = RayBatch(no[go], nd[go], nw[go], batch.pixel[go], batch.depth[go] + 1, st[go])
-    return hits, (batch.pixel[lit], emitted[lit]), nxt, np.bincount(end, minlength=END_KINDS)
+    hits = HitPoints(hpos, hn, -batch.direction[h], batch.weight[h],
+                     surf.tri_material[prim[h]], batch.pixel[h])
+    nxt = RayBatch(no, nd, nw, batch.pixel[g], batch.depth[g] + 1, st)
+    return hits, (batch.pixel[lit], rgb), nxt, ends
 
 
 def trace_photons(accel, surf, batch, cull_box, max_depth):

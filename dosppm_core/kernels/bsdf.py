@@ -17,12 +17,12 @@ from ..scene import DIFFUSE, GLASS, GLOSSY, MIRROR
 INV_PI = np.float32(1.0 / math.pi)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def dot(a0, a1, a2, b0, b1, b2):
     return a0 * b0 + a1 * b1 + a2 * b2
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def basis(n0, n1, n2):
     """Orthonormal tangents of a unit normal (Duff et al. 2017)."""
     s = 1.0 if n2 >= 0.0 else -1.0
@@ -31,7 +31,7 @@ def basis(n0, n1, n2):
     return (1.0 + s * n0 * n0 * a, s * b, -s * n0), (b, s + n1 * n1 * a, -n1)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def to_world(x, y, z, n0, n1, n2):
     t, b = basis(n0, n1, n2)
     return (x * t[0] + y * b[0] + z * n0,
@@ -39,14 +39,14 @@ def to_world(x, y, z, n0, n1, n2):
             x * t[2] + y * b[2] + z * n2)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def cosine_hemisphere(u1, u2):
     r = math.sqrt(u1)
     phi = 2.0 * math.pi * u2
     return r * math.cos(phi), r * math.sin(phi), math.sqrt(max(0.0, 1.0 - u1))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def fresnel_dielectric(cos_i, eta):
     """Unpolarised Fresnel reflectance; eta = eta_i / eta_t. Returns
     (F, cos_t); F = 1 on total internal reflection."""
@@ -59,7 +59,7 @@ def fresnel_dielectric(cos_i, eta):
     return 0.5 * (rs * rs + rp * rp), cos_t
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def ggx_d(cos_h, alpha):
     c2 = cos_h * cos_h
     a2 = alpha * alpha
@@ -67,7 +67,7 @@ def ggx_d(cos_h, alpha):
     return a2 / (math.pi * d * d)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def ggx_g1(cos_v, v_dot_h, alpha):
     if cos_v * v_dot_h <= 0.0 or cos_v <= 0.0:
         return 0.0
@@ -75,7 +75,7 @@ def ggx_g1(cos_v, v_dot_h, alpha):
     return 2.0 / (1.0 + math.sqrt(1.0 + alpha * alpha * tan2))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def eval_bsdf(kind, alpha, n0, n1, n2, w0, w1, w2, i0, i1, i2):
     """Scalar factor f of the BRDF (multiply by the material reflectance).
     `n` must face `wo`; zero when `wi` is on the other side (which is the
@@ -97,7 +97,7 @@ def eval_bsdf(kind, alpha, n0, n1, n2, w0, w1, w2, i0, i1, i2):
     return 0.0
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def sample_bsdf(kind, two_sided, ior, alpha, n0, n1, n2, w0, w1, w2,
                 u1, u2, u3, radiance):
     """Sample a scattered direction.
@@ -123,7 +123,7 @@ def sample_bsdf(kind, two_sided, ior, alpha, n0, n1, n2, w0, w1, w2,
     return _sample_glossy(alpha, n0, n1, n2, w0, w1, w2, cos_o, u1, u2)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _sample_glossy(alpha, n0, n1, n2, w0, w1, w2, cos_o, u1, u2):
     # Sample h from D(h) cos(theta_h); pdf(wi) = D cos_h / (4 |wo.h|).
     tan2 = alpha * alpha * u1 / max(1.0 - u1, 1e-12)
@@ -143,7 +143,7 @@ def _sample_glossy(alpha, n0, n1, n2, w0, w1, w2, cos_o, u1, u2):
     return True, i0, i1, i2, g * wo_h / (cos_o * cos_h), False
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _sample_glass(ior, n0, n1, n2, w0, w1, w2, cos_o, u1, radiance):
     if cos_o >= 0.0:
         eta = 1.0 / ior
@@ -160,6 +160,6 @@ def _sample_glass(ior, n0, n1, n2, w0, w1, w2, cos_o, u1, radiance):
     return True, -eta * w0 + k * n0, -eta * w1 + k * n1, -eta * w2 + k * n2, scale, True
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def is_specular(kind):
     return kind == MIRROR or kind == GLASS

@@ -9,7 +9,7 @@ from .bsdf import cosine_hemisphere, to_world
 from .rng import EYE_STREAM, next_float, path_state
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def concentric_disk(u1, u2):
     a, b = 2.0 * u1 - 1.0, 2.0 * u2 - 1.0
     if a == 0.0 and b == 0.0:
@@ -21,7 +21,7 @@ def concentric_disk(u1, u2):
     return r * math.cos(phi), r * math.sin(phi)
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, parallel=True, error_model="numpy")
 def generate_eye_rays(frame, width, seed, iteration, pixel_start, count):
     """One eye ray per pixel in [pixel_start, pixel_start + count) of
     iteration `iteration`: box-filtered jitter and an optional thin lens.
@@ -65,7 +65,7 @@ def generate_eye_rays(frame, width, seed, iteration, pixel_start, count):
     return origin, direction, states
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _select_light(cdf, u):
     lo, hi = 0, cdf.shape[0] - 1
     while lo < hi:
@@ -77,7 +77,7 @@ def _select_light(cdf, u):
     return lo
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, parallel=True, error_model="numpy")
 def emit_photons(kind, p0, p1, p2, value, cone, power, cdf, seed, job, count, eps):
     """Photons of emission job `job`, lights chosen in proportion to power.
 
@@ -119,7 +119,7 @@ def emit_photons(kind, p0, p1, p2, value, cone, power, cdf, seed, job, count, ep
     return origin, direction, flux, states
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _emit_triangle(a, b, c, u1, u2, u3, u4, eps):
     """Uniform point, cosine direction about the CCW normal. Returns the
     factor pi * area that turns radiance into flux / pdf."""
@@ -140,7 +140,7 @@ def _emit_triangle(a, b, c, u1, u2, u3, u4, eps):
     return o, d, math.pi * 0.5 * nl
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _emit_spot(pos, axis, cone, u1, u2):
     """Uniform direction in the cutoff cone, weighted by Mitsuba's falloff
     (1 inside the beam, linear in angle to 0 at the cutoff)."""

@@ -15,7 +15,7 @@ from .bsdf import is_specular, sample_bsdf
 from .rng import next_float
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def surface(v0, v1, v2, u, v):
     """Hit position (from barycentrics, float64: more exact than o + t d)
     and the unit CCW geometric normal, from the triangle's vertex rows."""
@@ -32,7 +32,7 @@ def surface(v0, v1, v2, u, v):
     return p0, p1, p2, nx / nl, ny / nl, nz / nl
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def offset_origin(p0, p1, p2, n0, n1, n2, w0, w1, w2, eps_rel, eps_abs):
     """Spawn point off the surface on the side of direction w. Embree's
     tnear is 0, so without this a ray re-hits its own triangle; the offset
@@ -43,15 +43,45 @@ def offset_origin(p0, p1, p2, n0, n1, n2, w0, w1, w2, eps_rel, eps_abs):
     return p0 + eps * n0, p1 + eps * n1, p2 + eps * n2
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, error_model="numpy")
+def _indices(mask):
+    """Positions where mask is true (sequential: cheap next to the bounce)."""
+    out = np.empty(mask.shape[0], np.int64)
+    c = 0
+    for i in range(mask.shape[0]):
+        if mask[i]:
+            out[c] = i
+            c += 1
+    return out[:c]
+
+
+@nb.njit(cache=True, parallel=True, error_model="numpy")
+def _rows(a, idx):
+    out = np.empty((idx.shape[0], a.shape[1]), a.dtype)
+    for j in nb.prange(idx.shape[0]):
+        for k in range(a.shape[1]):
+            out[j, k] = a[idx[j], k]
+    return out
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _ends(end):
+    counts = np.zeros(5, np.int64)
+    for i in range(end.shape[0]):
+        counts[end[i]] += 1
+    return counts
+
+
+@nb.njit(cache=True, parallel=True, error_model="numpy")
 def scatter_photons(origin, direction, flux, depth, states, prim, u, v,
                     vertices, triangles, tri_material, mat_kind, mat_refl, mat_ior,
                     mat_rough, mat_two_sided, cull_lo, cull_hi, max_depth,
                     eps_rel, eps_abs):
     """Deposit photons at non-specular hits (if inside the cull box) and
-    scatter them with Russian roulette. Returns (end, deposited, culled,
-    dep_pos, dep_in, dep_n, new_origin, new_dir, new_flux, states); a
-    deposit's flux is the arriving `flux`."""
+    scatter them with Russian roulette. Returns (end counts, culled count,
+    deposits (position, incoming, normal, flux), continuing paths (index
+    into the batch, origin, direction, flux, rng state)), compacted here:
+    numpy's boolean indexing cost more than the bounce itself."""
     n = origin.shape[0]
     end = np.empty(n, np.int8)
     deposited = np.zeros(n, np.bool_)
@@ -124,18 +154,23 @@ def scatter_photons(origin, direction, flux, depth, states, prim, u, v,
         new_o[i, 0], new_o[i, 1], new_o[i, 2] = offset_origin(
             p0, p1, p2, n0, n1, n2, d0, d1, d2, eps_rel, eps_abs)
         end[i] = CONTINUES
-    return (end, deposited, culled, dep_pos, dep_in, dep_n, new_o, new_d, new_f, out_states)
+    d = _indices(deposited)
+    deposits = (_rows(dep_pos, d), _rows(dep_in, d), _rows(dep_n, d), _rows(flux, d))
+    g = _indices(end == CONTINUES)
+    return (_ends(end), int(culled.sum()), deposits,
+            (g, _rows(new_o, g), _rows(new_d, g), _rows(new_f, g), out_states[g]))
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, parallel=True, error_model="numpy")
 def advance_eye_paths(direction, weight, depth, states, prim, u, v,
                       vertices, triangles, tri_material, mat_kind, mat_refl, mat_emit,
                       mat_ior, mat_rough, mat_two_sided, max_depth, eps_rel, eps_abs):
     """Record emission seen along eye paths, store a hit point at the first
     non-specular surface, and continue through mirrors and glass. Returns
-    (end, emitted, hp_pos, hp_n, new_origin, new_dir, new_weight, states);
-    a hit point is stored where end == STORED (its outgoing direction is
-    -direction, its material tri_material[prim])."""
+    (end counts, emission (index into the batch, rgb), hit points (index,
+    position, normal), continuing paths (index, origin, direction, weight,
+    rng state)); a hit point's outgoing direction is -direction and its
+    material tri_material[prim]."""
     n = direction.shape[0]
     end = np.empty(n, np.int8)
     emitted = np.zeros((n, 3), np.float32)
@@ -188,4 +223,8 @@ def advance_eye_paths(direction, weight, depth, states, prim, u, v,
         new_o[i, 0], new_o[i, 1], new_o[i, 2] = offset_origin(
             p0, p1, p2, n0, n1, n2, d0, d1, d2, eps_rel, eps_abs)
         end[i] = CONTINUES
-    return end, emitted, hp_pos, hp_n, new_o, new_d, new_w, out_states
+    lit = _indices(emitted.sum(axis=1) > 0.0)
+    h = _indices(end == STORED)
+    g = _indices(end == CONTINUES)
+    return (_ends(end), (lit, _rows(emitted, lit)), (h, _rows(hp_pos, h), _rows(hp_n, h)),
+            (g, _rows(new_o, g), _rows(new_d, g), _rows(new_w, g), out_states[g]))

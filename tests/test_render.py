@@ -1,0 +1,112 @@
+"""Whole-renderer behaviour: closed-form radiance, consistency, determinism,
+the light-leak side test and the command line."""
+import json
+import math
+
+import numpy as np
+import pytest
+
+from dosppm_core import builtin
+from dosppm_core.render import RenderSettings, Renderer, render
+from dosppm_core.scene import Camera, Material, SceneBuilder
+
+
+def furnace_expected(albedo: float, intensity: float, depth: int) -> float:
+    """rho I / (pi R^2) * sum_{k<D} rho^k for R = 1 (see builtin.furnace_sphere)."""
+    return albedo * intensity / math.pi * sum(albedo ** k for k in range(depth))
+
+
+@pytest.mark.parametrize("albedo", [0.3, 0.7])
+def test_furnace_sphere_mean_converges_to_closed_form(albedo):
+    scene = builtin.furnace_sphere(albedo=albedo, intensity=2.0)
+    img = render(scene, RenderSettings(photons_per_iteration=200_000), iterations=8)
+    expected = furnace_expected(albedo, 2.0, depth=10)
+    assert np.all(np.isfinite(img))
+    # Pixel estimates share photons within a radius, so the image mean has
+    # roughly the noise of ~50 independent pixels at ~1.5%: 1.5% is > 3 sigma.
+    assert img.mean() == pytest.approx(expected, rel=0.015)
+
+
+def test_depth_limit_truncates_the_series():
+    scene = builtin.furnace_sphere(albedo=0.8)
+    shallow = render(scene, RenderSettings(max_depth=2), iterations=6).mean()
+    assert shallow == pytest.approx(furnace_expected(0.8, 1.0, 2), rel=0.02)
+
+
+def test_error_falls_as_photons_grow():
+    scene = builtin.furnace_sphere(albedo=0.5)
+    expected = furnace_expected(0.5, 1.0, 10)
+    r = Renderer(scene, RenderSettings(photons_per_iteration=50_000))
+    errors = []
+    for target in (2, 8, 32):
+        while r.iteration < target:
+            r.run_iteration()
+        errors.append(float(np.sqrt(np.mean((r.image() - expected) ** 2))))
+    r.close()
+    assert errors[0] > errors[1] > errors[2]
+    assert errors[2] < 0.5 * errors[0]
+
+
+def test_same_seed_same_image_and_other_seed_differs():
+    scene = builtin.make("cornell-box")
+    scene.camera.width = scene.camera.height = 48
+    settings = dict(photons_per_iteration=30_000)
+    a = render(scene, RenderSettings(seed=7, **settings), iterations=2)
+    b = render(scene, RenderSettings(seed=7, **settings), iterations=2)
+    c = render(scene, RenderSettings(seed=8, **settings), iterations=2)
+    assert np.array_equal(a, b)
+    assert not np.array_equal(a, c)
+
+
+def thin_wall_scene(side_test_width: int = 32):
+    """Two rooms sharing one zero-thickness wall at z = 0: a light in the
+    room z < 0, the camera in the dark room z > 0 looking at the wall."""
+    b = SceneBuilder(name="thin-wall")
+    b.add_material(Material("white", "diffuse", (0.8, 0.8, 0.8)))
+    b.add_material(Material("lamp", "diffuse", (0.0, 0.0, 0.0), emission=(20.0, 20.0, 20.0)))
+    box = np.array([[-1, -1, -1], [1, -1, -1], [1, 1, -1], [-1, 1, -1],
+                    [-1, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]], float)
+    quads = [(0, 1, 2, 3), (4, 7, 6, 5), (0, 4, 5, 1), (3, 2, 6, 7), (0, 3, 7, 4), (1, 5, 6, 2)]
+    faces = [f for q in quads for f in ((q[0], q[1], q[2]), (q[0], q[2], q[3]))]
+    b.add_mesh(box, faces, "white", "box")   # two-sided, so inward or outward does not matter
+    wall = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], float)
+    b.add_mesh(wall, [(0, 1, 2), (0, 2, 3)], "white", "wall")
+    lamp = np.array([[-0.2, 0.99, -0.6], [0.2, 0.99, -0.6], [0.2, 0.99, -0.2], [-0.2, 0.99, -0.2]])
+    b.add_mesh(lamp, [(0, 1, 2), (0, 2, 3)], "lamp", "lamp")   # CCW from below: faces -y
+    b.camera = Camera((0, 0, 0.9), (0, 0, 0), (0, 1, 0), 60, side_test_width, side_test_width)
+    return b.build()
+
+
+def test_thin_wall_does_not_leak_light():
+    scene = thin_wall_scene()
+    # A radius as large as a tenth of the room: without the side test the
+    # lit side's photons would light the dark side of the wall.
+    img = render(scene, RenderSettings(radius=0.2, photons_per_iteration=100_000), iterations=3)
+    assert img.max() == 0.0
+    scene.camera.position, scene.camera.look_at = (0, 0, -0.9), (0, 0, 0)
+    lit = render(scene, RenderSettings(radius=0.2, photons_per_iteration=100_000), iterations=3)
+    assert lit.mean() > 0.01
+
+
+def test_cli_render_writes_exr_png_and_log(tmp_path):
+    from dosppm_core.cli import main
+    from dosppm_core.film_io import read_exr
+    out = tmp_path / "img.exr"
+    log = tmp_path / "progress.jsonl"
+    code = main(["render", "cornell-box", "--iterations", "2", "--width", "24", "--height", "16",
+                 "--photons-per-iteration", "20000", "--out", str(out), "--log", str(log), "--quiet"])
+    assert code == 0
+    rgb, layers = read_exr(str(out))
+    assert rgb.shape == (16, 24, 3) and np.all(np.isfinite(rgb)) and rgb.mean() > 0
+    assert set(layers) >= {"radius", "photon_count"}
+    assert (tmp_path / "img.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    records = [json.loads(line) for line in log.read_text().splitlines()]
+    assert [r["iteration"] for r in records] == [1, 2]
+    assert records[-1]["photons"] == 40_000
+
+
+def test_cli_bad_scene_is_one_line_error(tmp_path, capsys):
+    from dosppm_core.cli import main
+    assert main(["render", str(tmp_path / "missing.toml"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "missing.toml" in err and "\n" not in err
