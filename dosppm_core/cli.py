@@ -119,11 +119,43 @@ def cmd_scenes(args) -> int:
     return 0
 
 
+def add_bench_parser(sub) -> None:
+    p = sub.add_parser("bench", help="measure tracing and statistics-update throughput")
+    p.add_argument("scenes", nargs="*", default=None,
+                   help="built-in names or scene files (default: the default scene)")
+    p.add_argument("--mesh", action="append", default=[],
+                   help="also bench this mesh file placed in glass in the Cornell box (repeatable)")
+    p.add_argument("--photons", type=int, default=1_000_000)
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--threads", type=int, default=os.cpu_count() or 1)
+    p.add_argument("--json", help="write the results here")
+    p.set_defaults(func=cmd_bench)
+
+
+def cmd_bench(args) -> int:
+    from . import bench, builtin
+    from .loaders import load_scene
+    try:
+        scenes = [load_scene(s) for s in (args.scenes or [builtin.DEFAULT])]
+        scenes += [builtin.cornell_with_mesh(m) for m in args.mesh]
+    except (SceneError, OSError) as e:
+        return _error(str(e))
+    results = []
+    for scene in scenes:
+        print(f"benchmarking {scene.name} ({scene.triangle_count:,} triangles)...", file=sys.stderr)
+        results.append(bench.bench_scene(scene, args.photons, args.repeats, args.threads))
+    print(bench.report(results))
+    if args.json:
+        bench.write_json(args.json, results)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="dosppm", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
     add_render_parser(sub)
     sub.add_parser("scenes", help="list the built-in scenes").set_defaults(func=cmd_scenes)
+    add_bench_parser(sub)
     from . import cli_tools
     cli_tools.add_reference_parser(sub)
     cli_tools.add_compare_parser(sub)
