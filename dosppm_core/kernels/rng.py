@@ -36,7 +36,7 @@ def path_state(seed, job, index):
 @nb.njit(cache=True)
 def next_float(state):
     """Return (new_state, u) with u uniform in [0, 1) as float32."""
-    state = state + GOLDEN
+    state = np.uint64(state) + GOLDEN
     u = np.float32(mix64(state) >> _S40) * _INV24
     return state, u
 
