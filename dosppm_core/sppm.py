@@ -40,6 +40,30 @@ def morton_keys(pos, lo, scale):
     return out
 
 
+@nb.njit(cache=True, parallel=True)
+def _permute_deposits(pos, inc, nrm, flux, order):
+    """All four (n, 3) deposit arrays permuted in one parallel pass (numpy
+    takes ~40 ms per array for 1M rows here; this is the whole reorder)."""
+    n = order.shape[0]
+    out = np.empty((4, n, 3), np.float32)
+    for i in nb.prange(n):
+        j = order[i]
+        for k in range(3):
+            out[0, i, k] = pos[j, k]
+            out[1, i, k] = inc[j, k]
+            out[2, i, k] = nrm[j, k]
+            out[3, i, k] = flux[j, k]
+    return out
+
+
+def reorder_deposits(deposits: PhotonDeposits, box: np.ndarray | None) -> PhotonDeposits:
+    """Deposits sorted along a Morton curve over `box` (the gather's box)."""
+    order = spatial_order(deposits.position, box)
+    out = _permute_deposits(deposits.position, deposits.incoming, deposits.normal,
+                            deposits.flux, order)
+    return PhotonDeposits(out[0], out[1], out[2], out[3])
+
+
 def spatial_order(pos: np.ndarray, box: np.ndarray | None = None) -> np.ndarray:
     """Permutation sorting points along a Morton curve. Gathering in this
     order keeps the grid cells and hit points a thread touches in cache
@@ -126,7 +150,7 @@ class PixelStatistics:
         if len(hp) == 0 or len(deposits) == 0:
             return
         if reorder:
-            deposits = deposits.take(spatial_order(deposits.position, self.gather_box()))
+            deposits = reorder_deposits(deposits, self.gather_box())
         radius = self.radius[hp.pixel]
         if gather == "grid":
             from .gather_grid import gather_grid
