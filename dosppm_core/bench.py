@@ -21,7 +21,7 @@ import numpy as np
 
 from .jobs import PhotonDeposits
 from .render import RenderSettings, Renderer
-from .tracing import NO_CULL, emit_photon_job, photon_step
+from .tracing import NO_CULL, emit_photon_job, trace_photon_jobs
 
 PAPER_TABLE4 = {
     "photon_tracing_ms_per_100k_photons_cpu_1thread": 2633.1,
@@ -41,21 +41,17 @@ def _median_time(fn, repeats: int) -> float:
 
 
 def _photon_rays(r: Renderer, photons: int, job0: int):
-    """Trace `photons` photons step by step; returns (deposits, emitted
-    paths, the (origin, direction) of every traced batch)."""
+    """Trace `photons` photons as the renderer does; returns (deposits,
+    emitted paths, the (origin, direction) of every traced batch)."""
     s = r.settings
-    deposits, batches, done = [], [], 0
-    job = job0
-    while done < photons:
-        count = min(s.photons_per_job, photons - done)
-        batch = emit_photon_job(r.scene, s.seed, job, count, r.surf.eps_abs)
-        job += 1
-        done += count
-        while len(batch):
-            batches.append((batch.origin, batch.direction))
-            dep, batch, _e, _c = photon_step(r.accel, r.surf, batch, NO_CULL, s.max_depth)
-            deposits.append(dep)
-    return PhotonDeposits.concat(deposits), done, batches
+    batches = []
+    jobs = (emit_photon_job(r.scene, s.seed, job0 + k, min(s.photons_per_job, photons - done),
+                            r.surf.eps_abs)
+            for k, done in enumerate(range(0, photons, s.photons_per_job)))
+    deposits, _ends, _culled = trace_photon_jobs(
+        r.accel, r.surf, jobs, NO_CULL, s.max_depth,
+        on_batch=lambda b: batches.append((b.origin, b.direction)))
+    return deposits, photons, batches
 
 
 def bench_scene(scene, photons: int = 1_000_000, repeats: int = 3, threads: int = 2) -> dict:

@@ -16,7 +16,7 @@ from .accel import Accelerator
 from .jobs import END_NAMES, HitPoints, PhotonDeposits
 from .scene import Scene
 from .sppm import PixelStatistics, initial_radius
-from .tracing import NO_CULL, SurfaceData, emit_photon_job, eye_ray_job, trace_eye, trace_photons
+from .tracing import NO_CULL, SurfaceData, emit_photon_job, eye_ray_job, trace_eye, trace_photon_jobs
 
 
 @dataclass
@@ -27,7 +27,7 @@ class RenderSettings:
     max_depth: int = 10                  # surfaces a path may hit (the paper's 10)
     gather: str = "grid"                 # 'grid' (exact) or 'hash' (stochastic, HJ10)
     photons_per_iteration: int = 100_000
-    photons_per_job: int = 25_000
+    photons_per_job: int = 8_192
     photon_batch: int = 1_000_000        # deposits per statistics update (server batching)
     tile_pixels: int = 16_384            # eye rays per eye job
     threads: int = 2
@@ -120,11 +120,10 @@ class Renderer:
         cull = NO_CULL if box is None else box
         left = s.photons_per_iteration
         while left > 0:
-            count = min(s.photons_per_job, left)
-            batch = emit_photon_job(self.scene, s.seed, self.next_photon_job, count,
-                                    self.surf.eps_abs)
-            self.next_photon_job += 1
-            deposits, ends, _culled = trace_photons(self.accel, self.surf, batch, cull, s.max_depth)
+            # Trace up to one server batch worth of photons as one stream.
+            count = min(left, max(s.photon_batch // 2, s.photons_per_job))
+            deposits, ends, _culled = trace_photon_jobs(
+                self.accel, self.surf, self._jobs(count), cull, s.max_depth)
             self.path_ends += ends
             self._pending.append(deposits)
             self._pending_count += len(deposits)
@@ -132,6 +131,17 @@ class Renderer:
             left -= count
             if self._pending_count >= s.photon_batch:
                 self._apply_pending()
+
+    def _jobs(self, photons: int):
+        """Emission jobs for `photons` photons, numbered globally so a job
+        id always names the same photons."""
+        s = self.settings
+        while photons > 0:
+            count = min(s.photons_per_job, photons)
+            yield emit_photon_job(self.scene, s.seed, self.next_photon_job, count,
+                                  self.surf.eps_abs)
+            self.next_photon_job += 1
+            photons -= count
 
     def _apply_pending(self) -> None:
         if not self._pending_emitted:

@@ -97,6 +97,40 @@ def trace_photons(accel, surf, batch, cull_box, max_depth):
     return PhotonDeposits.concat(deposits), ends, culled
 
 
+def trace_photon_jobs(accel, surf, jobs, cull_box, max_depth, min_batch: int = 32_768,
+                      on_batch=None):
+    """Trace an iterable of photon jobs (RayBatches) as one stream: new jobs
+    join the continuing paths whenever fewer than `min_batch` are in flight
+    (client batching, §4.3), so Russian roulette's thinning tail never
+    leaves Embree and the kernels with tiny batches. Paths draw from their
+    own random streams, so the photons traced do not depend on the batching.
+    `on_batch(batch)` sees every traced batch (benchmarks replay them)."""
+    jobs = iter(jobs)
+    deposits, ends, culled = [], np.zeros(END_KINDS, np.int64), 0
+    active, exhausted = RayBatch.empty(), False
+    while True:
+        pending = [active]
+        size = len(active)
+        while not exhausted and size < min_batch:
+            job = next(jobs, None)
+            if job is None:
+                exhausted = True
+            else:
+                pending.append(job)
+                size += len(job)
+        active = RayBatch.concat(pending) if len(pending) > 1 else active
+        if not len(active):
+            break
+        if on_batch is not None:
+            on_batch(active)
+        dep, active, e, c = photon_step(accel, surf, active, cull_box, max_depth)
+        deposits.append(dep)
+        ends += e
+        culled += c
+    ends[0] = 0
+    return PhotonDeposits.concat(deposits), ends, culled
+
+
 def trace_eye(accel, surf, batch, max_depth):
     """Follow eye paths until each stores a hit point or ends."""
     hits, pix, rgb, ends = [], [], [], np.zeros(END_KINDS, np.int64)
