@@ -1,0 +1,328 @@
+"""Independent reference images from Mitsuba 3.
+
+This is the only module that imports mitsuba. It translates our `Scene`
+into a Mitsuba scene dict, renders it with Mitsuba's path tracer (`path`)
+or light tracer (`ptracer`) and returns a float32 (H, W, 3) array; Mitsuba
+has no photon mapper, so these unbiased estimators are SPPM's peers.
+
+Mapping (see `dosppm_core.scene` for our conventions, which follow Mitsuba):
+
+=========  ==========================================================
+ours       Mitsuba 3
+=========  ==========================================================
+diffuse    `diffuse`, reflectance
+mirror     `conductor`, material "none", specular_reflectance
+glossy     `roughconductor`, ggx, alpha = roughness, material "none"
+glass      `dielectric`, int_ior = ior, ext_ior = 1, reflectance tints
+           specular_reflectance and specular_transmittance
+two_sided  diffuse/mirror/glossy wrapped in `twosided` (glass never is)
+emission   `area` emitter (one-sided, along the CCW winding normal)
+point      `point`, intensity
+spot       `spot`, cutoff_angle, beam_width, intensity
+camera     `perspective` (`thinlens` when aperture_radius > 0), look_at
+film       `hdrfilm` RGB float32, **box** reconstruction filter
+sampler    `independent`
+=========  ==========================================================
+
+Geometry becomes one `mi.Mesh` per material, without vertex normals, so
+Mitsuba shades with face normals (flat), as our kernels do.
+
+Depth convention: our `max_depth` counts scattering events (bounces) on a
+light path from the emitter to the camera, the surface seen by the camera
+included; 0 means only emitters seen directly, 1 direct lighting. Mitsuba's
+`max_depth` counts path vertices after the camera, the emitter included, so
+``mitsuba max_depth = max_depth + 1`` (a negative value means unbounded, -1
+in Mitsuba). For a diffuse scene this is exactly the set of paths an SPPM
+render with at most `max_depth` photon bounces (deposits) estimates; with
+specular chains in front of the camera SPPM may add eye bounces on top,
+a difference far below the noise at the default depth of 10.
+
+Variant: `llvm_ad_rgb` (vectorised, about 3x faster) when it works here,
+else `scalar_rgb`. An unsupported libLLVM aborts the whole process while
+compiling a kernel (it cannot be caught), so llvm is first tried in a
+child process, once per process.
+"""
+from __future__ import annotations
+
+import functools
+import hashlib
+import json
+import math
+import os
+import re
+import subprocess
+import sys
+from dataclasses import asdict
+
+import numpy as np
+
+from .scene import (DIFFUSE, GLASS, GLOSSY, LIGHT_POINT, LIGHT_SPOT, LIGHT_TRIANGLE, MIRROR,
+                    Scene, SceneError)
+
+DEFAULT_MAX_DEPTH = 10
+INTEGRATORS = ("path", "ptracer")
+FAST_VARIANT, SAFE_VARIANT = "llvm_ad_rgb", "scalar_rgb"
+# Bump when the translation changes, so cached references are re-rendered.
+MAPPING_VERSION = 1
+_PROBE_TIMEOUT_S = 300
+
+
+class ReferenceRenderError(RuntimeError):
+    """Mitsuba is missing or failed; the message is one line."""
+
+
+# -- Mitsuba loading and variant choice -------------------------------------
+def _import_mitsuba():
+    try:
+        import mitsuba
+    except ImportError:
+        raise ReferenceRenderError("Mitsuba 3 is not installed: pip install 'dosppm[reference]'") from None
+    return mitsuba
+
+
+def _mitsuba(variant: str | None = None):
+    """The mitsuba module with `variant` (default: the best one here) set."""
+    mi = _import_mitsuba()
+    variant = variant or best_variant()
+    if mi.variant() != variant:
+        try:
+            mi.set_variant(variant)
+        except Exception as exc:
+            raise ReferenceRenderError(f"Mitsuba variant {variant!r} is unavailable: "
+                                 f"{_one_line(exc)}") from None
+    return mi
+
+
+@functools.lru_cache(maxsize=1)
+def best_variant() -> str:
+    """`llvm_ad_rgb` if a child process can render with it, else `scalar_rgb`."""
+    mi = _import_mitsuba()
+    if FAST_VARIANT not in mi.variants() or not _llvm_probe_passes():
+        return SAFE_VARIANT
+    return FAST_VARIANT
+
+
+# Renders every plugin kind the translation uses, so a libLLVM that
+# miscompiles one of them is caught here rather than killing the caller.
+_PROBE = """
+import mitsuba as mi
+mi.set_variant('llvm_ad_rgb')
+d = mi.cornell_box()
+d['sensor']['film'].update(width=8, height=8)
+d['glass'] = {'type': 'sphere', 'center': [-0.4, -0.6, 0], 'radius': 0.2,
+              'bsdf': {'type': 'dielectric', 'int_ior': 1.5}}
+d['metal'] = {'type': 'sphere', 'center': [0.4, -0.6, 0], 'radius': 0.2,
+              'bsdf': {'type': 'twosided', 'bsdf': {'type': 'roughconductor',
+                       'material': 'none', 'alpha': 0.2}}}
+d['point'] = {'type': 'point', 'position': [0, 0.5, 0]}
+d['spot'] = {'type': 'spot', 'cutoff_angle': 30, 'to_world':
+             mi.ScalarTransform4f().look_at([0, 0.5, 1], [0, 0, 0], [0, 1, 0])}
+for name in ('path', 'ptracer'):
+    d['integrator'] = {'type': name, 'max_depth': 4}
+    mi.render(mi.load_dict(d), spp=2).numpy()
+print('ok')
+"""
+
+
+def _llvm_probe_passes() -> bool:
+    try:
+        done = subprocess.run([sys.executable, "-c", _PROBE], capture_output=True,
+                              text=True, timeout=_PROBE_TIMEOUT_S)
+    except (OSError, subprocess.TimeoutExpired):
+        return False
+    return done.returncode == 0 and done.stdout.strip().endswith("ok")
+
+
+# -- Scene translation ------------------------------------------------------
+def mitsuba_max_depth(max_depth: int) -> int:
+    """Our bounce count -> Mitsuba's vertex count (see the module doc)."""
+    return -1 if max_depth < 0 else int(max_depth) + 1
+
+
+def scene_to_mitsuba_dict(scene: Scene, spp: int, max_depth: int = DEFAULT_MAX_DEPTH,
+                          integrator: str = "path", seed: int = 0,
+                          variant: str | None = None) -> dict:
+    """A Mitsuba 3 scene dict for `scene`; meshes are `mi.Mesh` objects of
+    `variant` (default: `best_variant()`), which is set as a side effect."""
+    if integrator not in INTEGRATORS:
+        raise ValueError(f"unknown integrator {integrator!r} (known: {', '.join(INTEGRATORS)})")
+    if int(spp) < 1:
+        raise ValueError(f"spp must be positive, got {spp!r}")
+    mi = _mitsuba(variant)
+    out = {"type": "scene",
+           "integrator": {"type": integrator, "max_depth": mitsuba_max_depth(max_depth),
+                          "hide_emitters": False},
+           "sensor": _sensor(mi, scene, int(spp), int(seed))}
+    out.update(_meshes(mi, scene))
+    out.update(_delta_emitters(mi, scene))
+    return out
+
+
+def _sensor(mi, scene: Scene, spp: int, seed: int) -> dict:
+    cam = scene.camera
+    # Mitsuba needs 0 < near_clip < far_clip; keep its default 1e6 ratio
+    # but scale it to the scene so nothing in view is clipped.
+    reach = scene.diagonal() + float(np.linalg.norm(np.mean(scene.bounds(), axis=0)
+                                                    - np.asarray(cam.position, float)))
+    far = max(10.0 * reach, 1e-3)
+    sensor = {
+        "type": "perspective",
+        "to_world": mi.ScalarTransform4f().look_at(origin=_vec(cam.position),
+                                                   target=_vec(cam.look_at), up=_vec(cam.up)),
+        "fov": float(cam.fov_deg), "fov_axis": cam.fov_axis,
+        "near_clip": float(cam.near_clip) if cam.near_clip > 0 else far * 1e-6,
+        "far_clip": far,
+        "film": {"type": "hdrfilm", "width": int(cam.width), "height": int(cam.height),
+                 "pixel_format": "rgb", "component_format": "float32",
+                 "rfilter": {"type": "box"}},
+        "sampler": {"type": "independent", "sample_count": spp, "seed": seed},
+    }
+    if cam.aperture_radius > 0:
+        sensor.update(type="thinlens", aperture_radius=float(cam.aperture_radius),
+                      focus_distance=float(cam.focus_distance))
+    return sensor
+
+
+def _meshes(mi, scene: Scene) -> dict:
+    """One flat-shaded `mi.Mesh` per used material, carrying its BSDF and,
+    when emissive, its area emitter."""
+    mats, out = scene.materials, {}
+    for mid in np.unique(scene.tri_material):
+        faces = scene.triangles[scene.tri_material == mid]
+        used, local = np.unique(faces, return_inverse=True)
+        props = mi.Properties()
+        props["bsdf"] = mi.load_dict(_bsdf(mats, int(mid)))
+        if np.max(mats.emission[mid]) > 0:
+            props["emitter"] = mi.load_dict({"type": "area",
+                                             "radiance": _spectrum(mats.emission[mid])})
+        name = f"mesh_{int(mid)}_{_safe_name(mats.names[mid])}"
+        out[name] = _mesh(mi, name, scene.vertices[used], local.reshape(-1, 3), props)
+    return out
+
+
+def _mesh(mi, name: str, vertices: np.ndarray, faces: np.ndarray, props):
+    mesh = mi.Mesh(name, vertex_count=len(vertices), face_count=len(faces), props=props,
+                   has_vertex_normals=False, has_vertex_texcoords=False)
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = np.ascontiguousarray(vertices, np.float32).ravel()
+    params["faces"] = np.ascontiguousarray(faces, np.uint32).ravel()
+    params.update()  # rebuilds the bounding box and the area sampling table
+    return mesh
+
+
+def _bsdf(mats, mid: int) -> dict:
+    kind, tint = int(mats.kind[mid]), _spectrum(mats.reflectance[mid])
+    if kind == GLASS:
+        return {"type": "dielectric", "int_ior": float(mats.ior[mid]), "ext_ior": 1.0,
+                "specular_reflectance": tint, "specular_transmittance": tint}
+    if kind == DIFFUSE:
+        bsdf = {"type": "diffuse", "reflectance": tint}
+    elif kind == MIRROR:
+        bsdf = {"type": "conductor", "material": "none", "specular_reflectance": tint}
+    elif kind == GLOSSY:
+        bsdf = {"type": "roughconductor", "distribution": "ggx", "material": "none",
+                "alpha": float(mats.roughness[mid]), "specular_reflectance": tint}
+    else:
+        raise SceneError(f"material {mats.names[mid]!r}: kind {kind} has no Mitsuba mapping")
+    return {"type": "twosided", "bsdf": bsdf} if mats.two_sided[mid] else bsdf
+
+
+def _delta_emitters(mi, scene: Scene) -> dict:
+    lights, out = scene.lights, {}
+    for i in np.flatnonzero(lights.kind != LIGHT_TRIANGLE):
+        pos, value = _vec(lights.p0[i]), _spectrum(lights.value[i])
+        if lights.kind[i] == LIGHT_POINT:
+            out[f"light_{i}"] = {"type": "point", "position": pos, "intensity": value}
+        elif lights.kind[i] == LIGHT_SPOT:
+            axis = np.asarray(lights.p1[i], float)
+            out[f"light_{i}"] = {
+                "type": "spot", "intensity": value,
+                "to_world": mi.ScalarTransform4f().look_at(
+                    origin=pos, target=_vec(lights.p0[i] + axis), up=_vec(_any_perpendicular(axis))),
+                "cutoff_angle": math.degrees(lights.cone[i, 2]),
+                "beam_width": math.degrees(lights.cone[i, 3])}
+    return out
+
+
+def _spectrum(rgb) -> dict:
+    value = [float(x) for x in rgb]
+    if max(value) <= 1.0:
+        return {"type": "rgb", "value": value}
+    # Mitsuba rejects reflectance above 1 unless marked unbounded (glass
+    # tints and emission may exceed it).
+    return {"type": "srgb", "color": value, "unbounded": True}
+
+
+def _any_perpendicular(axis: np.ndarray) -> np.ndarray:
+    """An up vector not parallel to `axis`; a spot is round, so any will do."""
+    return np.array([1.0, 0, 0]) if abs(axis[1]) > 0.9 * np.linalg.norm(axis) else np.array([0, 1.0, 0])
+
+
+def _vec(v) -> list:
+    return [float(x) for x in v]
+
+
+def _safe_name(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_]", "_", str(name))[:40]
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+# -- Rendering -------------------------------------------------------------
+def render_reference(scene: Scene, spp: int, max_depth: int = DEFAULT_MAX_DEPTH,
+                     integrator: str = "path", seed: int = 0,
+                     variant: str | None = None) -> np.ndarray:
+    """Render `scene` with Mitsuba 3: float32 (H, W, 3) linear RGB, row 0 on
+    top. `variant` None picks `best_variant()`."""
+    mi = _mitsuba(variant)
+    scene_dict = scene_to_mitsuba_dict(scene, spp, max_depth, integrator, seed, mi.variant())
+    try:
+        image = mi.render(mi.load_dict(scene_dict), spp=int(spp), seed=int(seed))
+    except Exception as exc:
+        raise ReferenceRenderError(f"{scene.source}: Mitsuba render failed: {_one_line(exc)}") from None
+    return np.ascontiguousarray(np.asarray(image, dtype=np.float32)[..., :3])
+
+
+def reference_key(scene: Scene, spp: int, max_depth: int = DEFAULT_MAX_DEPTH,
+                  integrator: str = "path", seed: int = 0) -> str:
+    """SHA-256 of everything that decides the reference image: geometry,
+    materials, lights, camera, sample count, depth, integrator, seed."""
+    h = hashlib.sha256()
+    arrays = {"vertices": scene.vertices, "triangles": scene.triangles,
+              "tri_material": scene.tri_material}
+    arrays.update({f"mat.{k}": v for k, v in vars(scene.materials).items() if k != "names"})
+    arrays.update({f"light.{k}": v for k, v in vars(scene.lights).items()})
+    for name in sorted(arrays):
+        arr = np.ascontiguousarray(arrays[name])
+        h.update(f"{name}:{arr.dtype.str}:{arr.shape};".encode())
+        h.update(arr.tobytes())
+    settings = {"camera": asdict(scene.camera), "spp": int(spp), "max_depth": int(max_depth),
+                "integrator": integrator, "seed": int(seed), "mapping": MAPPING_VERSION}
+    h.update(json.dumps(settings, sort_keys=True, default=_jsonable).encode())
+    return h.hexdigest()
+
+
+def _jsonable(x):
+    return np.asarray(x).tolist()
+
+
+def cached_reference(scene: Scene, spp: int, cache_dir: str,
+                     max_depth: int = DEFAULT_MAX_DEPTH, integrator: str = "path",
+                     seed: int = 0, variant: str | None = None) -> np.ndarray:
+    """`render_reference`, stored as `cache_dir/ref-<name>-<key>.exr` and read
+    back on the next call with the same inputs. An unreadable cache file is
+    rendered again."""
+    from .film_io import FilmError, read_exr, write_exr
+    key = reference_key(scene, spp, max_depth, integrator, seed)
+    path = os.path.join(cache_dir, f"ref-{_safe_name(scene.name)}-{key[:24]}.exr")
+    if os.path.exists(path):
+        try:
+            return read_exr(path)[0]
+        except FilmError:
+            pass  # a damaged cache entry: render and overwrite it
+    image = render_reference(scene, spp, max_depth, integrator, seed, variant)
+    os.makedirs(cache_dir, exist_ok=True)
+    write_exr(path, image)
+    return image
