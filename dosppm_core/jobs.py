@@ -59,10 +59,17 @@ class RayBatch(_Record):
     pixel: np.ndarray       # int32 (n,)
     depth: np.ndarray       # int32 (n,): surfaces hit so far
     rng: np.ndarray         # uint64 (n,)
+    # Distance along the ray already searched in earlier chunks: a ray
+    # continued through a portal keeps its origin and skips [0, tmin).
+    tmin: np.ndarray = None  # float32 (n,); None means zeros (a new ray)
 
     SCHEMA = {"origin": (np.float32, (3,)), "direction": (np.float32, (3,)),
               "weight": (np.float32, (3,)), "pixel": (np.int32, ()),
-              "depth": (np.int32, ()), "rng": (np.uint64, ())}
+              "depth": (np.int32, ()), "rng": (np.uint64, ()), "tmin": (np.float32, ())}
+
+    def __post_init__(self):
+        if self.tmin is None:
+            self.tmin = np.zeros(self.origin.shape[0], np.float32)
 
 
 @dataclass

@@ -204,6 +204,61 @@ class Scene:
         b = self.bounds()
         return float(np.linalg.norm(b[1] - b[0]))
 
+    def header(self) -> "SceneHeader":
+        return SceneHeader(self.materials, self.lights, self.camera, self.bounds(), self.name,
+                           self.source, dict(self.render_settings))
+
+
+@dataclass
+class SceneHeader:
+    """Everything of a scene except its triangles: what a chunk store's
+    manifest, the server and OSPPM need (materials, lights, camera, bounds)."""
+    materials: MaterialTable
+    lights: LightTable
+    camera: Camera
+    bounds: np.ndarray          # float64 (2, 3), as Scene.bounds()
+    name: str = "scene"
+    source: str = "<memory>"
+    render_settings: dict = field(default_factory=dict)
+
+    def diagonal(self) -> float:
+        return float(np.linalg.norm(self.bounds[1] - self.bounds[0]))
+
+    def to_wire(self) -> dict:
+        """msgpack-ready dict: arrays as (dtype, shape, raw bytes)."""
+        return {"materials": {k: _pack(v) for k, v in vars(self.materials).items()},
+                "lights": {k: _pack(v) for k, v in vars(self.lights).items()},
+                "camera": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(self.camera).items()},
+                "bounds": _pack(self.bounds), "name": self.name, "source": self.source,
+                "render_settings": dict(self.render_settings)}
+
+    @classmethod
+    def from_wire(cls, d: dict) -> "SceneHeader":
+        """Inverse of to_wire; a malformed dict raises SceneError naming the field."""
+        try:
+            mats = MaterialTable(**{k: _unpack(v) for k, v in d["materials"].items()})
+            lights = LightTable(**{k: _unpack(v) for k, v in d["lights"].items()})
+            cam = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d["camera"].items()}
+            header = cls(mats, lights, Camera(**cam), _unpack(d["bounds"]), d["name"],
+                         d["source"], dict(d["render_settings"]))
+        except (KeyError, TypeError, ValueError) as e:
+            raise SceneError(f"scene header: malformed field {e}") from None
+        header.camera.validate("scene header: camera")
+        return header
+
+
+def _pack(v):
+    if isinstance(v, np.ndarray):
+        a = np.ascontiguousarray(v)
+        return {"dtype": a.dtype.str, "shape": list(a.shape), "data": a.tobytes()}
+    return list(v) if isinstance(v, tuple) else v
+
+
+def _unpack(v):
+    if isinstance(v, dict) and set(v) == {"dtype", "shape", "data"}:
+        return np.frombuffer(v["data"], np.dtype(v["dtype"])).reshape(v["shape"]).copy()
+    return v
+
 
 @dataclass
 class _Mesh:

@@ -61,6 +61,13 @@ def photon_step(accel: Accelerator, surf: SurfaceData, batch: RayBatch,
                 cull_box: np.ndarray, max_depth: int):
     """One bounce. Returns (deposits, continuing batch, end counts, culled)."""
     prim, _t, u, v = accel.intersect(batch.origin, batch.direction)
+    return scatter_photons(surf, batch, prim, u, v, cull_box, max_depth)
+
+
+def scatter_photons(surf: SurfaceData, batch: RayBatch, prim, u, v,
+                    cull_box: np.ndarray, max_depth: int):
+    """The photon bounce at known hits (`prim` -1: escaped), for any
+    aggregate: the whole scene or one chunk (`surf` indexes like `prim`)."""
     ends, culled, dep, (g, no, nd, nf, st) = paths.scatter_photons(
         batch.origin, batch.direction, batch.weight, batch.depth, batch.rng, prim, u, v,
         surf.vertices, surf.triangles, surf.tri_material, surf.kind, surf.reflectance,
@@ -74,6 +81,11 @@ def eye_step(accel: Accelerator, surf: SurfaceData, batch: RayBatch, max_depth: 
     """One bounce of eye paths. Returns (hit points, emitted (pixel, rgb),
     continuing batch, end counts)."""
     prim, _t, u, v = accel.intersect(batch.origin, batch.direction)
+    return advance_eye(surf, batch, prim, u, v, max_depth)
+
+
+def advance_eye(surf: SurfaceData, batch: RayBatch, prim, u, v, max_depth: int):
+    """The eye-path bounce at known hits, for any aggregate."""
     ends, (lit, rgb), (h, hpos, hn), (g, no, nd, nw, st) = paths.advance_eye_paths(
         batch.direction, batch.weight, batch.depth, batch.rng, prim, u, v,
         surf.vertices, surf.triangles, surf.tri_material, surf.kind, surf.reflectance,

@@ -1,0 +1,90 @@
+"""Test helpers: chunk a scene in memory without the subdivider, so the
+traversal is tested independently of it. Insertion here is by bounding-box
+overlap, a superset of the exact test; extra triangles cannot change a first
+hit, because a chunk only accepts hits inside its own interval."""
+from __future__ import annotations
+
+import numpy as np
+
+from dosppm_core.chunked import ChunkGeometry
+from dosppm_core.chunktree import LEAF, ChunkTree
+from dosppm_core.portals import INSERT_MARGIN
+
+
+def uniform_tree(box, cells) -> ChunkTree:
+    """A kd-tree cutting `box` into cells[0] x cells[1] x cells[2] equal boxes."""
+    box = np.asarray(box, np.float64)
+    axis, split, child, boxes = [], [], [], []
+
+    def build(lo, hi, counts):
+        node = len(axis)
+        axis.append(LEAF)
+        split.append(0.0)
+        child.append([len(boxes), -1])
+        a = next((a for a in range(3) if counts[a] > 1), None)
+        if a is None:
+            boxes.append(np.stack([lo, hi]))
+            return node
+        k = counts[a] // 2
+        s = lo[a] + (hi[a] - lo[a]) * k / counts[a]
+        lower_hi, upper_lo = hi.copy(), lo.copy()
+        lower_hi[a] = upper_lo[a] = s
+        lower_counts, upper_counts = list(counts), list(counts)
+        lower_counts[a], upper_counts[a] = k, counts[a] - k
+        axis[node], split[node] = a, s
+        left = build(lo, lower_hi, lower_counts)
+        right = build(upper_lo, hi, upper_counts)
+        child[node] = [left, right]
+        return node
+
+    build(box[0].copy(), box[1].copy(), list(cells))
+    return ChunkTree(np.array(axis, np.int8), np.array(split), np.array(child, np.int32), np.array(boxes))
+
+
+def skewed_tree(box, rng, leaves: int) -> ChunkTree:
+    """Random kd-tree with `leaves` leaves: splits at random fractions on
+    random axes, so faces meet in T-junctions."""
+    box = np.asarray(box, np.float64)
+    tree = ChunkTree.single(box)
+    axis, split, child = list(tree.axis), list(tree.split), [list(c) for c in tree.child]
+    boxes = [box.copy()]
+    leaf_node = {0: 0}   # chunk -> node
+    while len(boxes) < leaves:
+        k = int(rng.integers(len(boxes)))
+        a = int(rng.integers(3))
+        lo, hi = boxes[k]
+        s = lo[a] + (hi[a] - lo[a]) * rng.uniform(0.3, 0.7)
+        node = leaf_node[k]
+        upper = boxes[k].copy()
+        upper[0, a] = s
+        boxes[k] = boxes[k].copy()
+        boxes[k][1, a] = s
+        boxes.append(upper)
+        left, right = len(axis), len(axis) + 1
+        axis += [LEAF, LEAF]
+        split += [0.0, 0.0]
+        child += [[k, -1], [len(boxes) - 1, -1]]
+        axis[node], split[node], child[node] = a, s, [left, right]
+        leaf_node[k], leaf_node[len(boxes) - 1] = left, right
+    return ChunkTree(np.array(axis, np.int8), np.array(split), np.array(child, np.int32), np.array(boxes))
+
+
+def root_box(scene) -> np.ndarray:
+    b = scene.bounds()
+    grow = 1e-4 * scene.diagonal()
+    return np.stack([b[0] - grow, b[1] + grow])
+
+
+def bbox_chunks(scene, tree: ChunkTree) -> list[ChunkGeometry]:
+    """Each chunk's triangles: those whose bounding box meets the chunk box
+    grown by INSERT_MARGIN (a superset of the exact overlap)."""
+    margin = INSERT_MARGIN * scene.diagonal()
+    corners = scene.vertices[scene.triangles].astype(np.float64)
+    lo, hi = corners.min(axis=1), corners.max(axis=1)
+    out = []
+    for box in tree.boxes:
+        sel = np.flatnonzero(np.all(lo <= box[1] + margin, axis=1) & np.all(hi >= box[0] - margin, axis=1))
+        used, local = np.unique(scene.triangles[sel], return_inverse=True)
+        out.append(ChunkGeometry(scene.vertices[used], local.reshape(-1, 3).astype(np.int32),
+                                 scene.tri_material[sel], sel.astype(np.int32)))
+    return out
