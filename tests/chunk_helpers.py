@@ -14,30 +14,38 @@ from dosppm_core.portals import INSERT_MARGIN
 def uniform_tree(box, cells) -> ChunkTree:
     """A kd-tree cutting `box` into cells[0] x cells[1] x cells[2] equal boxes."""
     box = np.asarray(box, np.float64)
+    return lattice_tree(box, [box[0, a] + (box[1, a] - box[0, a]) * np.arange(1, cells[a]) / cells[a]
+                              for a in range(3)])
+
+
+def lattice_tree(box, planes) -> ChunkTree:
+    """A kd-tree cutting `box` at the given split planes per axis (lists of
+    interior coordinates): a lattice of len+1 boxes per axis."""
+    box = np.asarray(box, np.float64)
     axis, split, child, boxes = [], [], [], []
 
-    def build(lo, hi, counts):
+    def build(lo, hi, cuts):
         node = len(axis)
         axis.append(LEAF)
         split.append(0.0)
         child.append([len(boxes), -1])
-        a = next((a for a in range(3) if counts[a] > 1), None)
+        a = next((a for a in range(3) if len(cuts[a])), None)
         if a is None:
             boxes.append(np.stack([lo, hi]))
             return node
-        k = counts[a] // 2
-        s = lo[a] + (hi[a] - lo[a]) * k / counts[a]
+        k = len(cuts[a]) // 2
+        s = float(cuts[a][k])
         lower_hi, upper_lo = hi.copy(), lo.copy()
         lower_hi[a] = upper_lo[a] = s
-        lower_counts, upper_counts = list(counts), list(counts)
-        lower_counts[a], upper_counts[a] = k, counts[a] - k
+        lower, upper = list(cuts), list(cuts)
+        lower[a], upper[a] = cuts[a][:k], cuts[a][k + 1:]
         axis[node], split[node] = a, s
-        left = build(lo, lower_hi, lower_counts)
-        right = build(upper_lo, hi, upper_counts)
+        left = build(lo, lower_hi, lower)
+        right = build(upper_lo, hi, upper)
         child[node] = [left, right]
         return node
 
-    build(box[0].copy(), box[1].copy(), list(cells))
+    build(box[0].copy(), box[1].copy(), [list(p) for p in planes])
     return ChunkTree(np.array(axis, np.int8), np.array(split), np.array(child, np.int32), np.array(boxes))
 
 
@@ -88,3 +96,18 @@ def bbox_chunks(scene, tree: ChunkTree) -> list[ChunkGeometry]:
         out.append(ChunkGeometry(scene.vertices[used], local.reshape(-1, 3).astype(np.int32),
                                  scene.tri_material[sel], sel.astype(np.int32)))
     return out
+
+
+class MemoryChunks:
+    """A chunk provider held in memory (what OSPPM reads from a store)."""
+
+    def __init__(self, scene, tree: ChunkTree):
+        self.header, self.tree = scene.header(), tree
+        self.chunks = bbox_chunks(scene, tree)
+        # Rough resident size: arrays plus Embree's ~2x copy and BVH.
+        self.chunk_memory = np.array([3 * g.nbytes + 1 for g in self.chunks], np.float64)
+        self.loads = []
+
+    def load(self, k: int):
+        self.loads.append(k)
+        return self.chunks[k]

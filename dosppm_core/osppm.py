@@ -1,0 +1,269 @@
+"""OSPPM: out-of-core SPPM in one process (Günther & Grosch §3.1).
+
+The scene lives in chunks (a chunk store on disk, or any object with
+`header`, `tree`, `chunk_memory` and `load(k)`). Each chunk has a queue of
+pending ray batches. Chunks are activated one after another, round robin,
+with at most as many resident as the memory limit allows; the next chunk
+with work is loaded on a background thread while the active one traces.
+All batches queued for the active chunk are coalesced into one (client
+batching, §4.3), so packages that split at portals merge again instead of
+multiplying.
+
+An iteration is an eye phase (hit points of every pixel) and a photon
+phase, then the statistics update, exactly as in `render.Renderer`; the
+kernels, job records and statistics are the same, so the same seed gives
+the same image whatever the number of chunks, up to floating-point noise.
+"""
+from __future__ import annotations
+
+import time
+from collections import OrderedDict
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .chunked import ChunkView, start_chunks, trace_eye_in_chunk, trace_photons_in_chunk
+from .jobs import END_NAMES, ESCAPED, HitPoints, PhotonDeposits, RayBatch
+from .render import Progress, RenderSettings
+from .sppm import PixelStatistics, initial_radius
+from .tracing import NO_CULL, emit_photon_job, eye_ray_job
+
+
+@dataclass
+class ChunkCounters:
+    """What the chunk machinery did: the numbers behind Figure 11."""
+    activations: int = 0
+    loads: int = 0
+    load_seconds: float = 0.0       # reading files and building BVHs
+    wait_seconds: float = 0.0       # of that, time the tracer sat waiting
+    portal_rays: int = 0            # rays handed to another chunk
+    wasted_prefetches: int = 0      # loaded ahead, then not used
+    traced_batches: int = 0
+    per_chunk_load: dict = field(default_factory=dict)
+
+
+class ChunkCache:
+    """Resident chunks under a memory limit, least recently used evicted,
+    with one asynchronous prefetch."""
+
+    def __init__(self, provider, memory_bytes: float, threads: int = 1):
+        self.provider, self.threads = provider, threads
+        self.memory = float(memory_bytes)
+        self.cost = np.asarray(provider.chunk_memory, np.float64)
+        self.resident: OrderedDict[int, ChunkView] = OrderedDict()
+        self.counters = ChunkCounters()
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="chunk-prefetch")
+        self._pending: tuple[int, Future] | None = None
+
+    def _load(self, k: int) -> tuple[ChunkView, float]:
+        t0 = time.perf_counter()
+        view = ChunkView(k, self.provider.load(k), self.provider.header, self.provider.tree,
+                         threads=self.threads)
+        return view, time.perf_counter() - t0
+
+    def _make_room(self, k: int, keep: tuple) -> bool:
+        """Evict least recently used chunks (never those in `keep`) until
+        chunk k fits; False if it cannot fit beside them."""
+        def used():
+            return sum(self.cost[j] for j in self.resident) + \
+                (self.cost[self._pending[0]] if self._pending else 0.0)
+        while used() + self.cost[k] > self.memory:
+            victim = next((j for j in self.resident if j not in keep), None)
+            if victim is None:
+                return False
+            self.resident.pop(victim).close()
+        return True
+
+    def activate(self, k: int) -> ChunkView:
+        self.counters.activations += 1
+        if k in self.resident:
+            self.resident.move_to_end(k)
+            return self.resident[k]
+        t0 = time.perf_counter()
+        if self._pending and self._pending[0] == k:
+            view, seconds = self._pending[1].result()
+            self._pending = None
+        else:
+            self._drop_prefetch()
+            self._make_room(k, keep=())
+            view, seconds = self._load(k)
+        self.counters.wait_seconds += time.perf_counter() - t0
+        self._count_load(k, seconds)
+        self.resident[k] = view
+        return view
+
+    def prefetch(self, k: int, active: int) -> None:
+        """Start loading chunk k in the background if memory allows it
+        beside the active chunk."""
+        if k in self.resident or (self._pending and self._pending[0] == k):
+            return
+        self._drop_prefetch()
+        if self._make_room(k, keep=(active,)):
+            self._pending = (k, self._pool.submit(self._load, k))
+
+    def _drop_prefetch(self) -> None:
+        if self._pending:
+            view, _ = self._pending[1].result()
+            view.close()
+            self._pending = None
+            self.counters.wasted_prefetches += 1
+
+    def _count_load(self, k: int, seconds: float) -> None:
+        c = self.counters
+        c.loads += 1
+        c.load_seconds += seconds
+        c.per_chunk_load[k] = c.per_chunk_load.get(k, 0) + 1
+
+    def close(self) -> None:
+        self._drop_prefetch()
+        for view in self.resident.values():
+            view.close()
+        self.resident.clear()
+        self._pool.shutdown(wait=True)
+
+
+class OutOfCoreRenderer:
+    """Drives OSPPM iterations over a chunked scene in this process.
+
+    `memory_bytes` limits resident chunk geometry (estimated as the store
+    does, BVH included); default: room for every chunk."""
+
+    def __init__(self, provider, settings: RenderSettings | None = None,
+                 memory_bytes: float | None = None):
+        self.provider = provider
+        self.header, self.tree = provider.header, provider.tree
+        self.settings = settings or RenderSettings()
+        self.settings.validate()
+        s, cam = self.settings, self.header.camera
+        cost = np.asarray(provider.chunk_memory, np.float64)
+        if memory_bytes is None:
+            memory_bytes = float(cost.sum())
+        if memory_bytes < cost.max():
+            raise ValueError(f"memory limit {memory_bytes:.0f} B is below the largest chunk "
+                             f"({cost.max():.0f} B)")
+        self.cache = ChunkCache(provider, memory_bytes, threads=s.threads)
+        self.stats = PixelStatistics(int(cam.width), int(cam.height), s.radius, s.alpha)
+        self.eps_abs = 1e-6 * self.header.diagonal()
+        self.iteration = 0
+        self.next_photon_job = 0
+        self.path_ends = np.zeros(len(END_NAMES), np.int64)
+        self.hit_point_total = 0
+        self.seconds = 0.0
+        self._cursor = 0
+
+    # -- the loop --------------------------------------------------------
+    def run_iteration(self) -> Progress:
+        t0 = time.perf_counter()
+        self._eye_phase()
+        self._photon_phase()
+        self.iteration += 1
+        self.seconds += time.perf_counter() - t0
+        return self.progress()
+
+    def progress(self) -> Progress:
+        ends = {name: int(c) for name, c in zip(END_NAMES, self.path_ends) if name != "continues"}
+        return Progress(self.iteration, self.stats.photons_emitted, self.hit_point_total,
+                        self.seconds, ends)
+
+    def image(self) -> np.ndarray:
+        return self.stats.radiance().astype(np.float32)
+
+    def close(self) -> None:
+        self.cache.close()
+
+    # -- phases ------------------------------------------------------------
+    def _eye_phase(self) -> None:
+        s, cam = self.settings, self.header.camera
+        n_pix = int(cam.width) * int(cam.height)
+        queues = self._queues()
+        for start in range(0, n_pix, s.tile_pixels):
+            batch = eye_ray_job(self.header, s.seed, self.iteration, start,
+                                min(s.tile_pixels, n_pix - start))
+            self._enqueue(queues, batch)
+        hits, pix, rgb = [], [], []
+
+        def step(view, batch):
+            h, (p, e), ends, out = trace_eye_in_chunk(view, batch, s.max_depth)
+            hits.append(h)
+            pix.append(p)
+            rgb.append(e)
+            return ends, out
+        self._drain(queues, step)
+        hp = HitPoints.concat(hits)
+        self.hit_point_total += len(hp)
+        if not self.stats.has_radius:
+            self.stats.set_initial_radius(initial_radius(self.header, hp))
+        self.stats.replace_hit_points(hp, (np.concatenate(pix), np.concatenate(rgb)))
+
+    def _photon_phase(self) -> None:
+        s = self.settings
+        box = self.stats.gather_box() if s.cull else None
+        cull = NO_CULL if box is None else box
+        queues = self._queues()
+        left = s.photons_per_iteration
+        while left > 0:
+            count = min(s.photons_per_job, left)
+            self._enqueue(queues, emit_photon_job(self.header, s.seed, self.next_photon_job,
+                                                  count, self.eps_abs))
+            self.next_photon_job += 1
+            left -= count
+        deposits = []
+
+        def step(view, batch):
+            dep, ends, _culled, out = trace_photons_in_chunk(view, batch, cull, s.max_depth)
+            deposits.append(dep)
+            return ends, out
+        self._drain(queues, step)
+        self._apply(PhotonDeposits.concat(deposits), s.photons_per_iteration)
+
+    def _apply(self, deposits: PhotonDeposits, emitted: int) -> None:
+        """Server batching: update in batches of at most `photon_batch`
+        deposits; the emitted count goes with the first batch (eq. 4 only
+        needs the total once all of them are in)."""
+        s = self.settings
+        for start in range(0, max(len(deposits), 1), s.photon_batch):
+            part = deposits.take(np.arange(start, min(start + s.photon_batch, len(deposits))))
+            self.stats.apply_photons(part, emitted if start == 0 else 0, self.header.materials,
+                                     gather=s.gather, threads=s.threads, reorder=s.reorder,
+                                     hash_options=s.hash_options)
+
+    # -- chunk queues --------------------------------------------------------
+    def _queues(self) -> list[list[RayBatch]]:
+        return [[] for _ in range(self.tree.chunk_count)]
+
+    def _enqueue(self, queues, batch: RayBatch) -> None:
+        routed, lost = start_chunks(self.tree, batch)
+        self.path_ends[ESCAPED] += lost
+        for k, b in routed.items():
+            queues[k].append(b)
+
+    def _next_chunk(self, queues, after: int) -> int | None:
+        c = len(queues)
+        for i in range(1, c + 1):
+            k = (after + i) % c
+            if queues[k]:
+                return k
+        return None
+
+    def _drain(self, queues, step) -> None:
+        """Activate chunks round robin until no queue holds rays; `step`
+        traces a coalesced batch in a chunk and returns (ends, outgoing)."""
+        k = self._next_chunk(queues, self._cursor - 1)
+        while k is not None:
+            view = self.cache.activate(k)
+            batch = RayBatch.concat(queues[k])
+            queues[k] = []
+            ahead = self._next_chunk(queues, k)
+            if ahead is not None and ahead != k:
+                self.cache.prefetch(ahead, active=k)
+            ends, outgoing = step(view, batch)
+            self.path_ends += ends
+            self.cache.counters.traced_batches += 1
+            for j, parts in outgoing.items():
+                queues[j].extend(parts)
+                self.cache.counters.portal_rays += sum(len(b) for b in parts)
+            self._cursor = k
+            # Go on to the chunk being prefetched: it still has work, and
+            # the chunks between may only have received some just now.
+            k = ahead if ahead is not None else self._next_chunk(queues, k)
