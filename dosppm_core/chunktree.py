@@ -107,6 +107,7 @@ class ChunkTree:
 
 @numba.njit(cache=True)
 def _locate_one(axis, split, child, root, p, d):
+    """`p`, `d`: 3-tuples (no allocation per ray)."""
     for a in range(3):
         if p[a] < root[0, a] or p[a] > root[1, a]:
             return OUTSIDE
@@ -125,9 +126,11 @@ def _locate_one(axis, split, child, root, p, d):
     return child[node, 0]
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, parallel=True)
 def _locate(axis, split, child, root, points, directions):
     out = np.empty(points.shape[0], np.int32)
-    for i in range(points.shape[0]):
-        out[i] = _locate_one(axis, split, child, root, points[i], directions[i])
+    for i in numba.prange(points.shape[0]):
+        p = (points[i, 0], points[i, 1], points[i, 2])
+        d = (directions[i, 0], directions[i, 1], directions[i, 2])
+        out[i] = _locate_one(axis, split, child, root, p, d)
     return out

@@ -71,34 +71,43 @@ def intersect_in_chunk(accel, tree: ChunkTree, chunk: int, origin, direction, tm
 
 
 @numba.njit(cache=True)
-def _slab(lo, hi, o, d):
-    """Entry and exit distance of the ray through the box, and per axis the
-    exit distance (inf for an axis the ray runs parallel to)."""
-    t0, t1 = -np.inf, np.inf
-    texit = np.full(3, np.inf)
-    for a in range(3):
-        if d[a] != 0.0:
-            inv = 1.0 / d[a]
-            ta, tb = (lo[a] - o[a]) * inv, (hi[a] - o[a]) * inv
-            if ta > tb:
-                ta, tb = tb, ta
-            t0, t1 = max(t0, ta), min(t1, tb)
-            texit[a] = tb
-        elif o[a] < lo[a] or o[a] > hi[a]:
-            return np.inf, -np.inf, texit
-    return t0, t1, texit
+def _axis_slab(lo, hi, o, d):
+    """(entry, exit) of one axis's slab; (-inf, inf) when parallel and
+    inside it, (inf, -inf) when parallel and outside."""
+    if d != 0.0:
+        ta, tb = (lo - o) / d, (hi - o) / d
+        return (ta, tb) if ta <= tb else (tb, ta)
+    if o < lo or o > hi:
+        return np.inf, -np.inf
+    return -np.inf, np.inf
 
 
 @numba.njit(cache=True)
+def _slab(lo, hi, o, d):
+    """(entry, exit, per-axis exit distances) of the ray through the box.
+    Scalars and tuples only: this runs once per ray per chunk and must not
+    allocate."""
+    ax, bx = _axis_slab(lo[0], hi[0], o[0], d[0])
+    ay, by = _axis_slab(lo[1], hi[1], o[1], d[1])
+    az, bz = _axis_slab(lo[2], hi[2], o[2], d[2])
+    return max(ax, ay, az), min(bx, by, bz), (bx, by, bz)
+
+
+@numba.njit(cache=True)
+def _clamped(o, d, t, box):
+    return (min(max(o[0] + t * d[0], box[0, 0]), box[1, 0]),
+            min(max(o[1] + t * d[1], box[0, 1]), box[1, 1]),
+            min(max(o[2] + t * d[2], box[0, 2]), box[1, 2]))
+
+
+@numba.njit(cache=True, parallel=True)
 def _enter(axis, split, child, root, origin, direction):
     n = origin.shape[0]
     chunk = np.empty(n, np.int32)
     tmin = np.zeros(n, np.float32)
-    p = np.empty(3)
-    d = np.empty(3)
-    for i in range(n):
-        for a in range(3):
-            p[a], d[a] = origin[i, a], direction[i, a]
+    for i in numba.prange(n):
+        p = (np.float64(origin[i, 0]), np.float64(origin[i, 1]), np.float64(origin[i, 2]))
+        d = (np.float64(direction[i, 0]), np.float64(direction[i, 1]), np.float64(direction[i, 2]))
         inside = True
         for a in range(3):
             if p[a] < root[0, a] or p[a] > root[1, a]:
@@ -106,39 +115,39 @@ def _enter(axis, split, child, root, origin, direction):
         if inside:
             chunk[i] = _locate_one(axis, split, child, root, p, d)
             continue
-        t0, t1, _ = _slab(root[0], root[1], p, d)
+        t0, t1, _te = _slab(root[0], root[1], p, d)
         if not (t0 <= t1 and t1 > 0.0):
             chunk[i] = OUTSIDE
             continue
-        q = np.empty(3)
-        for a in range(3):
-            q[a] = min(max(p[a] + t0 * d[a], root[0, a]), root[1, a])
-        chunk[i] = _locate_one(axis, split, child, root, q, d)
+        chunk[i] = _locate_one(axis, split, child, root, _clamped(p, d, t0, root), d)
         tmin[i] = t0    # its float32 rounding is far inside the search's eps widening
     return chunk, tmin
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, parallel=True)
 def _exit(axis, split, child, root, box, chunk, origin, direction):
     n = origin.shape[0]
     t_exit = np.empty(n)
     nxt = np.empty(n, np.int32)
-    p = np.empty(3)
-    d = np.empty(3)
-    q = np.empty(3)
-    for i in range(n):
-        for a in range(3):
-            p[a], d[a] = origin[i, a], direction[i, a]
-        _t0, t1, texit = _slab(box[0], box[1], p, d)
+    for i in numba.prange(n):
+        p = (np.float64(origin[i, 0]), np.float64(origin[i, 1]), np.float64(origin[i, 2]))
+        d = (np.float64(direction[i, 0]), np.float64(direction[i, 1]), np.float64(direction[i, 2]))
+        _t0, t1, te = _slab(box[0], box[1], p, d)
         t_exit[i] = t1
-        for a in range(3):
-            if texit[a] == t1:      # the faces left through: snap exactly onto them
-                q[a] = box[1, a] if d[a] > 0 else box[0, a]
-            else:
-                q[a] = min(max(p[a] + t1 * d[a], box[0, a]), box[1, a])
+        q = _clamped(p, d, t1, box)
+        # Snap exactly onto the faces left through (one, or two or three at
+        # an edge or corner), so `locate` sends the point across them.
+        q = (_snap(q[0], te[0], t1, d[0], box, 0), _snap(q[1], te[1], t1, d[1], box, 1),
+             _snap(q[2], te[2], t1, d[2], box, 2))
         k = _locate_one(axis, split, child, root, q, d)
-        # The snapped point lies on this box's exit faces and `locate`
-        # sends it across them, so k == chunk is impossible unless the ray
-        # started behind the box; treat that as leaving (never loop).
+        # k == chunk is impossible unless the ray started behind the box;
+        # treat that as leaving (never loop).
         nxt[i] = OUTSIDE if k == chunk else k
     return t_exit, nxt
+
+
+@numba.njit(cache=True)
+def _snap(q, te, t1, d, box, a):
+    if te == t1:
+        return box[1, a] if d > 0 else box[0, a]
+    return q
