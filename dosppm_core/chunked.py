@@ -67,15 +67,7 @@ class ChunkView:
 
 def route(batch: RayBatch, chunks: np.ndarray) -> dict[int, RayBatch]:
     """Split a batch by destination chunk (-1 entries must be removed first)."""
-    if len(batch) == 0:
-        return {}
-    order = np.argsort(chunks, kind="stable")
-    sorted_chunks = chunks[order]
-    cuts = np.flatnonzero(np.diff(sorted_chunks)) + 1
-    out = {}
-    for part in np.split(np.arange(len(order)), cuts):
-        out[int(sorted_chunks[part[0]])] = batch.take(order[part])
-    return out
+    return batch.partition(chunks)
 
 
 def start_chunks(tree: ChunkTree, batch: RayBatch) -> tuple[dict[int, RayBatch], int]:
@@ -83,8 +75,9 @@ def start_chunks(tree: ChunkTree, batch: RayBatch) -> tuple[dict[int, RayBatch],
     the scene's box altogether are returned as a count (escaped)."""
     chunk, tmin = enter(tree, batch.origin, batch.direction)
     batch.tmin = np.maximum(batch.tmin, tmin)
-    inside = chunk >= 0
-    return route(batch.take(inside), chunk[inside]), int((~inside).sum())
+    routed = route(batch, chunk)
+    lost = routed.pop(-1, None)
+    return routed, 0 if lost is None else len(lost)
 
 
 def _split_leaving(view: ChunkView, batch: RayBatch, counts: np.ndarray):
@@ -92,14 +85,16 @@ def _split_leaving(view: ChunkView, batch: RayBatch, counts: np.ndarray):
     rays leaving through portals grouped by next chunk)."""
     prim, _t, u, v, nxt, t_exit = view.intersect(batch)
     leaving = (prim < 0) & (nxt >= 0)
-    out = {}
-    if leaving.any():
-        gone = batch.take(leaving)
-        gone.tmin = t_exit[leaving].astype(np.float32)
-        out = route(gone, nxt[leaving])
-        stay = ~leaving
-        batch, prim, u, v = batch.take(stay), prim[stay], u[stay], v[stay]
-    return batch, (prim, u, v), out
+    if not leaving.any():
+        return batch, (prim, u, v), {}
+    # One partition: key -1 stays for the bounce (hit, or escaping the
+    # scene), other keys leave for that chunk, resuming at t_exit.
+    key = np.where(leaving, nxt, -1)
+    batch.tmin = np.where(leaving, t_exit, batch.tmin).astype(np.float32)
+    out = route(batch, key)
+    stay = ~leaving
+    here = out.pop(-1, RayBatch.empty())
+    return here, (prim[stay], u[stay], v[stay]), out
 
 
 def _merge(into: dict, parts: dict) -> None:

@@ -31,6 +31,21 @@ class _Record:
         return type(self)(**{f.name: np.take(getattr(self, f.name), index, axis=0)
                              for f in fields(self)})
 
+    def slice(self, start: int, stop: int) -> "_Record":
+        """Rows [start, stop) as views, no copy."""
+        return type(self)(**{f.name: getattr(self, f.name)[start:stop] for f in fields(self)})
+
+    def partition(self, keys: np.ndarray) -> dict:
+        """{key: the rows with that key}, with one permuting copy of the
+        record in all (views of it per key), in row order within a key."""
+        if len(keys) == 0:
+            return {}
+        order = np.argsort(keys, kind="stable")
+        sorted_keys = keys[order]
+        whole = self.take(order)
+        cuts = np.concatenate([[0], np.flatnonzero(np.diff(sorted_keys)) + 1, [len(keys)]])
+        return {int(sorted_keys[a]): whole.slice(a, b) for a, b in zip(cuts[:-1], cuts[1:])}
+
     @classmethod
     def concat(cls, parts: list) -> "_Record":
         parts = [p for p in parts if p is not None]
