@@ -1,5 +1,6 @@
 """One entry point from a user's scene argument to a `Scene`: a built-in
-name, a TOML scene file or a Mitsuba 3 XML file."""
+name, a TOML scene file or a Mitsuba 3 XML file; and to a `TriangleSource`,
+which may also be a triangle soup directory too big for memory."""
 from __future__ import annotations
 
 import os
@@ -29,3 +30,13 @@ def load_scene(spec: str, **overrides) -> Scene:
         if overrides.get(key):
             setattr(scene.camera, key, int(overrides[key]))
     return scene
+
+
+def load_source(spec: str):
+    """A `TriangleSource`: a soup directory is memory-mapped, anything else
+    is loaded by `load_scene` and wrapped."""
+    from .soup import SceneSource
+    from .soupfile import is_soup, open_soup
+    if is_soup(spec):
+        return open_soup(spec)
+    return SceneSource(load_scene(spec))
