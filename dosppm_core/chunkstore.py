@@ -213,6 +213,11 @@ def check_target(path: str) -> None:
         raise StoreError(f"{path}: exists and is not a chunk store; not replacing it")
 
 
+def is_store(path: str) -> bool:
+    """True for a directory with a chunk store manifest (open() validates it)."""
+    return os.path.isdir(path) and os.path.exists(os.path.join(path, MANIFEST))
+
+
 def _looks_like_store(path: str) -> bool:
     names = os.listdir(path)
     return all(n == MANIFEST or (n.startswith("chunk-") and n.endswith(".bin")) for n in names)
