@@ -38,34 +38,43 @@ def add_render_parser(sub) -> None:
     p.add_argument("--log", help="append JSON-lines progress records here")
     p.add_argument("--exposure", type=float, default=0.0, help="PNG preview exposure in stops")
     p.add_argument("--quiet", action="store_true")
+    ooc = p.add_argument_group("out of core (OSPPM): any of these renders chunk by chunk")
+    ooc.add_argument("--budget", metavar="SIZE", help="memory per chunk, BVH included (e.g. 512MiB)")
+    ooc.add_argument("--chunks", type=int, metavar="C", help="force C chunks")
+    ooc.add_argument("--memory", metavar="SIZE",
+                     help="resident chunks at most this much (default: twice the budget or all)")
+    ooc.add_argument("--store-cache", metavar="DIR", default=_default_store_cache(),
+                     help="where chunk stores made on the fly are kept (default %(default)s)")
     p.set_defaults(func=cmd_render)
+
+
+def _default_store_cache() -> str:
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "dosppm", "chunks")
 
 
 def cmd_render(args) -> int:
     from .film_io import write_exr, write_png
-    from .loaders import load_scene
     from .progress import ProgressReporter, kernels_cached
-    from .render import Renderer, RenderSettings
+    from .render import RenderSettings
     try:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            scene = load_scene(args.scene, width=args.width, height=args.height)
-        for w in caught:
-            print(f"dosppm: warning: {w.message}", file=sys.stderr)
         settings = RenderSettings(seed=args.seed, alpha=args.alpha, radius=args.radius,
                                   max_depth=args.max_depth, gather=args.gather,
                                   photons_per_iteration=args.photons_per_iteration,
                                   photon_batch=args.photon_batch, threads=args.threads)
         settings.validate()
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            renderer, describe = _make_renderer(args, settings)
+        for w in caught:
+            print(f"dosppm: warning: {w.message}", file=sys.stderr)
     except (SceneError, ValueError, OSError) as e:
         return _error(str(e))
     limit = _limit(args)
     say = (lambda *a: None) if args.quiet else (lambda *a: print(*a, file=sys.stderr))
-    say(f"scene {scene.name}: {scene.triangle_count:,} triangles, {len(scene.lights.kind)} lights, "
-        f"{scene.camera.width}x{scene.camera.height}")
+    say(describe)
     if not kernels_cached():
         say("compiling kernels (first run on this machine; cached afterwards, about a minute)...")
-    renderer = Renderer(scene, settings)
     reporter = ProgressReporter(limit, args.log, quiet=args.quiet)
     interrupted = False
     try:
@@ -81,6 +90,51 @@ def cmd_render(args) -> int:
     say(f"{'interrupted: ' if interrupted else ''}wrote {args.out} after {p.iteration} iterations, "
         f"{p.photons_emitted:,} photons, {p.seconds:.1f} s")
     return 130 if interrupted else 0
+
+
+def _make_renderer(args, settings):
+    """The single-process renderer, or OSPPM over a chunk store when the
+    scene is a store or a soup, or chunking was asked for."""
+    from .chunkstore import ChunkStore, is_store, open_or_subdivide
+    from .cli_chunks import parse_bytes
+    from .loaders import load_scene, load_source
+    from .render import Renderer
+    from .soupfile import is_soup
+    chunked = is_store(args.scene) or is_soup(args.scene) or args.budget or args.chunks
+    if not chunked:
+        scene = load_scene(args.scene, width=args.width, height=args.height)
+        return Renderer(scene, settings), (
+            f"scene {scene.name}: {scene.triangle_count:,} triangles, {len(scene.lights.kind)} lights, "
+            f"{scene.camera.width}x{scene.camera.height}")
+    from .osppm import OutOfCoreRenderer
+    budget = _size("--budget", args.budget, parse_bytes)
+    if is_store(args.scene):
+        store = ChunkStore.open(args.scene)
+    else:
+        if budget is None and args.chunks is None:
+            budget = 512 * 2 ** 20   # a soup: chunk it at the default budget
+        store = open_or_subdivide(load_source(args.scene), args.store_cache, budget=budget,
+                                  chunks=args.chunks)
+    for key in ("width", "height"):
+        if getattr(args, key):
+            setattr(store.header.camera, key, int(getattr(args, key)))
+    memory = _size("--memory", args.memory, parse_bytes)
+    if memory is None and store.budget_bytes:
+        memory = max(2 * store.budget_bytes, store.chunk_memory.max())
+    cam = store.header.camera
+    return OutOfCoreRenderer(store, settings, memory_bytes=memory), (
+        f"scene {store.header.name}: {store.source_triangles:,} triangles in {store.chunk_count} chunks "
+        f"({store.path}), {len(store.header.lights.kind)} lights, {cam.width}x{cam.height}")
+
+
+def _size(flag: str, text, parse) -> int | None:
+    import argparse as _argparse
+    if text is None:
+        return None
+    try:
+        return parse(text)
+    except _argparse.ArgumentTypeError as e:
+        raise ValueError(f"{flag}: {e}") from None
 
 
 def _limit(args) -> tuple[str, float]:
@@ -111,11 +165,19 @@ def _write_outputs(renderer, out: str, exposure: float, write_exr, write_png) ->
     write_png(os.path.splitext(out)[0] + ".png", img, exposure=exposure)
 
 
+def add_scenes_parser(sub) -> None:
+    from . import generate
+    p = sub.add_parser("scenes", help="list the built-in scenes, or generate a large one")
+    p.set_defaults(func=cmd_scenes)
+    generate.add_generate_arguments(p.add_subparsers(dest="scenes_command", metavar="{generate}"))
+
+
 def cmd_scenes(args) -> int:
     from . import builtin
     for name, text in builtin.SCENES.items():
         mark = " (default)" if name == builtin.DEFAULT else ""
         print(f"{name:18s} {text}{mark}")
+    print("generators: building (dosppm scenes generate building --help)")
     return 0
 
 
@@ -154,11 +216,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="dosppm", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
     add_render_parser(sub)
-    sub.add_parser("scenes", help="list the built-in scenes").set_defaults(func=cmd_scenes)
+    add_scenes_parser(sub)
     add_bench_parser(sub)
     from . import cli_tools
     cli_tools.add_reference_parser(sub)
     cli_tools.add_compare_parser(sub)
+    from . import cli_chunks
+    cli_chunks.add_subdivide_parser(sub)
     return parser
 
 

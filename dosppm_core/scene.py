@@ -372,23 +372,38 @@ class SceneBuilder:
         emit = mtable.emission.astype(np.float64)[mats]
         lit = np.flatnonzero(emit.max(axis=1) > 0)
         p0, p1, p2 = (verts[tris[lit, k]] for k in range(3))
-        area = 0.5 * np.linalg.norm(np.cross(p1 - p0, p2 - p0), axis=1)
-        rows_kind = [np.full(len(lit), LIGHT_TRIANGLE, np.int32)]
-        rows = [p0, p1, p2, emit[lit], np.zeros((len(lit), 4))]
-        # One-sided Lambertian emitter: flux = pi * L * area per channel.
-        power = [math.pi * area * emit[lit].mean(axis=1)]
-        for kind, pos, axis, val, cone in self._delta_lights:
-            rows_kind.append(np.array([kind], np.int32))
-            for i, x in enumerate((pos, axis, np.zeros(3), val, cone)):
-                rows[i] = np.concatenate([rows[i], x[None]])
-            power.append(np.array([val.mean() * _delta_solid_angle(kind, cone)]))
-        power = np.concatenate(power)
-        total = power.sum()
-        cdf = np.cumsum(power) / total if total > 0 else np.zeros_like(power)
-        if cdf.size:
-            cdf[-1] = 1.0
-        return LightTable(np.concatenate(rows_kind), rows[0], rows[1], rows[2], rows[3],
-                          rows[4], power, cdf)
+        return light_table(p0, p1, p2, emit[lit], self._delta_lights)
+
+
+def light_table(p0, p1, p2, radiance, delta_lights=()) -> LightTable:
+    """The light table of emissive triangles and point/spot lights.
+
+    p0, p1, p2: (n, 3) corners of the emissive triangles, each emitting
+    `radiance` (n, 3) on its counter-clockwise front; `delta_lights`:
+    (kind, position, axis, intensity, cone) tuples as `SceneBuilder`
+    collects them. Triangles come first, in the order given, so a writer
+    that streams its triangles (a generated soup) can build the same table
+    as `SceneBuilder` from its emissive triangles alone.
+    """
+    p0, p1, p2, radiance = (np.asarray(a, np.float64).reshape(-1, 3) for a in (p0, p1, p2, radiance))
+    n = len(p0)
+    area = 0.5 * np.linalg.norm(np.cross(p1 - p0, p2 - p0), axis=1)
+    rows_kind = [np.full(n, LIGHT_TRIANGLE, np.int32)]
+    rows = [p0, p1, p2, radiance, np.zeros((n, 4))]
+    # One-sided Lambertian emitter: flux = pi * L * area per channel.
+    power = [math.pi * area * radiance.mean(axis=1)]
+    for kind, pos, axis, val, cone in delta_lights:
+        rows_kind.append(np.array([kind], np.int32))
+        for i, x in enumerate((pos, axis, np.zeros(3), val, cone)):
+            rows[i] = np.concatenate([rows[i], np.asarray(x, np.float64)[None]])
+        power.append(np.array([np.mean(val) * _delta_solid_angle(kind, np.asarray(cone))]))
+    power = np.concatenate(power)
+    total = power.sum()
+    cdf = np.cumsum(power) / total if total > 0 else np.zeros_like(power)
+    if cdf.size:
+        cdf[-1] = 1.0
+    return LightTable(np.concatenate(rows_kind), rows[0], rows[1], rows[2], rows[3],
+                      rows[4], power, cdf)
 
 
 def _delta_solid_angle(kind: int, cone: np.ndarray) -> float:
