@@ -43,6 +43,10 @@ def add_render_parser(sub) -> None:
     ooc.add_argument("--chunks", type=int, metavar="C", help="force C chunks")
     ooc.add_argument("--memory", metavar="SIZE",
                      help="resident chunks at most this much (default: twice the budget or all)")
+    ooc.add_argument("--schedule", choices=("pipelined", "drained"), default="pipelined",
+                     help="pipelined: one sweep over the chunks per iteration, portal rays carried "
+                          "over (§3.3); drained: every ray ends within its iteration, which "
+                          "reproduces the unchunked image exactly")
     ooc.add_argument("--store-cache", metavar="DIR", default=_default_store_cache(),
                      help="where chunk stores made on the fly are kept (default %(default)s)")
     p.set_defaults(func=cmd_render)
@@ -80,6 +84,8 @@ def cmd_render(args) -> int:
     try:
         while not _done(renderer, limit):
             reporter(renderer.run_iteration())
+        if hasattr(renderer, "finish"):
+            renderer.finish()   # OSPPM: trace the photons still queued at portals
     except KeyboardInterrupt:
         interrupted = True
     finally:
@@ -122,7 +128,8 @@ def _make_renderer(args, settings):
     if memory is None and store.budget_bytes:
         memory = max(2 * store.budget_bytes, store.chunk_memory.max())
     cam = store.header.camera
-    return OutOfCoreRenderer(store, settings, memory_bytes=memory), (
+    return OutOfCoreRenderer(store, settings, memory_bytes=memory,
+                             pipelined=args.schedule == "pipelined"), (
         f"scene {store.header.name}: {store.source_triangles:,} triangles in {store.chunk_count} chunks "
         f"({store.path}), {len(store.header.lights.kind)} lights, {cam.width}x{cam.height}")
 

@@ -127,14 +127,30 @@ class OutOfCoreRenderer:
     """Drives OSPPM iterations over a chunked scene in this process.
 
     `memory_bytes` limits resident chunk geometry (estimated as the store
-    does, BVH included); default: room for every chunk."""
+    does, BVH included); default: room for every chunk.
+
+    Two schedules:
+    - `pipelined=False` (the paper's §3.1 OSPPM): an iteration drains its eye
+      paths, then its photons, through every chunk until all have ended.
+      Each iteration then sees exactly the photons of a single-process
+      iteration, so the image equals `render.Renderer`'s.
+    - `pipelined=True` (default; §3.3): an iteration is one sweep over
+      the chunks, each activated at most once, tracing whatever eye and
+      photon rays wait for it. Rays that cross back to a chunk already
+      swept wait in its queue for the next iteration, beside new photons,
+      instead of the sweep repeating for a thinning tail; an eye iteration
+      replaces the hit points once its last path has ended. Photons count
+      as emitted when emitted, so an image is short by the photons still
+      in queues (under one iteration's worth); `finish()` drains them.
+    """
 
     def __init__(self, provider, settings: RenderSettings | None = None,
-                 memory_bytes: float | None = None):
+                 memory_bytes: float | None = None, pipelined: bool = True):
         self.provider = provider
         self.header, self.tree = provider.header, provider.tree
         self.settings = settings or RenderSettings()
         self.settings.validate()
+        self.pipelined = pipelined
         s, cam = self.settings, self.header.camera
         cost = np.asarray(provider.chunk_memory, np.float64)
         if memory_bytes is None:
@@ -146,20 +162,58 @@ class OutOfCoreRenderer:
         self.stats = PixelStatistics(int(cam.width), int(cam.height), s.radius, s.alpha)
         self.eps_abs = 1e-6 * self.header.diagonal()
         self.iteration = 0
+        self.eye_iterations = 0
         self.next_photon_job = 0
         self.path_ends = np.zeros(len(END_NAMES), np.int64)
         self.hit_point_total = 0
         self.seconds = 0.0
+        self.phase_seconds = {"eye": 0.0, "photon": 0.0, "update": 0.0}
         self._cursor = 0
+        c = self.tree.chunk_count
+        self._eye_queues = [[] for _ in range(c)]
+        self._photon_queues = [[] for _ in range(c)]
+        self._eye_in_flight = False
+        self._eye_parts: tuple[list, list, list] = ([], [], [])
+        self._deposits: list[PhotonDeposits] = []
+        self._emitted_unapplied = 0
+        self._cull = NO_CULL
 
     # -- the loop --------------------------------------------------------
     def run_iteration(self) -> Progress:
         t0 = time.perf_counter()
-        self._eye_phase()
-        self._photon_phase()
+        if not self.pipelined or not self.stats.has_radius:
+            # The first hit points must exist before any photon can count.
+            self._start_eye_iteration()
+            self._sweep(until_empty=True)
+            self._finish_eye_iteration()
+        if self.pipelined:
+            if not self._eye_in_flight:
+                self._start_eye_iteration()
+            self._emit_photons()
+            self._sweep(until_empty=False)
+            if self._eye_in_flight and not any(self._eye_queues):
+                self._finish_eye_iteration()
+        else:
+            self._emit_photons()
+            self._sweep(until_empty=True)
+        self._apply()
         self.iteration += 1
         self.seconds += time.perf_counter() - t0
         return self.progress()
+
+    def finish(self) -> None:
+        """Trace every queued ray to its end and apply its photons, so the
+        image holds every photon counted as emitted."""
+        t0 = time.perf_counter()
+        self._sweep(until_empty=True)
+        if self._eye_in_flight:
+            self._finish_eye_iteration()
+        self._apply()
+        self.seconds += time.perf_counter() - t0
+
+    @property
+    def rays_queued(self) -> int:
+        return sum(len(b) for q in (self._eye_queues, self._photon_queues) for part in q for b in part)
 
     def progress(self) -> Progress:
         ends = {name: int(c) for name, c in zip(END_NAMES, self.path_ends) if name != "continues"}
@@ -172,98 +226,126 @@ class OutOfCoreRenderer:
     def close(self) -> None:
         self.cache.close()
 
-    # -- phases ------------------------------------------------------------
-    def _eye_phase(self) -> None:
+    # -- eye iterations and photon emission ----------------------------------
+    def _start_eye_iteration(self) -> None:
         s, cam = self.settings, self.header.camera
         n_pix = int(cam.width) * int(cam.height)
-        queues = self._queues()
         for start in range(0, n_pix, s.tile_pixels):
-            batch = eye_ray_job(self.header, s.seed, self.iteration, start,
+            batch = eye_ray_job(self.header, s.seed, self.eye_iterations, start,
                                 min(s.tile_pixels, n_pix - start))
-            self._enqueue(queues, batch)
-        hits, pix, rgb = [], [], []
+            self._enqueue(self._eye_queues, batch)
+        self._eye_in_flight = True
 
-        def step(view, batch):
-            h, (p, e), ends, out = trace_eye_in_chunk(view, batch, s.max_depth)
-            hits.append(h)
-            pix.append(p)
-            rgb.append(e)
-            return ends, out
-        self._drain(queues, step)
+    def _finish_eye_iteration(self) -> None:
+        hits, pix, rgb = self._eye_parts
         hp = HitPoints.concat(hits)
         self.hit_point_total += len(hp)
         if not self.stats.has_radius:
             self.stats.set_initial_radius(initial_radius(self.header, hp))
-        self.stats.replace_hit_points(hp, (np.concatenate(pix), np.concatenate(rgb)))
+        self.stats.replace_hit_points(hp, (np.concatenate(pix) if pix else np.empty(0, np.int32),
+                                           np.concatenate(rgb) if rgb else np.empty((0, 3), np.float32)))
+        self._eye_parts = ([], [], [])
+        self._eye_in_flight = False
+        self.eye_iterations += 1
 
-    def _photon_phase(self) -> None:
+    def _emit_photons(self) -> None:
+        """One iteration's photon jobs, culled against the current hit
+        points' box (it travels with the photons in spirit: a photon is
+        culled where it lands, by the box of its emission time)."""
         s = self.settings
         box = self.stats.gather_box() if s.cull else None
-        cull = NO_CULL if box is None else box
-        queues = self._queues()
+        self._cull = NO_CULL if box is None else box
         left = s.photons_per_iteration
         while left > 0:
             count = min(s.photons_per_job, left)
-            self._enqueue(queues, emit_photon_job(self.header, s.seed, self.next_photon_job,
-                                                  count, self.eps_abs))
+            self._enqueue(self._photon_queues, emit_photon_job(
+                self.header, s.seed, self.next_photon_job, count, self.eps_abs))
             self.next_photon_job += 1
             left -= count
-        deposits = []
+        self._emitted_unapplied += s.photons_per_iteration
 
-        def step(view, batch):
-            dep, ends, _culled, out = trace_photons_in_chunk(view, batch, cull, s.max_depth)
-            deposits.append(dep)
-            return ends, out
-        self._drain(queues, step)
-        self._apply(PhotonDeposits.concat(deposits), s.photons_per_iteration)
-
-    def _apply(self, deposits: PhotonDeposits, emitted: int) -> None:
+    def _apply(self) -> None:
         """Server batching: update in batches of at most `photon_batch`
-        deposits; the emitted count goes with the first batch (eq. 4 only
-        needs the total once all of them are in)."""
+        deposits; the emitted count goes with the first batch."""
+        t0 = time.perf_counter()
         s = self.settings
+        deposits = PhotonDeposits.concat(self._deposits)
+        emitted, self._deposits, self._emitted_unapplied = self._emitted_unapplied, [], 0
         for start in range(0, max(len(deposits), 1), s.photon_batch):
             part = deposits.take(np.arange(start, min(start + s.photon_batch, len(deposits))))
             self.stats.apply_photons(part, emitted if start == 0 else 0, self.header.materials,
                                      gather=s.gather, threads=s.threads, reorder=s.reorder,
                                      hash_options=s.hash_options)
+        self.phase_seconds["update"] += time.perf_counter() - t0
 
     # -- chunk queues --------------------------------------------------------
-    def _queues(self) -> list[list[RayBatch]]:
-        return [[] for _ in range(self.tree.chunk_count)]
-
     def _enqueue(self, queues, batch: RayBatch) -> None:
         routed, lost = start_chunks(self.tree, batch)
         self.path_ends[ESCAPED] += lost
         for k, b in routed.items():
             queues[k].append(b)
 
-    def _next_chunk(self, queues, after: int) -> int | None:
-        c = len(queues)
+    def _has_work(self, k: int) -> bool:
+        return bool(self._eye_queues[k] or self._photon_queues[k])
+
+    def _next_chunk(self, after: int, stop: int | None = None) -> int | None:
+        """The next chunk with work after `after` in round-robin order,
+        not going past `stop` (exclusive of wrapping beyond it)."""
+        c = self.tree.chunk_count
         for i in range(1, c + 1):
             k = (after + i) % c
-            if queues[k]:
+            if self._has_work(k):
                 return k
+            if k == stop:
+                return None
         return None
 
-    def _drain(self, queues, step) -> None:
-        """Activate chunks round robin until no queue holds rays; `step`
-        traces a coalesced batch in a chunk and returns (ends, outgoing)."""
-        k = self._next_chunk(queues, self._cursor - 1)
+    def _sweep(self, until_empty: bool) -> None:
+        """Activate chunks with work in round-robin order. One sweep visits
+        each chunk at most once, ending at the chunk before the first one
+        (`until_empty=False`); otherwise sweeps repeat until no queue
+        holds a ray."""
+        c = self.tree.chunk_count
+        k = self._next_chunk(self._cursor - 1)
+        last = None if k is None else (k - 1) % c
         while k is not None:
             view = self.cache.activate(k)
-            batch = RayBatch.concat(queues[k])
-            queues[k] = []
-            ahead = self._next_chunk(queues, k)
+            ahead = self._next_chunk(k, None if until_empty else last)
             if ahead is not None and ahead != k:
                 self.cache.prefetch(ahead, active=k)
-            ends, outgoing = step(view, batch)
-            self.path_ends += ends
-            self.cache.counters.traced_batches += 1
-            for j, parts in outgoing.items():
-                queues[j].extend(parts)
-                self.cache.counters.portal_rays += sum(len(b) for b in parts)
+            self._trace_chunk(view)
             self._cursor = k
+            if not until_empty and k == last:
+                break
             # Go on to the chunk being prefetched: it still has work, and
             # the chunks between may only have received some just now.
-            k = ahead if ahead is not None else self._next_chunk(queues, k)
+            k = ahead if ahead is not None else (self._next_chunk(k) if until_empty else None)
+
+    def _trace_chunk(self, view) -> None:
+        """Trace the chunk's whole eye and photon queues, each coalesced
+        into one batch (client batching), and queue what leaves."""
+        k, s = view.index, self.settings
+        if self._eye_queues[k]:
+            t0 = time.perf_counter()
+            batch = RayBatch.concat(self._eye_queues[k])
+            self._eye_queues[k] = []
+            h, (p, e), ends, out = trace_eye_in_chunk(view, batch, s.max_depth)
+            for part, x in zip(self._eye_parts, (h, p, e)):
+                part.append(x)
+            self._account(ends, out, self._eye_queues)
+            self.phase_seconds["eye"] += time.perf_counter() - t0
+        if self._photon_queues[k]:
+            t0 = time.perf_counter()
+            batch = RayBatch.concat(self._photon_queues[k])
+            self._photon_queues[k] = []
+            dep, ends, _culled, out = trace_photons_in_chunk(view, batch, self._cull, s.max_depth)
+            self._deposits.append(dep)
+            self._account(ends, out, self._photon_queues)
+            self.phase_seconds["photon"] += time.perf_counter() - t0
+
+    def _account(self, ends, outgoing, queues) -> None:
+        self.path_ends += ends
+        self.cache.counters.traced_batches += 1
+        for j, parts in outgoing.items():
+            queues[j].extend(parts)
+            self.cache.counters.portal_rays += sum(len(b) for b in parts)
