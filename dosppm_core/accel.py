@@ -53,6 +53,9 @@ class Accelerator:
         return r["primID"], r["tfar"], r["u"], r["v"]
 
     def close(self) -> None:
+        """Stop the thread pool and release Embree's copy and BVH now, even
+        if a caller still holds this object (memory limits count on it)."""
         if self._pool is not None:
             self._pool.shutdown(wait=False)
             self._pool = None
+        self._scene = None

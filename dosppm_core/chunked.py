@@ -62,7 +62,10 @@ class ChunkView:
                                   batch.direction, batch.tmin, self.eps)
 
     def close(self) -> None:
+        """Free the BVH and drop the arrays: a closed view still referenced
+        somewhere (a caller's local variable) must not keep the chunk."""
         self.accel.close()
+        self.geometry = self.surf = None
 
 
 def route(batch: RayBatch, chunks: np.ndarray) -> dict[int, RayBatch]:

@@ -43,6 +43,20 @@ class ChunkCounters:
     per_chunk_load: dict = field(default_factory=dict)
 
 
+def _release_freed_memory_to_the_os() -> None:
+    """glibc raises its mmap threshold after big frees (up to 32 MiB), so
+    evicted chunk arrays are kept in the heap for reuse and the process
+    grows past its limit over a long render (measured: +17-35 MiB after
+    12 iterations). A fixed 128 KiB threshold serves every large array
+    from mmap, returned on free. No-op off glibc."""
+    import ctypes
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        libc.mallopt(-3, 128 * 1024)   # M_MMAP_THRESHOLD
+    except (OSError, AttributeError):
+        pass
+
+
 class ChunkCache:
     """Resident chunks under a memory limit, least recently used evicted,
     with one asynchronous prefetch."""
@@ -158,6 +172,7 @@ class OutOfCoreRenderer:
         if memory_bytes < cost.max():
             raise ValueError(f"memory limit {memory_bytes:.0f} B is below the largest chunk "
                              f"({cost.max():.0f} B)")
+        _release_freed_memory_to_the_os()
         self.cache = ChunkCache(provider, memory_bytes, threads=s.threads)
         self.stats = PixelStatistics(int(cam.width), int(cam.height), s.radius, s.alpha)
         self.eps_abs = 1e-6 * self.header.diagonal()
@@ -314,6 +329,7 @@ class OutOfCoreRenderer:
             if ahead is not None and ahead != k:
                 self.cache.prefetch(ahead, active=k)
             self._trace_chunk(view)
+            del view    # an evicted chunk must not outlive its eviction
             self._cursor = k
             if not until_empty and k == last:
                 break
