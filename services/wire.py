@@ -1,0 +1,764 @@
+"""The wire protocol of the distributed service (DOSPPM, Günther & Grosch
+§3.1 "Network", §3.3, §4.3): every message, the protocol version, encoding,
+validation and the thin ZeroMQ send/receive helpers. The only module of the
+project that imports zmq.
+
+API
+---
+    encode(msg_type, **fields) -> [header bytes, memoryview, ...]
+    decode(frames, accept=None) -> Message(type, fields, version); msg.job, msg.batch
+    WireError(ValueError), VersionMismatch(WireError): .msg_type, .field, .prefix
+    error_reply(e) -> frames of `error`, or `refused` for a register in another version
+    configure(socket); send(socket, frames, prefix=(), block=True)
+    recv(socket, accept=None) -> (prefix, Message); recv_or_reply(socket, accept=None)
+    chunk_parts(chunk, sha256, data) -> [frames of each chunk_data part]
+    MESSAGES (name -> Spec), describe() -> the message table
+
+Framing
+-------
+A message is one ZeroMQ multipart message:
+
+    frame 0      msgpack map {"v": PROTOCOL_VERSION, "type": str, <fields>,
+                              "arrays": [{"name", "dtype", "shape"}, ...]}
+    frame 1..k   the raw bytes of each array listed in "arrays", in order
+
+Dtypes are numpy strings, always little-endian ("<f4", "<i4", "<u8", "|u1");
+shapes are lists of ints. Arrays travel out of band: `encode` returns
+memoryviews of the caller's arrays (sent with `copy=False`), and `decode`
+wraps each frame with `np.frombuffer`, so a 1M-ray batch is never copied by
+this module. Exception: a frame that libzmq hands over misaligned for its
+dtype (small frames over tcp sit at odd offsets in the receive buffer) is
+copied, because numba's kernels want aligned arrays. Decoded arrays may be
+read-only (a `bytes` frame); copy before writing in place. No pickle.
+
+Records (`RayBatch`, `PhotonDeposits`, `HitPoints`) travel as one array per
+field, named "<field>.<column>" (e.g. "batch.origin"), with dtypes and
+trailing shapes taken from the record class's SCHEMA, so the wire follows
+the library. A decoded message rebuilds them: `msg.batch` is a `RayBatch`.
+
+Validation
+----------
+`decode` checks everything before returning, and raises `WireError` (a
+ValueError) with one line naming the message type and field: header not
+msgpack or not a map, unknown type, missing or foreign version (naming
+both), missing or unexpected field, wrong scalar type, array count vs frame
+count, unknown/missing/duplicate array, dtype, shape or trailing dims,
+declared size over MAX_ELEMENTS, frame size vs itemsize * prod(shape),
+unequal record lengths, non-finite floats (only the cull box may hold
++-inf, meaning "no culling"), and per-message rules: ints are >= 0 and fit
+int64; results have ends >= 0 and ends[CONTINUES] == 0, and an
+eye_iteration when they carry hits or emitted light; a photon portal_rays
+has a cull box and no eye_iteration, an eye one the reverse; chunk_data
+has part < parts and its bytes inside file_bytes. Nothing else escapes
+`decode`: callers answer a WireError with `error_reply` and a log line
+(`recv_or_reply` does both) and carry on. Semantic ranges the wire
+cannot know (pixel < width * height, chunk < chunk count, material index)
+are checked by the role that knows them.
+
+Only `error` and `refused` decode whatever the version, as long as it is an
+int: their fields are frozen, so a peer speaking another version can still
+read why it was turned away.
+
+Messages
+--------
+    tracer -> server
+      register       tracer_id, capacity {cores, memory_bytes}, endpoint
+                     (its peer ROUTER), has_store, store_key|None
+      heartbeat      status {} (informational: queue, load, resident chunks)
+      results        job, chunk, ends i64 (5,), culled, eye_iteration|None;
+                     optional deposits: PhotonDeposits, hits: HitPoints,
+                     emitted_pixels i32 (m,) + emitted_rgb f32 (m, 3)
+      chunk_request  chunk
+      error          reason, about|None                 (any direction)
+    server -> tracer
+      welcome        tracer_index, settings {}, scene {} (SceneHeader.to_wire),
+                     tree {} (ChunkTree.to_wire), store_key, chunks [int],
+                     manifest {}|None (for tracers without the store)
+      refused        reason
+      peers          table_version, peers [[endpoint]] indexed by chunk
+      photon_job     job, iteration, chunk, cull_box f64 (2, 3), batch
+      eye_job        job, eye_iteration, chunk, batch
+      chunk_data     chunk, sha256, part, parts, offset, file_bytes, data u8
+      heartbeat, shutdown (reason)
+    tracer -> tracer
+      portal_rays    job, kind "photon"|"eye", chunk (the destination),
+                     eye_iteration (eye only), cull_box (photon only), batch
+
+`MESSAGES` holds the specs; `describe()` prints this table from them.
+
+Exact accounting (the server knows when every path of a job has ended)
+----------------------------------------------------------------------
+A job is the set of paths whose emission messages (`photon_job`,
+`eye_job`) carry the same job id; the server may send one job in several
+messages (tiles, or the parts starting in different chunks), and its path
+count N_j is the sum of their batch lengths. Paths lost at emission (they
+start outside every chunk) are not sent and not in N_j. Job ids are never
+reused, so a re-emitted job gets a new id and late results of the old one
+are recognisably stale.
+
+`ends` counts paths that *ended* in the step a `results` reports, by kind
+(`dosppm_core.jobs`: CONTINUES, ESCAPED, ABSORBED, MAX_DEPTH, STORED). A
+path leaving through a portal has not ended: it travels on in a
+`portal_rays` package with the same job id, and is counted where it ends.
+So ends[CONTINUES] is always 0 (the wire refuses anything else), and
+
+    job j finished  <=>  sum over results of job j of ends[ESCAPED:] == N_j
+
+No timeout is involved: each path ends exactly once, so the sum cannot
+reach N_j while a path of j is queued, traced or in a portal package.
+`culled` counts photon *deposits* dropped by the cull box (§4.3), not
+paths. Client batching (§4.3) may coalesce packages of one (kind, job)
+and chunk; packages of different jobs are traced apart, since ends could
+not be split by job afterwards (RayBatch carries no job column). Coalesced
+photon packages use the union of their cull boxes ("widened when merged").
+
+Sockets, envelopes and back-pressure
+------------------------------------
+The server binds a ROUTER; each tracer connects a DEALER to it, with its
+tracer_id as ZMQ routing id (a reconnect keeps its identity). Each tracer
+also binds a ROUTER at its `endpoint` for peer traffic, and connects one
+DEALER per peer. Envelope convention: DEALERs send no empty delimiter, so a
+ROUTER receives exactly one identity frame before the message (`recv`
+returns it as the prefix; send it back in front of a reply).
+
+Nothing is dropped silently:
+- every ROUTER sets ROUTER_MANDATORY, so sending to an unknown or
+  disconnected identity raises zmq.ZMQError(EHOSTUNREACH) instead of
+  vanishing, and a full queue raises zmq.Again (non-blocking send) instead
+  of dropping;
+- high-water marks are HWM_MESSAGES messages, not the default 1000: a
+  message can be a ray batch of tens of MB (56 B per ray), and a pipe
+  queues up to HWM_MESSAGES at each end, so a slow tracer can pin at most
+  about 2 * HWM_MESSAGES * MAX_BATCH_ROWS rays per pipe;
+- memory stays bounded by credit, not by queue: the server keeps at most
+  JOB_CREDITS per tracer of jobs in flight and holds the rest in its own
+  scheduler (where they can go to another tracer serving the chunk), so a
+  slow tracer slows its own share instead of growing buffers;
+- peers send portal packages non-blocking and keep what does not fit in
+  an outbox while they keep receiving: two tracers blocked sending to each
+  other would deadlock. A tracer whose outbox passes its memory budget
+  stops accepting jobs (the server's credits then stop too);
+- a bad message is answered with `error` (or `refused`, for a register in
+  another version) and logged; an `error` or `refused` is never answered,
+  so two confused peers cannot ping-pong.
+Frames given to `send` must not be modified until sent: with copy=False,
+zmq reads the caller's arrays asynchronously.
+"""
+from __future__ import annotations
+
+import logging
+import re
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import msgpack
+import numpy as np
+import zmq
+
+from dosppm_core.jobs import CONTINUES, END_NAMES, HitPoints, PhotonDeposits, RayBatch
+
+PROTOCOL_VERSION = 1
+
+# -- policy ---------------------------------------------------------------------
+MAX_ELEMENTS = 1 << 28           # per array: sanity cap on a declared size
+MAX_FRAME_BYTES = MAX_ELEMENTS * 8
+MAX_BATCH_ROWS = 1 << 20         # rays per job or package the roles aim for
+HWM_MESSAGES = 16                # SNDHWM and RCVHWM, per socket and peer
+JOB_CREDITS = 8                  # jobs in flight per tracer, kept by the server
+CHUNK_PART_BYTES = 16 << 20      # chunk_data splits chunk files into parts this big
+LINGER_MS = 2000                 # a closing socket still delivers its last results
+ZMQ_HEARTBEAT_IVL_MS = 1000      # transport heartbeats find dead TCP peers,
+ZMQ_HEARTBEAT_TIMEOUT_MS = 10_000  # not hung processes (the server's own do that)
+
+log = logging.getLogger("dosppm.wire")
+
+
+class WireError(ValueError):
+    """A message that cannot be encoded or accepted; one line naming the
+    message type and field. `prefix` is the sender's envelope, when known."""
+
+    def __init__(self, text: str, msg_type: str | None = None, field: str | None = None):
+        super().__init__(text)
+        self.msg_type, self.field = msg_type, field
+        self.prefix: list = []
+
+
+class VersionMismatch(WireError):
+    """The peer speaks another protocol version (`theirs`, `ours`)."""
+
+    def __init__(self, msg_type: str, theirs):
+        super().__init__(f"{msg_type}: protocol version {theirs!r} from peer, this process speaks "
+                         f"version {PROTOCOL_VERSION}", msg_type, "v")
+        self.theirs, self.ours = theirs, PROTOCOL_VERSION
+
+
+# -- scalar field types ---------------------------------------------------------
+class _Type:
+    label = "?"
+
+    def ok(self, v) -> bool:
+        raise NotImplementedError
+
+
+class _Int(_Type):
+    """An int that fits numpy's int64 (ids and counts end up in arrays)."""
+
+    def __init__(self, minimum: int = 0):
+        self.minimum, self.label = minimum, f"int >= {minimum}"
+
+    def ok(self, v) -> bool:   # bool is an int to Python, never to the wire
+        return type(v) is int and self.minimum <= v < 2**63
+
+
+class _Of(_Type):
+    def __init__(self, label: str, *types):
+        self.label, self.types = label, types
+
+    def ok(self, v) -> bool:
+        return type(v) in self.types
+
+
+class _Hex(_Type):
+    label = "64 lowercase hex digits"
+
+    def ok(self, v) -> bool:
+        return type(v) is str and re.fullmatch(r"[0-9a-f]{64}", v) is not None
+
+
+class _Choice(_Type):
+    def __init__(self, *values):
+        self.values, self.label = values, " or ".join(map(repr, values))
+
+    def ok(self, v) -> bool:
+        return type(v) is str and v in self.values
+
+
+class _Nullable(_Type):
+    def __init__(self, inner: _Type):
+        self.inner, self.label = inner, f"{inner.label} or None"
+
+    def ok(self, v) -> bool:
+        return v is None or self.inner.ok(v)
+
+
+class _List(_Type):
+    def __init__(self, item: _Type):
+        self.item, self.label = item, f"list of {item.label}"
+
+    def ok(self, v) -> bool:
+        return type(v) is list and all(self.item.ok(x) for x in v)
+
+
+class _Struct(_Type):
+    def __init__(self, **members: _Type):
+        self.members = members
+        self.label = "{" + ", ".join(f"{k}: {t.label}" for k, t in members.items()) + "}"
+
+    def ok(self, v) -> bool:
+        return (type(v) is dict and set(v) == set(self.members)
+                and all(t.ok(v[k]) for k, t in self.members.items()))
+
+
+class _Data(_Type):
+    """A msgpack map of plain data (str keys; None, bool, int, float, str,
+    bytes, lists, maps), to be read by its own from_wire. Walked without
+    recursion: nesting depth is the sender's choice."""
+    label = "map of plain data"
+    PLAIN = (type(None), bool, int, float, str, bytes)
+
+    def ok(self, v) -> bool:
+        if type(v) is not dict:
+            return False
+        stack = [v]
+        while stack:
+            x = stack.pop()
+            if type(x) is dict:
+                if any(type(k) is not str for k in x):
+                    return False
+                stack.extend(x.values())
+            elif type(x) is list:
+                stack.extend(x)
+            elif type(x) not in self.PLAIN:
+                return False
+        return True
+
+
+INT, STR, BOOL, DATA = _Int(0), _Of("str", str), _Of("bool", bool), _Data()
+
+
+# -- array groups ---------------------------------------------------------------
+FINITE, NOT_NAN = "finite", "not NaN"
+
+
+@dataclass(frozen=True)
+class Column:
+    wire: str            # name in the header's "arrays" list
+    key: str             # the record field, or the message field for plain arrays
+    dtype: np.dtype
+    trailing: tuple
+    values: str | None   # FINITE, NOT_NAN or None (no check)
+
+
+@dataclass(frozen=True)
+class Group:
+    """Arrays that travel together with one leading length: a record (its
+    columns rebuild `record`), or plain arrays that become message fields."""
+    name: str
+    columns: tuple
+    record: type | None = None
+    rows: int | None = None       # a fixed leading length, or any length
+    optional: bool = False
+
+    @property
+    def keys(self) -> tuple:
+        """The message fields this group fills."""
+        return (self.name,) if self.record else tuple(c.key for c in self.columns)
+
+
+def _le(dtype) -> np.dtype:
+    return np.dtype(dtype).newbyteorder("<")   # "|u1" stays "|u1"
+
+
+def record(name: str, cls, optional: bool = False) -> Group:
+    """A record group from the class's SCHEMA; every float column finite."""
+    cols = tuple(Column(f"{name}.{col}", col, _le(dt), tuple(shape),
+                        FINITE if np.dtype(dt).kind == "f" else None)
+                 for col, (dt, shape) in cls.SCHEMA.items())
+    return Group(name, cols, record=cls, optional=optional)
+
+
+def plain(name: str, *cols, rows: int | None = None, optional: bool = False) -> Group:
+    """Plain arrays: (field name, dtype, trailing shape, values check)."""
+    return Group(name, tuple(Column(k, k, _le(dt), tuple(tr), v) for k, dt, tr, v in cols),
+                 rows=rows, optional=optional)
+
+
+def _cull_box(optional: bool = False) -> Group:
+    # +-inf allowed: NO_CULL is [-inf, inf]; NaN would make culling undefined.
+    return plain("cull_box", ("cull_box", np.float64, (3,), NOT_NAN), rows=2, optional=optional)
+
+
+# -- message specs --------------------------------------------------------------
+@dataclass(frozen=True)
+class Spec:
+    name: str
+    route: str                            # who sends it to whom (documentation)
+    fields: dict                          # scalar field -> _Type
+    groups: tuple = ()
+    check: object = None                  # fields -> error text naming a field, or None
+    any_version: bool = False             # frozen forever: decodes under any version
+    defaults: dict = field(default_factory=dict)   # encode fills these when omitted
+
+    @cached_property
+    def array_names(self) -> frozenset:
+        return frozenset(c.wire for g in self.groups for c in g.columns)
+
+
+def _check_results(f: dict) -> str | None:
+    ends = f["ends"]
+    if (ends < 0).any():
+        return f"field 'ends' has a negative count {ends.tolist()}"
+    if ends[CONTINUES] != 0:
+        return (f"field 'ends' counts {int(ends[CONTINUES])} continuing paths; a path that goes on "
+                f"is not an end")
+    if (f.get("hits") is not None or f.get("emitted_pixels") is not None) and f["eye_iteration"] is None:
+        return "field 'eye_iteration' is required with hits or emitted light"
+    return None
+
+
+def _check_portal_rays(f: dict) -> str | None:
+    photon = f["kind"] == "photon"
+    if photon and (f.get("cull_box") is None or f["eye_iteration"] is not None):
+        return "field 'cull_box' is required and 'eye_iteration' must be None for photons"
+    if not photon and (f.get("cull_box") is not None or f["eye_iteration"] is None):
+        return "field 'eye_iteration' is required and 'cull_box' must be absent for eye rays"
+    return None
+
+
+def _check_chunk_data(f: dict) -> str | None:
+    if f["part"] >= f["parts"]:
+        return f"field 'part' {f['part']} is not below parts {f['parts']}"
+    if f["offset"] + len(f["data"]) > f["file_bytes"]:
+        return f"field 'data' ends at {f['offset'] + len(f['data'])}, past file_bytes {f['file_bytes']}"
+    return None
+
+
+_T2S, _S2T, _T2T, _ANY = "tracer->server", "server->tracer", "tracer->tracer", "any->any"
+_SPECS = (
+    Spec("register", _T2S, {"tracer_id": STR, "capacity": _Struct(cores=_Int(1), memory_bytes=INT),
+                            "endpoint": STR, "has_store": BOOL, "store_key": _Nullable(STR)},
+         defaults={"store_key": None}),
+    Spec("heartbeat", "both", {"status": DATA}, defaults={"status": {}}),
+    Spec("results", _T2S, {"job": INT, "chunk": INT, "culled": INT, "eye_iteration": _Nullable(INT)},
+         (plain("ends", ("ends", np.int64, (), None), rows=len(END_NAMES)),
+          record("deposits", PhotonDeposits, optional=True),
+          record("hits", HitPoints, optional=True),
+          plain("emitted", ("emitted_pixels", np.int32, (), None),
+                 ("emitted_rgb", np.float32, (3,), FINITE), optional=True)),
+         check=_check_results, defaults={"culled": 0, "eye_iteration": None}),
+    Spec("chunk_request", _T2S, {"chunk": INT}),
+    Spec("error", _ANY, {"reason": STR, "about": _Nullable(STR)}, any_version=True,
+         defaults={"about": None}),
+    Spec("welcome", _S2T, {"tracer_index": INT, "settings": DATA, "scene": DATA, "tree": DATA,
+                           "store_key": STR, "chunks": _List(INT), "manifest": _Nullable(DATA)},
+         defaults={"manifest": None}),
+    Spec("refused", _S2T, {"reason": STR}, any_version=True),
+    Spec("peers", _S2T, {"table_version": INT, "peers": _List(_List(STR))}),
+    Spec("photon_job", _S2T, {"job": INT, "iteration": INT, "chunk": INT},
+         (_cull_box(), record("batch", RayBatch))),
+    Spec("eye_job", _S2T, {"job": INT, "eye_iteration": INT, "chunk": INT}, (record("batch", RayBatch),)),
+    Spec("chunk_data", _S2T, {"chunk": INT, "sha256": _Hex(), "part": INT, "parts": _Int(1),
+                              "offset": INT, "file_bytes": INT},
+         (plain("data", ("data", np.uint8, (), None)),), check=_check_chunk_data),
+    Spec("shutdown", _S2T, {"reason": STR}, defaults={"reason": ""}),
+    Spec("portal_rays", _T2T, {"job": INT, "kind": _Choice("photon", "eye"), "chunk": INT,
+                               "eye_iteration": _Nullable(INT)},
+         (_cull_box(optional=True), record("batch", RayBatch)),
+         check=_check_portal_rays, defaults={"eye_iteration": None}),
+)
+MESSAGES: dict[str, Spec] = {s.name: s for s in _SPECS}
+_RESERVED = ("v", "type", "arrays")
+
+
+def describe() -> str:
+    """The message table, from the specs (for docs and `--help`)."""
+    lines = []
+    for s in _SPECS:
+        cols = [f"{k}: {t.label}" for k, t in s.fields.items()]
+        for g in s.groups:
+            what = (g.record.__name__ if g.record else
+                    ", ".join(f"{c.key + ' ' if len(g.columns) > 1 else ''}{c.dtype.str} "
+                              f"{_shape_text(g.rows, c.trailing)}" for c in g.columns))
+            cols.append(f"{g.name}{'?' if g.optional else ''}: {what}")
+        lines.append(f"{s.name:14s} {s.route:15s} " + "; ".join(cols))
+    return "\n".join(lines)
+
+
+def _shape_text(rows, trailing) -> str:
+    return str(("n" if rows is None else rows,) + tuple(trailing)).replace("'", "")
+
+
+# -- the message ----------------------------------------------------------------
+@dataclass
+class Message:
+    """A decoded message: `fields` holds scalars, plain arrays and records
+    (absent optional groups are None); `msg.job` reads `msg.fields["job"]`."""
+    type: str
+    fields: dict
+    version: int = PROTOCOL_VERSION
+
+    def __getattr__(self, name):
+        fields_ = self.__dict__.get("fields")
+        if fields_ is not None and name in fields_:
+            return fields_[name]
+        raise AttributeError(f"{self.__dict__.get('type', 'message')!s} has no field {name!r}")
+
+
+# -- encode ---------------------------------------------------------------------
+_MISSING = object()
+
+
+def _plain_scalar(v):
+    """numpy scalars and tuples are easy to pass by accident; msgpack takes neither."""
+    if isinstance(v, np.generic):
+        return v.item()
+    return list(v) if isinstance(v, tuple) else v
+
+
+def _group_columns(spec: Spec, g: Group, given: dict) -> dict | None:
+    """{wire name: array} for one group from encode's arguments, or None if
+    an optional group is absent."""
+    if g.record:
+        rec = given.pop(g.name, None)
+        if rec is None:
+            return None
+        if not isinstance(rec, g.record):
+            raise WireError(f"{spec.name}: field {g.name!r} must be a {g.record.__name__}, "
+                            f"got {type(rec).__name__}", spec.name, g.name)
+        return {c.wire: getattr(rec, c.key) for c in g.columns}
+    cols = {c.wire: given.pop(c.key, None) for c in g.columns}
+    present = [k for k, a in cols.items() if a is not None]
+    if not present:
+        return None
+    if len(present) < len(cols):
+        missing = next(k for k, a in cols.items() if a is None)
+        raise WireError(f"{spec.name}: field {missing!r} must come with {present[0]!r}", spec.name, missing)
+    return cols
+
+
+def _frame_of(spec: Spec, c: Column, a) -> tuple[dict, memoryview]:
+    a = np.asarray(a)
+    if a.dtype != c.dtype:
+        raise WireError(f"{spec.name}: array {c.wire!r} has dtype {a.dtype.str}, the wire wants "
+                        f"{c.dtype.str}", spec.name, c.wire)
+    a = np.ascontiguousarray(a)   # a no-op for the records' own arrays
+    # A flat byte view: memoryview.cast refuses shapes with a 0 in them.
+    return ({"name": c.wire, "dtype": c.dtype.str, "shape": list(a.shape)},
+            memoryview(a.reshape(-1).view(np.uint8)))
+
+
+def encode(msg_type: str, **fields_) -> list:
+    """Frames for one message: [header bytes, array memoryviews...]. The
+    result is checked by the same rules as `decode` (except the cheap-to-
+    skip finiteness scan), so a sender's bug fails at the sender."""
+    spec = MESSAGES.get(msg_type)
+    if spec is None:
+        raise WireError(f"unknown message type {msg_type!r}", msg_type, "type")
+    given = dict(fields_)
+    header = {"v": PROTOCOL_VERSION, "type": msg_type}
+    for k in spec.fields:
+        header[k] = _plain_scalar(given.pop(k)) if k in given else spec.defaults.get(k, _MISSING)
+    entries, frames = [], []
+    for g in spec.groups:
+        cols = _group_columns(spec, g, given)
+        for c in g.columns if cols is not None else ():
+            entry, frame = _frame_of(spec, c, cols[c.wire])
+            entries.append(entry)
+            frames.append(frame)
+    if given:
+        raise WireError(f"{msg_type}: unexpected field {sorted(given)[0]!r}", msg_type, sorted(given)[0])
+    header["arrays"] = entries
+    header = {k: v for k, v in header.items() if v is not _MISSING}
+    try:
+        head = msgpack.packb(header, use_bin_type=True)
+    except (TypeError, ValueError, OverflowError) as e:
+        raise WireError(f"{msg_type}: cannot encode the header: {e}", msg_type) from None
+    _validate([head, *frames], check_values=False)
+    return [head, *frames]
+
+
+# -- decode ---------------------------------------------------------------------
+def _fail(spec_name: str, field_: str | None, text: str):
+    where = f"field {field_!r} " if field_ else ""
+    raise WireError(f"{spec_name}: {where}{text}", spec_name, field_)
+
+
+def _show(v) -> str:
+    """A bad value for an error line: short scalars as themselves."""
+    if isinstance(v, (bool, int, float, type(None))) or (isinstance(v, (str, bytes)) and len(v) <= 40):
+        return f"{type(v).__name__} {v!r}"
+    return type(v).__name__
+
+
+def _ext_refused(code, data):
+    raise ValueError(f"msgpack extension type {code} is not part of the protocol")
+
+
+def _read_header(frame) -> dict:
+    try:
+        header = msgpack.unpackb(frame, raw=False, strict_map_key=True, use_list=True,
+                                 ext_hook=_ext_refused, timestamp=0)
+    except Exception as e:   # msgpack raises a zoo of types on garbage; all mean "malformed"
+        raise WireError(f"malformed msgpack header: {type(e).__name__}: {e}"[:200]) from None
+    if type(header) is not dict:
+        raise WireError(f"header is a {type(header).__name__}, not a map")
+    return header
+
+
+def _spec_and_version(header: dict) -> Spec:
+    t = header.get("type")
+    spec = MESSAGES.get(t) if type(t) is str else None
+    if spec is None:
+        raise WireError(f"unknown message type {t!r}"[:200], None, "type")
+    v = header.get("v")
+    if type(v) is not int:
+        raise VersionMismatch(t, v)
+    if v != PROTOCOL_VERSION and not spec.any_version:
+        raise VersionMismatch(t, v)
+    return spec
+
+
+def _check_scalars(spec: Spec, header: dict) -> dict:
+    expected = set(spec.fields) | set(_RESERVED)
+    for k in header:
+        if k not in expected:
+            _fail(spec.name, str(k)[:60], "is not part of the message")
+    out = {}
+    for k, t in spec.fields.items():
+        if k not in header:
+            _fail(spec.name, k, "is missing")
+        if not t.ok(header[k]):
+            _fail(spec.name, k, f"must be {t.label}, got {_show(header[k])}")
+        out[k] = header[k]
+    if "arrays" not in header:
+        _fail(spec.name, "arrays", "is missing")
+    return out
+
+
+def _array_entries(spec: Spec, header: dict, nframes: int) -> dict:
+    """{wire name: (dtype str, shape, frame index)} from the header."""
+    entries = header["arrays"]
+    if type(entries) is not list:
+        _fail(spec.name, "arrays", "must be a list")
+    if len(entries) != nframes - 1:
+        _fail(spec.name, "arrays", f"lists {len(entries)} arrays but {nframes - 1} array frames follow")
+    out = {}
+    for i, e in enumerate(entries):
+        if not (type(e) is dict and set(e) == {"name", "dtype", "shape"} and type(e["name"]) is str
+                and type(e["dtype"]) is str and type(e["shape"]) is list
+                and all(type(s) is int for s in e["shape"])):
+            _fail(spec.name, "arrays", f"entry {i} is not {{name: str, dtype: str, shape: [int]}}")
+        if e["name"] not in spec.array_names:
+            _fail(spec.name, e["name"][:60], "is not an array of this message")
+        if e["name"] in out:
+            _fail(spec.name, e["name"][:60], "is listed twice")
+        out[e["name"]] = (e["dtype"], e["shape"], i + 1)
+    return out
+
+
+def _check_column(spec: Spec, c: Column, dtype: str, shape: list, frame) -> np.ndarray:
+    if dtype != c.dtype.str:
+        _fail(spec.name, c.wire, f"has dtype {dtype[:20]!r}, expected {c.dtype.str!r}")
+    if len(shape) != 1 + len(c.trailing) or tuple(shape[1:]) != c.trailing or shape[0] < 0:
+        _fail(spec.name, c.wire, f"has shape {tuple(shape[:8])}, expected {_shape_text(None, c.trailing)}")
+    count = shape[0] * int(np.prod(c.trailing, dtype=np.int64))   # Python ints: no overflow
+    if count > MAX_ELEMENTS:
+        _fail(spec.name, c.wire, f"declares {shape[:4]}: over the cap of {MAX_ELEMENTS} elements")
+    buf = memoryview(frame)
+    if buf.nbytes != count * c.dtype.itemsize:
+        _fail(spec.name, c.wire, f"frame has {buf.nbytes} bytes, shape {tuple(shape)} of {c.dtype.str} "
+              f"needs {count * c.dtype.itemsize}")
+    a = np.frombuffer(buf.cast("B") if buf.ndim != 1 or buf.format != "B" else buf, c.dtype).reshape(shape)
+    return a if a.flags.aligned else a.copy()
+
+
+def _check_values(spec: Spec, c: Column, a: np.ndarray) -> None:
+    if c.values == FINITE and not np.isfinite(a).all():
+        _fail(spec.name, c.wire, "holds NaN or infinite values")
+    if c.values == NOT_NAN and np.isnan(a).any():
+        _fail(spec.name, c.wire, "holds NaN values")
+
+
+def _decode_group(spec: Spec, g: Group, entries: dict, frames, check_values: bool) -> dict:
+    present = [c.wire for c in g.columns if c.wire in entries]
+    if not present and g.optional:
+        return dict.fromkeys(g.keys)
+    if len(present) < len(g.columns):
+        missing = next(c.wire for c in g.columns if c.wire not in entries)
+        _fail(spec.name, missing, "is missing from the arrays")
+    cols = {}
+    for c in g.columns:
+        dtype, shape, i = entries.pop(c.wire)
+        cols[c] = _check_column(spec, c, dtype, shape, frames[i])
+    lengths = {c.wire: a.shape[0] for c, a in cols.items()}
+    want = g.rows if g.rows is not None else next(iter(lengths.values()))
+    for name, n in lengths.items():
+        if n != want:
+            _fail(spec.name, name, f"has {n} rows, {g.name} has {want}")
+    for c, a in cols.items():
+        if check_values:
+            _check_values(spec, c, a)
+    if g.record:
+        return {g.name: g.record(**{c.key: a for c, a in cols.items()})}
+    return {c.key: a for c, a in cols.items()}
+
+
+def _validate(frames, check_values: bool = True) -> Message:
+    if len(frames) == 0:
+        raise WireError("empty message: no header frame")
+    header = _read_header(frames[0])
+    spec = _spec_and_version(header)
+    out = _check_scalars(spec, header)
+    entries = _array_entries(spec, header, len(frames))
+    for g in spec.groups:
+        out.update(_decode_group(spec, g, entries, frames, check_values))
+    problem = spec.check(out) if spec.check else None
+    if problem:
+        raise WireError(f"{spec.name}: {problem}", spec.name)
+    return Message(spec.name, out, header["v"])
+
+
+def decode(frames, accept=None) -> Message:
+    """The message in `frames` (bytes, memoryviews or zmq.Frames; the
+    envelope already removed), checked; arrays are views of the frames.
+    `accept`: the message types this role takes; others are refused.
+    Raises only WireError."""
+    try:
+        msg = _validate(frames)
+    except WireError:
+        raise
+    except Exception as e:   # a rule this module forgot must still not crash a process
+        raise WireError(f"undecodable message: {type(e).__name__}: {e}"[:200]) from None
+    if accept is not None and msg.type not in accept:
+        raise WireError(f"{msg.type}: not accepted here (takes {', '.join(sorted(accept))})", msg.type)
+    return msg
+
+
+# -- replies --------------------------------------------------------------------
+def refusal_reason(e: VersionMismatch) -> str:
+    return (f"protocol version mismatch: tracer speaks {e.theirs!r}, server speaks {e.ours}; "
+            f"run the same dosppm release on both")
+
+
+def error_reply(e: WireError) -> list:
+    """The answer to a bad message: `refused` for a register in another
+    protocol version (it cannot join), `error` otherwise."""
+    if isinstance(e, VersionMismatch) and e.msg_type == "register":
+        return encode("refused", reason=refusal_reason(e))
+    return encode("error", reason=str(e), about=e.msg_type)
+
+
+# -- sockets --------------------------------------------------------------------
+def configure(socket: zmq.Socket) -> zmq.Socket:
+    """Apply the back-pressure policy above; call before bind/connect."""
+    socket.setsockopt(zmq.SNDHWM, HWM_MESSAGES)
+    socket.setsockopt(zmq.RCVHWM, HWM_MESSAGES)
+    socket.setsockopt(zmq.LINGER, LINGER_MS)
+    socket.setsockopt(zmq.MAXMSGSIZE, MAX_FRAME_BYTES)
+    socket.setsockopt(zmq.HEARTBEAT_IVL, ZMQ_HEARTBEAT_IVL_MS)
+    socket.setsockopt(zmq.HEARTBEAT_TIMEOUT, ZMQ_HEARTBEAT_TIMEOUT_MS)
+    if socket.type == zmq.ROUTER:
+        socket.setsockopt(zmq.ROUTER_MANDATORY, 1)
+    return socket
+
+
+def send(socket: zmq.Socket, frames: list, prefix=(), block: bool = True) -> None:
+    """Send one message zero-copy; `prefix` is the ROUTER envelope (the
+    peer's identity). Raises zmq.ZMQError: EHOSTUNREACH for an unknown
+    identity on a ROUTER, zmq.Again when not blocking and the queue is full."""
+    socket.send_multipart([*prefix, *frames], copy=False, flags=0 if block else zmq.NOBLOCK)
+
+
+def _split_envelope(socket: zmq.Socket, parts: list) -> tuple[list, list]:
+    if socket.type != zmq.ROUTER:
+        return [], parts
+    return [parts[0].bytes], parts[1:]   # one identity frame: DEALERs send no delimiter
+
+
+def recv(socket: zmq.Socket, accept=None, flags: int = 0) -> tuple[list, Message]:
+    """(envelope, message) from a ROUTER or DEALER socket. A bad message
+    raises WireError with `.prefix` set, so the caller can reply."""
+    prefix, frames = _split_envelope(socket, socket.recv_multipart(copy=False, flags=flags))
+    try:
+        return prefix, decode(frames, accept)
+    except WireError as e:
+        e.prefix = prefix
+        raise
+
+
+def recv_or_reply(socket: zmq.Socket, accept=None, flags: int = 0) -> tuple[list, Message] | None:
+    """`recv`, except that a bad message is logged, answered (never an
+    error with an error) and returns None."""
+    try:
+        return recv(socket, accept, flags)
+    except WireError as e:
+        who = e.prefix[0] if e.prefix else b"peer"
+        log.warning("bad message from %r: %s", who, e)
+        if e.msg_type not in ("error", "refused"):
+            try:
+                send(socket, error_reply(e), e.prefix, block=False)
+            except zmq.ZMQError as z:   # the sender is gone or flooded: the log line stands
+                log.warning("could not answer %r: %s", who, z)
+        return None
+
+
+def chunk_parts(chunk: int, sha256: str, data) -> list[list]:
+    """A chunk file as `chunk_data` messages of at most CHUNK_PART_BYTES,
+    each a view of `data` (no copy)."""
+    buf = np.frombuffer(memoryview(data).cast("B"), np.uint8)
+    size = len(buf)
+    parts = max(1, -(-size // CHUNK_PART_BYTES))
+    return [encode("chunk_data", chunk=chunk, sha256=sha256, part=p, parts=parts,
+                   offset=p * CHUNK_PART_BYTES, file_bytes=size,
+                   data=buf[p * CHUNK_PART_BYTES:(p + 1) * CHUNK_PART_BYTES])
+            for p in range(parts)]
