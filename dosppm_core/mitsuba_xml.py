@@ -789,15 +789,11 @@ def _unit_sphere():
 
 
 def _load_mesh_file(path: str, node: _Node):
-    import trimesh                       # deferred: trimesh is slow to import
+    from .scenefile import read_mesh_file
     try:
-        mesh = trimesh.load(path, force="mesh", process=False)
-    except Exception as exc:             # trimesh raises many types for bad files
-        node.fail(f"cannot load {path}: {exc}")
-    faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), np.int64)
-    if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
-        node.fail(f"{path} has no triangles")
-    return np.asarray(mesh.vertices, np.float64), faces
+        return read_mesh_file(path)
+    except ValueError as exc:
+        node.fail(str(exc))
 
 
 def _sphere_frame(obj: _Obj, to_world: np.ndarray) -> np.ndarray:

@@ -266,18 +266,56 @@ def load_mesh_file(full: str, path: str, where: str) -> tuple[np.ndarray, np.nda
     the scene file `path` and the element `where`."""
     if not os.path.isfile(full):
         raise SceneError(f"{path}: {where}: no such file {full!r}")
+    try:
+        return read_mesh_file(full)
+    except ValueError as e:
+        raise SceneError(f"{path}: {where}: {e}") from None
+
+
+def read_mesh_file(full: str) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices float64, triangles int64) of any mesh file trimesh reads,
+    or ValueError with a one-line reason. Shared by every scene loader."""
     import trimesh  # imported here: half a second that scenes without meshes never pay
     try:
-        mesh = trimesh.load(full, force="mesh", process=False)
+        # Only geometry is used: skipping materials also keeps trimesh from
+        # importing Pillow for the textures an OBJ's .mtl may name.
+        loaded = trimesh.load(full, process=False, skip_materials=True)
+        vertices, faces = _flatten(loaded)
     # trimesh's readers raise many exception types on bad input (ValueError,
     # KeyError, IndexError, struct.error...): all mean "cannot read".
     except Exception as e:  # noqa: BLE001
         detail = (str(e).splitlines() or [type(e).__name__])[0]
-        raise SceneError(f"{path}: {where}: cannot read mesh {full!r}: {detail}") from None
-    faces = getattr(mesh, "faces", None)
-    if faces is None or len(faces) == 0:
-        raise SceneError(f"{path}: {where}: mesh {full!r} has no triangles")
-    return np.asarray(mesh.vertices, np.float64), np.asarray(faces, np.int64)
+        raise ValueError(f"cannot read mesh {full!r}: {detail}") from None
+    if len(faces) == 0:
+        raise ValueError(f"mesh {full!r} has no triangles")
+    return vertices, faces
+
+
+def _flatten(loaded) -> tuple[np.ndarray, np.ndarray]:
+    """One triangle soup from a trimesh Trimesh or Scene, with each node's
+    transform applied. Done here rather than with force="mesh", whose
+    Scene.dump deep-copies every visual and so needs Pillow."""
+    if hasattr(loaded, "graph"):
+        parts = []
+        for node in loaded.graph.nodes_geometry:
+            transform, name = loaded.graph[node]
+            parts.append((loaded.geometry[name], transform))
+    else:
+        parts = [(loaded, None)]
+    vertices, faces, offset = [], [], 0
+    for mesh, transform in parts:
+        f = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), np.int64)
+        if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
+            continue                      # point clouds, paths: no triangles
+        v = np.asarray(mesh.vertices, np.float64)
+        if transform is not None and not np.array_equal(transform, np.eye(4)):
+            v = v @ transform[:3, :3].T + transform[:3, 3]
+        vertices.append(v)
+        faces.append(f + offset)
+        offset += len(v)
+    if not faces:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+    return np.concatenate(vertices), np.concatenate(faces)
 
 
 def _read_transform(shape: dict, path: str, where: str) -> np.ndarray | None:
