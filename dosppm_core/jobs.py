@@ -77,14 +77,21 @@ class RayBatch(_Record):
     # Distance along the ray already searched in earlier chunks: a ray
     # continued through a portal keeps its origin and skips [0, tmin).
     tmin: np.ndarray = None  # float32 (n,); None means zeros (a new ray)
+    # The job each path belongs to, so packages of many jobs can be traced
+    # as one batch and their ended paths still be counted per job (the
+    # server's exact accounting). None means zeros.
+    job: np.ndarray = None   # int64 (n,)
 
     SCHEMA = {"origin": (np.float32, (3,)), "direction": (np.float32, (3,)),
               "weight": (np.float32, (3,)), "pixel": (np.int32, ()),
-              "depth": (np.int32, ()), "rng": (np.uint64, ()), "tmin": (np.float32, ())}
+              "depth": (np.int32, ()), "rng": (np.uint64, ()), "tmin": (np.float32, ()),
+              "job": (np.int64, ())}
 
     def __post_init__(self):
         if self.tmin is None:
             self.tmin = np.zeros(self.origin.shape[0], np.float32)
+        if self.job is None:
+            self.job = np.zeros(self.origin.shape[0], np.int64)
 
 
 @dataclass
@@ -95,9 +102,16 @@ class PhotonDeposits(_Record):
     incoming: np.ndarray    # float32 (n, 3)
     normal: np.ndarray      # float32 (n, 3)
     flux: np.ndarray        # float32 (n, 3)
+    # The photon job that deposited it: a job's deposits count only once
+    # all its paths have ended (exactly-once accounting). None means zeros.
+    job: np.ndarray = None  # int64 (n,)
 
     SCHEMA = {"position": (np.float32, (3,)), "incoming": (np.float32, (3,)),
-              "normal": (np.float32, (3,)), "flux": (np.float32, (3,))}
+              "normal": (np.float32, (3,)), "flux": (np.float32, (3,)), "job": (np.int64, ())}
+
+    def __post_init__(self):
+        if self.job is None:
+            self.job = np.zeros(self.position.shape[0], np.int64)
 
 
 @dataclass

@@ -61,7 +61,7 @@ def reorder_deposits(deposits: PhotonDeposits, box: np.ndarray | None) -> Photon
     order = spatial_order(deposits.position, box)
     out = _permute_deposits(deposits.position, deposits.incoming, deposits.normal,
                             deposits.flux, order)
-    return PhotonDeposits(out[0], out[1], out[2], out[3])
+    return PhotonDeposits(out[0], out[1], out[2], out[3], np.take(deposits.job, order))
 
 
 def spatial_order(pos: np.ndarray, box: np.ndarray | None = None) -> np.ndarray:

@@ -45,7 +45,8 @@ def emit_photon_job(scene: Scene, seed: int, job: int, count: int, eps_abs: floa
     L = scene.lights
     o, d, f, st = emit.emit_photons(L.kind, L.p0, L.p1, L.p2, L.value, L.cone, L.power,
                                     L.cdf, np.uint64(seed), np.uint64(job), count, eps_abs)
-    return RayBatch(o, d, f, np.full(count, -1, np.int32), np.zeros(count, np.int32), st)
+    return RayBatch(o, d, f, np.full(count, -1, np.int32), np.zeros(count, np.int32), st,
+                    job=np.full(count, job, np.int64))
 
 
 def eye_ray_job(scene: Scene, seed: int, iteration: int, pixel_start: int, count: int) -> RayBatch:
@@ -73,8 +74,9 @@ def scatter_photons(surf: SurfaceData, batch: RayBatch, prim, u, v,
         surf.vertices, surf.triangles, surf.tri_material, surf.kind, surf.reflectance,
         surf.ior, surf.roughness, surf.two_sided, cull_box[0], cull_box[1], max_depth,
         EPS_REL, surf.eps_abs)
-    nxt = RayBatch(no, nd, nf, batch.pixel[g], batch.depth[g] + 1, st)
-    return PhotonDeposits(*dep), nxt, ends, culled
+    nxt = RayBatch(no, nd, nf, batch.pixel[g], batch.depth[g] + 1, st, job=batch.job[g])
+    pos, inc, nrm, flux, source = dep
+    return PhotonDeposits(pos, inc, nrm, flux, batch.job[source]), nxt, ends, culled
 
 
 def eye_step(accel: Accelerator, surf: SurfaceData, batch: RayBatch, max_depth: int):
@@ -93,7 +95,7 @@ def advance_eye(surf: SurfaceData, batch: RayBatch, prim, u, v, max_depth: int):
         EPS_REL, surf.eps_abs)
     hits = HitPoints(hpos, hn, -batch.direction[h], batch.weight[h],
                      surf.tri_material[prim[h]], batch.pixel[h])
-    nxt = RayBatch(no, nd, nw, batch.pixel[g], batch.depth[g] + 1, st)
+    nxt = RayBatch(no, nd, nw, batch.pixel[g], batch.depth[g] + 1, st, job=batch.job[g])
     return hits, (batch.pixel[lit], rgb), nxt, ends
 
 

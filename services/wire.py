@@ -65,8 +65,9 @@ Messages
       register       tracer_id, capacity {cores, memory_bytes}, endpoint
                      (its peer ROUTER), has_store, store_key|None
       heartbeat      status {} (informational: queue, load, resident chunks)
-      results        job, chunk, ends i64 (5,), culled, eye_iteration|None;
-                     optional deposits: PhotonDeposits, hits: HitPoints,
+      results        chunk, culled, queued, eye_iteration|None, ends i64 (5,),
+                     job_ids i64 (k,) + job_ended i64 (k,); optional
+                     deposits: PhotonDeposits, hits: HitPoints,
                      emitted_pixels i32 (m,) + emitted_rgb f32 (m, 3)
       chunk_request  chunk
       error          reason, about|None                 (any direction)
@@ -76,41 +77,45 @@ Messages
                      manifest {}|None (for tracers without the store)
       refused        reason
       peers          table_version, peers [[endpoint]] indexed by chunk
-      photon_job     job, iteration, chunk, cull_box f64 (2, 3), batch
-      eye_job        job, eye_iteration, chunk, batch
+      photon_job     chunk, cull_box f64 (2, 3), batch (one or more jobs)
+      eye_job        eye_iteration, chunk, batch
       chunk_data     chunk, sha256, part, parts, offset, file_bytes, data u8
       heartbeat, shutdown (reason)
     tracer -> tracer
-      portal_rays    job, kind "photon"|"eye", chunk (the destination),
+      portal_rays    kind "photon"|"eye", chunk (the destination),
                      eye_iteration (eye only), cull_box (photon only), batch
 
 `MESSAGES` holds the specs; `describe()` prints this table from them.
 
 Exact accounting (the server knows when every path of a job has ended)
 ----------------------------------------------------------------------
-A job is the set of paths whose emission messages (`photon_job`,
-`eye_job`) carry the same job id; the server may send one job in several
-messages (tiles, or the parts starting in different chunks), and its path
-count N_j is the sum of their batch lengths. Paths lost at emission (they
-start outside every chunk) are not sent and not in N_j. Job ids are never
-reused, so a re-emitted job gets a new id and late results of the old one
-are recognisably stale.
+A job is a set of paths with one job id, carried per path in the
+`job` column of every RayBatch (and of every photon deposit). The server
+sends a job's paths in one or more messages (the parts starting in
+different chunks), and one message may carry several jobs; the job's path
+count N_j is known to the server, which made the paths. Paths lost at
+emission (they start outside every chunk) are not sent and not in N_j.
+Job ids are never reused, so late results of a discarded job are
+recognisably stale.
 
-`ends` counts paths that *ended* in the step a `results` reports, by kind
+`job_ids`/`job_ended` count, per job, the paths that *ended* in the step a
+`results` reports; `ends` counts the same paths by how they ended
 (`dosppm_core.jobs`: CONTINUES, ESCAPED, ABSORBED, MAX_DEPTH, STORED). A
 path leaving through a portal has not ended: it travels on in a
-`portal_rays` package with the same job id, and is counted where it ends.
-So ends[CONTINUES] is always 0 (the wire refuses anything else), and
+`portal_rays` package, keeping its job id, and is counted where it ends.
+So ends[CONTINUES] is always 0 and sum(job_ended) == sum(ends) (the wire
+refuses anything else), and
 
-    job j finished  <=>  sum over results of job j of ends[ESCAPED:] == N_j
+    job j finished  <=>  sum over results of job_ended[job_ids == j] == N_j
 
 No timeout is involved: each path ends exactly once, so the sum cannot
 reach N_j while a path of j is queued, traced or in a portal package.
 `culled` counts photon *deposits* dropped by the cull box (§4.3), not
-paths. Client batching (§4.3) may coalesce packages of one (kind, job)
-and chunk; packages of different jobs are traced apart, since ends could
-not be split by job afterwards (RayBatch carries no job column). Coalesced
-photon packages use the union of their cull boxes ("widened when merged").
+paths; `queued` is the rays waiting at the tracer after the step (the
+server's back-pressure reads it). Client batching (§4.3) coalesces all
+packages of one kind for one chunk, whatever their jobs: the job column
+splits the counts afterwards. Coalesced photon packages use the union of
+their cull boxes ("widened when merged").
 
 Sockets, envelopes and back-pressure
 ------------------------------------
@@ -361,6 +366,11 @@ def _check_results(f: dict) -> str | None:
     if ends[CONTINUES] != 0:
         return (f"field 'ends' counts {int(ends[CONTINUES])} continuing paths; a path that goes on "
                 f"is not an end")
+    if (f["job_ended"] <= 0).any():
+        return "field 'job_ended' holds a count <= 0"
+    if int(f["job_ended"].sum()) != int(ends.sum()):
+        return (f"field 'job_ended' sums to {int(f['job_ended'].sum())}, but 'ends' counts "
+                f"{int(ends.sum())} ended paths")
     if (f.get("hits") is not None or f.get("emitted_pixels") is not None) and f["eye_iteration"] is None:
         return "field 'eye_iteration' is required with hits or emitted light"
     return None
@@ -389,13 +399,14 @@ _SPECS = (
                             "endpoint": STR, "has_store": BOOL, "store_key": _Nullable(STR)},
          defaults={"store_key": None}),
     Spec("heartbeat", "both", {"status": DATA}, defaults={"status": {}}),
-    Spec("results", _T2S, {"job": INT, "chunk": INT, "culled": INT, "eye_iteration": _Nullable(INT)},
+    Spec("results", _T2S, {"chunk": INT, "culled": INT, "queued": INT, "eye_iteration": _Nullable(INT)},
          (plain("ends", ("ends", np.int64, (), None), rows=len(END_NAMES)),
+          plain("job_ends", ("job_ids", np.int64, (), None), ("job_ended", np.int64, (), None)),
           record("deposits", PhotonDeposits, optional=True),
           record("hits", HitPoints, optional=True),
           plain("emitted", ("emitted_pixels", np.int32, (), None),
                  ("emitted_rgb", np.float32, (3,), FINITE), optional=True)),
-         check=_check_results, defaults={"culled": 0, "eye_iteration": None}),
+         check=_check_results, defaults={"culled": 0, "queued": 0, "eye_iteration": None}),
     Spec("chunk_request", _T2S, {"chunk": INT}),
     Spec("error", _ANY, {"reason": STR, "about": _Nullable(STR)}, any_version=True,
          defaults={"about": None}),
@@ -404,14 +415,13 @@ _SPECS = (
          defaults={"manifest": None}),
     Spec("refused", _S2T, {"reason": STR}, any_version=True),
     Spec("peers", _S2T, {"table_version": INT, "peers": _List(_List(STR))}),
-    Spec("photon_job", _S2T, {"job": INT, "iteration": INT, "chunk": INT},
-         (_cull_box(), record("batch", RayBatch))),
-    Spec("eye_job", _S2T, {"job": INT, "eye_iteration": INT, "chunk": INT}, (record("batch", RayBatch),)),
+    Spec("photon_job", _S2T, {"chunk": INT}, (_cull_box(), record("batch", RayBatch))),
+    Spec("eye_job", _S2T, {"eye_iteration": INT, "chunk": INT}, (record("batch", RayBatch),)),
     Spec("chunk_data", _S2T, {"chunk": INT, "sha256": _Hex(), "part": INT, "parts": _Int(1),
                               "offset": INT, "file_bytes": INT},
          (plain("data", ("data", np.uint8, (), None)),), check=_check_chunk_data),
     Spec("shutdown", _S2T, {"reason": STR}, defaults={"reason": ""}),
-    Spec("portal_rays", _T2T, {"job": INT, "kind": _Choice("photon", "eye"), "chunk": INT,
+    Spec("portal_rays", _T2T, {"kind": _Choice("photon", "eye"), "chunk": INT,
                                "eye_iteration": _Nullable(INT)},
          (_cull_box(optional=True), record("batch", RayBatch)),
          check=_check_portal_rays, defaults={"eye_iteration": None}),

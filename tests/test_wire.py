@@ -48,8 +48,12 @@ def sample_fields(msg_type: str, n: int, rng: np.random.Generator, variant: int 
     if msg_type == "heartbeat":
         return dict(status={"queued_rays": n, "resident": [1, 2], "load": 0.5})
     if msg_type == "results":
-        f = dict(job=7, chunk=2, culled=n, eye_iteration=None,
-                 ends=rng.integers(0, 1000, 5).astype(np.int64) * np.array([0, 1, 1, 1, 1]))
+        ends = rng.integers(0, 1000, 5).astype(np.int64) * np.array([0, 1, 1, 1, 1])
+        f = dict(chunk=2, culled=n, queued=3 * n, eye_iteration=None, ends=ends,
+                 job_ids=np.array([7, 9], np.int64), job_ended=np.array([1, ends.sum() - 1], np.int64))
+        if ends.sum() < 2:
+            f.update(job_ids=np.array([7], np.int64)[:int(ends.sum())],
+                     job_ended=np.array([1], np.int64)[:int(ends.sum())])
         if variant in (0, 2):
             f["deposits"] = random_record(PhotonDeposits, n, rng)
         if variant in (1, 2):
@@ -70,9 +74,9 @@ def sample_fields(msg_type: str, n: int, rng: np.random.Generator, variant: int 
     if msg_type == "peers":
         return dict(table_version=4, peers=[["tcp://a:1"], [], ["tcp://b:2", "tcp://c:3"]])
     if msg_type == "photon_job":
-        return dict(job=n, iteration=2, chunk=1, cull_box=box, batch=batch)
+        return dict(chunk=1, cull_box=box, batch=batch)
     if msg_type == "eye_job":
-        return dict(job=n, eye_iteration=5, chunk=0, batch=batch)
+        return dict(eye_iteration=5, chunk=0, batch=batch)
     if msg_type == "chunk_data":
         data = rng.integers(0, 256, n, dtype=np.uint8)
         return dict(chunk=3, sha256=hashlib.sha256(data).hexdigest(), part=0, parts=1, offset=0,
@@ -81,8 +85,8 @@ def sample_fields(msg_type: str, n: int, rng: np.random.Generator, variant: int 
         return dict(reason="time limit")
     if msg_type == "portal_rays":
         if variant % 2:
-            return dict(job=9, kind="eye", chunk=4, eye_iteration=2, batch=batch)
-        return dict(job=9, kind="photon", chunk=4, cull_box=box, batch=batch)
+            return dict(kind="eye", chunk=4, eye_iteration=2, batch=batch)
+        return dict(kind="photon", chunk=4, cull_box=box, batch=batch)
     raise AssertionError(msg_type)
 
 
@@ -146,13 +150,14 @@ def test_records_come_back_as_library_classes():
     msg = decode(encode("photon_job", **sample_fields("photon_job", 5, rng)))
     assert isinstance(msg.batch, RayBatch) and len(msg.batch) == 5
     assert msg.cull_box.dtype == np.float64 and msg.cull_box[1, 2] == np.inf
-    empty = decode(encode("results", job=1, chunk=0, ends=np.zeros(5, np.int64)))
+    empty = decode(encode("results", chunk=0, ends=np.zeros(5, np.int64),
+                          job_ids=np.zeros(0, np.int64), job_ended=np.zeros(0, np.int64)))
     assert empty.deposits is None and empty.hits is None and empty.emitted_pixels is None
 
 
 def test_encode_is_zero_copy_on_the_senders_arrays():
     batch = random_record(RayBatch, 1000, np.random.default_rng(2))
-    frames = encode("eye_job", job=1, eye_iteration=0, chunk=0, batch=batch)
+    frames = encode("eye_job", eye_iteration=0, chunk=0, batch=batch)
     for col, view in zip(RayBatch.SCHEMA, frame_views(frames)):
         assert np.shares_memory(view, getattr(batch, col)), col
 
@@ -232,13 +237,14 @@ CASES = {
     "wrong version": (_header_edit(lambda h: h.update(v=2)), ["photon_job", "version 2", "version 1"]),
     "missing version": (_header_edit(lambda h: h.pop("v")), ["photon_job", "None", "version 1"]),
     "version not an int": (_header_edit(lambda h: h.update(v="1")), ["photon_job", "'1'", "version 1"]),
-    "missing field": (_header_edit(lambda h: h.pop("job")), ["photon_job", "'job'", "missing"]),
+    "missing field": (_header_edit(lambda h: h.pop("chunk")), ["photon_job", "'chunk'", "missing"]),
     "extra field": (_header_edit(lambda h: h.update(colour="red")), ["photon_job", "'colour'"]),
-    "str for int": (_header_edit(lambda h: h.update(job="7")), ["photon_job", "'job'", "int", "str"]),
-    "bool for int": (_header_edit(lambda h: h.update(job=True)), ["photon_job", "'job'", "bool"]),
-    "int past int64": (_header_edit(lambda h: h.update(job=2**63)), ["photon_job", "'job'"]),
+    "str for int": (_header_edit(lambda h: h.update(chunk="7")), ["photon_job", "'chunk'", "int", "str"]),
+    "bool for int": (_header_edit(lambda h: h.update(chunk=True)), ["photon_job", "'chunk'", "bool"]),
+    "int past int64": (_header_edit(lambda h: h.update(chunk=2**63)), ["photon_job", "'chunk'"]),
     "negative int": (_header_edit(lambda h: h.update(chunk=-1)), ["photon_job", "'chunk'", ">= 0"]),
-    "float for int": (_header_edit(lambda h: h.update(iteration=1.0)), ["photon_job", "'iteration'"]),
+    "float for int": (_header_edit(lambda h: h.update(eye_iteration=1.0), "eye_job"),
+                      ["eye_job", "'eye_iteration'"]),
     "int for bool": (_header_edit(lambda h: h.update(has_store=1), "register"), ["register", "'has_store'"]),
     "bad struct": (_header_edit(lambda h: h["capacity"].pop("cores"), "register"), ["register", "'capacity'"]),
     "zero cores": (_header_edit(lambda h: h["capacity"].update(cores=0), "register"), ["register", "'capacity'"]),
@@ -251,8 +257,8 @@ CASES = {
                        ["photon_job", "'arrays'", "missing"]),
     "arrays not a list": (_header_edit(lambda h: h.update(arrays={})), ["photon_job", "'arrays'", "list"]),
     "array entry malformed": (_header_edit(lambda h: h["arrays"][0].pop("shape")), ["photon_job", "entry 0"]),
-    "frame missing": (("photon_job", 0, lambda h, f: f.pop()), ["photon_job", "'arrays'", "lists 8 arrays"]),
-    "extra frame": (("photon_job", 0, lambda h, f: f.append(b"")), ["photon_job", "9 array frames"]),
+    "frame missing": (("photon_job", 0, lambda h, f: f.pop()), ["photon_job", "'arrays'", "lists 9 arrays"]),
+    "extra frame": (("photon_job", 0, lambda h, f: f.append(b"")), ["photon_job", "10 array frames"]),
     "array missing": (("photon_job", 0, lambda h, f: _drop_array("batch.rng")(h, f)),
                       ["photon_job", "'batch.rng'", "missing"]),
     "unknown array": (("photon_job", 0, lambda h, f: h["arrays"][0].update(name="batch.spin")),
@@ -271,9 +277,9 @@ CASES = {
     "negative length": (("photon_job", 0, lambda h, f: h["arrays"][0].update(shape=[-4, 3])),
                         ["photon_job", "shape"]),
     "too large": (("photon_job", 0, lambda h, f: h["arrays"][-1].update(shape=[1 << 40])),
-                  ["photon_job", "'batch.tmin'", "cap"]),
+                  ["photon_job", "'batch.job'", "cap"]),
     "frame size": (("photon_job", 0, lambda h, f: f.__setitem__(-1, f[-1][:-1])),
-                   ["photon_job", "'batch.tmin'", "15 bytes", "needs 16"]),
+                   ["photon_job", "'batch.job'", "31 bytes", "needs 32"]),
     "unequal record lengths": (("photon_job", 0, lambda h, f: _set_array(h, f, "batch.depth",
                                                                          np.zeros(3, np.int32))),
                                ["photon_job", "'batch.depth'", "3 rows", "batch has 4"]),
@@ -322,7 +328,7 @@ def test_each_malformed_message_is_refused_naming_type_and_field(case):
 
 
 def test_infinite_cull_box_means_no_culling_and_is_accepted():
-    msg = decode(encode("photon_job", job=0, iteration=0, chunk=0, cull_box=np.array([[-np.inf] * 3, [np.inf] * 3]),
+    msg = decode(encode("photon_job", chunk=0, cull_box=np.array([[-np.inf] * 3, [np.inf] * 3]),
                         batch=RayBatch.empty()))
     assert np.isinf(msg.cull_box).all()
 
@@ -338,11 +344,11 @@ def test_decode_refuses_types_a_role_does_not_take():
                            for a in RayBatch.empty().arrays().values()))), ["'batch.origin'", "<f8"]),
     (dict(batch=PhotonDeposits.empty()), ["'batch'", "RayBatch", "PhotonDeposits"]),
     (dict(batch=RayBatch.empty(), spin=1), ["unexpected field 'spin'"]),
-    (dict(batch=RayBatch.empty(), job=np.int64(-1)), ["'job'", ">= 0"]),
-    (dict(batch=RayBatch.empty(), job=None), ["'job'"]),
+    (dict(batch=RayBatch.empty(), chunk=np.int64(-1)), ["'chunk'", ">= 0"]),
+    (dict(batch=RayBatch.empty(), chunk=None), ["'chunk'"]),
 ])
 def test_encode_refuses_what_decode_would(fields, words):
-    args = dict(job=1, eye_iteration=0, chunk=0) | fields
+    args = dict(eye_iteration=0, chunk=0) | fields
     with pytest.raises(WireError) as info:
         encode("eye_job", **args)
     assert all(w in str(info.value) for w in ["eye_job", *words]), str(info.value)
@@ -350,7 +356,8 @@ def test_encode_refuses_what_decode_would(fields, words):
 
 def test_encode_wants_both_emitted_arrays():
     with pytest.raises(WireError, match="'emitted_rgb' must come with 'emitted_pixels'"):
-        encode("results", job=1, chunk=0, eye_iteration=0, ends=np.zeros(5, np.int64),
+        encode("results", chunk=0, eye_iteration=0, ends=np.zeros(5, np.int64),
+               job_ids=np.zeros(0, np.int64), job_ended=np.zeros(0, np.int64),
                emitted_pixels=np.zeros(2, np.int32))
 
 
@@ -358,8 +365,8 @@ def test_encode_takes_numpy_scalars_and_missing_nullable_fields():
     msg = decode(encode("register", tracer_id="t", capacity={"cores": 2, "memory_bytes": 10},
                         endpoint="tcp://x:1", has_store=np.bool_(False)))
     assert msg.store_key is None and msg.has_store is False
-    assert decode(encode("eye_job", job=np.int32(3), eye_iteration=np.uint64(1), chunk=0,
-                         batch=RayBatch.empty())).job == 3
+    assert decode(encode("eye_job", chunk=np.int32(3), eye_iteration=np.uint64(1),
+                         batch=RayBatch.empty())).chunk == 3
 
 
 # -- version mismatch ------------------------------------------------------------

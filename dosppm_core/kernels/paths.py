@@ -155,7 +155,7 @@ def scatter_photons(origin, direction, flux, depth, states, prim, u, v,
             p0, p1, p2, n0, n1, n2, d0, d1, d2, eps_rel, eps_abs)
         end[i] = CONTINUES
     d = _indices(deposited)
-    deposits = (_rows(dep_pos, d), _rows(dep_in, d), _rows(dep_n, d), _rows(flux, d))
+    deposits = (_rows(dep_pos, d), _rows(dep_in, d), _rows(dep_n, d), _rows(flux, d), d)
     g = _indices(end == CONTINUES)
     return (_ends(end), int(culled.sum()), deposits,
             (g, _rows(new_o, g), _rows(new_d, g), _rows(new_f, g), out_states[g]))
