@@ -20,17 +20,17 @@ CELL_FACTOR = 2.0  # cell size in median radii
 _P1, _P2, _P3 = 73856093, 19349663, 83492791
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def cell_key(ix, iy, iz):
     return (np.int64(ix) << 42) | (np.int64(iy) << 21) | np.int64(iz)
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def slot_of(ix, iy, iz, mask):
     return ((ix * _P1) ^ (iy * _P2) ^ (iz * _P3)) & mask
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def build_grid(hp_pos, hp_radius, lo, cell, dims):
     """Returns (slot_start, entry_hp, entry_key, entry_pos, mask): a CSR
     table from hash slot to the hit points registered in the cells hashing
@@ -99,7 +99,7 @@ def pack_hit_points(hp, materials) -> np.ndarray:
     return rows
 
 
-@nb.njit(cache=True, parallel=True, error_model="numpy")
+@nb.njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def gather_photons(ph_pos, ph_in, ph_n, ph_flux, start, entry_hp, entry_key, entry_pos, mask,
                    lo, cell, dims, rows, mat_refl, threads):
     """Accumulate, per hit point, the photon count M and the BRDF-weighted

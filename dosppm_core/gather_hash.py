@@ -132,7 +132,7 @@ def hash_layout(hp_pos: np.ndarray, hp_radius: np.ndarray, resolution=RESOLUTION
 
 
 # -- scalar helpers (no array arguments: they are called in hot loops) ----------
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _cell_index(p, lo, cell, d, slack):
     """Cell of coordinate p along one axis; points just outside the box
     (rounding) go to the edge cell, points beyond the slack to -1."""
@@ -146,7 +146,7 @@ def _cell_index(p, lo, cell, d, slack):
     return -1
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _cell_span(x, reach, lo, cell, d):
     """First and last cell along one axis that [x - reach, x + reach] touches."""
     a = math.floor((x - reach - lo) / cell)
@@ -154,7 +154,7 @@ def _cell_span(x, reach, lo, cell, d):
     return min(max(a, 0), d - 1), min(max(b, 0), d - 1)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _gap(x, i, lo, cell, d):
     """Distance from x to cell i along one axis; the edge cells reach to
     infinity, since they also hold the photons clamped into them."""
@@ -169,14 +169,14 @@ def _gap(x, i, lo, cell, d):
     return 0.0
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _slot(cell_id, table_size, identity):
     if identity:
         return cell_id
     return np.int64(mix64(np.uint64(cell_id)) % np.uint64(table_size))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _popcount(x):
     c = 0
     while x != 0:
@@ -185,7 +185,7 @@ def _popcount(x):
     return c
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _word_mask(w, a, b):
     """Bits of word w that lie within cells [a, b] of a column."""
     lo_k = max(a - w * 64, 0)
@@ -194,7 +194,7 @@ def _word_mask(w, a, b):
 
 
 # -- insertion -------------------------------------------------------------------
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, nogil=True, parallel=True)
 def _bin_photons(ph_pos, pos_bits, dir_bits, seed_state, lo, cell, dims, axes, slack,
                  table_size, identity, threads):
     """Per photon: the sort key slot << 32 | index, and cell << 32 |
@@ -223,7 +223,7 @@ def _bin_photons(ph_pos, pos_bits, dir_bits, seed_state, lo, cell, dims, axes, s
     return keys, cell_prio
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _occupancy(cell_prio, columns, d2):
     """One bit per cell holding any photon (a column's cells contiguous),
     and per word the number of set bits before it: the rank of an
@@ -243,7 +243,7 @@ def _occupancy(cell_prio, columns, d2):
     return bitmap, first
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _run_bounds(keys, n_valid, threads):
     """Split the sorted keys into `threads` ranges that never cut a slot's run."""
     bounds = np.empty(threads + 1, np.int64)
@@ -256,7 +256,7 @@ def _run_bounds(keys, n_valid, threads):
     return bounds
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, nogil=True, parallel=True)
 def _select_photons(keys, cell_prio, n_valid, bitmap, first, d2, pos, inc, nrm, flux, threads):
     """Keep one photon per slot: the one of smallest priority (a tie, at
     odds of 2**-32 per pair, keeps the first by index). Returns per slot
@@ -322,7 +322,7 @@ def _select_photons(keys, cell_prio, n_valid, bitmap, first, d2, pos, inc, nrm, 
 
 
 # -- the gather --------------------------------------------------------------------
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, nogil=True, parallel=True)
 def _gather(hp_pos, hp_n, hp_out, hp_weight, hp_mat, hp_radius, lo, cell, dims, axes, slack,
             bitmap, first, c_pos, c_in, c_n, c_flux, c_count, c_shared, entries,
             mat_kind, mat_refl, mat_rough, threads):
@@ -401,7 +401,7 @@ def _gather(hp_pos, hp_n, hp_out, hp_weight, hp_mat, hp_radius, lo, cell, dims, 
     return m, phi
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _cells_covered(hp_pos, hp_radius, lo, cell, dims, axes, slack, bitmap):
     """Per hit point: cells its sphere overlaps (what HJ10 looks up) and
     occupied cells among them (what `_gather` looks at). Serial: it is a

@@ -128,3 +128,20 @@ class HitPoints(_Record):
     SCHEMA = {"position": (np.float32, (3,)), "normal": (np.float32, (3,)),
               "outgoing": (np.float32, (3,)), "weight": (np.float32, (3,)),
               "material": (np.int32, ()), "pixel": (np.int32, ())}
+
+
+def ended_per_job(fed: list[np.ndarray], left: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(job ids, paths ended) of a tracing step: paths are conserved, so
+    the paths of job j that ended are those fed in minus those that left
+    (through portals, still travelling). `fed` and `left` hold the `job`
+    columns of the batches in and out; jobs with nothing ended are omitted."""
+    fed_ids, fed_n = np.unique(np.concatenate(fed) if fed else np.empty(0, np.int64), return_counts=True)
+    if left:
+        left_ids, left_n = np.unique(np.concatenate(left), return_counts=True)
+        at = np.searchsorted(fed_ids, left_ids)
+        if np.any(at >= len(fed_ids)) or np.any(fed_ids[np.minimum(at, len(fed_ids) - 1)] != left_ids):
+            raise ValueError("paths left that were never fed in")
+        fed_n = fed_n.copy()
+        fed_n[at] -= left_n
+    keep = fed_n > 0
+    return fed_ids[keep].astype(np.int64), fed_n[keep].astype(np.int64)

@@ -6,6 +6,10 @@ Photon deposits are applied in batches (server batching, §4.3) to the hit
 points of the latest complete eye iteration; photons of any emission round
 are treated alike (§3.3). All statistics are float64: float32 would lose
 photons to rounding after ~1e8 additions.
+
+The update's kernels (here and in the gathers) release the GIL (nogil), so
+the distributed server's message loop keeps answering while a statistics
+update runs on another thread (§4.3 server batching).
 """
 from __future__ import annotations
 
@@ -20,7 +24,7 @@ from .scene import Scene
 GATHERS = ("grid", "hash")
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, nogil=True, parallel=True)
 def morton_keys(pos, lo, scale):
     """30-bit Morton code of positions quantised to 1024^3 over a box."""
     n = pos.shape[0]
@@ -40,7 +44,7 @@ def morton_keys(pos, lo, scale):
     return out
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, nogil=True, parallel=True)
 def _permute_deposits(pos, inc, nrm, flux, order):
     """All four (n, 3) deposit arrays permuted in one parallel pass (numpy
     takes ~40 ms per array for 1M rows here; this is the whole reorder)."""

@@ -1,0 +1,107 @@
+"""The whole service in one process: a server and tracers exchanging real
+wire messages (encoded, copied to bytes and decoded, as over a socket)
+through in-memory queues. The states and messages are those of the
+distributed service; only the transport differs. Tests drive clusters
+with it deterministically, and it shows what the sockets add."""
+from __future__ import annotations
+
+from collections import deque
+
+from dosppm_core.render import RenderSettings
+
+from . import wire
+from .scheduler import ServerState
+from .statistics import ServerStatistics
+from .tracer_state import SERVER, TracerState
+
+
+def _over_the_wire(msg_type: str, fields: dict):
+    return wire.decode([bytes(f) for f in wire.encode(msg_type, **fields)])
+
+
+class InProcessCluster:
+    def __init__(self, store, settings: RenderSettings, tracers: int = 2, min_photon_jobs: int = 64,
+                 queue_target_rays: int = 65_536, step_rays: int = 16_384,
+                 memory_bytes: float | None = None):
+        self.settings = settings
+        self.server = ServerState(store.header, store.tree, settings, getattr(store, "key", "memory"),
+                                  getattr(store, "manifest", None),
+                                  min_photon_jobs=min_photon_jobs, queue_target_rays=queue_target_rays,
+                                  min_tracers=tracers)
+        self.statistics = ServerStatistics(store.header, settings, threads=settings.threads)
+        self.tracers = {f"t{i}": TracerState(f"inproc://t{i}", store, settings.max_depth,
+                                             memory_bytes=memory_bytes, threads=settings.threads,
+                                             step_rays=step_rays)
+                        for i in range(tracers)}
+        self.by_endpoint = {t.endpoint: tid for tid, t in self.tracers.items()}
+        self.mail: deque = deque()       # (sender, dest, message)
+        self.messages = 0
+        self.wire_bytes = 0
+        self.now = 0.0
+        for tid, t in self.tracers.items():
+            reg = _over_the_wire("register", dict(tracer_id=tid, capacity={"cores": 1, "memory_bytes": 0},
+                                                  endpoint=t.endpoint, has_store=True,
+                                                  store_key=getattr(store, "key", "memory")))
+            self._post(SERVER, self.server.on_register(tid, reg, self.now))
+
+    def _post(self, sender: str, outs) -> None:
+        for o in outs:
+            frames = wire.encode(o.type, **o.fields)
+            self.wire_bytes += sum(len(memoryview(f).cast("B")) for f in frames)
+            self.messages += 1
+            self.mail.append((sender, o.dest, wire.decode([bytes(f) for f in frames])))
+
+    def _deliver(self) -> None:
+        while self.mail:
+            sender, dest, msg = self.mail.popleft()
+            if sender == SERVER:
+                self._post(dest, self.tracers[dest].handle(msg))
+            elif dest == SERVER:
+                self._post(SERVER, self.server.on_message(sender, msg, self.now))
+            else:
+                tid = self.by_endpoint[dest]
+                self._post(tid, self.tracers[tid].handle(msg))
+
+    def _apply_updates(self) -> None:
+        while self.server.updates:
+            box = self.statistics.apply(self.server.updates.popleft())
+            if box is not None:
+                self.server.gather_box = box
+
+    def round(self) -> None:
+        """One tick of the server, then one step of every tracer with work."""
+        self.now += 0.01
+        self._post(SERVER, self.server.tick(self.now))
+        self._deliver()
+        for tid, t in self.tracers.items():
+            if t.has_work():
+                self._post(tid, t.step())
+                self._deliver()
+        self._apply_updates()
+
+    def run(self, photons: int | None = None, eye_iterations: int | None = None,
+            max_rounds: int = 100_000) -> None:
+        """Until `photons` have been emitted or `eye_iterations` completed,
+        then drain: every job in flight ends and the last batch is applied."""
+        for _ in range(max_rounds):
+            s = self.server
+            if (photons is not None and s.counters["photons_emitted"] >= photons) or \
+                    (eye_iterations is not None and s.eye_completed >= eye_iterations):
+                break
+            self.round()
+        self.server.stop_emitting()
+        for _ in range(max_rounds):
+            if self.server.drained:
+                break
+            self.round()
+        if not self.server.drained:
+            raise RuntimeError(f"cluster did not drain: {len(self.server.jobs)} jobs in flight")
+        self.server.finish()
+        self._apply_updates()
+
+    def image(self):
+        return self.statistics.image()
+
+    def close(self) -> None:
+        for t in self.tracers.values():
+            t.close()

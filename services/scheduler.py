@@ -1,0 +1,394 @@
+"""The server's state (Günther & Grosch §3.1 "Network", §3.3, §4.3), apart
+from its sockets.
+
+`ServerState` is fed decoded messages and clock ticks and returns `Out`
+records to send; the I/O shell (`server.py`) moves frames and runs the
+statistics updates it hands over. What it does:
+
+- Registration: tracers join at any time; chunks are assigned round robin
+  (c >= n: tracer i serves chunks i, i + n, ...; c < n: chunk k is shared
+  by tracers k, k + c, ...), and every tracer gets the table of who serves
+  which chunk whenever it changes.
+- Emission: photon jobs are created while fewer than `min_photon_jobs` are
+  in flight (§3.3) and sent, as they fit, to the tracers serving the chunks
+  their photons start in; a tracer whose reported queue plus what was sent
+  since passes `queue_target_rays` gets nothing more until it reports
+  again (back-pressure by credit, so a slow tracer slows only its share).
+  Eye iterations are split into tiles (§5.6) and run at the same time as
+  photons: the next starts once the last is complete and
+  `photons_per_iteration` photons have been emitted since it started.
+- Exact accounting: the server made every path, so it knows each job's
+  path count; tracers report ended paths per job; a job is complete when
+  all its paths have ended (no timeout). Only then do its photons count as
+  emitted (N_e), exactly once, and only complete eye iterations replace
+  the hit points.
+- Server batching: deposits are held until their job is complete and
+  handed over for one statistics update per `photon_batch` deposits (§4.3);
+  `finish` hands over the last partial batch.
+- Culling: emission jobs carry the hit-point box grown by the largest
+  radius (the shell sets it after each update), so tracers cull deposits
+  before sending them (§4.3).
+"""
+from __future__ import annotations
+
+import itertools
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from dosppm_core.chunked import start_chunks
+from dosppm_core.jobs import END_NAMES, HitPoints, PhotonDeposits, RayBatch
+from dosppm_core.render import RenderSettings
+from dosppm_core.tracing import emit_photon_job, eye_ray_job
+
+from .wire import PROTOCOL_VERSION
+
+MESSAGE_RAYS = 32_768         # rays per job message the server aims for
+HEARTBEAT_INTERVAL_S = 1.0
+
+
+@dataclass
+class Out:
+    dest: str                 # tracer id
+    type: str
+    fields: dict
+
+
+@dataclass
+class TracerInfo:
+    id: str
+    index: int
+    endpoint: str
+    cores: int
+    memory_bytes: int
+    store_key: str | None
+    last_seen_s: float
+    queued: int = 0                 # rays waiting at the tracer, as last reported
+    sent_since_report: int = 0      # rays sent to it since
+    status: dict = field(default_factory=dict)
+    rays_sent: int = 0
+    results: int = 0
+
+    @property
+    def load_estimate(self) -> int:
+        return self.queued + self.sent_since_report
+
+
+@dataclass
+class Job:
+    kind: str                        # "photon" or "eye"
+    paths: int
+    ended: int = 0
+    eye_iteration: int | None = None
+
+
+@dataclass
+class EyeIteration:
+    index: int
+    open_jobs: int
+    hits: list = field(default_factory=list)
+    pixels: list = field(default_factory=list)
+    rgb: list = field(default_factory=list)
+
+
+@dataclass
+class Update:
+    """One statistics step for the shell to run, in order: install the hit
+    points of a complete eye iteration, or apply a batch of photons."""
+    kind: str                        # "hits" or "photons"
+    hits: HitPoints | None = None
+    emitted_light: tuple | None = None
+    deposits: PhotonDeposits | None = None
+    photons_emitted: int = 0
+
+
+def assign_chunks(chunk_count: int, endpoints: list[str]) -> list[list[str]]:
+    """Who serves each chunk, round robin over the tracers in join order."""
+    n = len(endpoints)
+    if n == 0:
+        return [[] for _ in range(chunk_count)]
+    if chunk_count >= n:
+        return [[endpoints[k % n]] for k in range(chunk_count)]
+    return [[endpoints[i] for i in range(n) if i % chunk_count == k] for k in range(chunk_count)]
+
+
+class ServerState:
+    def __init__(self, header, tree, settings: RenderSettings, store_key: str,
+                 manifest: dict | None = None, min_photon_jobs: int = 1000,
+                 queue_target_rays: int = 262_144, min_tracers: int = 1):
+        settings.validate()
+        self.header, self.tree, self.settings = header, tree, settings
+        self.store_key, self.manifest = store_key, manifest
+        self.min_photon_jobs, self.queue_target = int(min_photon_jobs), int(queue_target_rays)
+        self.min_tracers = int(min_tracers)
+        self.eps_abs = 1e-6 * header.diagonal()
+        self.n_pixels = int(header.camera.width) * int(header.camera.height)
+        self.tracers: dict[str, TracerInfo] = {}
+        self._indices = itertools.count()
+        self.owners: list[list[str]] = [[] for _ in range(tree.chunk_count)]   # tracer ids
+        self.table_version = 0
+        self.emitting = True
+        self.started = False
+        self.gather_box: np.ndarray | None = None
+        self.jobs: dict[int, Job] = {}
+        self._job_ids = itertools.count()
+        self._photon_pending: deque = deque()         # job ids created, not yet sent
+        self.photon_jobs_in_flight = 0
+        self.eye: EyeIteration | None = None
+        self.eye_started = 0
+        self.eye_completed = 0
+        self._photons_at_eye_start = 0
+        self._held: list[PhotonDeposits] = []
+        self._held_rows = 0
+        self._next_batch_at = settings.photon_batch
+        self._ready_emitted = 0
+        self.updates: deque[Update] = deque()
+        self._last_heartbeat = -1e30
+        self.counters = {"photons_emitted": 0, "photons_completed": 0, "photons_committed": 0,
+                         "photon_jobs_completed": 0, "eye_jobs_completed": 0, "hit_points": 0,
+                         "deposits_received": 0, "culled": 0, "stale_paths": 0,
+                         "over_counted_paths": 0, "results": 0, "updates": 0}
+        self.path_ends = np.zeros(len(END_NAMES), np.int64)
+
+    # -- tracers -------------------------------------------------------------------
+    def welcome_fields(self, t: TracerInfo) -> dict:
+        s = self.settings
+        return dict(tracer_index=t.index, settings={"max_depth": s.max_depth, "seed": s.seed},
+                    scene=self.header.to_wire(), tree=self.tree.to_wire(), store_key=self.store_key,
+                    chunks=[k for k, o in enumerate(self.owners) if t.id in o],
+                    manifest=None if t.store_key == self.store_key else self.manifest)
+
+    def on_register(self, tid: str, msg, now: float) -> list[Out]:
+        """A tracer joins (or rejoins under the same id): welcome it and
+        hand every tracer the new chunk table."""
+        t = self.tracers.get(tid)
+        cap = msg.capacity
+        if t is None:
+            t = TracerInfo(tid, next(self._indices), msg.endpoint, cap["cores"], cap["memory_bytes"],
+                           msg.store_key, now)
+            self.tracers[tid] = t
+        else:
+            t.endpoint, t.store_key, t.last_seen_s = msg.endpoint, msg.store_key, now
+        self._reassign()
+        return [Out(tid, "welcome", self.welcome_fields(t)), *self._peer_tables()]
+
+    def _reassign(self) -> None:
+        ids = [t.id for t in sorted(self.tracers.values(), key=lambda t: t.index)]
+        by_id = assign_chunks(self.tree.chunk_count, ids)
+        if by_id != self.owners:
+            self.owners = by_id
+            self.table_version += 1
+
+    def _peer_tables(self) -> list[Out]:
+        peers = [[self.tracers[i].endpoint for i in o] for o in self.owners]
+        return [Out(tid, "peers", dict(table_version=self.table_version, peers=peers))
+                for tid in self.tracers]
+
+    def on_message(self, tid: str, msg, now: float) -> list[Out]:
+        t = self.tracers.get(tid)
+        if t is None:
+            return [Out(tid, "error", dict(reason=f"{msg.type}: tracer {tid!r} is not registered",
+                                           about=msg.type))]
+        t.last_seen_s = now
+        if msg.type == "heartbeat":
+            t.status = dict(msg.status)
+        elif msg.type == "results":
+            self._on_results(t, msg)
+        return []
+
+    # -- results and exact accounting ----------------------------------------------------
+    def _on_results(self, t: TracerInfo, msg) -> None:
+        t.queued, t.sent_since_report = msg.queued, 0
+        t.results += 1
+        c = self.counters
+        c["results"] += 1
+        c["culled"] += msg.culled
+        self.path_ends += msg.ends
+        if msg.deposits is not None and len(msg.deposits):
+            self._held.append(msg.deposits)
+            self._held_rows += len(msg.deposits)
+            c["deposits_received"] += len(msg.deposits)
+        if msg.hits is not None and self.eye is not None and msg.eye_iteration == self.eye.index:
+            self.eye.hits.append(msg.hits)
+            self.eye.pixels.append(msg.emitted_pixels)
+            self.eye.rgb.append(msg.emitted_rgb)
+        for j, n in zip(msg.job_ids.tolist(), msg.job_ended.tolist()):
+            self._paths_ended(j, n)
+        self._maybe_batch()
+
+    def _paths_ended(self, j: int, n: int) -> None:
+        job = self.jobs.get(j)
+        if job is None:
+            self.counters["stale_paths"] += n      # a finished or unknown job: never counted twice
+            return
+        job.ended += n
+        if job.ended > job.paths:
+            self.counters["over_counted_paths"] += job.ended - job.paths
+        if job.ended >= job.paths:
+            self._complete(j, job)
+
+    def _complete(self, j: int, job: Job) -> None:
+        del self.jobs[j]
+        if job.kind == "photon":
+            self.photon_jobs_in_flight -= 1
+            self.counters["photons_completed"] += job.paths
+            self.counters["photon_jobs_completed"] += 1
+            self._ready_emitted += job.paths
+            return
+        self.counters["eye_jobs_completed"] += 1
+        e = self.eye
+        e.open_jobs -= 1
+        if e.open_jobs == 0:
+            self._finish_eye_iteration(e)
+
+    def _finish_eye_iteration(self, e: EyeIteration) -> None:
+        hits = HitPoints.concat(e.hits)
+        pix = np.concatenate(e.pixels) if e.pixels else np.empty(0, np.int32)
+        rgb = np.concatenate(e.rgb) if e.rgb else np.empty((0, 3), np.float32)
+        self.updates.append(Update("hits", hits=hits, emitted_light=(pix, rgb)))
+        self.counters["hit_points"] += len(hits)
+        self.eye, self.eye_completed = None, self.eye_completed + 1
+
+    def _maybe_batch(self, final: bool = False) -> None:
+        """Hand over the deposits of complete jobs once `photon_batch` are
+        held (server batching); deposits of jobs still in flight wait."""
+        if self.eye_completed == 0 or not (final or self._held_rows >= self._next_batch_at):
+            return
+        held = PhotonDeposits.concat(self._held)
+        in_flight = np.fromiter((j for j, job in self.jobs.items() if job.kind == "photon"), np.int64)
+        ready = ~np.isin(held.job, in_flight)
+        commit, keep = held.take(ready), held.take(~ready)
+        self.updates.append(Update("photons", deposits=commit, photons_emitted=self._ready_emitted))
+        self.counters["photons_committed"] += self._ready_emitted
+        self._ready_emitted = 0
+        self._held, self._held_rows = ([keep] if len(keep) else []), len(keep)
+        self._next_batch_at = self._held_rows + self.settings.photon_batch
+
+    # -- emission ------------------------------------------------------------------------
+    def tick(self, now: float) -> list[Out]:
+        """Start eye iterations, top up and send photon jobs, heartbeats."""
+        out = []
+        if now - self._last_heartbeat >= HEARTBEAT_INTERVAL_S:
+            self._last_heartbeat = now
+            out += [Out(tid, "heartbeat", dict(status={})) for tid in self.tracers]
+        if not self.started:
+            if len(self.tracers) < self.min_tracers:
+                return out
+            self.started = True
+        if not self.emitting or not all(self.owners):
+            return out
+        out += self._maybe_start_eye_iteration()
+        if self.gather_box is not None:
+            while self.photon_jobs_in_flight < self.min_photon_jobs:
+                self._photon_pending.append(self._new_job("photon", self.settings.photons_per_job))
+            out += self._send_photon_jobs()
+        return out
+
+    def _new_job(self, kind: str, paths: int, eye_iteration: int | None = None) -> int:
+        j = next(self._job_ids)
+        self.jobs[j] = Job(kind, paths, eye_iteration=eye_iteration)
+        if kind == "photon":
+            self.photon_jobs_in_flight += 1
+        return j
+
+    def _least_loaded(self, chunk: int) -> TracerInfo:
+        return min((self.tracers[i] for i in self.owners[chunk]), key=lambda t: t.load_estimate)
+
+    def _maybe_start_eye_iteration(self) -> list[Out]:
+        s = self.settings
+        if self.eye is not None or (self.eye_started and self.counters["photons_emitted"]
+                                    - self._photons_at_eye_start < s.photons_per_iteration):
+            return []
+        e = EyeIteration(self.eye_started, 0)
+        self.eye, self.eye_started = e, self.eye_started + 1
+        self._photons_at_eye_start = self.counters["photons_emitted"]
+        tiles = [(start, min(s.tile_pixels, self.n_pixels - start))
+                 for start in range(0, self.n_pixels, s.tile_pixels)]
+        # Every tile is open before any is routed: a tile whose rays all
+        # miss the scene completes at once, and must not close the iteration.
+        jobs = [self._new_job("eye", count, eye_iteration=e.index) for _, count in tiles]
+        e.open_jobs = len(jobs)
+        parts: dict[tuple, list] = {}
+        for j, (start, count) in zip(jobs, tiles):
+            batch = eye_ray_job(self.header, s.seed, e.index, start, count)
+            batch.job[:] = j
+            self._route(j, batch, parts)
+        return [Out(tid, "eye_job", dict(eye_iteration=e.index, chunk=k, batch=RayBatch.concat(b)))
+                for (tid, k), b in parts.items()]
+
+    def _route(self, j: int, batch: RayBatch, parts: dict) -> set:
+        """Split a new job's paths by start chunk into `parts` per (tracer,
+        chunk); paths that miss the scene end here. Returns the tracers."""
+        routed, lost = start_chunks(self.tree, batch)
+        if lost:
+            self.path_ends[1] += lost       # ESCAPED, before any tracer saw them
+            self._paths_ended(j, lost)
+        receivers = set()
+        for k, part in routed.items():
+            t = self._least_loaded(k)
+            t.sent_since_report += len(part)
+            t.rays_sent += len(part)
+            parts.setdefault((t.id, k), []).append(part)
+            receivers.add(t.id)
+        return receivers
+
+    def _send_photon_jobs(self) -> list[Out]:
+        s, out, parts = self.settings, [], {}
+        box = self.gather_box if s.cull else np.array([[-np.inf] * 3, [np.inf] * 3])
+        while self._photon_pending:
+            j = self._photon_pending.popleft()
+            count = self.jobs[j].paths
+            batch = emit_photon_job(self.header, s.seed, j, count, self.eps_abs)
+            self.counters["photons_emitted"] += count
+            receivers = self._route(j, batch, parts)
+            out += self._flush(parts, box, full_only=True)
+            if any(self.tracers[t].load_estimate >= self.queue_target for t in receivers):
+                break
+        return out + self._flush(parts, box, full_only=False)
+
+    def _flush(self, parts: dict, box, full_only: bool) -> list[Out]:
+        out = []
+        for key in [k for k, b in parts.items() if not full_only or sum(map(len, b)) >= MESSAGE_RAYS]:
+            tid, k = key
+            out.append(Out(tid, "photon_job", dict(chunk=k, cull_box=box,
+                                                   batch=RayBatch.concat(parts.pop(key)))))
+        return out
+
+    # -- the end ---------------------------------------------------------------------------
+    def stop_emitting(self) -> None:
+        """No new jobs; jobs created but not sent are dropped (never emitted,
+        never counted)."""
+        self.emitting = False
+        for j in self._photon_pending:
+            del self.jobs[j]
+            self.photon_jobs_in_flight -= 1
+        self._photon_pending.clear()
+
+    @property
+    def drained(self) -> bool:
+        return not self.jobs
+
+    def finish(self) -> None:
+        """Hand over the last, partial batch (call once drained)."""
+        if self._held_rows or self._ready_emitted:
+            self._maybe_batch(final=True)
+
+    def shutdown_messages(self, reason: str) -> list[Out]:
+        return [Out(tid, "shutdown", dict(reason=reason)) for tid in self.tracers]
+
+    # -- status ------------------------------------------------------------------------------
+    def status(self) -> dict:
+        c = self.counters
+        return {"protocol": PROTOCOL_VERSION, "iteration": self.eye_completed,
+                "photons_emitted": c["photons_emitted"], "photons_committed": c["photons_committed"],
+                "jobs_in_flight": len(self.jobs), "photon_jobs_in_flight": self.photon_jobs_in_flight,
+                "hit_points": c["hit_points"], "chunks": self.tree.chunk_count,
+                "path_ends": {n: int(v) for n, v in zip(END_NAMES, self.path_ends) if n != "continues"},
+                "counters": dict(c),
+                "tracers": [{"id": t.id, "index": t.index, "endpoint": t.endpoint,
+                             "chunks": [k for k, o in enumerate(self.owners) if t.id in o],
+                             "queue": t.load_estimate, "rays_sent": t.rays_sent, "results": t.results,
+                             **{k: v for k, v in t.status.items() if k in ("load", "resident", "busy_s",
+                                                                          "rays_traced", "portal_rays_out")}}
+                            for t in sorted(self.tracers.values(), key=lambda t: t.index)]}

@@ -1,0 +1,155 @@
+"""The distributed service's logic, without sockets: a server and tracers
+exchanging real wire messages in one process (`services.inproc`).
+
+- The image equals single-process SPPM within noise, per tile, for c > n,
+  c = n and c < n, including eight chunks meeting inside the glass sphere.
+- Exact accounting: photons emitted = photons completed = photons applied
+  to the statistics; no path is counted twice or left over; every eye
+  iteration completes with exactly the hit points of the same iteration in
+  single-process SPPM.
+- Portal traffic between tracers really happens when c > 1.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from chunk_helpers import MemoryChunks, lattice_tree, root_box, uniform_tree
+from dosppm_core import builtin
+from dosppm_core.render import Renderer, RenderSettings
+from services.inproc import InProcessCluster
+
+PHOTONS = 240_000
+ITERATIONS = 6
+
+
+def _settings(seed=5):
+    return RenderSettings(seed=seed, photons_per_iteration=40_000, photons_per_job=1024,
+                          tile_pixels=1024, threads=1)
+
+
+def _tiles(img, n=8):
+    h, w = img.shape[:2]
+    return img.reshape(n, h // n, n, w // n, 3).mean(axis=(1, 3))
+
+
+@pytest.fixture(scope="module")
+def caustic():
+    """The glass and mirror spheres at 64x64: single-process SPPM with two
+    seeds (the second measures the noise level), and its hit points per
+    eye iteration."""
+    scene = builtin.make("cornell-caustic")
+    scene.camera.width = scene.camera.height = 64
+    out = {}
+    for seed in (5, 9):
+        r = Renderer(scene, _settings(seed))
+        for _ in range(ITERATIONS):
+            r.run_iteration()
+        out[seed] = (r.image(), r.progress())
+        r.close()
+    return scene, out
+
+
+def _cluster(scene, tree, tracers, **kw):
+    c = InProcessCluster(MemoryChunks(scene, tree), _settings(), tracers=tracers, **kw)
+    try:
+        c.run(photons=PHOTONS)
+    finally:
+        c.close()
+    return c
+
+
+def _assert_same_within_noise(img, ref, other_seed):
+    """Per 8x8 tile, the cluster differs from SPPM (same seed) by no more
+    than SPPM differs from itself under another seed."""
+    t, t_ref, t_noise = _tiles(img), _tiles(ref), _tiles(other_seed)
+    scale = t_ref.mean()
+    diff = np.abs(t - t_ref) / scale
+    noise = np.abs(t_noise - t_ref) / scale
+    assert abs(img.mean() / ref.mean() - 1) < 0.02, f"mean off by {img.mean() / ref.mean() - 1:.2%}"
+    assert np.median(diff) <= 2 * np.median(noise), (np.median(diff), np.median(noise))
+    assert np.quantile(diff, 0.95) <= 2 * np.quantile(noise, 0.95), \
+        (np.quantile(diff, 0.95), np.quantile(noise, 0.95))
+
+
+LAYOUTS = {
+    "c=1 n=2 (shared chunk)": (lambda s: uniform_tree(root_box(s), (1, 1, 1)), 2),
+    "c=2 n=2": (lambda s: uniform_tree(root_box(s), (2, 1, 1)), 2),
+    "c=8 n=3, chunks meet in the glass": (lambda s: lattice_tree(root_box(s), [[c] for c in _glass_centre(s)]), 3),
+}
+
+
+def _glass_centre(scene):
+    glass = scene.materials.names.index("glass")
+    v = scene.vertices[scene.triangles[scene.tri_material == glass]].reshape(-1, 3)
+    return (v.min(0) + v.max(0)) / 2
+
+
+@pytest.mark.parametrize("layout", list(LAYOUTS))
+def test_cluster_renders_the_single_process_image(caustic, layout):
+    scene, ref = caustic
+    make_tree, n = LAYOUTS[layout]
+    tree = make_tree(scene)
+    c = _cluster(scene, tree, n)
+    s = c.server
+    _assert_same_within_noise(c.image(), ref[5][0], ref[9][0])
+    # Exact accounting: every photon emitted was completed and applied once.
+    k = s.counters
+    assert k["photons_emitted"] >= PHOTONS
+    assert k["photons_emitted"] == k["photons_completed"] == k["photons_committed"]
+    assert c.statistics.stats.photons_emitted == k["photons_emitted"]
+    assert k["over_counted_paths"] == 0 and k["stale_paths"] == 0 and not s.jobs
+    assert c.statistics.deposits_applied == k["deposits_received"]
+    # Hit-point iterations complete exactly: iteration i has the hit points
+    # of single-process SPPM's iteration i (eye rays depend only on it).
+    assert s.eye_completed >= 1
+    per_iteration = ref[5][1].hit_points / ITERATIONS
+    assert k["hit_points"] == pytest.approx(s.eye_completed * per_iteration, rel=0.02)
+    # Tracer-to-tracer portal traffic, and only where there are portals.
+    out = sum(t.counters["portal_rays_out"] for t in c.tracers.values())
+    got = sum(t.counters["portal_rays_in"] for t in c.tracers.values())
+    assert out == got
+    assert (out > 0) == (tree.chunk_count > 1)
+    # Work was shared: every tracer traced.
+    assert all(t.counters["rays_traced"] > 0 for t in c.tracers.values())
+
+
+def test_eye_iterations_match_single_process_hit_points_exactly(caustic):
+    """Eye iteration i traces the same rays as SPPM's iteration i, so the
+    number of hit points per iteration is equal, not just close."""
+    scene, _ = caustic
+    tree = uniform_tree(root_box(scene), (2, 2, 1))
+    c = InProcessCluster(MemoryChunks(scene, tree), _settings(), tracers=2)
+    per_iteration = []
+    seen = 0
+    for _ in range(2000):
+        c.round()
+        if c.server.eye_completed > len(per_iteration):
+            per_iteration.append(c.server.counters["hit_points"] - seen)
+            seen = c.server.counters["hit_points"]
+        if len(per_iteration) >= 3:
+            break
+    c.close()
+    r = Renderer(scene, _settings())
+    expected = []
+    for _ in range(3):
+        before = r.hit_point_total
+        r.run_iteration()
+        expected.append(r.hit_point_total - before)
+    r.close()
+    assert per_iteration == expected
+
+
+def test_memory_limited_tracer_works_through_its_chunks(caustic):
+    """c = 8, n = 2 with room for one chunk per tracer: each tracer loads
+    its four chunks in turn, and the render is still right."""
+    scene, ref = caustic
+    provider = MemoryChunks(scene, uniform_tree(root_box(scene), (2, 2, 2)))
+    c = InProcessCluster(provider, _settings(), tracers=2, memory_bytes=provider.chunk_memory.max())
+    c.run(photons=PHOTONS)
+    c.close()
+    assert all(len(t.cache.resident) <= 1 for t in c.tracers.values())
+    assert sum(t.cache.counters.loads for t in c.tracers.values()) > 8
+    _assert_same_within_noise(c.image(), ref[5][0], ref[9][0])
+    k = c.server.counters
+    assert k["photons_emitted"] == k["photons_committed"]

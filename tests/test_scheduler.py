@@ -1,0 +1,126 @@
+"""The server's state machine alone, fed hand-made messages: chunk
+assignment, the peer table, exact accounting and back-pressure."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from chunk_helpers import MemoryChunks, root_box, uniform_tree
+from dosppm_core import builtin
+from dosppm_core.jobs import PhotonDeposits
+from dosppm_core.render import RenderSettings
+from services import wire
+from services.scheduler import ServerState, assign_chunks
+
+
+def _msg(msg_type, **fields):
+    return wire.decode([bytes(f) for f in wire.encode(msg_type, **fields)])
+
+
+def _register(state, tid, now=0.0):
+    return state.on_register(tid, _msg("register", tracer_id=tid, capacity={"cores": 1, "memory_bytes": 0},
+                                       endpoint=f"tcp://{tid}:1", has_store=True, store_key="k"), now)
+
+
+@pytest.fixture()
+def state():
+    scene = builtin.make("cornell-box")
+    scene.camera.width = scene.camera.height = 32
+    provider = MemoryChunks(scene, uniform_tree(root_box(scene), (2, 2, 1)))
+    s = ServerState(provider.header, provider.tree,
+                    RenderSettings(photons_per_job=512, tile_pixels=256, photons_per_iteration=10_000),
+                    "k", min_photon_jobs=50, queue_target_rays=4096)
+    return s
+
+
+@pytest.mark.parametrize("c, n, expected", [
+    (4, 2, [["a"], ["b"], ["a"], ["b"]]),
+    (2, 2, [["a"], ["b"]]),
+    (1, 3, [["a", "b", "c"]]),
+    (2, 3, [["a", "c"], ["b"]]),
+    (3, 0, [[], [], []]),
+])
+def test_round_robin_assignment(c, n, expected):
+    assert assign_chunks(c, ["a", "b", "c"][:n]) == expected
+
+
+def test_every_tracer_gets_the_new_table_when_one_joins(state):
+    out = _register(state, "a")
+    assert [o.type for o in out] == ["welcome", "peers"]
+    assert out[0].fields["chunks"] == [0, 1, 2, 3] and out[0].fields["manifest"] is None
+    out = _register(state, "b")
+    peers = [o for o in out if o.type == "peers"]
+    assert {o.dest for o in peers} == {"a", "b"}
+    assert all(o.fields["table_version"] == 2 for o in peers)
+    assert peers[0].fields["peers"] == [["tcp://a:1"], ["tcp://b:1"], ["tcp://a:1"], ["tcp://b:1"]]
+    # A rejoin under the same id keeps the tracer's place.
+    out = _register(state, "a")
+    assert out[0].fields["tracer_index"] == 0 and state.table_version == 2
+
+
+def test_unregistered_sender_gets_an_error(state):
+    out = state.on_message("ghost", _msg("heartbeat"), 0.0)
+    assert out[0].type == "error" and "not registered" in out[0].fields["reason"]
+
+
+def _results(job_ids, job_ended, deposits_job=()):
+    ended = int(np.sum(job_ended))
+    dep = PhotonDeposits(*(np.zeros((len(deposits_job), 3), np.float32) for _ in range(4)),
+                         job=np.asarray(deposits_job, np.int64))
+    return _msg("results", chunk=0, ends=np.array([0, ended, 0, 0, 0], np.int64),
+                job_ids=np.asarray(job_ids, np.int64), job_ended=np.asarray(job_ended, np.int64),
+                deposits=dep)
+
+
+def test_a_job_counts_once_when_all_its_paths_have_ended(state):
+    _register(state, "a")
+    state.gather_box = np.array([[-1e9] * 3, [1e9] * 3])
+    state.eye_completed = 1                       # hit points exist
+    state.tick(0.0)
+    j = next(j for j, job in state.jobs.items() if job.kind == "photon")
+    paths = state.jobs[j].paths
+    state.on_message("a", _results([j], [paths - 1], deposits_job=[j, j]), 0.1)
+    assert j in state.jobs and state.counters["photons_completed"] == 0
+    state.on_message("a", _results([j], [1]), 0.2)
+    assert j not in state.jobs and state.counters["photons_completed"] == paths
+    # Late or duplicated reports of a finished job are stale, never counted.
+    state.on_message("a", _results([j], [5]), 0.3)
+    assert state.counters["stale_paths"] == 5 and state.counters["photons_completed"] == paths
+    state.stop_emitting()
+    state.jobs.clear()
+    state.finish()
+    photons = [u for u in state.updates if u.kind == "photons"]
+    assert sum(u.photons_emitted for u in photons) == paths
+    assert sum(len(u.deposits) for u in photons) == 2
+
+
+def test_deposits_of_unfinished_jobs_wait_for_their_job(state):
+    _register(state, "a")
+    state.gather_box = np.array([[-1e9] * 3, [1e9] * 3])
+    state.eye_completed = 1
+    state.settings.photon_batch = state._next_batch_at = 3
+    state.tick(0.0)
+    j1, j2 = [j for j, job in state.jobs.items() if job.kind == "photon"][:2]
+    state.on_message("a", _results([j1], [state.jobs[j1].paths], deposits_job=[j1, j2, j2]), 0.1)
+    u = [u for u in state.updates if u.kind == "photons"]
+    assert len(u) == 1 and u[0].deposits.job.tolist() == [j1]
+    assert u[0].photons_emitted == 512
+
+
+def test_a_tracer_that_does_not_report_gets_no_more_than_its_credit(state):
+    _register(state, "a")
+    state.gather_box = np.array([[-1e9] * 3, [1e9] * 3])
+    state.eye_completed = 1
+    sent = 0
+    for i in range(20):
+        sent += sum(len(o.fields["batch"]) for o in state.tick(i * 0.1) if o.type == "photon_job")
+    # One job may overshoot the target; nothing more goes out without a report.
+    assert 4096 <= sent <= 4096 + 512
+    assert state.photon_jobs_in_flight >= state.min_photon_jobs
+
+
+def test_no_photons_before_the_first_hit_points(state):
+    _register(state, "a")
+    out = state.tick(0.0)
+    assert {o.type for o in out} <= {"heartbeat", "eye_job"}
+    assert any(o.type == "eye_job" for o in out)
