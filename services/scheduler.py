@@ -134,6 +134,7 @@ class ServerState:
         self.jobs: dict[int, Job] = {}
         self._job_ids = itertools.count()
         self._photon_pending: deque = deque()         # job ids created, not yet sent
+        self._photon_receivers: set = set()
         self.photon_jobs_in_flight = 0
         self.eye: EyeIteration | None = None
         self.eye_started = 0
@@ -336,15 +337,18 @@ class ServerState:
     def _send_photon_jobs(self) -> list[Out]:
         s, out, parts = self.settings, [], {}
         box = self.gather_box if s.cull else np.array([[-np.inf] * 3, [np.inf] * 3])
-        while self._photon_pending:
+        # Photon jobs start where the lights are: the tracers that got the
+        # last job's photons gate the next one, so a slow one is never
+        # sent more than one job past its credit.
+        while self._photon_pending and not any(
+                self.tracers[t].load_estimate >= self.queue_target
+                for t in self._photon_receivers if t in self.tracers):
             j = self._photon_pending.popleft()
             count = self.jobs[j].paths
             batch = emit_photon_job(self.header, s.seed, j, count, self.eps_abs)
             self.counters["photons_emitted"] += count
-            receivers = self._route(j, batch, parts)
+            self._photon_receivers = self._route(j, batch, parts)
             out += self._flush(parts, box, full_only=True)
-            if any(self.tracers[t].load_estimate >= self.queue_target for t in receivers):
-                break
         return out + self._flush(parts, box, full_only=False)
 
     def _flush(self, parts: dict, box, full_only: bool) -> list[Out]:
