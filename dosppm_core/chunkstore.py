@@ -258,8 +258,15 @@ class ChunkStore:
 
     @classmethod
     def open(cls, path: str) -> "ChunkStore":
-        doc = _read_manifest(path)
+        return cls.from_manifest(path, _read_manifest(path))
+
+    @classmethod
+    def from_manifest(cls, path: str, doc: dict, check_files: bool = True) -> "ChunkStore":
+        """A store described by manifest `doc` with its chunk files under
+        `path`; `check_files=False` for a tracer that fetches its chunk
+        files later (each is checked against its SHA-256 when loaded)."""
         where = os.path.join(path, MANIFEST)
+        _check_manifest_doc(where, doc)
         try:
             tree = ChunkTree.from_wire(doc["tree"])
         except (KeyError, TypeError, ValueError) as e:
@@ -274,7 +281,7 @@ class ChunkStore:
             raise StoreError(f"{where}: field 'portals': {e}") from None
         if not portals.same_as(Portals.of_tree(tree)):
             raise StoreError(f"{where}: field 'portals' does not match the chunk tree")
-        _check_entries(path, doc, tree.chunk_count)
+        _check_entries(path, doc, tree.chunk_count, check_files)
         return cls(path, doc, header, tree, portals)
 
     def load(self, k: int, mmap: bool = False):
@@ -311,6 +318,10 @@ def _read_manifest(path: str) -> dict:
             doc = msgpack.unpackb(f.read())
     except (OSError, ValueError, msgpack.ExtraData) as e:
         raise StoreError(f"{where}: unreadable manifest: {e}") from None
+    return doc
+
+
+def _check_manifest_doc(where: str, doc) -> None:
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise StoreError(f"{where}: field 'format' is not {FORMAT!r} (a foreign file)")
     if doc.get("version") != FORMAT_VERSION:
@@ -320,10 +331,9 @@ def _read_manifest(path: str) -> dict:
                 "budget_bytes", "grid", "chunks_forced", "chunks"):
         if key not in doc:
             raise StoreError(f"{where}: field {key!r} missing")
-    return doc
 
 
-def _check_entries(path: str, doc: dict, chunk_count: int) -> None:
+def _check_entries(path: str, doc: dict, chunk_count: int, check_files: bool = True) -> None:
     """Every chunk's entry is consistent and its file has the right size."""
     where = os.path.join(path, MANIFEST)
     entries = doc["chunks"]
@@ -340,6 +350,8 @@ def _check_entries(path: str, doc: dict, chunk_count: int) -> None:
             ok = False
         if not ok:
             raise StoreError(f"{where}: field 'chunks[{k}]' is malformed")
+        if not check_files:
+            continue
         file = os.path.join(path, e["file"])
         actual = os.path.getsize(file) if os.path.isfile(file) else -1
         if actual != size:

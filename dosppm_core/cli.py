@@ -17,7 +17,7 @@ def _error(msg: str, code: int = 2) -> int:
 
 def add_render_parser(sub) -> None:
     from . import builtin
-    p = sub.add_parser("render", help="render a scene with SPPM")
+    p = sub.add_parser("render", help="render a scene")
     p.add_argument("scene", nargs="?", default=builtin.DEFAULT,
                    help=f"built-in scene name, .toml or Mitsuba .xml file (default {builtin.DEFAULT})")
     stop = p.add_mutually_exclusive_group()
@@ -60,13 +60,8 @@ def _default_store_cache() -> str:
 def cmd_render(args) -> int:
     from .film_io import write_exr, write_png
     from .progress import ProgressReporter, kernels_cached
-    from .render import RenderSettings
     try:
-        settings = RenderSettings(seed=args.seed, alpha=args.alpha, radius=args.radius,
-                                  max_depth=args.max_depth, gather=args.gather,
-                                  photons_per_iteration=args.photons_per_iteration,
-                                  photon_batch=args.photon_batch, threads=args.threads)
-        settings.validate()
+        settings = render_settings(args)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             renderer, describe = _make_renderer(args, settings)
@@ -98,12 +93,23 @@ def cmd_render(args) -> int:
     return 130 if interrupted else 0
 
 
+def render_settings(args, **overrides):
+    """RenderSettings from the render flags (validated)."""
+    from .render import RenderSettings
+    settings = RenderSettings(seed=args.seed, alpha=args.alpha, radius=args.radius,
+                              max_depth=args.max_depth, gather=args.gather,
+                              photons_per_iteration=args.photons_per_iteration,
+                              photon_batch=args.photon_batch, threads=args.threads, **overrides)
+    settings.validate()
+    return settings
+
+
 def _make_renderer(args, settings):
     """The single-process renderer, or OSPPM over a chunk store when the
     scene is a store or a soup, or chunking was asked for."""
-    from .chunkstore import ChunkStore, is_store, open_or_subdivide
+    from .chunkstore import is_store
     from .cli_chunks import parse_bytes
-    from .loaders import load_scene, load_source
+    from .loaders import load_scene
     from .render import Renderer
     from .soupfile import is_soup
     chunked = is_store(args.scene) or is_soup(args.scene) or args.budget or args.chunks
@@ -113,17 +119,7 @@ def _make_renderer(args, settings):
             f"scene {scene.name}: {scene.triangle_count:,} triangles, {len(scene.lights.kind)} lights, "
             f"{scene.camera.width}x{scene.camera.height}")
     from .osppm import OutOfCoreRenderer
-    budget = _size("--budget", args.budget, parse_bytes)
-    if is_store(args.scene):
-        store = ChunkStore.open(args.scene)
-    else:
-        if budget is None and args.chunks is None:
-            budget = 512 * 2 ** 20   # a soup: chunk it at the default budget
-        store = open_or_subdivide(load_source(args.scene), args.store_cache, budget=budget,
-                                  chunks=args.chunks)
-    for key in ("width", "height"):
-        if getattr(args, key):
-            setattr(store.header.camera, key, int(getattr(args, key)))
+    store = open_store(args)
     memory = _size("--memory", args.memory, parse_bytes)
     if memory is None and store.budget_bytes:
         memory = max(2 * store.budget_bytes, store.chunk_memory.max())
@@ -132,6 +128,28 @@ def _make_renderer(args, settings):
                              pipelined=args.schedule == "pipelined"), (
         f"scene {store.header.name}: {store.source_triangles:,} triangles in {store.chunk_count} chunks "
         f"({store.path}), {len(store.header.lights.kind)} lights, {cam.width}x{cam.height}")
+
+
+def open_store(args, default_budget: int = 512 * 2 ** 20):
+    """The chunk store to render: `args.scene` itself when it is one,
+    otherwise the scene subdivided on the fly (cached by key under
+    `--store-cache`) at `--budget` (default `default_budget`) or into
+    `--chunks`; `--width`/`--height` override its camera."""
+    from .chunkstore import ChunkStore, is_store, open_or_subdivide
+    from .cli_chunks import parse_bytes
+    from .loaders import load_source
+    budget = _size("--budget", args.budget, parse_bytes)
+    if is_store(args.scene):
+        store = ChunkStore.open(args.scene)
+    else:
+        if budget is None and args.chunks is None:
+            budget = default_budget
+        store = open_or_subdivide(load_source(args.scene), args.store_cache, budget=budget,
+                                  chunks=args.chunks)
+    for key in ("width", "height"):
+        if getattr(args, key):
+            setattr(store.header.camera, key, int(getattr(args, key)))
+    return store
 
 
 def _size(flag: str, text, parse) -> int | None:
@@ -220,6 +238,12 @@ def cmd_bench(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    return make_parser()[0]
+
+
+def make_parser() -> tuple[argparse.ArgumentParser, argparse._SubParsersAction]:
+    """The library's commands; the service's CLI (`services.cli`, the
+    `dosppm` console script) adds its own to the same subparsers."""
     parser = argparse.ArgumentParser(prog="dosppm", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
     add_render_parser(sub)
@@ -230,7 +254,7 @@ def build_parser() -> argparse.ArgumentParser:
     cli_tools.add_compare_parser(sub)
     from . import cli_chunks
     cli_chunks.add_subdivide_parser(sub)
-    return parser
+    return parser, sub
 
 
 def main(argv=None) -> int:

@@ -95,9 +95,9 @@ class ChunkCache:
             self.resident.move_to_end(k)
             return self.resident[k]
         t0 = time.perf_counter()
-        if self._pending and self._pending[0] == k:
-            view, seconds = self._pending[1].result()
-            self._pending = None
+        got = self._prefetched() if self._pending and self._pending[0] == k else None
+        if got is not None:
+            view, seconds = got
         else:
             self._drop_prefetch()
             self._make_room(k, keep=())
@@ -116,12 +116,23 @@ class ChunkCache:
         if self._make_room(k, keep=(active,)):
             self._pending = (k, self._pool.submit(self._load, k))
 
+    def _prefetched(self):
+        """(view, seconds) of the prefetch, or None if it failed: a provider
+        may only load on the caller's thread (a tracer fetching a chunk over
+        its sockets), and then the load is simply done at activation."""
+        _, future = self._pending
+        self._pending = None
+        try:
+            return future.result()
+        except Exception:   # noqa: BLE001 - any failure is retried in the foreground
+            return None
+
     def _drop_prefetch(self) -> None:
         if self._pending:
-            view, _ = self._pending[1].result()
-            view.close()
-            self._pending = None
-            self.counters.wasted_prefetches += 1
+            got = self._prefetched()
+            if got is not None:
+                got[0].close()
+                self.counters.wasted_prefetches += 1
 
     def _count_load(self, k: int, seconds: float) -> None:
         c = self.counters

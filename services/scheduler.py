@@ -129,6 +129,7 @@ class ServerState:
         self.owners: list[list[str]] = [[] for _ in range(tree.chunk_count)]   # tracer ids
         self.table_version = 0
         self.emitting = True
+        self.paused = False              # set by the shell while statistics updates queue up
         self.started = False
         self.gather_box: np.ndarray | None = None
         self.jobs: dict[int, Job] = {}
@@ -280,7 +281,7 @@ class ServerState:
         if not self.emitting or not all(self.owners):
             return out
         out += self._maybe_start_eye_iteration()
-        if self.gather_box is not None:
+        if self.gather_box is not None and not self.paused:
             while self.photon_jobs_in_flight < self.min_photon_jobs:
                 self._photon_pending.append(self._new_job("photon", self.settings.photons_per_job))
             out += self._send_photon_jobs()

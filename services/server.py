@@ -1,0 +1,332 @@
+"""The server process: `ServerState` behind a ZeroMQ ROUTER (`dosppm server`).
+
+One thread runs the message loop: receive, feed the state, send what it
+returns (never blocking on a tracer: each has an outbox), and every so
+often report progress, write snapshots and check the stop limits. A second
+thread applies the statistics updates the state hands over (server
+batching, §4.3); their kernels release the GIL, so heartbeats, status and
+deposits keep flowing during an update, and emission pauses while updates
+queue up rather than letting deposits pile up in memory. A third serves
+the read-only HTTP status page.
+
+The render stops at a time, photon or iteration limit, or on SIGINT /
+SIGTERM: emission stops, every job in flight is awaited (up to a drain
+timeout), the last partial batch is applied and the image is written. A
+second signal skips the wait; the image so far is written in every case.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import queue
+import signal
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+
+import zmq
+
+from dosppm_core.film_io import encode_png, tonemap_srgb8, write_exr, write_png
+from dosppm_core.render import Progress, RenderSettings
+
+from . import wire
+from .scheduler import ServerState
+from .statistics import ServerStatistics
+from .status_http import StatusServer
+
+log = logging.getLogger("dosppm.server")
+ACCEPT = {"register", "heartbeat", "results", "chunk_request", "error"}
+STATUS_INTERVAL_S = 0.5
+PROGRESS_INTERVAL_S = 1.0
+MAX_UPDATES_QUEUED = 2       # statistics updates waiting before emission pauses
+
+
+@dataclass
+class Limits:
+    seconds: float | None = None
+    photons: float | None = None
+    iterations: int | None = None
+
+    def reached(self, seconds: float, photons: int, iterations: int) -> bool:
+        return ((self.seconds is not None and seconds >= self.seconds)
+                or (self.photons is not None and photons >= self.photons)
+                or (self.iterations is not None and iterations >= self.iterations))
+
+
+class ServerProcess:
+    def __init__(self, store, settings: RenderSettings, bind: str = "tcp://127.0.0.1:5555",
+                 http: tuple[str, int] | None = ("127.0.0.1", 8080), out: str = "out.exr",
+                 limits: Limits | None = None, snapshot_interval_s: float = 60.0,
+                 min_photon_jobs: int = 1000, min_tracers: int = 1,
+                 queue_target_rays: int = 262_144, threads: int = 2, exposure: float = 0.0,
+                 drain_timeout_s: float = 60.0, reporter=None, context: zmq.Context | None = None):
+        self.store, self.settings = store, settings
+        self.out, self.exposure, self.reporter = out, exposure, reporter
+        self.limits = limits or Limits(seconds=30.0)
+        self.snapshot_interval_s, self.drain_timeout_s = snapshot_interval_s, drain_timeout_s
+        self.state = ServerState(store.header, store.tree, settings, store.key, store.manifest,
+                                 min_photon_jobs=min_photon_jobs, queue_target_rays=queue_target_rays,
+                                 min_tracers=min_tracers)
+        self.statistics = ServerStatistics(store.header, settings, threads=threads)
+        self.ctx = context or zmq.Context.instance()
+        self.router = wire.configure(self.ctx.socket(zmq.ROUTER))
+        self.router.bind(bind)
+        self.endpoint = self.router.getsockopt(zmq.LAST_ENDPOINT).decode()
+        self.http = StatusServer(self._status_snapshot, self._preview_png, *http) if http else None
+        self._outbox: dict[str, deque] = {}
+        self._updates: queue.Queue = queue.Queue()
+        self._boxes: queue.Queue = queue.Queue()
+        self._status: dict = {}
+        self._status_lock = threading.Lock()
+        self._preview: tuple[float, bytes | None] = (-1e30, None)
+        self._signals = 0
+        self.watch = None          # () -> error text or None, checked with the status
+        self.failure: str | None = None
+        self.started_at: float | None = None
+        self.bytes_in = self.bytes_out = 0
+        self.undeliverable = 0
+
+    @property
+    def status_url(self) -> str | None:
+        return self.http.url if self.http else None
+
+    # -- the loop ----------------------------------------------------------------------
+    def run(self) -> dict:
+        """Render until a limit or a signal; write the image; return a summary."""
+        worker = threading.Thread(target=self._apply_updates, name="statistics", daemon=True)
+        worker.start()
+        if self.http:
+            self.http.start()
+        restore = self._install_signal_handlers()
+        try:
+            self._serve()
+        finally:
+            self._updates.put(None)
+            worker.join()
+            self._write_image()
+            self._say_goodbye()
+            restore()
+            if self.http:
+                self.http.close()
+            self.router.close(linger=wire.LINGER_MS)
+        return self.summary()
+
+    def _serve(self) -> None:
+        phase, drain_deadline = "render", None
+        last_status = last_progress = last_snapshot = 0.0
+        while True:
+            now = time.monotonic()
+            self._receive(now)
+            self._send(self.state.tick(now))
+            self._pump_updates()
+            if self.state.started and self.started_at is None:
+                self.started_at = now
+            if now - last_status >= STATUS_INTERVAL_S:
+                last_status = now
+                self._publish_status(now, phase)
+                self._check_watch()
+            if now - last_progress >= PROGRESS_INTERVAL_S and self.reporter and self.started_at:
+                last_progress = now
+                self.reporter(self.progress())
+            if now - last_snapshot >= self.snapshot_interval_s and self.state.eye_completed:
+                last_snapshot = now
+                self._write_image()
+            if phase == "render" and (self._signals or self._limit_reached(now)):
+                phase, drain_deadline = "draining", now + self.drain_timeout_s
+                self.state.stop_emitting()
+            if phase == "draining" and (self.state.drained or now > drain_deadline or self._signals > 1):
+                if not self.state.drained:
+                    log.warning("stopping with %d jobs in flight", len(self.state.jobs))
+                self.state.finish()
+                self._pump_updates()
+                return
+
+    @property
+    def interrupted(self) -> bool:
+        return self._signals > 0
+
+    def _check_watch(self) -> None:
+        problem = self.watch() if self.watch and not self.failure else None
+        if problem:
+            log.error("%s: stopping", problem)
+            self.failure = problem
+            self._signals = 2        # stop now; the image so far is still written
+
+    def _limit_reached(self, now: float) -> bool:
+        if self.started_at is None or not self.state.eye_completed:
+            return False
+        c = self.state.counters
+        return self.limits.reached(now - self.started_at, c["photons_emitted"], self.state.eye_completed)
+
+    def _receive(self, now: float) -> None:
+        if not self.router.poll(5):
+            return
+        for _ in range(1000):           # bounded, so ticks and status keep their pace
+            try:
+                got = wire.recv_or_reply(self.router, accept=ACCEPT, flags=zmq.NOBLOCK)
+            except zmq.Again:
+                return
+            if got is None:
+                continue
+            prefix, msg = got
+            tid = prefix[0].decode("utf-8", "replace")
+            if msg.type == "register":
+                self._send(self.state.on_register(tid, msg, now))
+            elif msg.type == "chunk_request":
+                self._send_chunk(tid, msg.chunk)
+            elif msg.type == "error":
+                log.warning("tracer %s reports: %s", tid, msg.reason)
+            else:
+                self._send(self.state.on_message(tid, msg, now))
+
+    def _send_chunk(self, tid: str, chunk: int) -> None:
+        """A chunk file by index (never by path: no traversal possible)."""
+        if not 0 <= chunk < self.store.chunk_count:
+            self._queue(tid, wire.encode("error", reason=f"chunk_request: no chunk {chunk} "
+                                         f"(store has {self.store.chunk_count})", about="chunk_request"))
+            return
+        entry = self.store.manifest["chunks"][chunk]
+        with open(os.path.join(self.store.path, entry["file"]), "rb") as f:
+            data = f.read()
+        for frames in wire.chunk_parts(chunk, entry["sha256"], data):
+            self._queue(tid, frames)
+
+    def _send(self, outs) -> None:
+        for o in outs:
+            self._queue(o.dest, wire.encode(o.type, **o.fields))
+
+    def _queue(self, tid: str, frames) -> None:
+        self._outbox.setdefault(tid, deque()).append(frames)
+        self._flush(tid)
+
+    def _flush(self, tid: str) -> None:
+        """Non-blocking, in order; what the tracer's pipe cannot take yet
+        waits in its outbox (bounded by the credit the state gives it)."""
+        box = self._outbox[tid]
+        while box:
+            try:
+                wire.send(self.router, box[0], [tid.encode()], block=False)
+            except zmq.Again:
+                return
+            except zmq.ZMQError as e:
+                if e.errno != zmq.EHOSTUNREACH:
+                    raise
+                self.undeliverable += len(box)
+                log.warning("tracer %s unreachable: %d messages not delivered", tid, len(box))
+                box.clear()
+                return
+            self.bytes_out += sum(memoryview(f).nbytes for f in box.popleft())
+
+    # -- statistics --------------------------------------------------------------------
+    def _pump_updates(self) -> None:
+        for tid in [t for t, b in self._outbox.items() if b]:
+            self._flush(tid)
+        while self.state.updates:
+            self._updates.put(self.state.updates.popleft())
+        while True:
+            try:
+                box = self._boxes.get_nowait()
+            except queue.Empty:
+                break
+            if box is not None:
+                self.state.gather_box = box
+        # Server batching's back-pressure (§5.7, the server as bottleneck):
+        # stop emitting photons while updates queue, instead of holding ever
+        # more deposits.
+        self.state.paused = self._updates.qsize() >= MAX_UPDATES_QUEUED
+
+    def _apply_updates(self) -> None:
+        while True:
+            u = self._updates.get()
+            if u is None:
+                return
+            try:
+                self._boxes.put(self.statistics.apply(u))
+            except Exception:   # noqa: BLE001 - log and keep the render alive
+                log.exception("statistics update failed")
+                self._boxes.put(None)
+            finally:
+                self._updates.task_done()
+
+    # -- output ----------------------------------------------------------------------
+    def _write_image(self) -> None:
+        if not self.state.eye_completed or not self.out:
+            return
+        img = self.statistics.image()
+        os.makedirs(os.path.dirname(os.path.abspath(self.out)), exist_ok=True)
+        write_exr(self.out, img, self.statistics.layers())
+        write_png(os.path.splitext(self.out)[0] + ".png", img, exposure=self.exposure)
+
+    def _say_goodbye(self) -> None:
+        reason = "interrupted" if self._signals else "render complete"
+        if self.failure:
+            reason = f"stopped: {self.failure}"
+        self._send(self.state.shutdown_messages(reason))
+        deadline = time.monotonic() + 2.0
+        while any(self._outbox.values()) and time.monotonic() < deadline:
+            for tid in [t for t, b in self._outbox.items() if b]:
+                self._flush(tid)
+            time.sleep(0.01)
+
+    # -- status --------------------------------------------------------------------------
+    def progress(self) -> Progress:
+        s = self.state
+        seconds = time.monotonic() - self.started_at if self.started_at else 0.0
+        return Progress(s.eye_completed, s.counters["photons_emitted"], s.counters["hit_points"],
+                        seconds, {k: v for k, v in s.status()["path_ends"].items()})
+
+    def _publish_status(self, now: float, phase: str) -> None:
+        st = self.state.status()
+        seconds = now - self.started_at if self.started_at else 0.0
+        st.update(phase=phase, seconds=round(seconds, 3), endpoint=self.endpoint,
+                  photons_per_s=st["photons_emitted"] / seconds if seconds > 0 else 0.0,
+                  hit_points_per_s=st["hit_points"] / seconds if seconds > 0 else 0.0,
+                  eta_s=self._eta(seconds, st), update_seconds=round(self.statistics.update_seconds, 3),
+                  updates_queued=self._updates.qsize(), bytes_out=self.bytes_out,
+                  undeliverable=self.undeliverable)
+        with self._status_lock:
+            self._status = st
+
+    def _eta(self, seconds: float, st: dict) -> float | None:
+        lim = self.limits
+        if lim.seconds is not None:
+            return max(0.0, lim.seconds - seconds)
+        if lim.photons is not None and st["photons_emitted"] > 0:
+            return max(0.0, (lim.photons - st["photons_emitted"]) * seconds / st["photons_emitted"])
+        if lim.iterations is not None and st["iteration"] > 0:
+            return max(0.0, (lim.iterations - st["iteration"]) * seconds / st["iteration"])
+        return None
+
+    def _status_snapshot(self) -> dict:
+        with self._status_lock:
+            return dict(self._status)
+
+    def _preview_png(self) -> bytes | None:
+        """The current image as PNG, made at most every 2 s (HTTP thread)."""
+        made, png = self._preview
+        if time.monotonic() - made < 2.0:
+            return png
+        if not self.statistics.stats.has_radius:
+            return None
+        png = encode_png(tonemap_srgb8(self.statistics.image(), self.exposure))
+        self._preview = (time.monotonic(), png)
+        return png
+
+    def summary(self) -> dict:
+        st = self._status_snapshot() or self.state.status()
+        st = dict(st, **self.state.status())
+        st["update_seconds"] = self.statistics.update_seconds
+        st["photons_applied"] = self.statistics.photons_applied
+        return st
+
+    # -- signals -------------------------------------------------------------------------
+    def _install_signal_handlers(self):
+        if threading.current_thread() is not threading.main_thread():
+            return lambda: None
+
+        def handler(signum, frame):
+            self._signals += 1
+            log.warning("signal %d: %s", signum, "stopping" if self._signals == 1 else "stopping now")
+        old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+        return lambda: [signal.signal(s, h) for s, h in old.items()]

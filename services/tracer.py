@@ -1,0 +1,241 @@
+"""The tracer process: `TracerState` behind ZeroMQ sockets (`dosppm worker`).
+
+It registers with the server (DEALER, its tracer id as routing identity),
+receives its chunks and the peer table, and loops: take whatever arrived
+(server jobs on the DEALER, portal packages from peers on its own ROUTER),
+trace one step, send the results to the server and the portal packages to
+the peers serving the next chunks. Chunks come from the chunk store at
+`--store` when it is the server's (same key), otherwise they are fetched
+from the server by id and checked against the manifest's SHA-256.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import socket as pysocket
+import time
+import uuid
+
+import zmq
+
+from dosppm_core.chunkstore import ChunkStore, StoreError
+
+from . import wire
+from .fetch import FetchedStore
+from .tracer_state import SERVER, TracerState
+
+log = logging.getLogger("dosppm.tracer")
+HEARTBEAT_INTERVAL_S = 1.0
+SERVER_TIMEOUT_S = 30.0       # no word from the server this long: give up
+
+
+class TracerError(RuntimeError):
+    """A one-line reason the tracer stopped (refused, server gone)."""
+
+
+def default_tracer_id() -> str:
+    return f"{pysocket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:6]}"
+
+
+class TracerProcess:
+    def __init__(self, server: str, bind: str = "tcp://127.0.0.1:*", advertise: str | None = None,
+                 store: str | None = None, cache_dir: str | None = None, memory_bytes: float | None = None,
+                 threads: int = 1, tracer_id: str | None = None, context: zmq.Context | None = None,
+                 connect_timeout_s: float = SERVER_TIMEOUT_S):
+        self.server_url, self.bind, self.advertise = server, bind, advertise
+        self.store_path, self.cache_dir = store, cache_dir
+        self.memory_bytes, self.threads = memory_bytes, threads
+        self.tracer_id = tracer_id or default_tracer_id()
+        self.connect_timeout_s = connect_timeout_s
+        self.ctx = context or zmq.Context.instance()
+        self.state: TracerState | None = None
+        self.peers: dict[str, zmq.Socket] = {}
+        self.outbox: list = []        # (endpoint, frames) waiting for a full peer pipe
+        self.stopped: str | None = None
+
+    # -- sockets -------------------------------------------------------------------
+    def _open(self) -> None:
+        self.dealer = wire.configure(self.ctx.socket(zmq.DEALER))
+        self.dealer.setsockopt(zmq.IDENTITY, self.tracer_id.encode())
+        self.dealer.connect(self.server_url)
+        self.router = wire.configure(self.ctx.socket(zmq.ROUTER))
+        self.router.bind(self.bind)
+        bound = self.router.getsockopt(zmq.LAST_ENDPOINT).decode()
+        if self.advertise:   # bound to 0.0.0.0: peers need a reachable address
+            port = bound.rsplit(":", 1)[1]
+            bound = f"tcp://{self.advertise}:{port}"
+        self.endpoint = bound
+
+    def _peer(self, endpoint: str) -> zmq.Socket:
+        s = self.peers.get(endpoint)
+        if s is None:
+            s = wire.configure(self.ctx.socket(zmq.DEALER))
+            s.setsockopt(zmq.IDENTITY, self.tracer_id.encode())
+            s.connect(endpoint)
+            self.peers[endpoint] = s
+        return s
+
+    # -- registration ----------------------------------------------------------------
+    def _register(self):
+        key = self._local_store_key()
+        wire.send(self.dealer, wire.encode(
+            "register", tracer_id=self.tracer_id, endpoint=self.endpoint,
+            capacity={"cores": self.threads, "memory_bytes": int(self.memory_bytes or 0)},
+            has_store=key is not None, store_key=key))
+        # The DEALER queues the register until the server is up (libzmq
+        # reconnects with its own backoff), so waiting is all it takes.
+        timeout_s = self.connect_timeout_s
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if not self.dealer.poll(200):
+                continue
+            got = wire.recv_or_reply(self.dealer)
+            if got is None:
+                continue
+            msg = got[1]
+            if msg.type == "refused":
+                raise TracerError(f"server refused this tracer: {msg.reason}")
+            if msg.type == "welcome":
+                return msg
+            if msg.type == "error":
+                raise TracerError(f"server: {msg.reason}")
+        raise TracerError(f"no answer from server {self.server_url} within {timeout_s:.0f} s")
+
+    def _local_store_key(self) -> str | None:
+        if not self.store_path:
+            return None
+        try:
+            return ChunkStore.open(self.store_path).key
+        except StoreError as e:
+            log.warning("ignoring --store: %s", e)
+            return None
+
+    def _provider(self, welcome):
+        if self.store_path and welcome.manifest is None:
+            store = ChunkStore.open(self.store_path)
+            if store.key == welcome.store_key:
+                return store
+        if welcome.manifest is None:
+            raise TracerError("server sent no manifest and this tracer has no matching store")
+        cache = self.cache_dir or os.path.join(os.path.expanduser("~"), ".cache", "dosppm", "fetched")
+        return FetchedStore(welcome.manifest, os.path.join(cache, welcome.store_key), self._request_chunk)
+
+    # -- chunk fetching (LAN nodes without the store) ------------------------------------
+    def _request_chunk(self, chunk: int, timeout_s: float = 600.0) -> list:
+        """Ask the server for chunk `chunk` by id and wait for its parts;
+        other messages arriving meanwhile are handled as usual."""
+        wire.send(self.dealer, wire.encode("chunk_request", chunk=chunk))
+        parts, deadline = [], time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if not self.dealer.poll(200):
+                continue
+            got = wire.recv_or_reply(self.dealer)
+            if got is None:
+                continue
+            msg = got[1]
+            if msg.type == "chunk_data" and msg.chunk == chunk:
+                parts.append(msg)
+                if len(parts) == msg.parts:
+                    return parts
+            elif msg.type == "error" and msg.about == "chunk_request":
+                raise TracerError(f"server: {msg.reason}")
+            else:
+                self._pending_server.append(msg)
+        raise TracerError(f"chunk {chunk} did not arrive within {timeout_s:.0f} s")
+
+    # -- the loop ----------------------------------------------------------------------
+    def run(self) -> str:
+        """Serve until the server says shutdown; returns its reason."""
+        self._open()
+        self._pending_server: list = []
+        try:
+            welcome = self._register()
+            provider = self._provider(welcome)
+            self.state = TracerState(self.endpoint, provider, welcome.settings["max_depth"],
+                                     memory_bytes=self.memory_bytes, threads=self.threads)
+            log.info("tracer %s joined as %d at %s, chunks %s", self.tracer_id, welcome.tracer_index,
+                     self.endpoint, welcome.chunks)
+            self._loop()
+        finally:
+            self._close()
+        return self.stopped or ""
+
+    def _loop(self) -> None:
+        poller = zmq.Poller()
+        poller.register(self.dealer, zmq.POLLIN)
+        poller.register(self.router, zmq.POLLIN)
+        last_beat = last_heard = time.monotonic()
+        while self.stopped is None:
+            busy = self.state.has_work() or bool(self.outbox)
+            events = dict(poller.poll(0 if busy else 50))
+            now = time.monotonic()
+            if self.dealer in events or self._pending_server:
+                last_heard = now
+            self._drain_server(self.dealer in events)
+            if self.router in events:
+                self._drain_peers()
+            if self.state.has_work():
+                self._send(self.state.step())
+            self._flush_outbox()
+            if now - last_beat >= HEARTBEAT_INTERVAL_S:
+                last_beat = now
+                wire.send(self.dealer, wire.encode("heartbeat", status=self._status()))
+            if now - last_heard > SERVER_TIMEOUT_S:
+                raise TracerError(f"server {self.server_url} silent for {SERVER_TIMEOUT_S:.0f} s")
+
+    def _status(self) -> dict:
+        s = self.state.status()
+        s["outbox"] = len(self.outbox)
+        return s
+
+    def _drain_server(self, ready: bool) -> None:
+        msgs, self._pending_server = self._pending_server, []
+        while ready:
+            try:
+                got = wire.recv_or_reply(self.dealer, flags=zmq.NOBLOCK)
+            except zmq.Again:
+                break
+            if got is not None:
+                msgs.append(got[1])
+        for msg in msgs:
+            if msg.type == "shutdown":
+                self.stopped = msg.reason or "shutdown"
+            elif msg.type in ("error", "refused"):
+                log.warning("server says: %s", msg.reason)
+            else:
+                self._send(self.state.handle(msg))
+
+    def _drain_peers(self) -> None:
+        while True:
+            try:
+                got = wire.recv_or_reply(self.router, accept={"portal_rays"}, flags=zmq.NOBLOCK)
+            except zmq.Again:
+                return
+            if got is not None:
+                self._send(self.state.handle(got[1]))
+
+    def _send(self, outs) -> None:
+        for o in outs:
+            frames = wire.encode(o.type, **o.fields)
+            if o.dest == SERVER:
+                wire.send(self.dealer, frames)      # the server always reads: block if need be
+            else:
+                self.outbox.append((o.dest, frames))
+        self._flush_outbox()
+
+    def _flush_outbox(self) -> None:
+        """Peers get packages without blocking: two tracers blocked sending
+        to each other would deadlock. What does not fit waits here."""
+        waiting = []
+        for dest, frames in self.outbox:
+            try:
+                wire.send(self._peer(dest), frames, block=False)
+            except zmq.Again:
+                waiting.append((dest, frames))
+        self.outbox = waiting
+
+    def _close(self) -> None:
+        if self.state is not None:
+            self.state.close()
+        for s in (*self.peers.values(), self.dealer, self.router):
+            s.close(linger=wire.LINGER_MS)
