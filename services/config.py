@@ -56,7 +56,8 @@ SERVER = RENDER + (
 WORKER = (
     _opt("server", str, "tcp://127.0.0.1:5555", "the server's endpoint"),
     _opt("bind", str, "tcp://127.0.0.1:*", "endpoint for portal packages from other tracers"),
-    _opt("advertise", str, None, "address other tracers reach this one at (when binding 0.0.0.0)"),
+    _opt("advertise", str, None, "address other tracers reach this one at when binding 0.0.0.0; 'auto': "
+         "this host's address on the route to the server"),
     _opt("store", str, None, "a local copy of the chunk store (else chunks are fetched)"),
     _opt("cache_dir", str, None, "where fetched chunks are kept"),
     _opt("memory", str, None, "resident chunk memory, e.g. 4GiB (default: all its chunks)"),

@@ -33,6 +33,15 @@ class TracerError(RuntimeError):
     """A one-line reason the tracer stopped (refused, server gone)."""
 
 
+def reachable_address(server_url: str) -> str:
+    """This host's address on the route to the server (a UDP 'connect'
+    sends nothing): what other tracers on that network can reach."""
+    host, _, port = server_url.split("://", 1)[-1].rpartition(":")
+    with pysocket.socket(pysocket.AF_INET, pysocket.SOCK_DGRAM) as s:
+        s.connect((pysocket.gethostbyname(host.strip("[]")), int(port) if port.isdigit() else 9))
+        return s.getsockname()[0]
+
+
 def default_tracer_id() -> str:
     return f"{pysocket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:6]}"
 
@@ -62,8 +71,8 @@ class TracerProcess:
         self.router.bind(self.bind)
         bound = self.router.getsockopt(zmq.LAST_ENDPOINT).decode()
         if self.advertise:   # bound to 0.0.0.0: peers need a reachable address
-            port = bound.rsplit(":", 1)[1]
-            bound = f"tcp://{self.advertise}:{port}"
+            host = reachable_address(self.server_url) if self.advertise == "auto" else self.advertise
+            bound = f"tcp://{host}:{bound.rsplit(':', 1)[1]}"
         self.endpoint = bound
 
     def _peer(self, endpoint: str) -> zmq.Socket:
