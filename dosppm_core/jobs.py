@@ -130,18 +130,19 @@ class HitPoints(_Record):
               "material": (np.int32, ()), "pixel": (np.int32, ())}
 
 
-def ended_per_job(fed: list[np.ndarray], left: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """(job ids, paths ended) of a tracing step: paths are conserved, so
-    the paths of job j that ended are those fed in minus those that left
-    (through portals, still travelling). `fed` and `left` hold the `job`
-    columns of the batches in and out; jobs with nothing ended are omitted."""
+def paths_per_job(fed: list[np.ndarray], left: list[np.ndarray]):
+    """(job ids, paths fed in, paths that left) of a tracing step, from the
+    `job` columns of the batches in and of those leaving through portals.
+    Paths are conserved: fed - left of them ended in the step. Reporting
+    both lets the server count each job's open path segments: a segment
+    is closed by the very message that carries its deposits, so a job
+    whose segments are all closed has all its deposits in hand too."""
     fed_ids, fed_n = np.unique(np.concatenate(fed) if fed else np.empty(0, np.int64), return_counts=True)
-    if left:
-        left_ids, left_n = np.unique(np.concatenate(left), return_counts=True)
+    left_n = np.zeros_like(fed_n)
+    if left and sum(len(x) for x in left):
+        left_ids, counts = np.unique(np.concatenate(left), return_counts=True)
         at = np.searchsorted(fed_ids, left_ids)
         if np.any(at >= len(fed_ids)) or np.any(fed_ids[np.minimum(at, len(fed_ids) - 1)] != left_ids):
             raise ValueError("paths left that were never fed in")
-        fed_n = fed_n.copy()
-        fed_n[at] -= left_n
-    keep = fed_n > 0
-    return fed_ids[keep].astype(np.int64), fed_n[keep].astype(np.int64)
+        left_n[at] = counts
+    return fed_ids.astype(np.int64), fed_n.astype(np.int64), left_n.astype(np.int64)

@@ -4,6 +4,7 @@ on this machine: `dosppm render`'s default), `work` (one tracer) and
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import subprocess
 import sys
@@ -102,12 +103,22 @@ def serve(scene: str, v: dict, quiet: bool = False, spawn_tracers: int = 0) -> i
     finally:
         reporter.close()
         _reap(tracers)
+    _write_summary(v["out"], summary)
     p = server.progress()
     say(f"{'interrupted: ' if server.interrupted else ''}wrote {v['out']} after {p.iteration} "
         f"iterations, {summary['photons_committed']:,} photons, {p.seconds:.1f} s")
     if server.failure:
         return core._error(server.failure, 1)
     return 130 if server.interrupted else 0
+
+
+def _write_summary(out: str, summary: dict) -> None:
+    """OUT.json beside the image: the server's accounting of the run
+    (photons emitted, completed and applied, path ends, per tracer)."""
+    if not out:
+        return
+    with open(os.path.splitext(out)[0] + ".json", "w", encoding="utf-8") as f:
+        json.dump(summary, f, indent=1, default=str)
 
 
 def _spawn_tracers(n: int, endpoint: str, store_path: str, threads: int) -> list:

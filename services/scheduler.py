@@ -78,9 +78,10 @@ class TracerInfo:
 @dataclass
 class Job:
     kind: str                        # "photon" or "eye"
-    paths: int
-    ended: int = 0
+    paths: int                       # N_j, counted as emitted when complete
     eye_iteration: int | None = None
+    open: int = 0                    # path segments sent or passed on, not yet traced
+    sent: bool = False               # all its paths have left the server
 
 
 @dataclass
@@ -215,19 +216,21 @@ class ServerState:
             self.eye.hits.append(msg.hits)
             self.eye.pixels.append(msg.emitted_pixels)
             self.eye.rgb.append(msg.emitted_rgb)
-        for j, n in zip(msg.job_ids.tolist(), msg.job_ended.tolist()):
-            self._paths_ended(j, n)
+        for j, fed, left in zip(msg.job_ids.tolist(), msg.job_fed.tolist(), msg.job_left.tolist()):
+            self._segments(j, left - fed, stale=fed - left)
         self._maybe_batch()
 
-    def _paths_ended(self, j: int, n: int) -> None:
+    def _segments(self, j: int, change: int, stale: int = 0) -> None:
+        """Open path segments of job j change by `change`; at zero, once
+        all its paths were sent, the job is complete (exact accounting)."""
         job = self.jobs.get(j)
         if job is None:
-            self.counters["stale_paths"] += n      # a finished or unknown job: never counted twice
+            self.counters["stale_paths"] += stale   # a finished or unknown job: never counted twice
             return
-        job.ended += n
-        if job.ended > job.paths:
-            self.counters["over_counted_paths"] += job.ended - job.paths
-        if job.ended >= job.paths:
+        job.open += change
+        if job.open < 0:
+            self.counters["over_counted_paths"] += -job.open
+        if job.open <= 0 and job.sent:
             self._complete(j, job)
 
     def _complete(self, j: int, job: Job) -> None:
@@ -323,9 +326,7 @@ class ServerState:
         """Split a new job's paths by start chunk into `parts` per (tracer,
         chunk); paths that miss the scene end here. Returns the tracers."""
         routed, lost = start_chunks(self.tree, batch)
-        if lost:
-            self.path_ends[1] += lost       # ESCAPED, before any tracer saw them
-            self._paths_ended(j, lost)
+        self.path_ends[1] += lost           # ESCAPED, before any tracer saw them
         receivers = set()
         for k, part in routed.items():
             t = self._least_loaded(k)
@@ -333,6 +334,8 @@ class ServerState:
             t.rays_sent += len(part)
             parts.setdefault((t.id, k), []).append(part)
             receivers.add(t.id)
+        self.jobs[j].sent = True
+        self._segments(j, len(batch) - lost)
         return receivers
 
     def _send_photon_jobs(self) -> list[Out]:

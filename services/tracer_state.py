@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dosppm_core.chunked import trace_eye_in_chunk, trace_photons_in_chunk
-from dosppm_core.jobs import RayBatch, ended_per_job
+from dosppm_core.jobs import RayBatch, paths_per_job
 from dosppm_core.osppm import ChunkCache
 
 SERVER = "server"           # Out.dest of messages for the server
@@ -215,8 +215,8 @@ class TracerState:
         batch = RayBatch.concat([p.batch for p in taken])
         q.rays -= len(batch)
         hits, (pix, rgb), ends, outgoing = trace_eye_in_chunk(view, batch, self.max_depth)
-        jobs, ended = ended_per_job([batch.job], [b.job for parts in outgoing.values() for b in parts])
-        fields = dict(chunk=view.index, eye_iteration=e, ends=ends, job_ids=jobs, job_ended=ended,
+        jobs, fed, left = paths_per_job([batch.job], [b.job for parts in outgoing.values() for b in parts])
+        fields = dict(chunk=view.index, eye_iteration=e, ends=ends, job_ids=jobs, job_fed=fed, job_left=left,
                       hits=hits, emitted_pixels=pix, emitted_rgb=rgb)
         return self._after_trace(batch, fields, outgoing, "eye", eye_iteration=e)
 
@@ -226,8 +226,8 @@ class TracerState:
         q.rays -= len(batch)
         box = union_box([p.cull_box for p in taken])
         deposits, ends, culled, outgoing = trace_photons_in_chunk(view, batch, box, self.max_depth)
-        jobs, ended = ended_per_job([batch.job], [b.job for parts in outgoing.values() for b in parts])
-        fields = dict(chunk=view.index, ends=ends, job_ids=jobs, job_ended=ended, culled=int(culled),
+        jobs, fed, left = paths_per_job([batch.job], [b.job for parts in outgoing.values() for b in parts])
+        fields = dict(chunk=view.index, ends=ends, job_ids=jobs, job_fed=fed, job_left=left, culled=int(culled),
                       deposits=deposits)
         return self._after_trace(batch, fields, outgoing, "photon", cull_box=box)
 

@@ -66,7 +66,7 @@ Messages
                      (its peer ROUTER), has_store, store_key|None
       heartbeat      status {} (informational: queue, load, resident chunks)
       results        chunk, culled, queued, eye_iteration|None, ends i64 (5,),
-                     job_ids i64 (k,) + job_ended i64 (k,); optional
+                     job_ids + job_fed + job_left i64 (k,); optional
                      deposits: PhotonDeposits, hits: HitPoints,
                      emitted_pixels i32 (m,) + emitted_rgb f32 (m, 3)
       chunk_request  chunk
@@ -98,16 +98,21 @@ emission (they start outside every chunk) are not sent and not in N_j.
 Job ids are never reused, so late results of a discarded job are
 recognisably stale.
 
-`job_ids`/`job_ended` count, per job, the paths that *ended* in the step a
-`results` reports; `ends` counts the same paths by how they ended
-(`dosppm_core.jobs`: CONTINUES, ESCAPED, ABSORBED, MAX_DEPTH, STORED). A
-path leaving through a portal has not ended: it travels on in a
-`portal_rays` package, keeping its job id, and is counted where it ends.
-So ends[CONTINUES] is always 0 and sum(job_ended) == sum(ends) (the wire
-refuses anything else), and
+`job_ids`/`job_fed`/`job_left` count, per job, the paths a step took in
+and the paths that left it through portals (travelling on in
+`portal_rays` packages, keeping their job id); the other fed - left ended
+in the step. `ends` counts those by how they ended (`dosppm_core.jobs`:
+CONTINUES, ESCAPED, ABSORBED, MAX_DEPTH, STORED), so ends[CONTINUES] is
+always 0 and sum(job_fed - job_left) == sum(ends) (the wire refuses
+anything else). The server keeps, per job, the number of open path
+segments: the paths it sent, plus every job_left, minus every job_fed.
 
-    job j finished  <=>  sum over results of job_ended[job_ids == j] == N_j
+    job j finished  <=>  open segments of j == 0
 
+A segment is closed by the same `results` message that carries its
+deposits and hit points, so when a job is finished the server also holds
+everything it produced: no deposit of a finished job can still be on its
+way (results of two tracers arrive in no guaranteed order).
 No timeout is involved: each path ends exactly once, so the sum cannot
 reach N_j while a path of j is queued, traced or in a portal package.
 `culled` counts photon *deposits* dropped by the cull box (§4.3), not
@@ -366,10 +371,11 @@ def _check_results(f: dict) -> str | None:
     if ends[CONTINUES] != 0:
         return (f"field 'ends' counts {int(ends[CONTINUES])} continuing paths; a path that goes on "
                 f"is not an end")
-    if (f["job_ended"] <= 0).any():
-        return "field 'job_ended' holds a count <= 0"
-    if int(f["job_ended"].sum()) != int(ends.sum()):
-        return (f"field 'job_ended' sums to {int(f['job_ended'].sum())}, but 'ends' counts "
+    fed, left = f["job_fed"], f["job_left"]
+    if (fed <= 0).any() or (left < 0).any() or (left > fed).any():
+        return "fields 'job_fed'/'job_left' need 0 <= left <= fed and fed > 0"
+    if int((fed - left).sum()) != int(ends.sum()):
+        return (f"fields 'job_fed' - 'job_left' sum to {int((fed - left).sum())}, but 'ends' counts "
                 f"{int(ends.sum())} ended paths")
     if (f.get("hits") is not None or f.get("emitted_pixels") is not None) and f["eye_iteration"] is None:
         return "field 'eye_iteration' is required with hits or emitted light"
@@ -401,7 +407,8 @@ _SPECS = (
     Spec("heartbeat", "both", {"status": DATA}, defaults={"status": {}}),
     Spec("results", _T2S, {"chunk": INT, "culled": INT, "queued": INT, "eye_iteration": _Nullable(INT)},
          (plain("ends", ("ends", np.int64, (), None), rows=len(END_NAMES)),
-          plain("job_ends", ("job_ids", np.int64, (), None), ("job_ended", np.int64, (), None)),
+          plain("job_paths", ("job_ids", np.int64, (), None), ("job_fed", np.int64, (), None),
+                ("job_left", np.int64, (), None)),
           record("deposits", PhotonDeposits, optional=True),
           record("hits", HitPoints, optional=True),
           plain("emitted", ("emitted_pixels", np.int32, (), None),

@@ -11,43 +11,22 @@ exchanging real wire messages in one process (`services.inproc`).
 """
 from __future__ import annotations
 
-import numpy as np
 import pytest
 
 from chunk_helpers import MemoryChunks, lattice_tree, root_box, uniform_tree
-from dosppm_core import builtin
-from dosppm_core.render import Renderer, RenderSettings
+from cluster_helpers import (ITERATIONS, assert_same_within_noise, caustic_reference,
+                             caustic_scene, settings)
+from dosppm_core.render import Renderer
 from services.inproc import InProcessCluster
 
 PHOTONS = 240_000
-ITERATIONS = 6
-
-
-def _settings(seed=5):
-    return RenderSettings(seed=seed, photons_per_iteration=40_000, photons_per_job=1024,
-                          tile_pixels=1024, threads=1)
-
-
-def _tiles(img, n=8):
-    h, w = img.shape[:2]
-    return img.reshape(n, h // n, n, w // n, 3).mean(axis=(1, 3))
+_assert_same_within_noise = assert_same_within_noise
+_settings = settings
 
 
 @pytest.fixture(scope="module")
 def caustic():
-    """The glass and mirror spheres at 64x64: single-process SPPM with two
-    seeds (the second measures the noise level), and its hit points per
-    eye iteration."""
-    scene = builtin.make("cornell-caustic")
-    scene.camera.width = scene.camera.height = 64
-    out = {}
-    for seed in (5, 9):
-        r = Renderer(scene, _settings(seed))
-        for _ in range(ITERATIONS):
-            r.run_iteration()
-        out[seed] = (r.image(), r.progress())
-        r.close()
-    return scene, out
+    return caustic_scene(), caustic_reference()
 
 
 def _cluster(scene, tree, tracers, **kw):
@@ -57,19 +36,6 @@ def _cluster(scene, tree, tracers, **kw):
     finally:
         c.close()
     return c
-
-
-def _assert_same_within_noise(img, ref, other_seed):
-    """Per 8x8 tile, the cluster differs from SPPM (same seed) by no more
-    than SPPM differs from itself under another seed."""
-    t, t_ref, t_noise = _tiles(img), _tiles(ref), _tiles(other_seed)
-    scale = t_ref.mean()
-    diff = np.abs(t - t_ref) / scale
-    noise = np.abs(t_noise - t_ref) / scale
-    assert abs(img.mean() / ref.mean() - 1) < 0.02, f"mean off by {img.mean() / ref.mean() - 1:.2%}"
-    assert np.median(diff) <= 2 * np.median(noise), (np.median(diff), np.median(noise))
-    assert np.quantile(diff, 0.95) <= 2 * np.quantile(noise, 0.95), \
-        (np.quantile(diff, 0.95), np.quantile(noise, 0.95))
 
 
 LAYOUTS = {

@@ -64,11 +64,13 @@ def test_unregistered_sender_gets_an_error(state):
 
 
 def _results(job_ids, job_ended, deposits_job=()):
+    """Paths of each job fed into a step and ended there (none left)."""
     ended = int(np.sum(job_ended))
     dep = PhotonDeposits(*(np.zeros((len(deposits_job), 3), np.float32) for _ in range(4)),
                          job=np.asarray(deposits_job, np.int64))
     return _msg("results", chunk=0, ends=np.array([0, ended, 0, 0, 0], np.int64),
-                job_ids=np.asarray(job_ids, np.int64), job_ended=np.asarray(job_ended, np.int64),
+                job_ids=np.asarray(job_ids, np.int64), job_fed=np.asarray(job_ended, np.int64),
+                job_left=np.zeros(len(job_ids), np.int64),
                 deposits=dep)
 
 
@@ -78,8 +80,8 @@ def test_a_job_counts_once_when_all_its_paths_have_ended(state):
     state.eye_completed = 1                       # hit points exist
     state.tick(0.0)
     j = next(j for j, job in state.jobs.items() if job.kind == "photon")
-    paths = state.jobs[j].paths
-    state.on_message("a", _results([j], [paths - 1], deposits_job=[j, j]), 0.1)
+    paths, segments = state.jobs[j].paths, state.jobs[j].open
+    state.on_message("a", _results([j], [segments - 1], deposits_job=[j, j]), 0.1)
     assert j in state.jobs and state.counters["photons_completed"] == 0
     state.on_message("a", _results([j], [1]), 0.2)
     assert j not in state.jobs and state.counters["photons_completed"] == paths
@@ -101,7 +103,7 @@ def test_deposits_of_unfinished_jobs_wait_for_their_job(state):
     state.settings.photon_batch = state._next_batch_at = 3
     state.tick(0.0)
     j1, j2 = [j for j, job in state.jobs.items() if job.kind == "photon"][:2]
-    state.on_message("a", _results([j1], [state.jobs[j1].paths], deposits_job=[j1, j2, j2]), 0.1)
+    state.on_message("a", _results([j1], [state.jobs[j1].open], deposits_job=[j1, j2, j2]), 0.1)
     u = [u for u in state.updates if u.kind == "photons"]
     assert len(u) == 1 and u[0].deposits.job.tolist() == [j1]
     assert u[0].photons_emitted == 512

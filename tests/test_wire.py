@@ -50,10 +50,12 @@ def sample_fields(msg_type: str, n: int, rng: np.random.Generator, variant: int 
     if msg_type == "results":
         ends = rng.integers(0, 1000, 5).astype(np.int64) * np.array([0, 1, 1, 1, 1])
         f = dict(chunk=2, culled=n, queued=3 * n, eye_iteration=None, ends=ends,
-                 job_ids=np.array([7, 9], np.int64), job_ended=np.array([1, ends.sum() - 1], np.int64))
+                 job_ids=np.array([7, 9], np.int64), job_fed=np.array([1, ends.sum() + 2], np.int64),
+                 job_left=np.array([0, 3], np.int64))
         if ends.sum() < 2:
             f.update(job_ids=np.array([7], np.int64)[:int(ends.sum())],
-                     job_ended=np.array([1], np.int64)[:int(ends.sum())])
+                     job_fed=np.array([1], np.int64)[:int(ends.sum())],
+                     job_left=np.array([0], np.int64)[:int(ends.sum())])
         if variant in (0, 2):
             f["deposits"] = random_record(PhotonDeposits, n, rng)
         if variant in (1, 2):
@@ -151,7 +153,8 @@ def test_records_come_back_as_library_classes():
     assert isinstance(msg.batch, RayBatch) and len(msg.batch) == 5
     assert msg.cull_box.dtype == np.float64 and msg.cull_box[1, 2] == np.inf
     empty = decode(encode("results", chunk=0, ends=np.zeros(5, np.int64),
-                          job_ids=np.zeros(0, np.int64), job_ended=np.zeros(0, np.int64)))
+                          job_ids=np.zeros(0, np.int64), job_fed=np.zeros(0, np.int64),
+                          job_left=np.zeros(0, np.int64)))
     assert empty.deposits is None and empty.hits is None and empty.emitted_pixels is None
 
 
@@ -357,7 +360,8 @@ def test_encode_refuses_what_decode_would(fields, words):
 def test_encode_wants_both_emitted_arrays():
     with pytest.raises(WireError, match="'emitted_rgb' must come with 'emitted_pixels'"):
         encode("results", chunk=0, eye_iteration=0, ends=np.zeros(5, np.int64),
-               job_ids=np.zeros(0, np.int64), job_ended=np.zeros(0, np.int64),
+               job_ids=np.zeros(0, np.int64), job_fed=np.zeros(0, np.int64),
+                          job_left=np.zeros(0, np.int64),
                emitted_pixels=np.zeros(2, np.int32))
 
 
