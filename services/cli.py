@@ -37,6 +37,9 @@ def add_service_render_arguments(render: argparse.ArgumentParser) -> None:
     g.add_argument("--photons-per-job", type=int, default=1024)
     g.add_argument("--snapshot-interval", type=float, default=60.0, metavar="S",
                    help="write the image every S seconds while rendering")
+    for o in config.OPTIMISATIONS:
+        g.add_argument("--" + o.name.replace("_", "-"), action=argparse.BooleanOptionalAction,
+                       default=True, help=o.help)
     render.set_defaults(func=cmd_render)
 
 

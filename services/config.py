@@ -45,7 +45,14 @@ RENDER = (
     _opt("exposure", float, 0.0, "PNG preview exposure in stops"),
     _opt("log", str, None, "append JSON-lines progress records here"),
 )
-SERVER = RENDER + (
+# The paper's optimisations, each of which can be switched off (Figure 15).
+OPTIMISATIONS = (
+    _opt("cull", bool, True, "cull photons against the hit-point box (§4.3)"),
+    _opt("concurrent", bool, True, "trace photons and eye rays at the same time (§3.3); "
+         "--no-concurrent alternates them"),
+    _opt("client_batching", bool, True, "tracers coalesce packages per chunk (§4.3)"),
+)
+SERVER = RENDER + OPTIMISATIONS + (
     _opt("bind", str, "tcp://127.0.0.1:5555", "ZeroMQ endpoint tracers connect to"),
     _opt("http", str, "127.0.0.1:8080", "status page HOST:PORT, or 'off'"),
     _opt("min_tracers", int, 1, "tracers to wait for before rendering"),
@@ -73,7 +80,11 @@ class ConfigError(ValueError):
 
 def _add(p: argparse.ArgumentParser, options) -> None:
     for o in options:
-        p.add_argument("--" + o.name.replace("_", "-"), type=o.type, default=None, help=o.help)
+        flag = "--" + o.name.replace("_", "-")
+        if o.type is bool:
+            p.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, help=o.help)
+        else:
+            p.add_argument(flag, type=o.type, default=None, help=o.help)
     p.add_argument("--config", help="TOML file with these settings")
     p.add_argument("--quiet", action="store_true")
 
@@ -97,6 +108,11 @@ def resolve(args, role: str, options, environ=os.environ) -> dict:
 
 
 def _convert(o: Option, value, where: str):
+    if o.type is bool:
+        text = str(value).strip().lower()
+        if isinstance(value, bool) or text in ("1", "true", "yes", "on", "0", "false", "no", "off"):
+            return value if isinstance(value, bool) else text in ("1", "true", "yes", "on")
+        raise ConfigError(f"{where}: expected true or false, got {value!r}")
     try:
         return o.type(value)
     except (TypeError, ValueError):

@@ -28,6 +28,7 @@ def render_local(args) -> int:
     n = args.tracers or os.cpu_count() or 1
     if n < 1:
         return core._error("--tracers must be >= 1")
+    values.update({o: getattr(args, o) for o in ("cull", "concurrent", "client_batching")})
     values.update(bind="tcp://127.0.0.1:*", http=args.http, min_tracers=n,
                   min_photon_jobs=args.min_photon_jobs, snapshot_interval=args.snapshot_interval,
                   drain_timeout=60.0)
@@ -38,7 +39,7 @@ def _settings(v: dict) -> RenderSettings:
     s = RenderSettings(seed=v["seed"], alpha=v["alpha"], radius=v["radius"], max_depth=v["max_depth"],
                        gather=v["gather"], photons_per_iteration=v["photons_per_iteration"],
                        photons_per_job=v["photons_per_job"], photon_batch=v["photon_batch"],
-                       threads=v["threads"], tile_pixels=4096)
+                       threads=v["threads"], tile_pixels=4096, cull=v["cull"])
     s.validate()
     return s
 
@@ -89,7 +90,8 @@ def serve(scene: str, v: dict, quiet: bool = False, spawn_tracers: int = 0) -> i
                                snapshot_interval_s=v["snapshot_interval"],
                                min_photon_jobs=v["min_photon_jobs"], min_tracers=v["min_tracers"],
                                threads=v["threads"], exposure=v["exposure"],
-                               drain_timeout_s=v["drain_timeout"], reporter=reporter)
+                               drain_timeout_s=v["drain_timeout"], reporter=reporter,
+                               concurrent=v["concurrent"], client_batching=v["client_batching"])
     except Exception as e:   # zmq bind errors and the like: one line, not a traceback
         return core._error(f"cannot start the server: {e}")
     cam = store.header.camera

@@ -46,6 +46,9 @@ from .wire import PROTOCOL_VERSION
 
 MESSAGE_RAYS = 32_768         # rays per job message the server aims for
 HEARTBEAT_INTERVAL_S = 1.0
+# Tracer heartbeat fields the server passes on in its status.
+STATUS_KEYS = ("load", "resident", "busy_s", "steps", "rays_traced", "portal_rays_out", "portal_rays_in",
+               "forwarded_rays", "cpu_s", "bytes_to_server", "bytes_to_peers", "outbox")
 
 
 @dataclass
@@ -117,12 +120,16 @@ def assign_chunks(chunk_count: int, endpoints: list[str]) -> list[list[str]]:
 class ServerState:
     def __init__(self, header, tree, settings: RenderSettings, store_key: str,
                  manifest: dict | None = None, min_photon_jobs: int = 1000,
-                 queue_target_rays: int = 262_144, min_tracers: int = 1):
+                 queue_target_rays: int = 262_144, min_tracers: int = 1,
+                 concurrent: bool = True, client_batching: bool = True):
+        """`concurrent` False and `client_batching` False switch off two of
+        the paper's optimisations, for the Figure 15 benchmark."""
         settings.validate()
         self.header, self.tree, self.settings = header, tree, settings
         self.store_key, self.manifest = store_key, manifest
         self.min_photon_jobs, self.queue_target = int(min_photon_jobs), int(queue_target_rays)
         self.min_tracers = int(min_tracers)
+        self.concurrent, self.client_batching = bool(concurrent), bool(client_batching)
         self.eps_abs = 1e-6 * header.diagonal()
         self.n_pixels = int(header.camera.width) * int(header.camera.height)
         self.tracers: dict[str, TracerInfo] = {}
@@ -157,7 +164,8 @@ class ServerState:
     # -- tracers -------------------------------------------------------------------
     def welcome_fields(self, t: TracerInfo) -> dict:
         s = self.settings
-        return dict(tracer_index=t.index, settings={"max_depth": s.max_depth, "seed": s.seed},
+        return dict(tracer_index=t.index, settings={"max_depth": s.max_depth, "seed": s.seed,
+                                                    "client_batching": self.client_batching},
                     scene=self.header.to_wire(), tree=self.tree.to_wire(), store_key=self.store_key,
                     chunks=[k for k, o in enumerate(self.owners) if t.id in o],
                     manifest=None if t.store_key == self.store_key else self.manifest)
@@ -283,12 +291,32 @@ class ServerState:
             self.started = True
         if not self.emitting or not all(self.owners):
             return out
+        if not self.concurrent:
+            return out + self._alternate()
         out += self._maybe_start_eye_iteration()
         if self.gather_box is not None and not self.paused:
             while self.photon_jobs_in_flight < self.min_photon_jobs:
                 self._photon_pending.append(self._new_job("photon", self.settings.photons_per_job))
             out += self._send_photon_jobs()
         return out
+
+    def _alternate(self) -> list[Out]:
+        """The schedule DOSPPM improves on (Figure 15, 'alternating'): an
+        eye pass, then `photons_per_iteration` photons, each waiting for
+        the other to finish."""
+        if self.eye is not None or self.photon_jobs_in_flight:
+            return self._send_photon_jobs() if self._photon_pending else []
+        if not self.eye_started or self.counters["photons_emitted"] - self._photons_at_eye_start \
+                >= self.settings.photons_per_iteration:
+            return self._maybe_start_eye_iteration()
+        if self.gather_box is None or self.paused:
+            return []
+        left = self.settings.photons_per_iteration
+        while left > 0:
+            count = min(self.settings.photons_per_job, left)
+            self._photon_pending.append(self._new_job("photon", count))
+            left -= count
+        return self._send_photon_jobs()
 
     def _new_job(self, kind: str, paths: int, eye_iteration: int | None = None) -> int:
         j = next(self._job_ids)
@@ -397,6 +425,5 @@ class ServerState:
                 "tracers": [{"id": t.id, "index": t.index, "endpoint": t.endpoint,
                              "chunks": [k for k, o in enumerate(self.owners) if t.id in o],
                              "queue": t.load_estimate, "rays_sent": t.rays_sent, "results": t.results,
-                             **{k: v for k, v in t.status.items() if k in ("load", "resident", "busy_s",
-                                                                          "rays_traced", "portal_rays_out")}}
+                             **{k: v for k, v in t.status.items() if k in STATUS_KEYS}}
                             for t in sorted(self.tracers.values(), key=lambda t: t.index)]}

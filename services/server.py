@@ -60,14 +60,16 @@ class ServerProcess:
                  limits: Limits | None = None, snapshot_interval_s: float = 60.0,
                  min_photon_jobs: int = 1000, min_tracers: int = 1,
                  queue_target_rays: int = 262_144, threads: int = 2, exposure: float = 0.0,
-                 drain_timeout_s: float = 60.0, reporter=None, context: zmq.Context | None = None):
+                 drain_timeout_s: float = 60.0, reporter=None, context: zmq.Context | None = None,
+                 concurrent: bool = True, client_batching: bool = True):
         self.store, self.settings = store, settings
         self.out, self.exposure, self.reporter = out, exposure, reporter
         self.limits = limits or Limits(seconds=30.0)
         self.snapshot_interval_s, self.drain_timeout_s = snapshot_interval_s, drain_timeout_s
         self.state = ServerState(store.header, store.tree, settings, store.key, store.manifest,
                                  min_photon_jobs=min_photon_jobs, queue_target_rays=queue_target_rays,
-                                 min_tracers=min_tracers)
+                                 min_tracers=min_tracers, concurrent=concurrent,
+                                 client_batching=client_batching)
         self.statistics = ServerStatistics(store.header, settings, threads=threads)
         self.ctx = context or zmq.Context.instance()
         self.router = wire.configure(self.ctx.socket(zmq.ROUTER))
@@ -284,6 +286,7 @@ class ServerProcess:
                   hit_points_per_s=st["hit_points"] / seconds if seconds > 0 else 0.0,
                   eta_s=self._eta(seconds, st), update_seconds=round(self.statistics.update_seconds, 3),
                   updates_queued=self._updates.qsize(), bytes_out=self.bytes_out,
+                  cpu_s=round(time.process_time(), 3),
                   undeliverable=self.undeliverable)
         with self._status_lock:
             self._status = st

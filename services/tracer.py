@@ -22,7 +22,7 @@ from dosppm_core.chunkstore import ChunkStore, StoreError
 
 from . import wire
 from .fetch import FetchedStore
-from .tracer_state import SERVER, TracerState
+from .tracer_state import SERVER, STEP_RAYS, TracerState
 
 log = logging.getLogger("dosppm.tracer")
 HEARTBEAT_INTERVAL_S = 1.0
@@ -61,6 +61,7 @@ class TracerProcess:
         self.peers: dict[str, zmq.Socket] = {}
         self.outbox: list = []        # (endpoint, frames) waiting for a full peer pipe
         self.stopped: str | None = None
+        self.bytes_to_server = self.bytes_to_peers = 0
 
     # -- sockets -------------------------------------------------------------------
     def _open(self) -> None:
@@ -160,8 +161,10 @@ class TracerProcess:
         try:
             welcome = self._register()
             provider = self._provider(welcome)
+            batching = welcome.settings.get("client_batching", True)
             self.state = TracerState(self.endpoint, provider, welcome.settings["max_depth"],
-                                     memory_bytes=self.memory_bytes, threads=self.threads)
+                                     memory_bytes=self.memory_bytes, threads=self.threads,
+                                     step_rays=STEP_RAYS if batching else 0)
             log.info("tracer %s joined as %d at %s, chunks %s", self.tracer_id, welcome.tracer_index,
                      self.endpoint, welcome.chunks)
             self._loop()
@@ -194,7 +197,8 @@ class TracerProcess:
 
     def _status(self) -> dict:
         s = self.state.status()
-        s["outbox"] = len(self.outbox)
+        s.update(outbox=len(self.outbox), cpu_s=round(time.process_time(), 3),
+                 bytes_to_server=self.bytes_to_server, bytes_to_peers=self.bytes_to_peers)
         return s
 
     def _drain_server(self, ready: bool) -> None:
@@ -228,6 +232,7 @@ class TracerProcess:
             frames = wire.encode(o.type, **o.fields)
             if o.dest == SERVER:
                 wire.send(self.dealer, frames)      # the server always reads: block if need be
+                self.bytes_to_server += sum(memoryview(f).nbytes for f in frames)
             else:
                 self.outbox.append((o.dest, frames))
         self._flush_outbox()
@@ -241,6 +246,8 @@ class TracerProcess:
                 wire.send(self._peer(dest), frames, block=False)
             except zmq.Again:
                 waiting.append((dest, frames))
+                continue
+            self.bytes_to_peers += sum(memoryview(f).nbytes for f in frames)
         self.outbox = waiting
 
     def _close(self) -> None:

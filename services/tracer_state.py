@@ -200,6 +200,8 @@ class TracerState:
         return next((k for k in ready if k > after), ready[0])
 
     def _take(self, packages: deque) -> list[Package]:
+        """Client batching (§4.3): coalesce waiting packages up to
+        `step_rays` rays; step_rays 0 traces one package per step."""
         taken, rays = [], 0
         while packages and (not taken or rays + len(packages[0].batch) <= self.step_rays):
             p = packages.popleft()
