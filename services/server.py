@@ -28,10 +28,11 @@ from dataclasses import dataclass
 import zmq
 
 from dosppm_core.film_io import encode_png, tonemap_srgb8, write_exr, write_png
+from dosppm_core.jobs import PhotonDeposits
 from dosppm_core.render import Progress, RenderSettings
 
 from . import wire
-from .scheduler import ServerState
+from .scheduler import ServerState, Update
 from .statistics import ServerStatistics
 from .status_http import StatusServer
 
@@ -86,6 +87,7 @@ class ServerProcess:
         self.watch = None          # () -> error text or None, checked with the status
         self.failure: str | None = None
         self.started_at: float | None = None
+        self.finished_at: float | None = None
         self.bytes_in = self.bytes_out = 0
         self.undeliverable = 0
 
@@ -103,7 +105,9 @@ class ServerProcess:
         restore = self._install_signal_handlers()
         try:
             self._serve()
+            self.finished_at = time.monotonic()
         finally:
+            self._coalesce_queued_updates()
             self._updates.put(None)
             worker.join()
             self._write_image()
@@ -156,7 +160,9 @@ class ServerProcess:
             self._signals = 2        # stop now; the image so far is still written
 
     def _limit_reached(self, now: float) -> bool:
-        if self.started_at is None or not self.state.eye_completed:
+        # Never stop before one batch of photons has been applied: a render
+        # whose time went to compiling or loading still yields an image.
+        if self.started_at is None or not self.state.counters["photons_committed"]:
             return False
         c = self.state.counters
         return self.limits.reached(now - self.started_at, c["photons_emitted"], self.state.eye_completed)
@@ -237,6 +243,29 @@ class ServerProcess:
         # stop emitting photons while updates queue, instead of holding ever
         # more deposits.
         self.state.paused = self._updates.qsize() >= MAX_UPDATES_QUEUED
+
+    def _coalesce_queued_updates(self) -> None:
+        """At the end, merge runs of queued photon batches into one update
+        each: a server that fell behind (tiny --photon-batch) finishes in
+        one gather per run instead of one per batch, and the result is the
+        same photons applied once."""
+        queued = []
+        while True:
+            try:
+                queued.append(self._updates.get_nowait())
+                self._updates.task_done()
+            except queue.Empty:
+                break
+        merged: list[Update] = []
+        for u in queued:
+            if merged and u.kind == "photons" and merged[-1].kind == "photons":
+                last = merged[-1]
+                merged[-1] = Update("photons", deposits=PhotonDeposits.concat([last.deposits, u.deposits]),
+                                    photons_emitted=last.photons_emitted + u.photons_emitted)
+            else:
+                merged.append(u)
+        for u in merged:
+            self._updates.put(u)
 
     def _apply_updates(self) -> None:
         while True:
@@ -321,6 +350,9 @@ class ServerProcess:
         st = dict(st, **self.state.status())
         st["update_seconds"] = self.statistics.update_seconds
         st["photons_applied"] = self.statistics.photons_applied
+        st["cpu_s"] = round(time.process_time(), 3)
+        if self.started_at is not None and self.finished_at is not None:
+            st["seconds"] = self.finished_at - self.started_at   # rendering, drain included
         return st
 
     # -- signals -------------------------------------------------------------------------

@@ -42,12 +42,12 @@ class ServerStatistics:
         self.stats.replace_hit_points(update.hits, update.emitted_light)
 
     def _apply_photons(self, update) -> None:
+        """One statistics update for the whole batch: the state already cut
+        it at `photon_batch` deposits (or merged several at the end)."""
         s, deposits = self.settings, update.deposits
-        for start in range(0, max(len(deposits), 1), s.photon_batch):
-            part = deposits.slice(start, min(start + s.photon_batch, len(deposits)))
-            self.stats.apply_photons(part, update.photons_emitted if start == 0 else 0,
-                                     self.header.materials, gather=s.gather, threads=self.threads,
-                                     reorder=s.reorder, hash_options=s.hash_options)
+        self.stats.apply_photons(deposits, update.photons_emitted, self.header.materials,
+                                 gather=s.gather, threads=self.threads, reorder=s.reorder,
+                                 hash_options=s.hash_options)
         self.photons_applied += update.photons_emitted
         self.deposits_applied += len(deposits)
 

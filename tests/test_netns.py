@@ -1,0 +1,326 @@
+"""The render service across real hosts: a server and two tracers, each in
+its own Linux network namespace on a private bridge (the recipe in
+RECIPES.md, "Several hosts on one machine"). The tracers get no chunk
+store: they fetch their chunks from the server over ZeroMQ into caches of
+their own, advertise their namespace address (`--advertise auto`) and
+send portal traffic to each other across the bridge.
+
+- server and both workers exit 0; the image is finite and not black;
+- each worker's cache holds exactly the chunk files of its chunks, each
+  matching the SHA-256 of the server's manifest;
+- two tracers, each at an endpoint on its own host's address;
+- portal rays cross between the tracers; the server's final accounting
+  (OUT.json) is exact: photons emitted = completed = committed;
+- the server's address is not reachable from the root namespace.
+
+Needs root, Linux and `ip` (iproute2); skipped otherwise.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+import urllib.request
+
+import numpy as np
+import pytest
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+RENDER_S = 8
+SERVER_TIMEOUT_S = 90     # start-up (subdivision, numba cache), render, drain, output
+WORKER_TIMEOUT_S = 20     # after the server has exited
+HTTP_PORT = 8080
+ZMQ_PORT = 5555
+PEER_PORT = 5600
+
+# A unique name prefix and /24 per test run: parallel or leftover runs on
+# this machine cannot clash (the addresses live on a private bridge anyway).
+_PID = os.getpid()
+PREFIX = f"dosppm-{_PID}"
+SUBNET = f"10.213.{_PID % 250 + 1}"
+HOSTS = {"server": f"{SUBNET}.1", "t1": f"{SUBNET}.11", "t2": f"{SUBNET}.12"}
+
+
+def _ip(*args, check=True):
+    return subprocess.run(["ip", *args], capture_output=True, text=True, timeout=20, check=check)
+
+
+def _netns_unavailable() -> str | None:
+    """Why this machine cannot run the test, or None."""
+    if not sys.platform.startswith("linux"):
+        return "network namespaces need Linux"
+    if os.geteuid() != 0:
+        return "creating network namespaces needs root"
+    if shutil.which("ip") is None:
+        return "the `ip` command (iproute2) is not installed"
+    probe = f"{PREFIX}-probe"
+    try:
+        r = _ip("netns", "add", probe, check=False)
+    except (OSError, subprocess.SubprocessError) as e:
+        return f"`ip netns add` failed: {e}"
+    if r.returncode != 0:
+        return f"cannot create a network namespace: {r.stderr.strip()}"
+    _ip("netns", "del", probe, check=False)
+    return None
+
+
+def _delete_namespaces(names) -> None:
+    for ns in names:
+        _ip("netns", "del", ns, check=False)
+
+
+@pytest.fixture
+def lan():
+    """A bridge in namespace <prefix>-lan and one namespace per host with a
+    veth into it; yields {host: (namespace, address)}. No default route:
+    nothing leaves the machine. The namespaces are always deleted."""
+    why = _netns_unavailable()
+    if why:
+        pytest.skip(why)
+    bridge_ns = f"{PREFIX}-lan"
+    made = []
+    try:
+        _ip("netns", "add", bridge_ns)
+        made.append(bridge_ns)
+        _ip("-n", bridge_ns, "link", "set", "lo", "up")
+        _ip("-n", bridge_ns, "link", "add", "br0", "type", "bridge")
+        _ip("-n", bridge_ns, "link", "set", "br0", "up")
+        hosts = {}
+        for h, addr in HOSTS.items():
+            ns = f"{PREFIX}-{h}"
+            _ip("netns", "add", ns)
+            made.append(ns)
+            _ip("-n", ns, "link", "set", "lo", "up")
+            _ip("link", "add", f"v-{h}", "netns", bridge_ns, "type", "veth", "peer", "name", "eth0", "netns", ns)
+            _ip("-n", bridge_ns, "link", "set", f"v-{h}", "master", "br0", "up")
+            _ip("-n", ns, "addr", "add", f"{addr}/24", "dev", "eth0")
+            _ip("-n", ns, "link", "set", "eth0", "up")
+            hosts[h] = (ns, addr)
+    except subprocess.CalledProcessError as e:
+        _delete_namespaces(reversed(made))
+        pytest.fail(f"building the bridge failed: {' '.join(e.cmd)}: {e.stderr.strip()}")
+    except BaseException:
+        _delete_namespaces(reversed(made))
+        raise
+    try:
+        yield hosts
+    finally:
+        _delete_namespaces(reversed(made))
+
+
+class Procs:
+    """Processes started in namespaces, their output in files; all killed
+    (by process group) at the end."""
+
+    def __init__(self, folder):
+        self.folder, self.procs = folder, {}
+
+    def start(self, name, ns, argv, env=None):
+        out = open(self.folder / f"{name}.out", "wb")
+        err = open(self.folder / f"{name}.err", "wb")
+        try:
+            p = subprocess.Popen(["ip", "netns", "exec", ns, *argv], cwd=REPO, stdout=out, stderr=err,
+                                 stdin=subprocess.DEVNULL, env={**os.environ, **(env or {})},
+                                 start_new_session=True)
+        finally:
+            out.close()
+            err.close()
+        self.procs[name] = p
+        return p
+
+    def wait(self, name, timeout):
+        """The exit status, or None on a time-out."""
+        try:
+            return self.procs[name].wait(timeout=max(timeout, 0.1))
+        except subprocess.TimeoutExpired:
+            return None
+
+    def err(self, name, chars=3000) -> str:
+        try:
+            text = (self.folder / f"{name}.err").read_text(errors="replace")
+        except OSError:
+            return ""
+        return text[-chars:]
+
+    def tails(self) -> str:
+        return "\n".join(f"--- {n} (exit {p.poll()}) stderr tail:\n{self.err(n)}" for n, p in self.procs.items())
+
+    def kill_all(self):
+        for p in self.procs.values():
+            if p.poll() is None:
+                try:
+                    os.killpg(p.pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
+        for p in self.procs.values():
+            try:
+                p.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                pass
+
+
+# Runs inside a tracer host: polls the server's status page and keeps the
+# last good JSON in a file (written atomically) until told to stop or the
+# deadline passes.
+POLLER = r"""
+import json, os, sys, time, urllib.request
+url, out, deadline = sys.argv[1], sys.argv[2], time.time() + float(sys.argv[3])
+n = 0
+while time.time() < deadline:
+    try:
+        with urllib.request.urlopen(url, timeout=2) as r:
+            doc = json.loads(r.read())
+        n += 1
+        doc["_poll"] = {"n": n, "t": time.time()}
+        with open(out + ".tmp", "w") as f:
+            json.dump(doc, f)
+        os.replace(out + ".tmp", out)
+    except Exception:
+        pass
+    time.sleep(0.3)
+"""
+
+
+def _warm_kernel_cache(folder) -> None:
+    """Compile (or load) the numba kernels once, in a small local render of
+    the same layout: every process of the test shares numba's on-disk
+    cache, and the whole package's cache is dropped whenever a kernel
+    module changes. A cold cache costs each process 10-20 s of compiling,
+    which would eat the 8 s render and leave no photons, no portal traffic.
+    `--iterations` (not `--time`) so the photon kernels surely run."""
+    folder.mkdir()
+    cmd = [sys.executable, "-m", "services.cli", "render", "cornell-box", "--tracers", "2", "--chunks", "4",
+           "--width", "16", "--height", "16", "--iterations", "2", "--min-photon-jobs", "64", "--http", "off",
+           "--store-cache", str(folder / "store-cache"), "--out", str(folder / "warm.exr"), "--quiet"]
+    try:
+        r = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=180)
+    except subprocess.TimeoutExpired as e:
+        pytest.fail(f"warming the kernel cache took over {e.timeout} s: {(e.stderr or '')[-3000:]}")
+    assert r.returncode == 0, f"warm-up render failed ({r.returncode}): {r.stderr[-3000:]}"
+
+
+def _reachable_from_root(ip: str, port: int) -> bool:
+    try:
+        urllib.request.urlopen(f"http://{ip}:{port}/status", timeout=1).close()
+        return True
+    except OSError:
+        return False
+
+
+def test_server_and_two_tracers_on_separate_hosts(lan, tmp_path):
+    from dosppm_core.chunkstore import ChunkStore, is_store
+    from dosppm_core.film_io import read_exr
+
+    server_ns, server_ip = lan["server"]
+    store_cache, out = tmp_path / "store-cache", tmp_path / "out.exr"
+    status_file = tmp_path / "status.json"
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    py = [sys.executable, "-m", "services.cli"]
+    env = {"DOSPPM_LOG": "info", "PYTHONUNBUFFERED": "1"}
+    _warm_kernel_cache(tmp_path / "warm-up")
+    procs = Procs(logs)
+    try:
+        procs.start("server", server_ns, py + [
+            "server", "cornell-box", "--bind", f"tcp://{server_ip}:{ZMQ_PORT}",
+            "--http", f"{server_ip}:{HTTP_PORT}", "--min-tracers", "2", "--time", str(RENDER_S),
+            "--out", str(out), "--width", "64", "--height", "64", "--chunks", "4",
+            "--store-cache", str(store_cache), "--quiet"], env)
+        for h in ("t1", "t2"):
+            ns, _ = lan[h]
+            procs.start(h, ns, py + [
+                "worker", "--server", f"tcp://{server_ip}:{ZMQ_PORT}", "--bind", f"tcp://0.0.0.0:{PEER_PORT}",
+                "--advertise", "auto", "--cache-dir", str(tmp_path / f"cache-{h}"), "--threads", "1",
+                "--id", f"tracer-{h}", "--retry", "60", "--quiet"], env)
+        procs.start("poller", lan["t1"][0], [sys.executable, "-c", POLLER,
+                                             f"http://{server_ip}:{HTTP_PORT}/status", str(status_file),
+                                             str(SERVER_TIMEOUT_S + 10)])
+
+        # While the server runs: once its status page answers across the
+        # bridge, it must not answer from the root namespace.
+        deadline = time.monotonic() + SERVER_TIMEOUT_S
+        root_checked = False
+        server_rc = None
+        while time.monotonic() < deadline:
+            server_rc = procs.wait("server", 0.5)
+            if server_rc is not None:
+                break
+            if not root_checked and status_file.exists():
+                assert not _reachable_from_root(server_ip, HTTP_PORT), \
+                    f"the server's status page at {server_ip} answers from the root namespace"
+                root_checked = True
+        assert server_rc == 0, (f"server still running after {SERVER_TIMEOUT_S} s" if server_rc is None
+                                else f"server exit status {server_rc}") + "\n" + procs.tails()
+        worker_deadline = time.monotonic() + WORKER_TIMEOUT_S
+        for h in ("t1", "t2"):
+            rc = procs.wait(h, worker_deadline - time.monotonic())
+            assert rc == 0, (f"worker {h} still running {WORKER_TIMEOUT_S} s after the server's exit" if rc is None
+                             else f"worker {h} exit status {rc}") + "\n" + procs.tails()
+        poller = procs.procs["poller"]
+        if poller.poll() is None:
+            os.killpg(poller.pid, signal.SIGKILL)
+            poller.wait(timeout=10)
+    finally:
+        procs.kill_all()
+    tails = procs.tails()
+    assert root_checked, "never saw the status page while the server ran\n" + tails
+
+    # The image.
+    assert out.exists() and out.with_suffix(".png").exists(), tails
+    img, _ = read_exr(str(out))
+    assert img.shape[:2] == (64, 64), img.shape
+    assert np.isfinite(img).all(), "non-finite pixels"
+    assert img.mean() > 0, "black image"
+
+    # The last status seen.
+    st = json.loads(status_file.read_text())
+    tracers = {t["id"]: t for t in st["tracers"]}
+    assert sorted(tracers) == ["tracer-t1", "tracer-t2"], (st["tracers"], tails)
+    endpoints = {h: tracers[f"tracer-{h}"]["endpoint"] for h in ("t1", "t2")}
+    assert endpoints == {h: f"tcp://{lan[h][1]}:{PEER_PORT}" for h in ("t1", "t2")}, (endpoints, tails)
+    portal_out = sum(t.get("portal_rays_out", 0) for t in st["tracers"])
+    assert portal_out > 0, (f"no portal traffic between the tracers: {st['tracers']}", tails)
+    c = st["counters"]
+    assert c["over_counted_paths"] == 0 and c["stale_paths"] == 0, (c, tails)
+    assert st["photons_committed"] > 0 and c["photons_committed"] > 0, (st, tails)
+    assert c["photons_committed"] <= c["photons_emitted"], c
+    # The server's own accounting of the whole run (OUT.json beside the
+    # image, written after the drain): exact, unlike a status polled while
+    # photons were still in flight.
+    summary_file = out.with_suffix(".json")
+    assert summary_file.exists(), "the server wrote no OUT.json accounting beside the image\n" + tails
+    summary = json.loads(summary_file.read_text())
+    sc = summary["counters"]
+    assert sc["photons_emitted"] > 0, (sc, tails)
+    assert sc["photons_emitted"] == sc["photons_completed"] == sc["photons_committed"] \
+        == summary.get("photons_applied", sc["photons_committed"]), (sc, summary.get("photons_applied"))
+    assert summary["jobs_in_flight"] == 0, summary["jobs_in_flight"]
+    assert sc["over_counted_paths"] == 0 and sc["stale_paths"] == 0, sc
+    served = {h: sorted(tracers[f"tracer-{h}"]["chunks"]) for h in ("t1", "t2")}
+    assert sorted(served["t1"] + served["t2"]) == [0, 1, 2, 3], (served, tails)   # c > n: disjoint
+
+    # The chunks: each worker fetched exactly its own, byte for byte those
+    # of the server's store.
+    stores = [p for p in store_cache.iterdir() if is_store(str(p))]
+    assert len(stores) == 1, stores
+    store = ChunkStore.open(str(stores[0]))
+    for h in ("t1", "t2"):
+        # The join line names the chunks of the welcome, before any later
+        # reassignment (the first tracer in is welcomed with all chunks):
+        # the status' owners are what the tracer served.
+        log = procs.err(h, chars=10**6)
+        assert f"tracer tracer-{h} joined as" in log and f"at {endpoints[h]}, chunks " in log, (h, log[-2000:])
+        cache = tmp_path / f"cache-{h}" / store.key
+        assert cache.is_dir(), (h, list((tmp_path / f"cache-{h}").iterdir()))
+        files = sorted(p.name for p in cache.iterdir() if p.name.startswith("chunk-"))
+        assert files == sorted(store.manifest["chunks"][k]["file"] for k in served[h]), (h, served[h], files)
+        for k in served[h]:
+            entry = store.manifest["chunks"][k]
+            data = (cache / entry["file"]).read_bytes()
+            assert len(data) == entry["file_bytes"], (h, k)
+            assert hashlib.sha256(data).hexdigest() == entry["sha256"], (h, k)
