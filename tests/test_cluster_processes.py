@@ -95,3 +95,31 @@ def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def test_sigint_stops_the_render_and_writes_the_image(tmp_path):
+    """SIGINT mid-render: emission stops, jobs in flight drain, the image
+    so far is written, and the exit status says it was interrupted."""
+    import signal
+    out = tmp_path / "img.exr"
+    cmd = [sys.executable, "-m", "services.cli", "render", "cornell-box", "--width", "32", "--height", "32",
+           "--tracers", "2", "--time", "600", "--out", str(out), "--http", "off",
+           "--store-cache", str(tmp_path / "stores")]
+    proc = subprocess.Popen(cmd, cwd=ROOT, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not (tmp_path / "img.json").exists() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(1.0)
+            if time.monotonic() > deadline - 110:     # rendering for ~10 s
+                break
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(60) == 130, proc.stderr.read()[-2000:]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    img, _ = read_exr(str(out))
+    assert img.mean() > 0
+    with open(tmp_path / "img.json", encoding="utf-8") as f:
+        summary = json.load(f)
+    c = summary["counters"]
+    assert c["photons_committed"] > 0 and c["photons_emitted"] == c["photons_committed"]
