@@ -9,6 +9,12 @@ import os
 # 1000-photon bounce. Passive waiting costs nothing measurable when alone.
 # Set before numba loads libgomp; a user's own setting wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "passive")
+# The render server calls parallel kernels from two threads at once (the
+# message loop emits photons while the statistics thread gathers). numba's
+# fallback 'workqueue' layer aborts on that ("Concurrent access has been
+# detected"), as on a minimal host without libgomp: ask for a thread-safe
+# layer (OpenMP or TBB), so a missing one is a clear error at the start.
+os.environ.setdefault("NUMBA_THREADING_LAYER", "threadsafe")
 
 from . import _kernel_cache  # noqa: E402
 

@@ -155,7 +155,26 @@ class TracerProcess:
 
     # -- the loop ----------------------------------------------------------------------
     def run(self) -> str:
-        """Serve until the server says shutdown; returns its reason."""
+        """Serve until the server says shutdown (or SIGTERM/SIGINT arrive);
+        returns the reason."""
+        restore = self._stop_on_signals()
+        try:
+            return self._run()
+        finally:
+            restore()
+
+    def _stop_on_signals(self):
+        import signal
+        import threading
+        if threading.current_thread() is not threading.main_thread():
+            return lambda: None
+
+        def stop(signum, frame):
+            self.stopped = f"stopped by signal {signum}"
+        old = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
+        return lambda: [signal.signal(s, h) for s, h in old.items()]
+
+    def _run(self) -> str:
         self._open()
         self._pending_server: list = []
         try:
