@@ -69,9 +69,10 @@ class ProgressReporter:
 def kernels_cached() -> bool:
     """Whether numba's on-disk cache already holds the main kernel, so the
     first render of a fresh install can say it is compiling."""
+    import glob
     try:
         from .kernels import paths
-        cache = paths.scatter_photons._cache
-        return os.path.exists(os.path.join(cache._cache_path, cache._index_name))
+        folder = paths.scatter_photons._cache._cache_path   # in-tree or numba's user-wide cache
     except Exception:  # private numba API: never let it break a render
         return True
+    return bool(glob.glob(os.path.join(glob.escape(folder), "paths.scatter_photons-*.nbi")))

@@ -29,20 +29,30 @@ class InProcessCluster:
                                   min_photon_jobs=min_photon_jobs, queue_target_rays=queue_target_rays,
                                   min_tracers=tracers)
         self.statistics = ServerStatistics(store.header, settings, threads=settings.threads)
-        self.tracers = {f"t{i}": TracerState(f"inproc://t{i}", store, settings.max_depth,
-                                             memory_bytes=memory_bytes, threads=settings.threads,
-                                             step_rays=step_rays)
-                        for i in range(tracers)}
-        self.by_endpoint = {t.endpoint: tid for tid, t in self.tracers.items()}
+        self.store, self.step_rays, self.memory_bytes = store, step_rays, memory_bytes
+        self.tracers: dict[str, TracerState] = {}
+        self.by_endpoint: dict[str, str] = {}
         self.mail: deque = deque()       # (sender, dest, message)
         self.messages = 0
         self.wire_bytes = 0
         self.now = 0.0
-        for tid, t in self.tracers.items():
-            reg = _over_the_wire("register", dict(tracer_id=tid, capacity={"cores": 1, "memory_bytes": 0},
-                                                  endpoint=t.endpoint, has_store=True,
-                                                  store_key=getattr(store, "key", "memory")))
-            self._post(SERVER, self.server.on_register(tid, reg, self.now))
+        for _ in range(tracers):
+            self.add_tracer()
+
+    def add_tracer(self) -> str:
+        """A tracer joins (at any time): it registers, the server re-assigns
+        chunks and sends every tracer the new table."""
+        tid = f"t{len(self.tracers)}"
+        t = TracerState(f"inproc://{tid}", self.store, self.settings.max_depth,
+                        memory_bytes=self.memory_bytes, threads=self.settings.threads,
+                        step_rays=self.step_rays)
+        self.tracers[tid], self.by_endpoint[t.endpoint] = t, tid
+        reg = _over_the_wire("register", dict(tracer_id=tid, capacity={"cores": 1, "memory_bytes": 0},
+                                              endpoint=t.endpoint, has_store=True,
+                                              store_key=getattr(self.store, "key", "memory")))
+        self._post(SERVER, self.server.on_register(tid, reg, self.now))
+        self._deliver()
+        return tid
 
     def _post(self, sender: str, outs) -> None:
         for o in outs:
@@ -83,12 +93,19 @@ class InProcessCluster:
             max_rounds: int = 100_000) -> None:
         """Until `photons` have been emitted or `eye_iterations` completed,
         then drain: every job in flight ends and the last batch is applied."""
+        self.render(photons, eye_iterations, max_rounds)
+        self.drain(max_rounds)
+
+    def render(self, photons: int | None = None, eye_iterations: int | None = None,
+               max_rounds: int = 100_000) -> None:
         for _ in range(max_rounds):
             s = self.server
             if (photons is not None and s.counters["photons_emitted"] >= photons) or \
                     (eye_iterations is not None and s.eye_completed >= eye_iterations):
                 break
             self.round()
+
+    def drain(self, max_rounds: int = 100_000) -> None:
         self.server.stop_emitting()
         for _ in range(max_rounds):
             if self.server.drained:

@@ -119,3 +119,55 @@ def test_memory_limited_tracer_works_through_its_chunks(caustic):
     _assert_same_within_noise(c.image(), ref[5][0], ref[9][0])
     k = c.server.counters
     assert k["photons_emitted"] == k["photons_committed"]
+
+
+def test_a_tracer_joining_mid_render_gets_chunks_and_work(caustic):
+    """c = 4: two tracers start; a third joins mid-render, is given chunks
+    by the new round-robin table, and packages already queued for chunks
+    that moved are passed on to it. Nothing is lost or counted twice."""
+    scene, ref = caustic
+    provider = MemoryChunks(scene, uniform_tree(root_box(scene), (2, 2, 1)))
+    c = InProcessCluster(provider, _settings(), tracers=2)
+    c.render(photons=PHOTONS // 2)
+    new = c.add_tracer()
+    assert c.tracers[new].chunks == [2]
+    assert all(t.table_version == c.server.table_version for t in c.tracers.values())
+    c.render(photons=PHOTONS)
+    c.drain()
+    c.close()
+    assert c.tracers[new].counters["rays_traced"] > 0
+    k = c.server.counters
+    assert k["photons_emitted"] == k["photons_completed"] == k["photons_committed"]
+    assert k["over_counted_paths"] == 0 and k["stale_paths"] == 0
+    _assert_same_within_noise(c.image(), ref[5][0], ref[9][0])
+
+
+def test_tracers_cull_deposits_outside_the_box_they_were_sent():
+    """Photon culling (§4.3): a tracer drops deposits outside the job's box
+    before sending, and coalesced packages use the union of their boxes."""
+    import numpy as np
+
+    from dosppm_core.tracing import emit_photon_job
+    from services.tracer_state import TracerState, union_box
+    scene = caustic_scene()
+    provider = MemoryChunks(scene, uniform_tree(root_box(scene), (1, 1, 1)))
+    a, b = np.array([[0, 0, 0], [1, 2, 3]], float), np.array([[-1, 1, 1], [0.5, 5, 2]], float)
+    assert np.array_equal(union_box([a, b]), [[-1, 0, 0], [1, 5, 3]])
+    lo, hi = scene.bounds()
+    floor_only = np.array([lo - 1, [hi[0] + 1, lo[1] + 1.0, hi[2] + 1]])   # a slab at the floor
+    counts = {}
+    for name, box in (("all", np.array([lo - 1, hi + 1])), ("floor", floor_only)):
+        t = TracerState("inproc://t", provider, 10)
+        t.set_peers(1, [["inproc://t"]])
+        t.receive("photon", 0, emit_photon_job(provider.header, 1, 0, 20_000, 1e-6 * scene.diagonal()),
+                  cull_box=box)
+        out = []
+        while t.has_work():
+            out += t.step()
+        results = [o.fields for o in out if o.type == "results"]
+        dep = np.concatenate([r["deposits"].position for r in results])
+        counts[name] = (len(dep), sum(r["culled"] for r in results))
+        assert (dep >= box[0]).all() and (dep <= box[1]).all()
+        t.close()
+    assert counts["all"][1] == 0 and counts["floor"][1] > 0
+    assert counts["floor"][0] + counts["floor"][1] == counts["all"][0]
