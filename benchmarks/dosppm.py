@@ -137,7 +137,29 @@ def run(args) -> dict:
     R["osppm c=4"] = rep(lambda: _single(lambda: OutOfCoreRenderer(stores[4], RenderSettings(threads=2)),
                                           args.seconds))
     R["dosppm c=4 n=2"] = rep(lambda: _dosppm(stores[4].path, 2, args.seconds, work))
+    if args.building_triangles:
+        results["building"] = _building(args, work, rep)
     return results
+
+
+def _building(args, work, rep) -> dict:
+    """The generated building: OSPPM with every chunk resident (c = 1 is
+    the whole scene in one process) beside DOSPPM at c = n = 1, 2, 4."""
+    from dosppm_core.generate import generate_building
+    from dosppm_core.soupfile import open_soup
+    path = os.path.join(work, "building")
+    generate_building(path, triangles=int(args.building_triangles), lights=600, seed=1)
+    source = open_soup(path)
+    stores = {c: open_or_subdivide(source, os.path.join(work, "stores"), chunks=c) for c in (1, 2, 4)}
+    out = {"triangles": int(stores[1].source_triangles), "runs": {}}
+    R = out["runs"]
+    R["osppm c=1"] = rep(lambda: _single(lambda: OutOfCoreRenderer(stores[1], RenderSettings(threads=2)),
+                                          args.seconds))
+    for c in (1, 2, 4):
+        R[f"dosppm c={c} n={c}"] = rep(lambda: _dosppm(stores[c].path, c, args.seconds, work))
+        print(f"building dosppm c=n={c}: {R[f'dosppm c={c} n={c}']['photons_per_s']:,.0f} photons/s",
+              file=sys.stderr)
+    return out
 
 
 def report(res: dict) -> str:
@@ -162,6 +184,8 @@ def report(res: dict) -> str:
         if "server_s_per_1M" in r and r["server_s_per_1M"] > 0:
             lines.append(f"| {key} | {r['server_s_per_1M']:.3f} | {r['tracer_s_per_1M']:.3f} | "
                          f"{r['tracer_s_per_1M'] / r['server_s_per_1M']:.1f} |")
+    if "building" in res:
+        lines += ["", report_building(res)]
     best = max(r["photons_per_s"] for k, r in R.items() if k.startswith("dosppm"))
     lines += ["", f"Best DOSPPM photons per machine-second: {best:,.0f}; the paper's best "
               f"(9-machine GPU cluster): {PAPER['best_photons_per_machine_s']:,} "
@@ -169,14 +193,36 @@ def report(res: dict) -> str:
     return "\n".join(lines)
 
 
+def report_building(res: dict) -> str:
+    b = res["building"]
+    lines = [f"Generated building ({b['triangles']:,} triangles, 600 lights), {res['seconds']:.0f} s "
+             "per run, chunk loading included:", "",
+             "| configuration | photons/s | hit points/s | tracer busy | tracer-tracer MB/s |",
+             "|---|---|---|---|---|"]
+    for key, r in b["runs"].items():
+        tb = ", ".join(f"{x:.2f}" for x in r.get("tracer_busy", [])) or "-"
+        lines.append(f"| {key} | {r['photons_per_s']:,.0f} | {r['hit_points_per_s']:,.0f} | {tb} | "
+                     f"{r.get('between_tracers_MB_s', 0):.1f} |")
+    return "\n".join(lines)
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--seconds", type=float, default=20.0)
     p.add_argument("--repeats", type=int, default=1)
+    p.add_argument("--building-triangles", type=float, default=0,
+                   help="also run a generated building of this many triangles (e.g. 10e6)")
+    p.add_argument("--building-only", action="store_true", help="skip the dragon runs")
     p.add_argument("--json", default=os.path.join(ROOT, "benchmarks", "results", "dosppm.json"))
     args = p.parse_args()
-    res = run(args)
-    text = report(res)
+    if args.building_only:
+        work = tempfile.mkdtemp(prefix="dosppm-bench-")
+        res = {"seconds": args.seconds, "runs": {},
+               "building": _building(args, work, lambda fn: _median([fn() for _ in range(args.repeats)]))}
+        text = report_building(res)
+    else:
+        res = run(args)
+        text = report(res)
     print(text)
     with open(args.json, "w", encoding="utf-8") as f:
         json.dump(res, f, indent=1)

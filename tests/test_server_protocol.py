@@ -1,0 +1,87 @@
+"""The server process on its socket, driven by a raw ZeroMQ peer: a tracer
+speaking another protocol version is refused with a reason, garbage gets an
+error reply and the server keeps serving, and heartbeats flow both ways."""
+from __future__ import annotations
+
+import threading
+import time
+
+import msgpack
+import numpy as np
+import pytest
+import zmq
+
+from chunk_helpers import MemoryChunks, root_box, uniform_tree
+from dosppm_core import builtin
+from dosppm_core.render import RenderSettings
+from services import wire
+from services.server import Limits, ServerProcess
+
+
+@pytest.fixture()
+def server():
+    scene = builtin.make("cornell-box")
+    scene.camera.width = scene.camera.height = 16
+    store = MemoryChunks(scene, uniform_tree(root_box(scene), (1, 1, 1)))
+    store.key, store.manifest, store.path, store.chunk_count = "k", None, "", 1
+    s = ServerProcess(store, RenderSettings(threads=1), bind="tcp://127.0.0.1:*", http=None, out="",
+                      limits=Limits(seconds=600), min_tracers=5)
+    t = threading.Thread(target=s.run, daemon=True)
+    t.start()
+    yield s
+    s._signals = 2                   # what a second SIGINT does: stop now
+    t.join(30)
+    assert not t.is_alive()
+
+
+def _dealer(server, ident=b"probe"):
+    d = zmq.Context.instance().socket(zmq.DEALER)
+    d.setsockopt(zmq.IDENTITY, ident)
+    d.setsockopt(zmq.LINGER, 0)
+    d.connect(server.endpoint)
+    return d
+
+
+def _reply(d, timeout_ms=5000, want=None):
+    deadline = time.monotonic() + timeout_ms / 1000
+    while time.monotonic() < deadline:
+        if d.poll(200):
+            msg = wire.decode(d.recv_multipart())
+            if want is None or msg.type in want:
+                return msg
+    raise AssertionError("no reply")
+
+
+def test_a_tracer_of_another_protocol_version_is_refused_with_a_reason(server):
+    d = _dealer(server)
+    frames = wire.encode("register", tracer_id="old", capacity={"cores": 1, "memory_bytes": 0},
+                         endpoint="tcp://127.0.0.1:1", has_store=False)
+    header = msgpack.unpackb(bytes(frames[0]))
+    header["v"] = wire.PROTOCOL_VERSION + 1
+    d.send_multipart([msgpack.packb(header), *frames[1:]])
+    msg = _reply(d)
+    assert msg.type == "refused"
+    assert f"tracer speaks {wire.PROTOCOL_VERSION + 1}, server speaks {wire.PROTOCOL_VERSION}" in msg.reason
+    assert "same dosppm release" in msg.reason
+    assert server.state.tracers == {}
+    d.close()
+
+
+def test_garbage_gets_an_error_and_the_server_keeps_serving(server):
+    d = _dealer(server)
+    d.send_multipart([b"\xc1not msgpack"])
+    assert _reply(d).type == "error"
+    d.send_multipart(wire.encode("results", chunk=0, ends=np.zeros(5, np.int64),
+                                 job_ids=np.zeros(0, np.int64), job_fed=np.zeros(0, np.int64),
+                                 job_left=np.zeros(0, np.int64)))
+    msg = _reply(d)
+    assert msg.type == "error" and "not registered" in msg.reason
+    # Still serving: a proper registration is welcomed, then heartbeats come.
+    d.send_multipart(wire.encode("register", tracer_id="probe", capacity={"cores": 1, "memory_bytes": 0},
+                                 endpoint="tcp://127.0.0.1:1", has_store=True, store_key="k"))
+    assert _reply(d, want={"welcome"}).chunks == [0]
+    assert _reply(d, 3000, want={"heartbeat"}).type == "heartbeat"
+    d.send_multipart(wire.encode("heartbeat", status={"queue": 0}))
+    time.sleep(0.5)
+    assert server.state.tracers["probe"].status == {"queue": 0}
+    d.close()
