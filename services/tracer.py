@@ -236,6 +236,9 @@ class TracerProcess:
                 log.warning("server says: %s", msg.reason)
             else:
                 self._send(self.state.handle(msg))
+                if msg.type == "peers":
+                    log.info("peer table %d: this tracer serves chunks %s", msg.table_version,
+                             self.state.chunks)
 
     def _drain_peers(self) -> None:
         while True:
