@@ -37,6 +37,8 @@ def add_service_render_arguments(render: argparse.ArgumentParser) -> None:
     g.add_argument("--photons-per-job", type=int, default=1024)
     g.add_argument("--snapshot-interval", type=float, default=60.0, metavar="S",
                    help="write the image every S seconds while rendering")
+    g.add_argument("--tracer-timeout", type=float, default=10.0, metavar="S",
+                   help="drop a tracer silent for S seconds; its jobs are re-emitted")
     for o in config.OPTIMISATIONS:
         g.add_argument("--" + o.name.replace("_", "-"), action=argparse.BooleanOptionalAction,
                        default=True, help=o.help)

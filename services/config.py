@@ -59,6 +59,8 @@ SERVER = RENDER + OPTIMISATIONS + (
     _opt("min_photon_jobs", int, 1000, "photon jobs kept in flight (the paper's 1k)"),
     _opt("snapshot_interval", float, 60.0, "write the image every S seconds"),
     _opt("drain_timeout", float, 60.0, "at the end, wait this long for jobs in flight"),
+    _opt("tracer_timeout", float, 10.0, "drop a tracer silent this long (its jobs are re-emitted); "
+         "raise it for chunks that take longer than this to load"),
 )
 WORKER = (
     _opt("server", str, "tcp://127.0.0.1:5555", "the server's endpoint"),

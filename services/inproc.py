@@ -12,7 +12,7 @@ from dosppm_core.render import RenderSettings
 from . import wire
 from .scheduler import ServerState
 from .statistics import ServerStatistics
-from .tracer_state import SERVER, TracerState
+from .tracer_state import SERVER, Out, TracerState
 
 
 def _over_the_wire(msg_type: str, fields: dict):
@@ -22,17 +22,18 @@ def _over_the_wire(msg_type: str, fields: dict):
 class InProcessCluster:
     def __init__(self, store, settings: RenderSettings, tracers: int = 2, min_photon_jobs: int = 64,
                  queue_target_rays: int = 65_536, step_rays: int = 16_384,
-                 memory_bytes: float | None = None):
+                 memory_bytes: float | None = None, tracer_timeout_s: float = 10.0):
         self.settings = settings
         self.server = ServerState(store.header, store.tree, settings, getattr(store, "key", "memory"),
                                   getattr(store, "manifest", None),
                                   min_photon_jobs=min_photon_jobs, queue_target_rays=queue_target_rays,
-                                  min_tracers=tracers)
+                                  min_tracers=tracers, tracer_timeout_s=tracer_timeout_s)
         self.statistics = ServerStatistics(store.header, settings, threads=settings.threads)
         self.store, self.step_rays, self.memory_bytes = store, step_rays, memory_bytes
         self.tracers: dict[str, TracerState] = {}
         self.by_endpoint: dict[str, str] = {}
         self.mail: deque = deque()       # (sender, dest, message)
+        self.dead: set[str] = set()      # killed tracers: they neither send nor receive
         self.messages = 0
         self.wire_bytes = 0
         self.now = 0.0
@@ -54,8 +55,17 @@ class InProcessCluster:
         self._deliver()
         return tid
 
+    def kill(self, tid: str) -> None:
+        """The tracer stops dead (SIGKILL, a cut cable): nothing more from
+        it or to it; the server notices by its missing heartbeats."""
+        self.dead.add(tid)
+
     def _post(self, sender: str, outs) -> None:
+        if sender in self.dead:
+            return
         for o in outs:
+            if o.dest in self.dead or self.by_endpoint.get(o.dest) in self.dead:
+                continue
             frames = wire.encode(o.type, **o.fields)
             self.wire_bytes += sum(len(memoryview(f).cast("B")) for f in frames)
             self.messages += 1
@@ -79,12 +89,16 @@ class InProcessCluster:
                 self.server.gather_box = box
 
     def round(self) -> None:
-        """One tick of the server, then one step of every tracer with work."""
+        """One tick of the server (10 ms of cluster time), then one step of
+        every live tracer with work; heartbeats every second."""
         self.now += 0.01
+        if round(self.now * 100) % 100 == 0:
+            for tid in self.tracers:
+                self._post(tid, [Out(SERVER, "heartbeat", dict(status={}))])
         self._post(SERVER, self.server.tick(self.now))
         self._deliver()
         for tid, t in self.tracers.items():
-            if t.has_work():
+            if t.has_work() and tid not in self.dead:
                 self._post(tid, t.step())
                 self._deliver()
         self._apply_updates()

@@ -31,7 +31,7 @@ def render_local(args) -> int:
     values.update({o: getattr(args, o) for o in ("cull", "concurrent", "client_batching")})
     values.update(bind="tcp://127.0.0.1:*", http=args.http, min_tracers=n,
                   min_photon_jobs=args.min_photon_jobs, snapshot_interval=args.snapshot_interval,
-                  drain_timeout=60.0)
+                  drain_timeout=60.0, tracer_timeout=args.tracer_timeout)
     return serve(args.scene, values, quiet=args.quiet, spawn_tracers=n)
 
 
@@ -91,7 +91,8 @@ def serve(scene: str, v: dict, quiet: bool = False, spawn_tracers: int = 0) -> i
                                min_photon_jobs=v["min_photon_jobs"], min_tracers=v["min_tracers"],
                                threads=v["threads"], exposure=v["exposure"],
                                drain_timeout_s=v["drain_timeout"], reporter=reporter,
-                               concurrent=v["concurrent"], client_batching=v["client_batching"])
+                               concurrent=v["concurrent"], client_batching=v["client_batching"],
+                               tracer_timeout_s=v["tracer_timeout"])
     except Exception as e:   # zmq bind errors and the like: one line, not a traceback
         return core._error(f"cannot start the server: {e}")
     cam = store.header.camera

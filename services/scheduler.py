@@ -85,6 +85,9 @@ class Job:
     eye_iteration: int | None = None
     open: int = 0                    # path segments sent or passed on, not yet traced
     sent: bool = False               # all its paths have left the server
+    # The photon job whose random streams this one traces: itself, or the
+    # job it re-emits after a tracer failure (the same photons, a new id).
+    rng_key: int | None = None
 
 
 @dataclass
@@ -121,7 +124,8 @@ class ServerState:
     def __init__(self, header, tree, settings: RenderSettings, store_key: str,
                  manifest: dict | None = None, min_photon_jobs: int = 1000,
                  queue_target_rays: int = 262_144, min_tracers: int = 1,
-                 concurrent: bool = True, client_batching: bool = True):
+                 concurrent: bool = True, client_batching: bool = True,
+                 tracer_timeout_s: float = 10.0):
         """`concurrent` False and `client_batching` False switch off two of
         the paper's optimisations, for the Figure 15 benchmark."""
         settings.validate()
@@ -130,6 +134,9 @@ class ServerState:
         self.min_photon_jobs, self.queue_target = int(min_photon_jobs), int(queue_target_rays)
         self.min_tracers = int(min_tracers)
         self.concurrent, self.client_batching = bool(concurrent), bool(client_batching)
+        self.tracer_timeout_s = float(tracer_timeout_s)
+        self.discarded: set[int] = set()          # job ids whose late results are ignored
+        self.evicted: list[dict] = []
         self.eps_abs = 1e-6 * header.diagonal()
         self.n_pixels = int(header.camera.width) * int(header.camera.height)
         self.tracers: dict[str, TracerInfo] = {}
@@ -146,6 +153,7 @@ class ServerState:
         self._photon_receivers: set = set()
         self.photon_jobs_in_flight = 0
         self.eye: EyeIteration | None = None
+        self._eye_restart = False
         self.eye_started = 0
         self.eye_completed = 0
         self._photons_at_eye_start = 0
@@ -158,7 +166,9 @@ class ServerState:
         self.counters = {"photons_emitted": 0, "photons_completed": 0, "photons_committed": 0,
                          "photon_jobs_completed": 0, "eye_jobs_completed": 0, "hit_points": 0,
                          "deposits_received": 0, "culled": 0, "stale_paths": 0,
-                         "over_counted_paths": 0, "results": 0, "updates": 0}
+                         "over_counted_paths": 0, "results": 0, "updates": 0,
+                         "photons_discarded": 0, "jobs_discarded": 0, "tracers_evicted": 0,
+                         "eye_iterations_restarted": 0, "deposits_discarded": 0}
         self.path_ends = np.zeros(len(END_NAMES), np.int64)
 
     # -- tracers -------------------------------------------------------------------
@@ -270,8 +280,10 @@ class ServerState:
             return
         held = PhotonDeposits.concat(self._held)
         in_flight = np.fromiter((j for j, job in self.jobs.items() if job.kind == "photon"), np.int64)
-        ready = ~np.isin(held.job, in_flight)
-        commit, keep = held.take(ready), held.take(~ready)
+        waiting = np.isin(held.job, in_flight)
+        dropped = np.isin(held.job, np.fromiter(self.discarded, np.int64))   # lost with a tracer
+        commit, keep = held.take(~waiting & ~dropped), held.take(waiting)
+        self.counters["deposits_discarded"] += int(dropped.sum())
         self.updates.append(Update("photons", deposits=commit, photons_emitted=self._ready_emitted))
         self.counters["photons_committed"] += self._ready_emitted
         self._ready_emitted = 0
@@ -285,6 +297,7 @@ class ServerState:
         if now - self._last_heartbeat >= HEARTBEAT_INTERVAL_S:
             self._last_heartbeat = now
             out += [Out(tid, "heartbeat", dict(status={})) for tid in self.tracers]
+            out += self._evict_silent(now)
         if not self.started:
             if len(self.tracers) < self.min_tracers:
                 return out
@@ -318,9 +331,55 @@ class ServerState:
             left -= count
         return self._send_photon_jobs()
 
-    def _new_job(self, kind: str, paths: int, eye_iteration: int | None = None) -> int:
+    # -- tracer failure ----------------------------------------------------------------
+    def _evict_silent(self, now: float) -> list[Out]:
+        """Tracers silent for `tracer_timeout_s` (killed, hung or cut off)
+        are dropped; see `evict`."""
+        out = []
+        for t in [t for t in self.tracers.values() if now - t.last_seen_s > self.tracer_timeout_s]:
+            out += self.evict(t.id, f"silent for {now - t.last_seen_s:.1f} s")
+        return out
+
+    def evict(self, tid: str, reason: str) -> list[Out]:
+        """Drop tracer `tid`: its chunks go to the live tracers (new peer
+        tables), and every job in flight is discarded whole and re-emitted.
+        Any of them may have had paths queued at or travelling to the lost
+        tracer, and the server cannot know which, so none of their deposits
+        or hit points count; photon jobs are re-emitted with the same random
+        streams (the same photons, a new job id) and an eye iteration in
+        flight starts over. Late results of discarded jobs are stale."""
+        t = self.tracers.pop(tid)
+        self.evicted.append({"id": tid, "reason": reason})
+        self.counters["tracers_evicted"] += 1
+        self._reassign()
+        self._discard_jobs_in_flight()
+        return self._peer_tables()
+
+    def _discard_jobs_in_flight(self) -> None:
+        again = []
+        for j, job in list(self.jobs.items()):
+            if not job.sent:
+                continue                      # still at the server: nothing lost
+            del self.jobs[j]
+            self.discarded.add(j)
+            self.counters["jobs_discarded"] += 1
+            if job.kind == "photon":
+                self.photon_jobs_in_flight -= 1
+                self.counters["photons_discarded"] += job.paths
+                again.append(self._new_job("photon", job.paths, rng_key=job.rng_key))
+        self._photon_pending.extendleft(reversed(again))
+        if self.eye is not None:
+            for j in [j for j, job in self.jobs.items() if job.kind == "eye"]:
+                del self.jobs[j]
+                self.discarded.add(j)
+            self.eye = None                   # the next tick starts a fresh iteration
+            self._eye_restart = True
+            self.counters["eye_iterations_restarted"] += 1
+
+    def _new_job(self, kind: str, paths: int, eye_iteration: int | None = None,
+                 rng_key: int | None = None) -> int:
         j = next(self._job_ids)
-        self.jobs[j] = Job(kind, paths, eye_iteration=eye_iteration)
+        self.jobs[j] = Job(kind, paths, eye_iteration=eye_iteration, rng_key=j if rng_key is None else rng_key)
         if kind == "photon":
             self.photon_jobs_in_flight += 1
         return j
@@ -330,9 +389,11 @@ class ServerState:
 
     def _maybe_start_eye_iteration(self) -> list[Out]:
         s = self.settings
-        if self.eye is not None or (self.eye_started and self.counters["photons_emitted"]
-                                    - self._photons_at_eye_start < s.photons_per_iteration):
+        if self.eye is not None or (self.eye_started and not self._eye_restart and
+                                    self.counters["photons_emitted"] - self._photons_at_eye_start
+                                    < s.photons_per_iteration):
             return []
+        self._eye_restart = False
         e = EyeIteration(self.eye_started, 0)
         self.eye, self.eye_started = e, self.eye_started + 1
         self._photons_at_eye_start = self.counters["photons_emitted"]
@@ -377,7 +438,8 @@ class ServerState:
                 for t in self._photon_receivers if t in self.tracers):
             j = self._photon_pending.popleft()
             count = self.jobs[j].paths
-            batch = emit_photon_job(self.header, s.seed, j, count, self.eps_abs)
+            batch = emit_photon_job(self.header, s.seed, self.jobs[j].rng_key, count, self.eps_abs)
+            batch.job[:] = j
             self.counters["photons_emitted"] += count
             self._photon_receivers = self._route(j, batch, parts)
             out += self._flush(parts, box, full_only=True)

@@ -62,7 +62,7 @@ class ServerProcess:
                  min_photon_jobs: int = 1000, min_tracers: int = 1,
                  queue_target_rays: int = 262_144, threads: int = 2, exposure: float = 0.0,
                  drain_timeout_s: float = 60.0, reporter=None, context: zmq.Context | None = None,
-                 concurrent: bool = True, client_batching: bool = True):
+                 concurrent: bool = True, client_batching: bool = True, tracer_timeout_s: float = 10.0):
         self.store, self.settings = store, settings
         self.out, self.exposure, self.reporter = out, exposure, reporter
         self.limits = limits or Limits(seconds=30.0)
@@ -70,7 +70,7 @@ class ServerProcess:
         self.state = ServerState(store.header, store.tree, settings, store.key, store.manifest,
                                  min_photon_jobs=min_photon_jobs, queue_target_rays=queue_target_rays,
                                  min_tracers=min_tracers, concurrent=concurrent,
-                                 client_batching=client_batching)
+                                 client_batching=client_batching, tracer_timeout_s=tracer_timeout_s)
         self.statistics = ServerStatistics(store.header, settings, threads=threads)
         self.ctx = context or zmq.Context.instance()
         self.router = wire.configure(self.ctx.socket(zmq.ROUTER))

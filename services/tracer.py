@@ -61,6 +61,7 @@ class TracerProcess:
         self.peers: dict[str, zmq.Socket] = {}
         self.outbox: list = []        # (endpoint, frames) waiting for a full peer pipe
         self.stopped: str | None = None
+        self._rejoining = False
         self.bytes_to_server = self.bytes_to_peers = 0
 
     # -- sockets -------------------------------------------------------------------
@@ -232,6 +233,14 @@ class TracerProcess:
         for msg in msgs:
             if msg.type == "shutdown":
                 self.stopped = msg.reason or "shutdown"
+            elif msg.type == "error" and "is not registered" in msg.reason:
+                self._rejoin()
+            elif msg.type == "welcome":
+                # Back after the server dropped us (we were hung or cut off):
+                # whatever we still hold belongs to jobs it has discarded.
+                self.state.reset()
+                self._rejoining = False
+                log.warning("rejoined the server as tracer %d", msg.tracer_index)
             elif msg.type in ("error", "refused"):
                 log.warning("server says: %s", msg.reason)
             else:
@@ -239,6 +248,18 @@ class TracerProcess:
                 if msg.type == "peers":
                     log.info("peer table %d: this tracer serves chunks %s", msg.table_version,
                              self.state.chunks)
+
+    def _rejoin(self) -> None:
+        """The server no longer knows us (it evicted us while we were
+        silent): register again, once, and carry on when welcomed."""
+        if self._rejoining:
+            return
+        self._rejoining = True
+        log.warning("the server dropped this tracer; registering again")
+        wire.send(self.dealer, wire.encode(
+            "register", tracer_id=self.tracer_id, endpoint=self.endpoint,
+            capacity={"cores": self.threads, "memory_bytes": int(self.memory_bytes or 0)},
+            has_store=True, store_key=self.state.provider_key))
 
     def _drain_peers(self) -> None:
         while True:

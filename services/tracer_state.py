@@ -135,6 +135,16 @@ class TracerState:
         q.rays += len(batch)
         return []
 
+    @property
+    def provider_key(self) -> str | None:
+        return getattr(self.provider, "key", None)
+
+    def reset(self) -> None:
+        """Forget every queued package (their jobs were discarded)."""
+        self.queues.clear()
+        self.unroutable = []
+        self._active = None
+
     def handle(self, msg) -> list[Out]:
         """A decoded message from the server or a peer."""
         if msg.type == "peers":

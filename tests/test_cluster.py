@@ -171,3 +171,29 @@ def test_tracers_cull_deposits_outside_the_box_they_were_sent():
         t.close()
     assert counts["all"][1] == 0 and counts["floor"][1] > 0
     assert counts["floor"][0] + counts["floor"][1] == counts["all"][0]
+
+
+def test_a_killed_tracer_loses_no_photon_and_counts_none_twice(caustic):
+    """c = 4 over three tracers; one stops dead mid-render. The server
+    notices by its silence, gives its chunks to the others, discards every
+    job in flight whole and re-emits it with the same photons; the render
+    completes with nothing lost or counted twice, and the image agrees with
+    SPPM within noise."""
+    scene, ref = caustic
+    provider = MemoryChunks(scene, uniform_tree(root_box(scene), (2, 2, 1)))
+    c = InProcessCluster(provider, _settings(), tracers=3, tracer_timeout_s=2.0)
+    c.render(photons=PHOTONS // 3)
+    c.kill("t1")
+    c.render(photons=PHOTONS)
+    c.drain()
+    c.close()
+    s, k = c.server, c.server.counters
+    assert k["tracers_evicted"] == 1 and "t1" not in s.tracers
+    assert all(o and "t1" not in o for o in s.owners)
+    assert k["jobs_discarded"] > 0 and k["photons_discarded"] > 0
+    # Exactly once: what was emitted and not discarded was completed and
+    # applied; discarded jobs' deposits never reached the statistics.
+    assert k["photons_emitted"] - k["photons_discarded"] == k["photons_completed"] == k["photons_committed"]
+    assert c.statistics.stats.photons_emitted == k["photons_committed"]
+    assert k["over_counted_paths"] == 0
+    _assert_same_within_noise(c.image(), ref[5][0], ref[9][0])
