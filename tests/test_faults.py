@@ -1,0 +1,146 @@
+"""Tracer failures on a real cluster (a server and three tracer processes
+over tcp on loopback): a tracer killed with SIGKILL, and one hung with
+SIGSTOP, mid-render. The server detects each within its --tracer-timeout,
+reassigns the chunks, re-emits the jobs in flight, and the render
+completes with no photon lost and none counted twice (the server's own
+accounting), its image agreeing within noise with failure-free renders."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+
+import pytest
+
+from cluster_helpers import assert_same_within_noise
+from dosppm_core.film_io import read_exr
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+PHOTONS = 1_500_000
+TIMEOUT_S = 3.0
+
+
+def _port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Cluster:
+    """`dosppm server` and three `dosppm worker` processes."""
+
+    def __init__(self, tmp, seed: int):
+        self.tmp, self.port, self.http = tmp, _port(), _port()
+        py = [sys.executable, "-m", "services.cli"]
+        self.server = subprocess.Popen(
+            py + ["server", "cornell-caustic", "--width", "64", "--height", "64", "--chunks", "4",
+                  "--bind", f"tcp://127.0.0.1:{self.port}", "--http", f"127.0.0.1:{self.http}",
+                  "--min-tracers", "3", "--photons", str(PHOTONS), "--photons-per-iteration", "40000",
+                  "--min-photon-jobs", "64", "--seed", str(seed), "--tracer-timeout", str(TIMEOUT_S),
+                  "--threads", "1", "--out", str(tmp / "img.exr"), "--store-cache", str(tmp / "stores"),
+                  "--quiet"], cwd=ROOT, stderr=open(tmp / "server.log", "w"))
+        self.workers = [subprocess.Popen(
+            py + ["worker", "--server", f"tcp://127.0.0.1:{self.port}", "--threads", "1", "--id", f"w{i}",
+                  "--cache-dir", str(tmp / f"cache{i}"), "--quiet"],
+            cwd=ROOT, stderr=open(tmp / f"worker{i}.log", "w")) for i in range(3)]
+
+    def status(self) -> dict:
+        try:
+            with urllib.request.urlopen(f"http://127.0.0.1:{self.http}/status", timeout=2) as r:
+                return json.load(r)
+        except OSError:
+            return {}
+
+    def wait_for(self, predicate, timeout_s=120.0) -> dict:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline and self.server.poll() is None:
+            st = self.status()
+            if st and predicate(st):
+                return st
+            time.sleep(0.2)
+        raise AssertionError(f"condition not reached; last status {self.status()}\n{self.logs()}")
+
+    def finish(self, timeout_s=180.0):
+        code = self.server.wait(timeout_s)
+        assert code == 0, self.logs()
+        for w in self.workers:
+            if w.poll() is None:
+                try:
+                    w.wait(20)
+                except subprocess.TimeoutExpired:
+                    w.kill()
+        with open(self.tmp / "img.json", encoding="utf-8") as f:
+            return read_exr(str(self.tmp / "img.exr"))[0], json.load(f)
+
+    def logs(self) -> str:
+        return "\n".join(f"--- {p.name}\n{p.read_text()[-1500:]}" for p in sorted(self.tmp.glob("*.log")))
+
+    def close(self):
+        for p in (self.server, *self.workers):
+            if p.poll() is None:
+                p.send_signal(signal.SIGCONT)
+                p.kill()
+                p.wait()
+
+
+def _render(tmp, seed, fault=None):
+    c = Cluster(tmp, seed)
+    try:
+        if fault:
+            fault(c)
+        return c.finish()
+    finally:
+        c.close()
+
+
+@pytest.fixture(scope="module")
+def failure_free(tmp_path_factory):
+    """Failure-free renders with the test's seed and another (the noise)."""
+    return {seed: _render(tmp_path_factory.mktemp(f"free{seed}"), seed)[0] for seed in (5, 9)}
+
+
+def _mid_render(c: Cluster) -> None:
+    c.wait_for(lambda st: st.get("photons_committed", 0) > 0 and len(st.get("tracers", [])) == 3)
+
+
+def _assert_exactly_once(summary: dict) -> None:
+    k = summary["counters"]
+    assert k["tracers_evicted"] >= 1 and k["jobs_discarded"] > 0
+    lost = k["photons_emitted"] - k["photons_discarded"] - k["photons_completed"]
+    assert lost == 0, k
+    assert k["photons_completed"] == k["photons_committed"] == summary["photons_applied"]
+    assert k["over_counted_paths"] == 0, k
+    assert summary["jobs_in_flight"] == 0
+
+
+def test_a_tracer_killed_mid_render(tmp_path, failure_free):
+    def kill(c: Cluster):
+        _mid_render(c)
+        t0 = time.monotonic()
+        c.workers[1].send_signal(signal.SIGKILL)
+        st = c.wait_for(lambda st: st["counters"]["tracers_evicted"] >= 1)
+        detected = time.monotonic() - t0
+        assert detected < TIMEOUT_S + 3.0, f"detected after {detected:.1f} s"
+        assert {t["id"] for t in st["tracers"]} == {"w0", "w2"}
+        assert sorted(k for t in st["tracers"] for k in t["chunks"]) == [0, 1, 2, 3]
+    img, summary = _render(tmp_path, 5, kill)
+    _assert_exactly_once(summary)
+    assert_same_within_noise(img, failure_free[5], failure_free[9])
+
+
+def test_a_hung_tracer_is_dropped_and_rejoins_when_it_wakes(tmp_path, failure_free):
+    def hang(c: Cluster):
+        _mid_render(c)
+        c.workers[2].send_signal(signal.SIGSTOP)
+        c.wait_for(lambda st: st["counters"]["tracers_evicted"] >= 1)
+        c.workers[2].send_signal(signal.SIGCONT)
+        # Awake again, it learns it was dropped, registers and gets chunks.
+        c.wait_for(lambda st: any(t["id"] == "w2" and t["chunks"] for t in st["tracers"]), 30)
+    img, summary = _render(tmp_path, 5, hang)
+    _assert_exactly_once(summary)
+    assert_same_within_noise(img, failure_free[5], failure_free[9])
