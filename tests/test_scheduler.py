@@ -131,3 +131,34 @@ def test_no_photons_before_the_first_hit_points(state):
     out = state.tick(0.0)
     assert {o.type for o in out} <= {"heartbeat", "eye_job"}
     assert any(o.type == "eye_job" for o in out)
+
+
+def test_eviction_re_emits_the_same_photons_under_new_job_ids(state):
+    _register(state, "a")
+    _register(state, "b")
+    state.gather_box = np.array([[-1e9] * 3, [1e9] * 3])
+    state.eye_completed = 1
+    first = {}
+    for o in state.tick(0.0):
+        if o.type == "photon_job":
+            for j in np.unique(o.fields["batch"].job):
+                first.setdefault(int(j), []).append(o.fields["batch"].origin[o.fields["batch"].job == j])
+    sent = dict(state.jobs)
+    out = state.evict("b", "test")
+    assert {o.type for o in out} == {"peers"} and state.owners == [["a"]] * 4
+    assert all(j in state.discarded for j, job in sent.items() if job.sent)
+    again = {}
+    for o in state.tick(1.0):
+        if o.type == "photon_job":
+            for j in np.unique(o.fields["batch"].job):
+                again.setdefault(state.jobs[int(j)].rng_key, []).append(
+                    o.fields["batch"].origin[o.fields["batch"].job == j])
+    common = set(first) & set(again)
+    assert common, "no re-emitted job was sent"
+    for key in common:   # the same photons, whatever new id carries them
+        assert np.array_equal(np.sort(np.concatenate(first[key]), axis=0),
+                              np.sort(np.concatenate(again[key]), axis=0))
+    # Results of a discarded job are stale, and its deposits never count.
+    old = next(iter(common))
+    state.on_message("a", _results([old], [3], deposits_job=[old]), 1.1)
+    assert state.counters["stale_paths"] == 3
