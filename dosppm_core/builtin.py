@@ -1,11 +1,20 @@
 """Built-in procedural scenes: no files needed, each built in milliseconds.
 
-| name              | what it is                                                        |
-|-------------------|-------------------------------------------------------------------|
-| `cornell-box`     | the measured Cornell box, exactly as Mitsuba's `cbox-rgb.xml`      |
-| `cornell-caustic` | the box with a glass and a mirror sphere instead of the two blocks |
-| `cornell-glass`   | the box with a 110k-triangle glass torus knot (the default)        |
-| `furnace-sphere`  | a diffuse sphere lit from its centre: radiance in closed form      |
+| name                | what it is                                                        |
+|---------------------|-------------------------------------------------------------------|
+| `cornell-box`       | the measured Cornell box, exactly as Mitsuba's `cbox-rgb.xml`      |
+| `cornell-caustic`   | the box with a glass and a mirror sphere instead of the two blocks |
+| `cornell-glass`     | the box with a 110k-triangle glass torus knot (the default)        |
+| `furnace-sphere`    | a diffuse sphere lit from its centre: radiance in closed form      |
+| `thin-wall`         | two closed rooms parted by a 5.5 mm wall, lit on one side only     |
+| `far-from-origin`   | `cornell-box` moved by (1e5, 1e5, 1e5) mm, camera and all          |
+| `many-lights`       | a room lit by 400 small ceiling lamps of four powers               |
+| `glossy-floor`      | `cornell-box` with a GGX floor of roughness 0.15                   |
+| `glass-small-light` | a room lit by a 20 mm lamp inside a hollow glass lantern           |
+
+The last five are the suite of renderers' known failure modes (light leaks,
+float32 precision, light selection, glossy surfaces, small lights behind
+glass); `suite_scenes.py` builds them and says what each one tests.
 
 The Cornell geometry is the Cornell Program of Computer Graphics' measured
 data in millimetres, +y up, as in Mitsuba's `meshes/cbox_*.obj`: the same
@@ -26,6 +35,11 @@ SCENES = {
     "cornell-caustic": "the Cornell box with a glass sphere and a mirror sphere (caustics)",
     "cornell-glass": "the Cornell box holding a 110k-triangle glass torus knot (stand-in for the Cornell dragon)",
     "furnace-sphere": "a closed diffuse sphere lit by a point light at its centre (closed-form radiance)",
+    "thin-wall": "two closed rooms parted by a wall 1% thick, one lit; the other must stay black (light leaks)",
+    "far-from-origin": "cornell-box moved 1e5 mm along each axis, to render the same (float32 precision)",
+    "many-lights": "a room lit by 400 small ceiling lamps of four powers (light selection by power)",
+    "glossy-floor": "cornell-box with a glossy GGX floor of roughness 0.15 (slow SPPM convergence)",
+    "glass-small-light": "a 20 mm lamp inside a glass lantern: seen through glass, the room lit by caustics",
 }
 DEFAULT = "cornell-glass"
 
@@ -69,7 +83,7 @@ _PART_MATERIAL = {"floor": "white", "ceiling": "white", "back": "white", "greenw
 
 # Mitsuba's fragments/bsdfs-rgb.xml and the area emitter of cbox-rgb.xml.
 # Mitsuba's diffuse BSDF is black from behind, hence two_sided=False.
-_CORNELL_REFLECTANCE = {
+CORNELL_REFLECTANCE = {
     "white": (0.885809, 0.698859, 0.666422),
     "red": (0.570068, 0.0430135, 0.0443706),
     "green": (0.105421, 0.37798, 0.076425),
@@ -97,12 +111,19 @@ def cornell_camera(width: int = 256, height: int = 256) -> Camera:
                   fov_axis="smaller")
 
 
-def _cornell_builder(name: str, parts: tuple[str, ...]) -> SceneBuilder:
-    """A builder holding the Cornell camera, materials and the given parts."""
+def cornell_builder(name: str, parts: tuple[str, ...],
+                    offset_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> SceneBuilder:
+    """A builder holding the Cornell camera, materials and the given parts
+    (see `_CORNELL_PARTS`), everything moved by `offset_mm`; more meshes and
+    materials may be added before `build()`."""
     builder = SceneBuilder(source=f"builtin:{name}", name=name)
-    builder.camera = cornell_camera()
+    offset = np.asarray(offset_mm, np.float64)
+    camera = cornell_camera()
+    camera.position = tuple(float(x) for x in np.add(camera.position, offset))
+    camera.look_at = tuple(float(x) for x in np.add(camera.look_at, offset))
+    builder.camera = camera
     used = {_PART_MATERIAL[part] for part in parts}
-    for mat, refl in _CORNELL_REFLECTANCE.items():
+    for mat, refl in CORNELL_REFLECTANCE.items():
         if mat not in used:
             continue
         emission = CORNELL_LIGHT_RADIANCE if mat == "light" else (0.0, 0.0, 0.0)
@@ -110,16 +131,18 @@ def _cornell_builder(name: str, parts: tuple[str, ...]) -> SceneBuilder:
                                       two_sided=False))
     for part in parts:
         vertices, faces = cornell_part(part)
-        builder.add_mesh(vertices, faces, _PART_MATERIAL[part], f"builtin:{name}: {part}")
+        builder.add_mesh(vertices + offset, faces, _PART_MATERIAL[part], f"builtin:{name}: {part}")
     return builder
 
 
-_BOX_SHELL = ("floor", "ceiling", "back", "greenwall", "redwall", "luminaire")
+# The box without its blocks, and the blocks.
+CORNELL_SHELL = ("floor", "ceiling", "back", "greenwall", "redwall", "luminaire")
+CORNELL_BLOCKS = ("smallbox", "largebox")
 
 
 def cornell_box() -> Scene:
     """The measured Cornell box with its two blocks, 38 triangles."""
-    return _cornell_builder("cornell-box", _BOX_SHELL + ("smallbox", "largebox")).build()
+    return cornell_builder("cornell-box", CORNELL_SHELL + CORNELL_BLOCKS).build()
 
 
 def _placed(vertices: np.ndarray, scale: float, rotation: np.ndarray,
@@ -140,7 +163,7 @@ def cornell_caustic(subdivisions: int = 6) -> Scene:
     Nori's `cbox-pmap.xml` photon-mapping scene rescaled to the measured box.
     Both spheres have radius 100 mm, 1 mm above the floor, and
     20 * 4**subdivisions triangles each (81,920 by default)."""
-    builder = _cornell_builder("cornell-caustic", _BOX_SHELL)
+    builder = cornell_builder("cornell-caustic", CORNELL_SHELL)
     builder.add_material(Material("mirror", "mirror", reflectance=(1.0, 1.0, 1.0)))
     builder.add_material(Material("glass", "glass", reflectance=(1.0, 1.0, 1.0), ior=1.5))
     vertices, faces = shapes.ico_sphere(subdivisions)
@@ -155,7 +178,7 @@ def cornell_glass() -> Scene:
     110,592 triangles: the stand-in for the paper's Cornell dragon. The knot
     is about 330 mm across, stands facing the camera, tilted 30 degrees back
     towards the light, and rests 1 mm above the floor."""
-    builder = _cornell_builder("cornell-glass", _BOX_SHELL)
+    builder = cornell_builder("cornell-glass", CORNELL_SHELL)
     builder.add_material(Material("glass", "glass", reflectance=(1.0, 1.0, 1.0), ior=1.5))
     vertices, faces = shapes.glass_knot()
     # The knot lies in its xy-plane; turning it about z puts a lobe on top,
@@ -174,7 +197,7 @@ def cornell_with_mesh(path: str, size_mm: float = 330.0) -> Scene:
     from .scenefile import load_mesh_file
     name = f"cornell-{os.path.splitext(os.path.basename(path))[0]}"
     vertices, faces = load_mesh_file(path, path, "mesh")
-    builder = _cornell_builder(name, _BOX_SHELL)
+    builder = cornell_builder(name, CORNELL_SHELL)
     builder.add_material(Material("glass", "glass", reflectance=(1.0, 1.0, 1.0), ior=1.5))
     extent = float(np.ptp(vertices, axis=0).max())
     if not extent > 0.0:
@@ -215,11 +238,25 @@ def furnace_sphere(albedo: float = 0.5, intensity: float = 1.0, subdivisions: in
     return builder.build()
 
 
+def _suite(function: str):
+    """A maker for a scene of `suite_scenes`, imported on first use: that
+    module builds on the Cornell helpers above, so it imports this one."""
+    def make_suite_scene() -> Scene:
+        from . import suite_scenes
+        return getattr(suite_scenes, function)()
+    return make_suite_scene
+
+
 _MAKERS = {
     "cornell-box": cornell_box,
     "cornell-caustic": cornell_caustic,
     "cornell-glass": cornell_glass,
     "furnace-sphere": furnace_sphere,
+    "thin-wall": _suite("thin_wall"),
+    "far-from-origin": _suite("far_from_origin"),
+    "many-lights": _suite("many_lights"),
+    "glossy-floor": _suite("glossy_floor"),
+    "glass-small-light": _suite("glass_small_light"),
 }
 
 

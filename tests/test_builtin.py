@@ -54,7 +54,9 @@ def test_every_scene_builds_fast_and_deterministically(name):
 
 def test_registry():
     assert builtin.DEFAULT in builtin.SCENES
-    assert set(builtin.SCENES) == {"cornell-box", "cornell-caustic", "cornell-glass", "furnace-sphere"}
+    assert set(builtin.SCENES) == {"cornell-box", "cornell-caustic", "cornell-glass", "furnace-sphere",
+                                   "thin-wall", "far-from-origin", "many-lights", "glossy-floor",
+                                   "glass-small-light"}
     with pytest.raises(SceneError, match="cornell-box.*furnace-sphere"):
         builtin.make("cornell-dragon")
 

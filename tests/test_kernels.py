@@ -24,6 +24,7 @@ from dosppm_core import tracing
 from dosppm_core.accel import Accelerator
 from dosppm_core.jobs import ESCAPED, MAX_DEPTH
 from dosppm_core.kernels import bsdf, emit, rng
+from dosppm_core.kernels.emit import EMIT_EPS_REL
 from dosppm_core.scene import (DIFFUSE, GLASS, GLOSSY, MIRROR, Camera, Material,
                                SceneBuilder)
 
@@ -585,8 +586,12 @@ def test_triangle_light_photons_leave_its_front_uniformly_with_flux_pi_area_radi
     cross = np.cross(b - a, c - a)
     area, n = 0.5 * np.linalg.norm(cross), _unit(cross)
     np.testing.assert_allclose(f, np.broadcast_to(math.pi * area * RADIANCE, f.shape), rtol=1e-6)
-    p = o - eps * n
-    assert np.all(np.abs((p - a) @ n) < 1e-6)                   # on the plane
+    # Off the front by eps plus EMIT_EPS_REL * max|p| (relative, so it
+    # survives float32 far from the origin), along the normal.
+    off = (o - a) @ n
+    expected = eps + EMIT_EPS_REL * np.abs(o).max(1)
+    assert np.all(np.abs(off - expected) < 1e-6)
+    p = o - off[:, None] * n
     # Barycentrics by least squares in the triangle's own edge basis.
     bary = np.linalg.lstsq(np.stack([b - a, c - a], 1), (p - a).T, rcond=None)[0].T
     wa = 1 - bary.sum(1)

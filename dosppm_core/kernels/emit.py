@@ -6,7 +6,10 @@ import numpy as np
 
 from ..scene import LIGHT_POINT, LIGHT_TRIANGLE
 from .bsdf import cosine_hemisphere, to_world
+from .paths import offset_origin
 from .rng import EYE_STREAM, next_float, path_state
+
+EMIT_EPS_REL = 2e-5   # the bounces' spawn offset relative to |p| (tracing.EPS_REL)
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -134,9 +137,11 @@ def _emit_triangle(a, b, c, u1, u2, u3, u4, eps):
     nx, ny, nz = nx / nl, ny / nl, nz / nl
     x, y, z = cosine_hemisphere(u3, u4)
     d = to_world(x, y, z, nx, ny, nz)
-    o = (a[0] + ba * e1[0] + bb * e2[0] + eps * nx,
-         a[1] + ba * e1[1] + bb * e2[1] + eps * ny,
-         a[2] + ba * e1[2] + bb * e2[2] + eps * nz)
+    px, py, pz = a[0] + ba * e1[0] + bb * e2[0], a[1] + ba * e1[1] + bb * e2[1], a[2] + ba * e1[2] + bb * e2[2]
+    # Off the light like a bounce (relative to |p|): a fixed offset vanishes
+    # in float32 far from the origin, and every photon would hit the
+    # light's own back (measured: all of them at 1e5 mm).
+    o = offset_origin(px, py, pz, nx, ny, nz, nx, ny, nz, EMIT_EPS_REL, eps)
     return o, d, math.pi * 0.5 * nl
 
 
