@@ -37,6 +37,11 @@ def add_service_render_arguments(render: argparse.ArgumentParser) -> None:
     g.add_argument("--photons-per-job", type=int, default=1024)
     g.add_argument("--snapshot-interval", type=float, default=60.0, metavar="S",
                    help="write the image every S seconds while rendering")
+    g.add_argument("--checkpoint", metavar="DIR", help="checkpoint directory (default: OUT's name + "
+                   "'.checkpoint')")
+    g.add_argument("--checkpoint-interval", type=float, default=60.0, metavar="S",
+                   help="seconds between checkpoints of the pixel statistics; 0: none")
+    g.add_argument("--resume", metavar="DIR", help="continue the render saved in this checkpoint")
     g.add_argument("--tracer-timeout", type=float, default=10.0, metavar="S",
                    help="drop a tracer silent for S seconds; its jobs are re-emitted")
     for o in config.OPTIMISATIONS:

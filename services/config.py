@@ -59,6 +59,9 @@ SERVER = RENDER + OPTIMISATIONS + (
     _opt("min_photon_jobs", int, 1000, "photon jobs kept in flight (the paper's 1k)"),
     _opt("snapshot_interval", float, 60.0, "write the image every S seconds"),
     _opt("drain_timeout", float, 60.0, "at the end, wait this long for jobs in flight"),
+    _opt("checkpoint", str, None, "checkpoint directory (default: OUT's name + '.checkpoint')"),
+    _opt("checkpoint_interval", float, 60.0, "seconds between checkpoints; 0: none"),
+    _opt("resume", str, None, "continue the render saved in this checkpoint directory"),
     _opt("tracer_timeout", float, 10.0, "drop a tracer silent this long (its jobs are re-emitted); "
          "raise it for chunks that take longer than this to load"),
 )

@@ -31,7 +31,8 @@ def render_local(args) -> int:
     values.update({o: getattr(args, o) for o in ("cull", "concurrent", "client_batching")})
     values.update(bind="tcp://127.0.0.1:*", http=args.http, min_tracers=n,
                   min_photon_jobs=args.min_photon_jobs, snapshot_interval=args.snapshot_interval,
-                  drain_timeout=60.0, tracer_timeout=args.tracer_timeout)
+                  drain_timeout=60.0, tracer_timeout=args.tracer_timeout, checkpoint=args.checkpoint,
+                  checkpoint_interval=args.checkpoint_interval, resume=args.resume)
     return serve(args.scene, values, quiet=args.quiet, spawn_tracers=n)
 
 
@@ -42,6 +43,16 @@ def _settings(v: dict) -> RenderSettings:
                        threads=v["threads"], tile_pixels=4096, cull=v["cull"])
     s.validate()
     return s
+
+
+def _resumed_settings(settings: RenderSettings, doc: dict) -> RenderSettings:
+    """The render settings saved in a checkpoint win over the flags: a
+    resumed render goes on exactly as it began."""
+    for k, value in doc["settings"].items():
+        if hasattr(settings, k):
+            setattr(settings, k, value)
+    settings.validate()
+    return settings
 
 
 def _open_store(scene: str, v: dict):
@@ -70,12 +81,17 @@ def serve(scene: str, v: dict, quiet: bool = False, spawn_tracers: int = 0) -> i
 
     from .server import Limits, ServerProcess
     say = (lambda *a: None) if quiet else (lambda *a: print(*a, file=sys.stderr))
+    from . import checkpoint
     try:
         settings = _settings(v)
         http = _http(v["http"])
         store = _open_store(scene, v)
+        resume = checkpoint.read(v["resume"], store.key) if v["resume"] else None
+        if resume is not None:
+            settings = _resumed_settings(settings, resume)
     except (SceneError, ValueError, OSError) as e:
         return core._error(str(e))
+    ckpt = v["checkpoint"] or v["resume"] or (os.path.splitext(v["out"])[0] + ".checkpoint" if v["out"] else None)
     if not kernels_cached():
         say("compiling kernels (first run on this machine; cached afterwards, about a minute)...")
         warm_kernels()
@@ -92,7 +108,8 @@ def serve(scene: str, v: dict, quiet: bool = False, spawn_tracers: int = 0) -> i
                                threads=v["threads"], exposure=v["exposure"],
                                drain_timeout_s=v["drain_timeout"], reporter=reporter,
                                concurrent=v["concurrent"], client_batching=v["client_batching"],
-                               tracer_timeout_s=v["tracer_timeout"])
+                               tracer_timeout_s=v["tracer_timeout"], checkpoint_dir=ckpt,
+                               checkpoint_interval_s=v["checkpoint_interval"], resume=resume)
     except Exception as e:   # zmq bind errors and the like: one line, not a traceback
         return core._error(f"cannot start the server: {e}")
     cam = store.header.camera

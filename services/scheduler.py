@@ -103,11 +103,13 @@ class EyeIteration:
 class Update:
     """One statistics step for the shell to run, in order: install the hit
     points of a complete eye iteration, or apply a batch of photons."""
-    kind: str                        # "hits" or "photons"
+    kind: str                        # "hits", "photons" or "checkpoint"
     hits: HitPoints | None = None
     emitted_light: tuple | None = None
     deposits: PhotonDeposits | None = None
     photons_emitted: int = 0
+    directory: str | None = None     # "checkpoint": where, and what besides the statistics
+    meta: dict | None = None
 
 
 def assign_chunks(chunk_count: int, endpoints: list[str]) -> list[list[str]]:
@@ -148,11 +150,12 @@ class ServerState:
         self.started = False
         self.gather_box: np.ndarray | None = None
         self.jobs: dict[int, Job] = {}
-        self._job_ids = itertools.count()
+        self.next_job = 0                          # job ids are never reused
         self._photon_pending: deque = deque()         # job ids created, not yet sent
         self._photon_receivers: set = set()
         self.photon_jobs_in_flight = 0
         self.eye: EyeIteration | None = None
+        self.photons_before = self.iterations_before = 0    # from a resumed checkpoint
         self._eye_restart = False
         self.eye_started = 0
         self.eye_completed = 0
@@ -378,7 +381,8 @@ class ServerState:
 
     def _new_job(self, kind: str, paths: int, eye_iteration: int | None = None,
                  rng_key: int | None = None) -> int:
-        j = next(self._job_ids)
+        j = self.next_job
+        self.next_job += 1
         self.jobs[j] = Job(kind, paths, eye_iteration=eye_iteration, rng_key=j if rng_key is None else rng_key)
         if kind == "photon":
             self.photon_jobs_in_flight += 1
@@ -452,6 +456,29 @@ class ServerState:
             out.append(Out(tid, "photon_job", dict(chunk=k, cull_box=box,
                                                    batch=RayBatch.concat(parts.pop(key)))))
         return out
+
+    # -- checkpoints ---------------------------------------------------------------------
+    def checkpoint_meta(self) -> dict:
+        """What a checkpoint needs besides the statistics: ids go on past
+        every one used, so a resumed render never traces a photon twice."""
+        return {"store_key": self.store_key, "settings": self.settings_dict(),
+                "next_job": self.next_job, "next_eye_iteration": self.eye_started,
+                "counters": {"photons": self.photons_before + self.counters["photons_committed"],
+                             "eye_iterations": self.iterations_before + self.eye_completed}}
+
+    def settings_dict(self) -> dict:
+        s = self.settings
+        return {k: getattr(s, k) for k in ("seed", "alpha", "radius", "max_depth", "gather",
+                                           "photons_per_iteration", "photons_per_job", "photon_batch",
+                                           "tile_pixels", "reorder", "cull")}
+
+    def resume(self, doc: dict) -> None:
+        """Continue after a checkpoint: new ids start past the old ones."""
+        self.next_job = int(doc["next_job"])
+        self.eye_started = int(doc["next_eye_iteration"])
+        self.photons_before = int(doc["counters"]["photons"])
+        self.iterations_before = int(doc["counters"]["eye_iterations"])
+        self._eye_restart = True      # hit points first: photons wait for their box
 
     # -- the end ---------------------------------------------------------------------------
     def stop_emitting(self) -> None:

@@ -31,7 +31,7 @@ from dosppm_core.film_io import encode_png, tonemap_srgb8, write_exr, write_png
 from dosppm_core.jobs import PhotonDeposits
 from dosppm_core.render import Progress, RenderSettings
 
-from . import wire
+from . import checkpoint, wire
 from .scheduler import ServerState, Update
 from .statistics import ServerStatistics
 from .status_http import StatusServer
@@ -62,7 +62,9 @@ class ServerProcess:
                  min_photon_jobs: int = 1000, min_tracers: int = 1,
                  queue_target_rays: int = 262_144, threads: int = 2, exposure: float = 0.0,
                  drain_timeout_s: float = 60.0, reporter=None, context: zmq.Context | None = None,
-                 concurrent: bool = True, client_batching: bool = True, tracer_timeout_s: float = 10.0):
+                 concurrent: bool = True, client_batching: bool = True, tracer_timeout_s: float = 10.0,
+                 checkpoint_dir: str | None = None, checkpoint_interval_s: float = 60.0,
+                 resume: dict | None = None):
         self.store, self.settings = store, settings
         self.out, self.exposure, self.reporter = out, exposure, reporter
         self.limits = limits or Limits(seconds=30.0)
@@ -72,6 +74,10 @@ class ServerProcess:
                                  min_tracers=min_tracers, concurrent=concurrent,
                                  client_batching=client_batching, tracer_timeout_s=tracer_timeout_s)
         self.statistics = ServerStatistics(store.header, settings, threads=threads)
+        self.checkpoint_dir, self.checkpoint_interval_s = checkpoint_dir, checkpoint_interval_s
+        if resume is not None:
+            checkpoint.restore(self.statistics.stats, resume)
+            self.state.resume(resume)
         self.ctx = context or zmq.Context.instance()
         self.router = wire.configure(self.ctx.socket(zmq.ROUTER))
         self.router.bind(bind)
@@ -108,6 +114,8 @@ class ServerProcess:
             self.finished_at = time.monotonic()
         finally:
             self._coalesce_queued_updates()
+            if self.checkpoint_dir and self.state.counters["photons_committed"]:
+                self._checkpoint()
             self._updates.put(None)
             worker.join()
             self._write_image()
@@ -121,6 +129,7 @@ class ServerProcess:
     def _serve(self) -> None:
         phase, drain_deadline = "render", None
         last_status = last_progress = last_snapshot = 0.0
+        last_checkpoint = time.monotonic()
         while True:
             now = time.monotonic()
             self._receive(now)
@@ -138,6 +147,9 @@ class ServerProcess:
             if now - last_snapshot >= self.snapshot_interval_s and self.state.eye_completed:
                 last_snapshot = now
                 self._write_image()
+            if self._checkpoint_due(now - last_checkpoint):
+                last_checkpoint = now
+                self._checkpoint()
             if phase == "render" and (self._signals or self._limit_reached(now)):
                 phase, drain_deadline = "draining", now + self.drain_timeout_s
                 self.state.stop_emitting()
@@ -147,6 +159,16 @@ class ServerProcess:
                 self.state.finish()
                 self._pump_updates()
                 return
+
+    def _checkpoint_due(self, since_s: float) -> bool:
+        return bool(self.checkpoint_dir) and self.checkpoint_interval_s > 0 and \
+            since_s >= self.checkpoint_interval_s and self.state.counters["photons_committed"] > 0
+
+    def _checkpoint(self) -> None:
+        """Queued behind the updates before it, so it saves exactly the
+        photons handed over so far (written on the statistics thread)."""
+        self._updates.put(Update("checkpoint", directory=self.checkpoint_dir,
+                                 meta=self.state.checkpoint_meta()))
 
     @property
     def interrupted(self) -> bool:
@@ -165,7 +187,10 @@ class ServerProcess:
         if self.started_at is None or not self.state.counters["photons_committed"]:
             return False
         c = self.state.counters
-        return self.limits.reached(now - self.started_at, c["photons_emitted"], self.state.eye_completed)
+        # Photon and iteration limits count the whole render, resumed part included.
+        st = self.state
+        return self.limits.reached(now - self.started_at, st.photons_before + c["photons_emitted"],
+                                   st.iterations_before + st.eye_completed)
 
     def _receive(self, now: float) -> None:
         if not self.router.poll(5):
@@ -350,6 +375,7 @@ class ServerProcess:
         st = dict(st, **self.state.status())
         st["update_seconds"] = self.statistics.update_seconds
         st["photons_applied"] = self.statistics.photons_applied
+        st["photons_in_image"] = int(self.statistics.stats.photons_emitted)   # N_e, resumed part included
         st["cpu_s"] = round(time.process_time(), 3)
         if self.started_at is not None and self.finished_at is not None:
             st["seconds"] = self.finished_at - self.started_at   # rendering, drain included

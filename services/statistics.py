@@ -13,6 +13,8 @@ import numpy as np
 from dosppm_core.render import RenderSettings
 from dosppm_core.sppm import PixelStatistics, initial_radius
 
+from . import checkpoint
+
 
 class ServerStatistics:
     def __init__(self, header, settings: RenderSettings, threads: int):
@@ -28,7 +30,9 @@ class ServerStatistics:
         """Run one update; returns the new photon culling box (§4.3)."""
         t0 = time.perf_counter()
         with self.lock:
-            if update.kind == "hits":
+            if update.kind == "checkpoint":
+                checkpoint.write(update.directory, self.stats, update.meta)
+            elif update.kind == "hits":
                 self._install_hits(update)
             else:
                 self._apply_photons(update)

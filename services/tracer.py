@@ -26,7 +26,8 @@ from .tracer_state import SERVER, STEP_RAYS, TracerState
 
 log = logging.getLogger("dosppm.tracer")
 HEARTBEAT_INTERVAL_S = 1.0
-SERVER_TIMEOUT_S = 30.0       # no word from the server this long: give up
+SERVER_TIMEOUT_S = 60.0       # default --retry: no word from the server this long, give up
+SERVER_SILENT_S = 5.0         # the server heartbeats every second: after this, register again
 
 
 class TracerError(RuntimeError):
@@ -62,6 +63,7 @@ class TracerProcess:
         self.outbox: list = []        # (endpoint, frames) waiting for a full peer pipe
         self.stopped: str | None = None
         self._rejoining = False
+        self._backoff, self._next_rejoin = 0.0, 0.0
         self.bytes_to_server = self.bytes_to_peers = 0
 
     # -- sockets -------------------------------------------------------------------
@@ -211,9 +213,9 @@ class TracerProcess:
             self._flush_outbox()
             if now - last_beat >= HEARTBEAT_INTERVAL_S:
                 last_beat = now
-                wire.send(self.dealer, wire.encode("heartbeat", status=self._status()))
-            if now - last_heard > SERVER_TIMEOUT_S:
-                raise TracerError(f"server {self.server_url} silent for {SERVER_TIMEOUT_S:.0f} s")
+                self._to_server(wire.encode("heartbeat", status=self._status()), disposable=True)
+            if now - last_heard > SERVER_SILENT_S:
+                self._reconnect(now, now - last_heard)
 
     def _status(self) -> dict:
         s = self.state.status()
@@ -236,10 +238,11 @@ class TracerProcess:
             elif msg.type == "error" and "is not registered" in msg.reason:
                 self._rejoin()
             elif msg.type == "welcome":
-                # Back after the server dropped us (we were hung or cut off):
-                # whatever we still hold belongs to jobs it has discarded.
+                # Back after the server dropped us (we were hung or cut off)
+                # or restarted: what we still hold belongs to jobs it has
+                # discarded or never knew.
                 self.state.reset()
-                self._rejoining = False
+                self._rejoining, self._backoff = False, 0.0
                 log.warning("rejoined the server as tracer %d", msg.tracer_index)
             elif msg.type in ("error", "refused"):
                 log.warning("server says: %s", msg.reason)
@@ -249,17 +252,30 @@ class TracerProcess:
                     log.info("peer table %d: this tracer serves chunks %s", msg.table_version,
                              self.state.chunks)
 
+    def _reconnect(self, now: float, silent_s: float) -> None:
+        """The server went quiet (restarting, or the link is down): register
+        again with backoff (1, 2, 4, ... 16 s; libzmq reconnects the socket
+        itself), and give up only after `connect_timeout_s` of silence."""
+        if silent_s > self.connect_timeout_s:
+            raise TracerError(f"server {self.server_url} silent for {silent_s:.0f} s")
+        if now < self._next_rejoin:
+            return
+        self._backoff = min(2 * self._backoff, 16.0) if self._backoff else 1.0
+        self._next_rejoin = now + self._backoff
+        self._rejoining = False
+        self._rejoin()
+
     def _rejoin(self) -> None:
         """The server no longer knows us (it evicted us while we were
         silent): register again, once, and carry on when welcomed."""
         if self._rejoining:
             return
         self._rejoining = True
-        log.warning("the server dropped this tracer; registering again")
-        wire.send(self.dealer, wire.encode(
+        log.warning("no server, or it dropped this tracer: registering again")
+        self._to_server(wire.encode(
             "register", tracer_id=self.tracer_id, endpoint=self.endpoint,
             capacity={"cores": self.threads, "memory_bytes": int(self.memory_bytes or 0)},
-            has_store=True, store_key=self.state.provider_key))
+            has_store=True, store_key=self.state.provider_key), disposable=True)
 
     def _drain_peers(self) -> None:
         while True:
@@ -274,11 +290,32 @@ class TracerProcess:
         for o in outs:
             frames = wire.encode(o.type, **o.fields)
             if o.dest == SERVER:
-                wire.send(self.dealer, frames)      # the server always reads: block if need be
+                self._to_server(frames)
                 self.bytes_to_server += sum(memoryview(f).nbytes for f in frames)
             else:
                 self.outbox.append((o.dest, frames))
         self._flush_outbox()
+
+    def _to_server(self, frames, disposable: bool = False) -> None:
+        """Heartbeats and registers are dropped when the pipe to the server
+        is full (it is down; another goes out soon). Results wait, for as
+        long as the server may take to come back (`connect_timeout_s`)."""
+        if disposable:
+            try:
+                wire.send(self.dealer, frames, block=False)
+            except zmq.Again:
+                pass
+            return
+        deadline = time.monotonic() + self.connect_timeout_s
+        while True:
+            try:
+                wire.send(self.dealer, frames, block=False)
+                return
+            except zmq.Again:
+                if time.monotonic() > deadline or self.stopped is not None:
+                    raise TracerError(f"server {self.server_url} took no results for "
+                                      f"{self.connect_timeout_s:.0f} s") from None
+                time.sleep(0.05)
 
     def _flush_outbox(self) -> None:
         """Peers get packages without blocking: two tracers blocked sending

@@ -1,0 +1,118 @@
+"""Server checkpoints: the pixel statistics, the counters that go with them
+and the render settings, so a render survives a server restart
+(`dosppm server --resume DIR`, `dosppm render --resume DIR`).
+
+    DIR/checkpoint.msgpack   one msgpack map (no pickle):
+        format "dosppm-checkpoint", version, store_key, settings {},
+        next_job, next_eye_iteration, counters {}, sha256 (of the arrays),
+        arrays {name: {dtype, shape, data (raw little-endian bytes)}}
+
+Written atomically: a temporary file in DIR, fsync, rename over the old
+one, fsync of DIR; a crash leaves the previous checkpoint whole. What is
+saved is what the statistics hold (photons applied, N_e, N, R, tau, the
+emission seen), never jobs in flight: on resume those are simply not
+there, and the job and eye-iteration counters go on past every id ever
+used, so no photon is traced twice into the same image.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+
+import msgpack
+import numpy as np
+
+FORMAT, VERSION = "dosppm-checkpoint", 1
+FILE = "checkpoint.msgpack"
+ARRAYS = ("photon_count", "radius", "tau", "emission")
+
+
+class CheckpointError(ValueError):
+    """A missing, corrupt or foreign checkpoint; one line naming file and field."""
+
+
+def _digest(arrays: dict) -> str:
+    h = hashlib.sha256()
+    for name in ARRAYS:
+        h.update(name.encode())
+        h.update(np.ascontiguousarray(arrays[name]).tobytes())
+    return h.hexdigest()
+
+
+def write(directory: str, stats, meta: dict) -> str:
+    """Save `stats` (PixelStatistics; the caller holds its lock) with
+    `meta` (store_key, settings, next_job, next_eye_iteration, counters)."""
+    os.makedirs(directory, exist_ok=True)
+    arrays = {name: np.asarray(getattr(stats, name), "<f8") for name in ARRAYS}
+    doc = dict(meta, format=FORMAT, version=VERSION, width=stats.width, height=stats.height,
+               alpha=stats.alpha, eye_iterations=stats.eye_iterations,
+               photons_emitted=int(stats.photons_emitted), sha256=_digest(arrays),
+               arrays={n: {"dtype": a.dtype.str, "shape": list(a.shape), "data": a.tobytes()}
+                       for n, a in arrays.items()})
+    path = os.path.join(directory, FILE)
+    tmp = f"{path}.tmp-{os.getpid()}"
+    with open(tmp, "wb") as f:
+        f.write(msgpack.packb(doc, use_bin_type=True))
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+    fd = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    return path
+
+
+def read(directory: str, store_key: str | None = None) -> dict:
+    """The checkpoint in `directory`, checked; arrays as numpy. Raises
+    CheckpointError naming the file and what is wrong."""
+    path = os.path.join(directory, FILE)
+    try:
+        with open(path, "rb") as f:
+            doc = msgpack.unpackb(f.read(), raw=False, strict_map_key=True)
+    except FileNotFoundError:
+        raise CheckpointError(f"{path}: no checkpoint here") from None
+    except Exception as e:   # msgpack raises many types on garbage: all mean corrupt
+        raise CheckpointError(f"{path}: unreadable (corrupt or truncated): {type(e).__name__}") from None
+    if type(doc) is not dict or doc.get("format") != FORMAT:
+        raise CheckpointError(f"{path}: field 'format' is not {FORMAT!r} (not a dosppm checkpoint)")
+    if doc.get("version") != VERSION:
+        raise CheckpointError(f"{path}: field 'version' is {doc.get('version')!r}, this program reads {VERSION}")
+    for key in ("store_key", "settings", "next_job", "next_eye_iteration", "counters", "width", "height",
+                "alpha", "eye_iterations", "photons_emitted", "sha256", "arrays"):
+        if key not in doc:
+            raise CheckpointError(f"{path}: field {key!r} missing")
+    if store_key is not None and doc["store_key"] != store_key:
+        raise CheckpointError(f"{path}: field 'store_key' is {doc['store_key']!r}: a checkpoint of another "
+                              f"scene or chunking (this render's is {store_key!r})")
+    doc["arrays"] = _arrays(path, doc)
+    if _digest(doc["arrays"]) != doc["sha256"]:
+        raise CheckpointError(f"{path}: field 'sha256' does not match the arrays (corrupt)")
+    return doc
+
+
+def _arrays(path: str, doc: dict) -> dict:
+    n = int(doc["width"]) * int(doc["height"])
+    want = {"photon_count": (n,), "radius": (n,), "tau": (n, 3), "emission": (n, 3)}
+    out = {}
+    for name, shape in want.items():
+        a = doc["arrays"].get(name) if type(doc["arrays"]) is dict else None
+        ok = (type(a) is dict and a.get("dtype") == "<f8" and tuple(a.get("shape", ())) == shape
+              and type(a.get("data")) is bytes and len(a["data"]) == 8 * int(np.prod(shape)))
+        if not ok:
+            raise CheckpointError(f"{path}: array {name!r} is malformed (expected <f8 {shape})")
+        out[name] = np.frombuffer(a["data"], "<f8").reshape(shape).copy()
+    return out
+
+
+def restore(stats, doc: dict) -> None:
+    """Put a checkpoint's statistics into a fresh PixelStatistics."""
+    if (stats.width, stats.height) != (doc["width"], doc["height"]):
+        raise CheckpointError(f"checkpoint is {doc['width']}x{doc['height']}, this render is "
+                              f"{stats.width}x{stats.height}")
+    for name, a in doc["arrays"].items():
+        setattr(stats, name, a)
+    stats.alpha = float(doc["alpha"])
+    stats.eye_iterations = int(doc["eye_iterations"])
+    stats.photons_emitted = int(doc["photons_emitted"])
