@@ -6,6 +6,8 @@ subdivide, bench, reference, compare) plus the service's roles.
     dosppm server SCENE --bind tcp://0.0.0.0:5555 --http 0.0.0.0:8080
     dosppm worker --server tcp://HOST:5555
 
+DOSPPM_LOG_LEVEL=info (or debug) shows the roles' log lines.
+
 Settings for `server` and `worker` come from flags, then the environment
 (DOSPPM_<FLAG>, e.g. DOSPPM_SERVER=tcp://10.0.0.1:5555), then a TOML file
 (`--config`, table [server] or [worker]), then the defaults: a flag beats
@@ -72,7 +74,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    logging.basicConfig(level=os.environ.get("DOSPPM_LOG", "WARNING").upper(),
+    logging.basicConfig(level=os.environ.get("DOSPPM_LOG_LEVEL", "WARNING").upper(),
                         format="dosppm %(name)s: %(levelname)s: %(message)s")
     args = build_parser().parse_args(argv)
     return args.func(args)

@@ -222,7 +222,7 @@ def test_server_and_two_tracers_on_separate_hosts(lan, tmp_path):
     logs = tmp_path / "logs"
     logs.mkdir()
     py = [sys.executable, "-m", "services.cli"]
-    env = {"DOSPPM_LOG": "info", "PYTHONUNBUFFERED": "1"}
+    env = {"DOSPPM_LOG_LEVEL": "info", "PYTHONUNBUFFERED": "1"}
     _warm_kernel_cache(tmp_path / "warm-up")
     procs = Procs(logs)
     try:
