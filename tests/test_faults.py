@@ -35,19 +35,23 @@ class Cluster:
     """`dosppm server` and three `dosppm worker` processes."""
 
     def __init__(self, tmp, seed: int):
-        self.tmp, self.port, self.http = tmp, _port(), _port()
+        self.tmp, self.port, self.http, self.seed = tmp, _port(), _port(), seed
         py = [sys.executable, "-m", "services.cli"]
-        self.server = subprocess.Popen(
-            py + ["server", "cornell-caustic", "--width", "64", "--height", "64", "--chunks", "4",
-                  "--bind", f"tcp://127.0.0.1:{self.port}", "--http", f"127.0.0.1:{self.http}",
-                  "--min-tracers", "3", "--photons", str(PHOTONS), "--photons-per-iteration", "40000",
-                  "--min-photon-jobs", "64", "--seed", str(seed), "--tracer-timeout", str(TIMEOUT_S),
-                  "--threads", "1", "--out", str(tmp / "img.exr"), "--store-cache", str(tmp / "stores"),
-                  "--quiet"], cwd=ROOT, stderr=open(tmp / "server.log", "w"))
+        self.server = self.start_server()
         self.workers = [subprocess.Popen(
             py + ["worker", "--server", f"tcp://127.0.0.1:{self.port}", "--threads", "1", "--id", f"w{i}",
                   "--cache-dir", str(tmp / f"cache{i}"), "--quiet"],
             cwd=ROOT, stderr=open(tmp / f"worker{i}.log", "w")) for i in range(3)]
+
+    def start_server(self, *extra: str, log: str = "server.log"):
+        cmd = [sys.executable, "-m", "services.cli", "server", "cornell-caustic", "--width", "64",
+               "--height", "64", "--chunks", "4", "--bind", f"tcp://127.0.0.1:{self.port}",
+               "--http", f"127.0.0.1:{self.http}", "--min-tracers", "3", "--photons", str(PHOTONS),
+               "--photons-per-iteration", "40000", "--min-photon-jobs", "64", "--seed", str(self.seed),
+               "--tracer-timeout", str(TIMEOUT_S), "--threads", "1", "--out", str(self.tmp / "img.exr"),
+               "--store-cache", str(self.tmp / "stores"), "--checkpoint", str(self.tmp / "ckpt"),
+               "--checkpoint-interval", "1", "--quiet", *extra]
+        return subprocess.Popen(cmd, cwd=ROOT, stderr=open(self.tmp / log, "w"))
 
     def status(self) -> dict:
         try:
@@ -144,3 +148,53 @@ def test_a_hung_tracer_is_dropped_and_rejoins_when_it_wakes(tmp_path, failure_fr
     img, summary = _render(tmp_path, 5, hang)
     _assert_exactly_once(summary)
     assert_same_within_noise(img, failure_free[5], failure_free[9])
+
+
+def test_the_server_killed_and_resumed_from_its_checkpoint(tmp_path, failure_free):
+    """SIGKILL the server mid-render and start it again with --resume: the
+    tracers find it again by themselves, and the render goes on from the
+    checkpoint to the same total photon count."""
+    from services import checkpoint
+    saved = {}
+
+    def crash(c: Cluster):
+        c.wait_for(lambda st: st.get("photons_committed", 0) > PHOTONS // 4)
+        c.wait_for(lambda st: (c.tmp / "ckpt" / "checkpoint.msgpack").exists())
+        c.server.send_signal(signal.SIGKILL)
+        c.server.wait(10)
+        saved.update(checkpoint.read(str(c.tmp / "ckpt")))
+        assert 0 < saved["photons_emitted"] < PHOTONS
+        c.server = c.start_server("--resume", str(c.tmp / "ckpt"), log="server2.log")
+        c.wait_for(lambda st: len(st.get("tracers", [])) == 3, 60)
+    img, summary = _render(tmp_path, 5, crash)
+    assert summary["photons_in_image"] >= PHOTONS
+    assert summary["photons_in_image"] == saved["photons_emitted"] + summary["photons_applied"]
+    k = summary["counters"]
+    assert k["photons_emitted"] - k["photons_discarded"] == k["photons_completed"] == k["photons_committed"]
+    assert_same_within_noise(img, failure_free[5], failure_free[9])
+
+
+@pytest.mark.parametrize("damage, words", [
+    (lambda p: p.write_bytes(p.read_bytes()[:200]), ["corrupt or truncated"]),
+    (lambda p: p.write_bytes(p.read_bytes().replace(b"dosppm-checkpoint", b"dosppm-checkpoinX")),
+     ["'format'", "not a dosppm checkpoint"]),
+])
+def test_a_corrupt_or_foreign_checkpoint_is_refused(tmp_path, damage, words):
+    run = [sys.executable, "-m", "services.cli", "render", "cornell-box", "--width", "16", "--height", "16",
+           "--tracers", "1", "--time", "1", "--http", "off", "--store-cache", str(tmp_path / "stores"),
+           "--quiet"]
+    first = subprocess.run(run + ["--out", str(tmp_path / "a.exr"), "--checkpoint", str(tmp_path / "ck")],
+                           cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert first.returncode == 0, first.stderr
+    # Another scene (another store key) is refused by name.
+    other = subprocess.run([*run[:4], "cornell-caustic", *run[5:], "--out", str(tmp_path / "b.exr"),
+                            "--resume", str(tmp_path / "ck")], cwd=ROOT, capture_output=True, text=True,
+                           timeout=300)
+    assert other.returncode == 2 and "another scene" in other.stderr
+    damage(tmp_path / "ck" / "checkpoint.msgpack")
+    bad = subprocess.run(run + ["--out", str(tmp_path / "c.exr"), "--resume", str(tmp_path / "ck")],
+                         cwd=ROOT, capture_output=True, text=True, timeout=300)
+    lines = bad.stderr.strip().splitlines()
+    assert bad.returncode == 2 and len(lines) == 1, bad.stderr
+    assert all(w in lines[0] for w in words), lines[0]
+    assert not (tmp_path / "c.exr").exists()
