@@ -45,6 +45,8 @@ from dosppm_core.tracing import emit_photon_job, eye_ray_job
 from .wire import PROTOCOL_VERSION
 
 MESSAGE_RAYS = 32_768         # rays per job message the server aims for
+MAX_TRACERS = 1024            # registrations beyond this are refused (memory stays bounded)
+UNKNOWN, IN_FLIGHT, COMPLETE, DISCARDED = 0, 1, 2, 3     # photon job status
 HEARTBEAT_INTERVAL_S = 1.0
 # Tracer heartbeat fields the server passes on in its status.
 STATUS_KEYS = ("load", "resident", "busy_s", "steps", "rays_traced", "portal_rays_out", "portal_rays_in",
@@ -151,6 +153,7 @@ class ServerState:
         self.gather_box: np.ndarray | None = None
         self.jobs: dict[int, Job] = {}
         self.next_job = 0                          # job ids are never reused
+        self._status = np.zeros(1024, np.int8)     # per photon job id: UNKNOWN, IN_FLIGHT, ...
         self._photon_pending: deque = deque()         # job ids created, not yet sent
         self._photon_receivers: set = set()
         self.photon_jobs_in_flight = 0
@@ -171,7 +174,8 @@ class ServerState:
                          "deposits_received": 0, "culled": 0, "stale_paths": 0,
                          "over_counted_paths": 0, "results": 0, "updates": 0,
                          "photons_discarded": 0, "jobs_discarded": 0, "tracers_evicted": 0,
-                         "eye_iterations_restarted": 0, "deposits_discarded": 0}
+                         "eye_iterations_restarted": 0, "deposits_discarded": 0, "deposits_stale": 0,
+                         "refused": 0}
         self.path_ends = np.zeros(len(END_NAMES), np.int64)
 
     # -- tracers -------------------------------------------------------------------
@@ -188,6 +192,9 @@ class ServerState:
         hand every tracer the new chunk table."""
         t = self.tracers.get(tid)
         cap = msg.capacity
+        if t is None and len(self.tracers) >= MAX_TRACERS:
+            self.counters["refused"] += 1
+            return [Out(tid, "refused", dict(reason=f"the server takes at most {MAX_TRACERS} tracers"))]
         if t is None:
             t = TracerInfo(tid, next(self._indices), msg.endpoint, cap["cores"], cap["memory_bytes"],
                            msg.store_key, now)
@@ -218,11 +225,30 @@ class ServerState:
         if msg.type == "heartbeat":
             t.status = dict(msg.status)
         elif msg.type == "results":
-            self._on_results(t, msg)
+            return self._on_results(t, msg)
         return []
 
     # -- results and exact accounting ----------------------------------------------------
-    def _on_results(self, t: TracerInfo, msg) -> None:
+    def _check_results(self, msg) -> str | None:
+        """What the wire cannot know: ranges of chunks, pixels, materials."""
+        if msg.chunk >= self.tree.chunk_count:
+            return f"field 'chunk' {msg.chunk} out of range (scene has {self.tree.chunk_count})"
+        if msg.hits is not None and len(msg.hits):
+            h = msg.hits
+            if h.pixel.min() < 0 or h.pixel.max() >= self.n_pixels:
+                return "field 'hits.pixel' out of range"
+            if h.material.min() < 0 or h.material.max() >= len(self.header.materials.kind):
+                return "field 'hits.material' out of range"
+        p = msg.emitted_pixels
+        if p is not None and len(p) and (p.min() < 0 or p.max() >= self.n_pixels):
+            return "field 'emitted_pixels' out of range"
+        return None
+
+    def _on_results(self, t: TracerInfo, msg) -> list[Out]:
+        problem = self._check_results(msg)
+        if problem:
+            self.counters["refused"] += 1
+            return [Out(t.id, "error", dict(reason=f"results: {problem}", about="results"))]
         t.queued, t.sent_since_report = msg.queued, 0
         t.results += 1
         c = self.counters
@@ -230,9 +256,15 @@ class ServerState:
         c["culled"] += msg.culled
         self.path_ends += msg.ends
         if msg.deposits is not None and len(msg.deposits):
-            self._held.append(msg.deposits)
-            self._held_rows += len(msg.deposits)
-            c["deposits_received"] += len(msg.deposits)
+            # Only deposits of photon jobs in flight are held: a finished,
+            # discarded or never-made job's deposits can never count.
+            live = self._job_status(msg.deposits.job) == IN_FLIGHT
+            deposits = msg.deposits if live.all() else msg.deposits.take(live)
+            c["deposits_stale"] += len(msg.deposits) - len(deposits)
+            if len(deposits):
+                self._held.append(deposits)
+                self._held_rows += len(deposits)
+                c["deposits_received"] += len(deposits)
         if msg.hits is not None and self.eye is not None and msg.eye_iteration == self.eye.index:
             self.eye.hits.append(msg.hits)
             self.eye.pixels.append(msg.emitted_pixels)
@@ -240,6 +272,7 @@ class ServerState:
         for j, fed, left in zip(msg.job_ids.tolist(), msg.job_fed.tolist(), msg.job_left.tolist()):
             self._segments(j, left - fed, stale=fed - left)
         self._maybe_batch()
+        return []
 
     def _segments(self, j: int, change: int, stale: int = 0) -> None:
         """Open path segments of job j change by `change`; at zero, once
@@ -258,6 +291,7 @@ class ServerState:
         del self.jobs[j]
         if job.kind == "photon":
             self.photon_jobs_in_flight -= 1
+            self._set_status(j, COMPLETE)
             self.counters["photons_completed"] += job.paths
             self.counters["photon_jobs_completed"] += 1
             self._ready_emitted += job.paths
@@ -282,11 +316,9 @@ class ServerState:
         if self.eye_completed == 0 or not (final or self._held_rows >= self._next_batch_at):
             return
         held = PhotonDeposits.concat(self._held)
-        in_flight = np.fromiter((j for j, job in self.jobs.items() if job.kind == "photon"), np.int64)
-        waiting = np.isin(held.job, in_flight)
-        dropped = np.isin(held.job, np.fromiter(self.discarded, np.int64))   # lost with a tracer
-        commit, keep = held.take(~waiting & ~dropped), held.take(waiting)
-        self.counters["deposits_discarded"] += int(dropped.sum())
+        status = self._job_status(held.job)
+        commit, keep = held.take(status == COMPLETE), held.take(status == IN_FLIGHT)
+        self.counters["deposits_discarded"] += int(np.sum(status == DISCARDED))   # lost with a tracer
         self.updates.append(Update("photons", deposits=commit, photons_emitted=self._ready_emitted))
         self.counters["photons_committed"] += self._ready_emitted
         self._ready_emitted = 0
@@ -365,6 +397,7 @@ class ServerState:
                 continue                      # still at the server: nothing lost
             del self.jobs[j]
             self.discarded.add(j)
+            self._set_status(j, DISCARDED)
             self.counters["jobs_discarded"] += 1
             if job.kind == "photon":
                 self.photon_jobs_in_flight -= 1
@@ -379,10 +412,22 @@ class ServerState:
             self._eye_restart = True
             self.counters["eye_iterations_restarted"] += 1
 
+    def _job_status(self, ids: np.ndarray) -> np.ndarray:
+        """Status of each photon job id (UNKNOWN for ids never made)."""
+        ok = (ids >= 0) & (ids < len(self._status))
+        return np.where(ok, self._status[np.where(ok, ids, 0)], UNKNOWN)
+
+    def _set_status(self, j: int, status: int) -> None:
+        if j >= len(self._status):
+            self._status = np.concatenate([self._status, np.zeros(max(j + 1, len(self._status)), np.int8)])
+        self._status[j] = status
+
     def _new_job(self, kind: str, paths: int, eye_iteration: int | None = None,
                  rng_key: int | None = None) -> int:
         j = self.next_job
         self.next_job += 1
+        if kind == "photon":
+            self._set_status(j, IN_FLIGHT)
         self.jobs[j] = Job(kind, paths, eye_iteration=eye_iteration, rng_key=j if rng_key is None else rng_key)
         if kind == "photon":
             self.photon_jobs_in_flight += 1
@@ -487,6 +532,7 @@ class ServerState:
         self.emitting = False
         for j in self._photon_pending:
             del self.jobs[j]
+            self._set_status(j, DISCARDED)
             self.photon_jobs_in_flight -= 1
         self._photon_pending.clear()
 

@@ -283,8 +283,17 @@ class TracerProcess:
                 got = wire.recv_or_reply(self.router, accept={"portal_rays"}, flags=zmq.NOBLOCK)
             except zmq.Again:
                 return
-            if got is not None:
+            if got is None:
+                continue
+            try:
                 self._send(self.state.handle(got[1]))
+            except ValueError as e:      # a range only this tracer can check (chunk id)
+                log.warning("bad package from %r: %s", got[0][0], e)
+                try:
+                    wire.send(self.router, wire.encode("error", reason=f"portal_rays: {e}",
+                                                       about="portal_rays"), got[0], block=False)
+                except zmq.ZMQError:     # the sender is gone or not reading: the log line stands
+                    pass
 
     def _send(self, outs) -> None:
         for o in outs:
