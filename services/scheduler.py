@@ -45,12 +45,13 @@ from dosppm_core.tracing import emit_photon_job, eye_ray_job
 from .wire import PROTOCOL_VERSION
 
 MESSAGE_RAYS = 32_768         # rays per job message the server aims for
+TOTAL_CREDIT_RAYS = 1 << 20   # rays queued at all tracers together, at most (see `credit`)
 MAX_TRACERS = 1024            # registrations beyond this are refused (memory stays bounded)
 UNKNOWN, IN_FLIGHT, COMPLETE, DISCARDED = 0, 1, 2, 3     # photon job status
 HEARTBEAT_INTERVAL_S = 1.0
 # Tracer heartbeat fields the server passes on in its status.
 STATUS_KEYS = ("load", "resident", "busy_s", "steps", "rays_traced", "portal_rays_out", "portal_rays_in",
-               "forwarded_rays", "cpu_s", "bytes_to_server", "bytes_to_peers", "outbox")
+               "forwarded_rays", "cpu_s", "bytes_to_server", "bytes_to_peers", "outbox", "outbox_rays")
 
 
 @dataclass
@@ -412,6 +413,15 @@ class ServerState:
             self._eye_restart = True
             self.counters["eye_iterations_restarted"] += 1
 
+    @property
+    def credit(self) -> int:
+        """Rays a tracer may have queued before it gets no more photon jobs:
+        `queue_target_rays`, shared out when many tracers join, so the
+        photon jobs in the server's outboxes and tracers' pipes stay under
+        TOTAL_CREDIT_RAYS whatever their number (16 tracers: 65,536 each)."""
+        share = TOTAL_CREDIT_RAYS // max(len(self.tracers), 1)
+        return max(MESSAGE_RAYS, min(self.queue_target, share))
+
     def _job_status(self, ids: np.ndarray) -> np.ndarray:
         """Status of each photon job id (UNKNOWN for ids never made)."""
         ok = (ids >= 0) & (ids < len(self._status))
@@ -483,7 +493,7 @@ class ServerState:
         # last job's photons gate the next one, so a slow one is never
         # sent more than one job past its credit.
         while self._photon_pending and not any(
-                self.tracers[t].load_estimate >= self.queue_target
+                self.tracers[t].load_estimate >= self.credit
                 for t in self._photon_receivers if t in self.tracers):
             j = self._photon_pending.popleft()
             count = self.jobs[j].paths

@@ -65,6 +65,7 @@ class TracerProcess:
         self._rejoining = False
         self._backoff, self._next_rejoin = 0.0, 0.0
         self.bytes_to_server = self.bytes_to_peers = 0
+        self._outbox_rays = 0
 
     # -- sockets -------------------------------------------------------------------
     def _open(self) -> None:
@@ -219,7 +220,7 @@ class TracerProcess:
 
     def _status(self) -> dict:
         s = self.state.status()
-        s.update(outbox=len(self.outbox), cpu_s=round(time.process_time(), 3),
+        s.update(outbox=len(self.outbox), outbox_rays=self._outbox_rays, cpu_s=round(time.process_time(), 3),
                  bytes_to_server=self.bytes_to_server, bytes_to_peers=self.bytes_to_peers)
         return s
 
@@ -297,12 +298,18 @@ class TracerProcess:
 
     def _send(self, outs) -> None:
         for o in outs:
+            if o.type == "results":
+                # Rays waiting for a slow peer count as queued here: the
+                # server's credit then stops this tracer's share of new jobs
+                # instead of its outbox growing without bound.
+                o.fields["queued"] += self._outbox_rays
             frames = wire.encode(o.type, **o.fields)
             if o.dest == SERVER:
                 self._to_server(frames)
                 self.bytes_to_server += sum(memoryview(f).nbytes for f in frames)
             else:
-                self.outbox.append((o.dest, frames))
+                self.outbox.append((o.dest, frames, len(o.fields["batch"])))
+                self._outbox_rays += len(o.fields["batch"])
         self._flush_outbox()
 
     def _to_server(self, frames, disposable: bool = False) -> None:
@@ -330,12 +337,13 @@ class TracerProcess:
         """Peers get packages without blocking: two tracers blocked sending
         to each other would deadlock. What does not fit waits here."""
         waiting = []
-        for dest, frames in self.outbox:
+        for dest, frames, rays in self.outbox:
             try:
                 wire.send(self._peer(dest), frames, block=False)
             except zmq.Again:
-                waiting.append((dest, frames))
+                waiting.append((dest, frames, rays))
                 continue
+            self._outbox_rays -= rays
             self.bytes_to_peers += sum(memoryview(f).nbytes for f in frames)
         self.outbox = waiting
 
