@@ -70,6 +70,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_service_render_arguments(sub.choices["render"])
     config.add_server_parser(sub)
     config.add_worker_parser(sub)
+    config.add_keys_parser(sub)
     return parser
 
 

@@ -62,6 +62,8 @@ SERVER = RENDER + OPTIMISATIONS + (
     _opt("checkpoint", str, None, "checkpoint directory (default: OUT's name + '.checkpoint')"),
     _opt("checkpoint_interval", float, 60.0, "seconds between checkpoints; 0: none"),
     _opt("resume", str, None, "continue the render saved in this checkpoint directory"),
+    _opt("curve_secret", str, None, "this server's CURVE key file (dosppm keys): encrypt and authenticate"),
+    _opt("curve_clients", str, None, "directory of the public key files of the tracers to admit"),
     _opt("tracer_timeout", float, 10.0, "drop a tracer silent this long (its jobs are re-emitted); "
          "raise it for chunks that take longer than this to load"),
 )
@@ -76,6 +78,9 @@ WORKER = (
     _opt("threads", int, os.cpu_count() or 1, "tracing threads"),
     _opt("id", str, None, "tracer id (default host-pid-random)"),
     _opt("retry", float, 60.0, "keep trying to reach the server this long, in seconds"),
+    _opt("curve_secret", str, None, "this tracer's CURVE key file (dosppm keys)"),
+    _opt("curve_server_key", str, None, "the server's public key file"),
+    _opt("curve_clients", str, None, "directory of the public key files of the tracers (its peers)"),
 )
 
 
@@ -174,3 +179,21 @@ def cmd_worker(args) -> int:
         print(f"dosppm: error: {e}", file=sys.stderr)
         return 2
     return work(values, quiet=args.quiet)
+
+
+def add_keys_parser(sub) -> None:
+    p = sub.add_parser("keys", help="make CURVE key pairs for the server and tracers")
+    p.add_argument("names", nargs="+", help="one key pair per name, e.g. server tracer1 tracer2")
+    p.add_argument("--out", default="keys", help="directory for NAME.key (public) and NAME.key_secret")
+    p.set_defaults(func=cmd_keys)
+
+
+def cmd_keys(args) -> int:
+    from . import wire
+    for name in args.names:
+        public, secret = wire.make_keys(args.out, name)
+        print(f"{name}: public {public}, secret {secret}")
+    print("server: --curve-secret keys/server.key_secret --curve-clients DIR-with-the-tracers'-NAME.key; "
+          "tracer: --curve-secret keys/NAME.key_secret --curve-server-key keys/server.key "
+          "--curve-clients the same DIR")
+    return 0

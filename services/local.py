@@ -109,7 +109,8 @@ def serve(scene: str, v: dict, quiet: bool = False, spawn_tracers: int = 0) -> i
                                drain_timeout_s=v["drain_timeout"], reporter=reporter,
                                concurrent=v["concurrent"], client_batching=v["client_batching"],
                                tracer_timeout_s=v["tracer_timeout"], checkpoint_dir=ckpt,
-                               checkpoint_interval_s=v["checkpoint_interval"], resume=resume)
+                               checkpoint_interval_s=v["checkpoint_interval"], resume=resume,
+                               curve_secret=v.get("curve_secret"), curve_clients=v.get("curve_clients"))
     except Exception as e:   # zmq bind errors and the like: one line, not a traceback
         return core._error(f"cannot start the server: {e}")
     cam = store.header.camera
@@ -177,12 +178,14 @@ def work(v: dict, quiet: bool = False) -> int:
         memory = parse_bytes(v["memory"]) if v["memory"] else None
     except argparse.ArgumentTypeError as e:
         return core._error(f"--memory: {e}")
-    tp = TracerProcess(v["server"], bind=v["bind"], advertise=v["advertise"], store=v["store"],
-                       cache_dir=v["cache_dir"], memory_bytes=memory, threads=v["threads"],
-                       tracer_id=v["id"], connect_timeout_s=v["retry"])
+    from .wire import WireError
     try:
+        tp = TracerProcess(v["server"], bind=v["bind"], advertise=v["advertise"], store=v["store"],
+                           cache_dir=v["cache_dir"], memory_bytes=memory, threads=v["threads"],
+                           tracer_id=v["id"], connect_timeout_s=v["retry"], curve_secret=v["curve_secret"],
+                           curve_server_key=v["curve_server_key"], curve_clients=v["curve_clients"])
         reason = tp.run()
-    except TracerError as e:
+    except (TracerError, WireError) as e:
         return core._error(str(e), 1)
     except KeyboardInterrupt:
         return 130

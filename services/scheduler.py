@@ -70,6 +70,7 @@ class TracerInfo:
     memory_bytes: int
     store_key: str | None
     last_seen_s: float
+    public_key: str | None = None   # its CURVE key, handed to its peers
     queued: int = 0                 # rays waiting at the tracer, as last reported
     sent_since_report: int = 0      # rays sent to it since
     status: dict = field(default_factory=dict)
@@ -198,10 +199,11 @@ class ServerState:
             return [Out(tid, "refused", dict(reason=f"the server takes at most {MAX_TRACERS} tracers"))]
         if t is None:
             t = TracerInfo(tid, next(self._indices), msg.endpoint, cap["cores"], cap["memory_bytes"],
-                           msg.store_key, now)
+                           msg.store_key, now, msg.public_key)
             self.tracers[tid] = t
         else:
             t.endpoint, t.store_key, t.last_seen_s = msg.endpoint, msg.store_key, now
+            t.public_key = msg.public_key
         self._reassign()
         return [Out(tid, "welcome", self.welcome_fields(t)), *self._peer_tables()]
 
@@ -214,7 +216,8 @@ class ServerState:
 
     def _peer_tables(self) -> list[Out]:
         peers = [[self.tracers[i].endpoint for i in o] for o in self.owners]
-        return [Out(tid, "peers", dict(table_version=self.table_version, peers=peers))
+        keys = {t.endpoint: t.public_key for t in self.tracers.values() if t.public_key}
+        return [Out(tid, "peers", dict(table_version=self.table_version, peers=peers, keys=keys))
                 for tid in self.tracers]
 
     def on_message(self, tid: str, msg, now: float) -> list[Out]:

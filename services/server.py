@@ -64,7 +64,8 @@ class ServerProcess:
                  drain_timeout_s: float = 60.0, reporter=None, context: zmq.Context | None = None,
                  concurrent: bool = True, client_batching: bool = True, tracer_timeout_s: float = 10.0,
                  checkpoint_dir: str | None = None, checkpoint_interval_s: float = 60.0,
-                 resume: dict | None = None):
+                 resume: dict | None = None, curve_secret: str | None = None,
+                 curve_clients: str | None = None):
         self.store, self.settings = store, settings
         self.out, self.exposure, self.reporter = out, exposure, reporter
         self.limits = limits or Limits(seconds=30.0)
@@ -80,6 +81,12 @@ class ServerProcess:
             self.state.resume(resume)
         self.ctx = context or zmq.Context.instance()
         self.router = wire.configure(self.ctx.socket(zmq.ROUTER))
+        self.auth = None
+        if curve_secret:   # CURVE: encrypted, and only listed tracers get in
+            if not curve_clients:
+                raise wire.WireError("--curve-secret needs --curve-clients (the tracers' public keys)")
+            self.auth = wire.start_authenticator(self.ctx, curve_clients)
+            wire.curve_server(self.router, curve_secret)
         self.router.bind(bind)
         self.endpoint = self.router.getsockopt(zmq.LAST_ENDPOINT).decode()
         self.http = StatusServer(self._status_snapshot, self._preview_png, *http) if http else None
@@ -124,6 +131,8 @@ class ServerProcess:
             if self.http:
                 self.http.close()
             self.router.close(linger=wire.LINGER_MS)
+            if self.auth is not None:
+                self.auth.stop()
         return self.summary()
 
     def _serve(self) -> None:

@@ -51,12 +51,19 @@ class TracerProcess:
     def __init__(self, server: str, bind: str = "tcp://127.0.0.1:*", advertise: str | None = None,
                  store: str | None = None, cache_dir: str | None = None, memory_bytes: float | None = None,
                  threads: int = 1, tracer_id: str | None = None, context: zmq.Context | None = None,
-                 connect_timeout_s: float = SERVER_TIMEOUT_S):
+                 connect_timeout_s: float = SERVER_TIMEOUT_S, curve_secret: str | None = None,
+                 curve_server_key: str | None = None, curve_clients: str | None = None):
         self.server_url, self.bind, self.advertise = server, bind, advertise
         self.store_path, self.cache_dir = store, cache_dir
         self.memory_bytes, self.threads = memory_bytes, threads
         self.tracer_id = tracer_id or default_tracer_id()
         self.connect_timeout_s = connect_timeout_s
+        self.curve = (curve_secret, curve_server_key, curve_clients) if curve_secret else None
+        if self.curve and not (curve_server_key and curve_clients):
+            raise TracerError("--curve-secret needs --curve-server-key and --curve-clients")
+        self.peer_keys: dict[str, str] = {}
+        self.public_key: str | None = None
+        self.auth = None
         self.ctx = context or zmq.Context.instance()
         self.state: TracerState | None = None
         self.peers: dict[str, zmq.Socket] = {}
@@ -71,8 +78,15 @@ class TracerProcess:
     def _open(self) -> None:
         self.dealer = wire.configure(self.ctx.socket(zmq.DEALER))
         self.dealer.setsockopt(zmq.IDENTITY, self.tracer_id.encode())
-        self.dealer.connect(self.server_url)
         self.router = wire.configure(self.ctx.socket(zmq.ROUTER))
+        if self.curve:
+            # To the server as a CURVE client; to peers as a CURVE server
+            # that admits only the listed tracers' keys.
+            secret, server_key, clients = self.curve
+            wire.curve_client(self.dealer, secret, wire.load_keys(server_key)[0])
+            self.auth = wire.start_authenticator(self.ctx, clients)
+            self.public_key = wire.curve_server(self.router, secret).decode()
+        self.dealer.connect(self.server_url)
         self.router.bind(self.bind)
         bound = self.router.getsockopt(zmq.LAST_ENDPOINT).decode()
         if self.advertise:   # bound to 0.0.0.0: peers need a reachable address
@@ -85,6 +99,10 @@ class TracerProcess:
         if s is None:
             s = wire.configure(self.ctx.socket(zmq.DEALER))
             s.setsockopt(zmq.IDENTITY, self.tracer_id.encode())
+            if self.curve:
+                if endpoint not in self.peer_keys:
+                    raise TracerError(f"no CURVE key for peer {endpoint} in the server's table")
+                wire.curve_client(s, self.curve[0], self.peer_keys[endpoint].encode())
             s.connect(endpoint)
             self.peers[endpoint] = s
         return s
@@ -95,7 +113,7 @@ class TracerProcess:
         wire.send(self.dealer, wire.encode(
             "register", tracer_id=self.tracer_id, endpoint=self.endpoint,
             capacity={"cores": self.threads, "memory_bytes": int(self.memory_bytes or 0)},
-            has_store=key is not None, store_key=key))
+            has_store=key is not None, store_key=key, public_key=self.public_key))
         # The DEALER queues the register until the server is up (libzmq
         # reconnects with its own backoff), so waiting is all it takes.
         timeout_s = self.connect_timeout_s
@@ -248,6 +266,8 @@ class TracerProcess:
             elif msg.type in ("error", "refused"):
                 log.warning("server says: %s", msg.reason)
             else:
+                if msg.type == "peers":
+                    self.peer_keys.update(msg.keys)
                 self._send(self.state.handle(msg))
                 if msg.type == "peers":
                     log.info("peer table %d: this tracer serves chunks %s", msg.table_version,
@@ -276,7 +296,8 @@ class TracerProcess:
         self._to_server(wire.encode(
             "register", tracer_id=self.tracer_id, endpoint=self.endpoint,
             capacity={"cores": self.threads, "memory_bytes": int(self.memory_bytes or 0)},
-            has_store=True, store_key=self.state.provider_key), disposable=True)
+            has_store=True, store_key=self.state.provider_key, public_key=self.public_key),
+            disposable=True)
 
     def _drain_peers(self) -> None:
         while True:
@@ -352,3 +373,5 @@ class TracerProcess:
             self.state.close()
         for s in (*self.peers.values(), self.dealer, self.router):
             s.close(linger=wire.LINGER_MS)
+        if self.auth is not None:
+            self.auth.stop()

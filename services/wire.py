@@ -63,7 +63,8 @@ Messages
 --------
     tracer -> server
       register       tracer_id, capacity {cores, memory_bytes}, endpoint
-                     (its peer ROUTER), has_store, store_key|None
+                     (its peer ROUTER), has_store, store_key|None,
+                     public_key|None (its CURVE key, for its peers)
       heartbeat      status {} (informational: queue, load, resident chunks)
       results        chunk, culled, queued, eye_iteration|None, ends i64 (5,),
                      job_ids + job_fed + job_left i64 (k,); optional
@@ -76,7 +77,8 @@ Messages
                      tree {} (ChunkTree.to_wire), store_key, chunks [int],
                      manifest {}|None (for tracers without the store)
       refused        reason
-      peers          table_version, peers [[endpoint]] indexed by chunk
+      peers          table_version, peers [[endpoint]] indexed by chunk,
+                     keys {endpoint: CURVE public key} (with CURVE)
       photon_job     chunk, cull_box f64 (2, 3), batch (one or more jobs)
       eye_job        eye_iteration, chunk, batch
       chunk_data     chunk, sha256, part, parts, offset, file_bytes, data u8
@@ -402,8 +404,9 @@ def _check_chunk_data(f: dict) -> str | None:
 _T2S, _S2T, _T2T, _ANY = "tracer->server", "server->tracer", "tracer->tracer", "any->any"
 _SPECS = (
     Spec("register", _T2S, {"tracer_id": STR, "capacity": _Struct(cores=_Int(1), memory_bytes=INT),
-                            "endpoint": STR, "has_store": BOOL, "store_key": _Nullable(STR)},
-         defaults={"store_key": None}),
+                            "endpoint": STR, "has_store": BOOL, "store_key": _Nullable(STR),
+                            "public_key": _Nullable(STR)},
+         defaults={"store_key": None, "public_key": None}),
     Spec("heartbeat", "both", {"status": DATA}, defaults={"status": {}}),
     Spec("results", _T2S, {"chunk": INT, "culled": INT, "queued": INT, "eye_iteration": _Nullable(INT)},
          (plain("ends", ("ends", np.int64, (), None), rows=len(END_NAMES)),
@@ -421,7 +424,8 @@ _SPECS = (
                            "store_key": STR, "chunks": _List(INT), "manifest": _Nullable(DATA)},
          defaults={"manifest": None}),
     Spec("refused", _S2T, {"reason": STR}, any_version=True),
-    Spec("peers", _S2T, {"table_version": INT, "peers": _List(_List(STR))}),
+    Spec("peers", _S2T, {"table_version": INT, "peers": _List(_List(STR)), "keys": DATA},
+         defaults={"keys": {}}),
     Spec("photon_job", _S2T, {"chunk": INT}, (_cull_box(), record("batch", RayBatch))),
     Spec("eye_job", _S2T, {"eye_iteration": INT, "chunk": INT}, (record("batch", RayBatch),)),
     Spec("chunk_data", _S2T, {"chunk": INT, "sha256": _Hex(), "part": INT, "parts": _Int(1),
@@ -779,3 +783,58 @@ def chunk_parts(chunk: int, sha256: str, data) -> list[list]:
                    offset=p * CHUNK_PART_BYTES, file_bytes=size,
                    data=buf[p * CHUNK_PART_BYTES:(p + 1) * CHUNK_PART_BYTES])
             for p in range(parts)]
+
+
+# -- CURVE (encryption and authentication on a LAN) -------------------------------
+def make_keys(directory: str, name: str) -> tuple[str, str]:
+    """A CURVE key pair as ZeroMQ certificate files: NAME.key_secret (keep
+    it on that host only, mode 0600) and NAME.key (public, to hand out)."""
+    import os
+
+    import zmq.auth
+    os.makedirs(directory, exist_ok=True)
+    public, secret = zmq.auth.create_certificates(directory, name)
+    os.chmod(secret, 0o600)
+    return public, secret
+
+
+def load_keys(path: str) -> tuple[bytes, bytes | None]:
+    """(public, secret) from a certificate file; secret None for a public one."""
+    import zmq.auth
+    try:
+        return zmq.auth.load_certificate(path)
+    except (OSError, ValueError) as e:
+        raise WireError(f"{path}: not a CURVE certificate: {e}") from None
+
+
+def curve_server(socket: zmq.Socket, secret_file: str) -> bytes:
+    """Make `socket` a CURVE server with the key pair in `secret_file`
+    (before bind); only clients the authenticator admits get through."""
+    public, secret = load_keys(secret_file)
+    if secret is None:
+        raise WireError(f"{secret_file}: holds no secret key")
+    socket.curve_secretkey, socket.curve_publickey, socket.curve_server = secret, public, True
+    return public
+
+
+def curve_client(socket: zmq.Socket, secret_file: str, server_public: bytes) -> None:
+    """Make `socket` a CURVE client of the server whose public key is given
+    (before connect)."""
+    public, secret = load_keys(secret_file)
+    if secret is None:
+        raise WireError(f"{secret_file}: holds no secret key")
+    socket.curve_secretkey, socket.curve_publickey, socket.curve_serverkey = secret, public, server_public
+
+
+def start_authenticator(context: zmq.Context, clients_dir: str):
+    """Admit only CURVE clients whose public key files are in `clients_dir`
+    (ZeroMQ's ZAP handler on a thread); returns it, to `stop()`."""
+    import os
+
+    from zmq.auth.thread import ThreadAuthenticator
+    if not os.path.isdir(clients_dir):
+        raise WireError(f"{clients_dir}: no such directory of public keys")
+    auth = ThreadAuthenticator(context)
+    auth.start()
+    auth.configure_curve(domain="*", location=clients_dir)
+    return auth

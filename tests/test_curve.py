@@ -1,0 +1,70 @@
+"""CURVE on the LAN: with keys made by `dosppm keys`, the server admits
+only tracers whose public keys it lists; tracers talk to each other
+encrypted too; a tracer with an unlisted key, or without CURVE, gets no
+answer and gives up with a one-line error."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import socket
+import subprocess
+import sys
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+PY = [sys.executable, "-m", "services.cli"]
+
+
+def _port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_only_listed_tracers_join_a_curve_server(tmp_path):
+    keys, allowed = tmp_path / "keys", tmp_path / "allowed"
+    made = subprocess.run(PY + ["keys", "server", "t1", "t2", "intruder", "--out", str(keys)], cwd=ROOT,
+                          capture_output=True, text=True, timeout=60)
+    assert made.returncode == 0, made.stderr
+    assert oct(os.stat(keys / "t1.key_secret").st_mode & 0o777) == "0o600"
+    allowed.mkdir()
+    for name in ("t1", "t2"):
+        shutil.copy(keys / f"{name}.key", allowed / f"{name}.key")
+    port = _port()
+    server = subprocess.Popen(
+        PY + ["server", "cornell-box", "--width", "32", "--height", "32", "--chunks", "2",
+              "--bind", f"tcp://127.0.0.1:{port}", "--http", "off", "--min-tracers", "2", "--photons", "1e6",
+              "--out", str(tmp_path / "img.exr"), "--store-cache", str(tmp_path / "stores"), "--quiet",
+              "--curve-secret", str(keys / "server.key_secret"), "--curve-clients", str(allowed)],
+        cwd=ROOT, stderr=subprocess.PIPE, text=True)
+
+    def worker(name, *curve, retry="60"):
+        return subprocess.Popen(
+            PY + ["worker", "--server", f"tcp://127.0.0.1:{port}", "--threads", "1", "--id", name,
+                  "--cache-dir", str(tmp_path / name), "--retry", retry, *curve],
+            cwd=ROOT, stderr=subprocess.PIPE, text=True)
+
+    def curve(name):
+        return ("--curve-secret", str(keys / f"{name}.key_secret"), "--curve-server-key",
+                str(keys / "server.key"), "--curve-clients", str(allowed))
+    # Refused first, so the render cannot start with them: an unlisted key,
+    # and a tracer without CURVE.
+    intruder = worker("intruder", *curve("intruder"), retry="8")
+    plain = worker("plain", retry="8")
+    assert intruder.wait(60) == 1 and "no answer from server" in intruder.stderr.read()
+    assert plain.wait(60) == 1
+    good = [worker(n, *curve(n)) for n in ("t1", "t2")]
+    try:
+        assert server.wait(180) == 0, server.stderr.read()[-2000:]
+        for w in good:
+            assert w.wait(30) == 0, w.stderr.read()[-2000:]
+    finally:
+        for p in (server, *good):
+            if p.poll() is None:
+                p.kill()
+    with open(tmp_path / "img.json", encoding="utf-8") as f:
+        summary = json.load(f)
+    assert {t["id"] for t in summary["tracers"]} == {"t1", "t2"}
+    assert sum(t.get("portal_rays_out", 0) for t in summary["tracers"]) > 0   # peers talked, encrypted
+    k = summary["counters"]
+    assert k["photons_committed"] > 0 and k["photons_emitted"] == k["photons_committed"]
