@@ -423,7 +423,7 @@ class ServerState:
         photon jobs in the server's outboxes and tracers' pipes stay under
         TOTAL_CREDIT_RAYS whatever their number (16 tracers: 65,536 each)."""
         share = TOTAL_CREDIT_RAYS // max(len(self.tracers), 1)
-        return max(MESSAGE_RAYS, min(self.queue_target, share))
+        return min(self.queue_target, max(MESSAGE_RAYS, share))
 
     def _job_status(self, ids: np.ndarray) -> np.ndarray:
         """Status of each photon job id (UNKNOWN for ids never made)."""
