@@ -34,19 +34,20 @@ def _port() -> int:
 class Cluster:
     """`dosppm server` and three `dosppm worker` processes."""
 
-    def __init__(self, tmp, seed: int):
+    def __init__(self, tmp, seed: int, workers: int = 3):
         self.tmp, self.port, self.http, self.seed = tmp, _port(), _port(), seed
+        self.n = workers
         py = [sys.executable, "-m", "services.cli"]
         self.server = self.start_server()
         self.workers = [subprocess.Popen(
             py + ["worker", "--server", f"tcp://127.0.0.1:{self.port}", "--threads", "1", "--id", f"w{i}",
                   "--cache-dir", str(tmp / f"cache{i}"), "--quiet"],
-            cwd=ROOT, stderr=open(tmp / f"worker{i}.log", "w")) for i in range(3)]
+            cwd=ROOT, stderr=open(tmp / f"worker{i}.log", "w")) for i in range(workers)]
 
     def start_server(self, *extra: str, log: str = "server.log"):
         cmd = [sys.executable, "-m", "services.cli", "server", "cornell-caustic", "--width", "64",
                "--height", "64", "--chunks", "4", "--bind", f"tcp://127.0.0.1:{self.port}",
-               "--http", f"127.0.0.1:{self.http}", "--min-tracers", "3", "--photons", str(PHOTONS),
+               "--http", f"127.0.0.1:{self.http}", "--min-tracers", str(self.n), "--photons", str(PHOTONS),
                "--photons-per-iteration", "40000", "--min-photon-jobs", "64", "--seed", str(self.seed),
                "--tracer-timeout", str(TIMEOUT_S), "--threads", "1", "--out", str(self.tmp / "img.exr"),
                "--store-cache", str(self.tmp / "stores"), "--checkpoint", str(self.tmp / "ckpt"),
@@ -92,8 +93,8 @@ class Cluster:
                 p.wait()
 
 
-def _render(tmp, seed, fault=None):
-    c = Cluster(tmp, seed)
+def _render(tmp, seed, fault=None, workers: int = 3):
+    c = Cluster(tmp, seed, workers)
     try:
         if fault:
             fault(c)
@@ -198,3 +199,23 @@ def test_a_corrupt_or_foreign_checkpoint_is_refused(tmp_path, damage, words):
     assert bad.returncode == 2 and len(lines) == 1, bad.stderr
     assert all(w in lines[0] for w in words), lines[0]
     assert not (tmp_path / "c.exr").exists()
+
+
+def test_a_tracer_added_mid_render_gets_work(tmp_path, failure_free):
+    """Two tracers start the render; a third joins while it runs, is given
+    chunks by the new round-robin table and traces; nothing is lost."""
+    def join(c: Cluster):
+        c.wait_for(lambda st: st.get("photons_committed", 0) > 0)
+        c.workers.append(subprocess.Popen(
+            [sys.executable, "-m", "services.cli", "worker", "--server", f"tcp://127.0.0.1:{c.port}",
+             "--threads", "1", "--id", "late", "--cache-dir", str(c.tmp / "late"), "--quiet"],
+            cwd=ROOT, stderr=open(c.tmp / "late.log", "w")))
+        c.wait_for(lambda st: any(t["id"] == "late" and t["chunks"] and t["results"] > 0
+                                  for t in st["tracers"]), 60)
+    c_workers = 2
+    img, summary = _render(tmp_path, 5, join, workers=c_workers)
+    k = summary["counters"]
+    assert {t["id"] for t in summary["tracers"]} == {"w0", "w1", "late"}
+    assert k["photons_emitted"] - k["photons_discarded"] == k["photons_completed"] == k["photons_committed"]
+    assert k["over_counted_paths"] == 0 and k["tracers_evicted"] == 0
+    assert_same_within_noise(img, failure_free[5], failure_free[9])
