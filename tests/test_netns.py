@@ -20,9 +20,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import shutil
 import signal
-import subprocess
 import sys
 import time
 import urllib.request
@@ -30,7 +28,9 @@ import urllib.request
 import numpy as np
 import pytest
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+import netns_helpers
+from netns_helpers import POLLER, Procs
+
 RENDER_S = 8
 SERVER_TIMEOUT_S = 90     # start-up (subdivision, numba cache), render, drain, output
 WORKER_TIMEOUT_S = 20     # after the server has exited
@@ -46,162 +46,13 @@ SUBNET = f"10.213.{_PID % 250 + 1}"
 HOSTS = {"server": f"{SUBNET}.1", "t1": f"{SUBNET}.11", "t2": f"{SUBNET}.12"}
 
 
-def _ip(*args, check=True):
-    return subprocess.run(["ip", *args], capture_output=True, text=True, timeout=20, check=check)
-
-
-def _netns_unavailable() -> str | None:
-    """Why this machine cannot run the test, or None."""
-    if not sys.platform.startswith("linux"):
-        return "network namespaces need Linux"
-    if os.geteuid() != 0:
-        return "creating network namespaces needs root"
-    if shutil.which("ip") is None:
-        return "the `ip` command (iproute2) is not installed"
-    probe = f"{PREFIX}-probe"
-    try:
-        r = _ip("netns", "add", probe, check=False)
-    except (OSError, subprocess.SubprocessError) as e:
-        return f"`ip netns add` failed: {e}"
-    if r.returncode != 0:
-        return f"cannot create a network namespace: {r.stderr.strip()}"
-    _ip("netns", "del", probe, check=False)
-    return None
-
-
-def _delete_namespaces(names) -> None:
-    for ns in names:
-        _ip("netns", "del", ns, check=False)
-
-
 @pytest.fixture
 def lan():
     """A bridge in namespace <prefix>-lan and one namespace per host with a
     veth into it; yields {host: (namespace, address)}. No default route:
     nothing leaves the machine. The namespaces are always deleted."""
-    why = _netns_unavailable()
-    if why:
-        pytest.skip(why)
-    bridge_ns = f"{PREFIX}-lan"
-    made = []
-    try:
-        _ip("netns", "add", bridge_ns)
-        made.append(bridge_ns)
-        _ip("-n", bridge_ns, "link", "set", "lo", "up")
-        _ip("-n", bridge_ns, "link", "add", "br0", "type", "bridge")
-        _ip("-n", bridge_ns, "link", "set", "br0", "up")
-        hosts = {}
-        for h, addr in HOSTS.items():
-            ns = f"{PREFIX}-{h}"
-            _ip("netns", "add", ns)
-            made.append(ns)
-            _ip("-n", ns, "link", "set", "lo", "up")
-            _ip("link", "add", f"v-{h}", "netns", bridge_ns, "type", "veth", "peer", "name", "eth0", "netns", ns)
-            _ip("-n", bridge_ns, "link", "set", f"v-{h}", "master", "br0", "up")
-            _ip("-n", ns, "addr", "add", f"{addr}/24", "dev", "eth0")
-            _ip("-n", ns, "link", "set", "eth0", "up")
-            hosts[h] = (ns, addr)
-    except subprocess.CalledProcessError as e:
-        _delete_namespaces(reversed(made))
-        pytest.fail(f"building the bridge failed: {' '.join(e.cmd)}: {e.stderr.strip()}")
-    except BaseException:
-        _delete_namespaces(reversed(made))
-        raise
-    try:
+    with netns_helpers.lan(PREFIX, HOSTS) as hosts:
         yield hosts
-    finally:
-        _delete_namespaces(reversed(made))
-
-
-class Procs:
-    """Processes started in namespaces, their output in files; all killed
-    (by process group) at the end."""
-
-    def __init__(self, folder):
-        self.folder, self.procs = folder, {}
-
-    def start(self, name, ns, argv, env=None):
-        out = open(self.folder / f"{name}.out", "wb")
-        err = open(self.folder / f"{name}.err", "wb")
-        try:
-            p = subprocess.Popen(["ip", "netns", "exec", ns, *argv], cwd=REPO, stdout=out, stderr=err,
-                                 stdin=subprocess.DEVNULL, env={**os.environ, **(env or {})},
-                                 start_new_session=True)
-        finally:
-            out.close()
-            err.close()
-        self.procs[name] = p
-        return p
-
-    def wait(self, name, timeout):
-        """The exit status, or None on a time-out."""
-        try:
-            return self.procs[name].wait(timeout=max(timeout, 0.1))
-        except subprocess.TimeoutExpired:
-            return None
-
-    def err(self, name, chars=3000) -> str:
-        try:
-            text = (self.folder / f"{name}.err").read_text(errors="replace")
-        except OSError:
-            return ""
-        return text[-chars:]
-
-    def tails(self) -> str:
-        return "\n".join(f"--- {n} (exit {p.poll()}) stderr tail:\n{self.err(n)}" for n, p in self.procs.items())
-
-    def kill_all(self):
-        for p in self.procs.values():
-            if p.poll() is None:
-                try:
-                    os.killpg(p.pid, signal.SIGKILL)
-                except ProcessLookupError:
-                    pass
-        for p in self.procs.values():
-            try:
-                p.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                pass
-
-
-# Runs inside a tracer host: polls the server's status page and keeps the
-# last good JSON in a file (written atomically) until told to stop or the
-# deadline passes.
-POLLER = r"""
-import json, os, sys, time, urllib.request
-url, out, deadline = sys.argv[1], sys.argv[2], time.time() + float(sys.argv[3])
-n = 0
-while time.time() < deadline:
-    try:
-        with urllib.request.urlopen(url, timeout=2) as r:
-            doc = json.loads(r.read())
-        n += 1
-        doc["_poll"] = {"n": n, "t": time.time()}
-        with open(out + ".tmp", "w") as f:
-            json.dump(doc, f)
-        os.replace(out + ".tmp", out)
-    except Exception:
-        pass
-    time.sleep(0.3)
-"""
-
-
-def _warm_kernel_cache(folder) -> None:
-    """Compile (or load) the numba kernels once, in a small local render of
-    the same layout: every process of the test shares numba's on-disk
-    cache, and the whole package's cache is dropped whenever a kernel
-    module changes. A cold cache costs each process 10-20 s of compiling,
-    which would eat the 8 s render and leave no photons, no portal traffic.
-    `--iterations` (not `--time`) so the photon kernels surely run."""
-    folder.mkdir()
-    cmd = [sys.executable, "-m", "services.cli", "render", "cornell-box", "--tracers", "2", "--chunks", "4",
-           "--width", "16", "--height", "16", "--iterations", "2", "--min-photon-jobs", "64", "--http", "off",
-           "--store-cache", str(folder / "store-cache"), "--out", str(folder / "warm.exr"), "--quiet"]
-    try:
-        r = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=180)
-    except subprocess.TimeoutExpired as e:
-        pytest.fail(f"warming the kernel cache took over {e.timeout} s: {(e.stderr or '')[-3000:]}")
-    assert r.returncode == 0, f"warm-up render failed ({r.returncode}): {r.stderr[-3000:]}"
 
 
 def _reachable_from_root(ip: str, port: int) -> bool:
@@ -223,7 +74,7 @@ def test_server_and_two_tracers_on_separate_hosts(lan, tmp_path):
     logs.mkdir()
     py = [sys.executable, "-m", "services.cli"]
     env = {"DOSPPM_LOG_LEVEL": "info", "PYTHONUNBUFFERED": "1"}
-    _warm_kernel_cache(tmp_path / "warm-up")
+    netns_helpers.warm_kernel_cache(tmp_path / "warm-up")
     procs = Procs(logs)
     try:
         procs.start("server", server_ns, py + [
