@@ -89,6 +89,7 @@ class Job:
     eye_iteration: int | None = None
     open: int = 0                    # path segments sent or passed on, not yet traced
     sent: bool = False               # all its paths have left the server
+    progress_s: float = 0.0          # when a result last touched it (the watchdog's clock)
     # The photon job whose random streams this one traces: itself, or the
     # job it re-emits after a tracer failure (the same photons, a new id).
     rng_key: int | None = None
@@ -141,6 +142,8 @@ class ServerState:
         self.min_tracers = int(min_tracers)
         self.concurrent, self.client_batching = bool(concurrent), bool(client_batching)
         self.tracer_timeout_s = float(tracer_timeout_s)
+        self.job_timeout_s = max(30.0, 3 * self.tracer_timeout_s)
+        self._now = 0.0
         self.discarded: set[int] = set()          # job ids whose late results are ignored
         self.evicted: list[dict] = []
         self.eps_abs = 1e-6 * header.diagonal()
@@ -177,7 +180,7 @@ class ServerState:
                          "over_counted_paths": 0, "results": 0, "updates": 0,
                          "photons_discarded": 0, "jobs_discarded": 0, "tracers_evicted": 0,
                          "eye_iterations_restarted": 0, "deposits_discarded": 0, "deposits_stale": 0,
-                         "refused": 0}
+                         "refused": 0, "tracers_rejoined": 0, "jobs_timed_out": 0}
         self.path_ends = np.zeros(len(END_NAMES), np.int64)
 
     # -- tracers -------------------------------------------------------------------
@@ -202,8 +205,14 @@ class ServerState:
                            msg.store_key, now, msg.public_key)
             self.tracers[tid] = t
         else:
+            # A tracer registering again has forgotten its queues (it was
+            # cut off, or lost our welcome): its share of the work in flight
+            # is gone, so every job in flight is discarded and re-emitted.
             t.endpoint, t.store_key, t.last_seen_s = msg.endpoint, msg.store_key, now
             t.public_key = msg.public_key
+            t.queued = t.sent_since_report = 0
+            self.counters["tracers_rejoined"] += 1
+            self._discard_jobs_in_flight()
         self._reassign()
         return [Out(tid, "welcome", self.welcome_fields(t)), *self._peer_tables()]
 
@@ -286,6 +295,7 @@ class ServerState:
             self.counters["stale_paths"] += stale   # a finished or unknown job: never counted twice
             return
         job.open += change
+        job.progress_s = self._now
         if job.open < 0:
             self.counters["over_counted_paths"] += -job.open
         if job.open <= 0 and job.sent:
@@ -333,10 +343,12 @@ class ServerState:
     def tick(self, now: float) -> list[Out]:
         """Start eye iterations, top up and send photon jobs, heartbeats."""
         out = []
+        self._now = now
         if now - self._last_heartbeat >= HEARTBEAT_INTERVAL_S:
             self._last_heartbeat = now
             out += [Out(tid, "heartbeat", dict(status={})) for tid in self.tracers]
             out += self._evict_silent(now)
+            self._watchdog(now)
         if not self.started:
             if len(self.tracers) < self.min_tracers:
                 return out
@@ -378,6 +390,17 @@ class ServerState:
         for t in [t for t in self.tracers.values() if now - t.last_seen_s > self.tracer_timeout_s]:
             out += self.evict(t.id, f"silent for {now - t.last_seen_s:.1f} s")
         return out
+
+    def _watchdog(self, now: float) -> None:
+        """Messages can vanish without any error (queued in a TCP connection
+        that libzmq replaces after a cut): a job no result has touched for
+        `job_timeout_s` is presumed lost with them, and all jobs in flight
+        are discarded and re-emitted. Correctness never depends on it: a
+        job presumed lost that was only slow has its late results ignored."""
+        limit = self.job_timeout_s
+        if any(job.sent and now - job.progress_s > limit for job in self.jobs.values()):
+            self.counters["jobs_timed_out"] += 1
+            self._discard_jobs_in_flight()
 
     def evict(self, tid: str, reason: str) -> list[Out]:
         """Drop tracer `tid`: its chunks go to the live tracers (new peer
@@ -486,6 +509,7 @@ class ServerState:
             parts.setdefault((t.id, k), []).append(part)
             receivers.add(t.id)
         self.jobs[j].sent = True
+        self.jobs[j].progress_s = self._now
         self._segments(j, len(batch) - lost)
         return receivers
 

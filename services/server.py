@@ -91,6 +91,7 @@ class ServerProcess:
         self.endpoint = self.router.getsockopt(zmq.LAST_ENDPOINT).decode()
         self.http = StatusServer(self._status_snapshot, self._preview_png, *http) if http else None
         self._outbox: dict[str, deque] = {}
+        self._lost: list[str] = []
         self._updates: queue.Queue = queue.Queue()
         self._boxes: queue.Queue = queue.Queue()
         self._status: dict = {}
@@ -237,6 +238,10 @@ class ServerProcess:
     def _send(self, outs) -> None:
         for o in outs:
             self._queue(o.dest, wire.encode(o.type, **o.fields))
+        while self._lost:
+            tid = self._lost.pop()
+            if tid in self.state.tracers:
+                self._send(self.state.evict(tid, "unreachable"))
 
     def _queue(self, tid: str, frames) -> None:
         self._outbox.setdefault(tid, deque()).append(frames)
@@ -257,6 +262,11 @@ class ServerProcess:
                 self.undeliverable += len(box)
                 log.warning("tracer %s unreachable: %d messages not delivered", tid, len(box))
                 box.clear()
+                # Jobs may have been in what was lost: drop the tracer (its
+                # jobs in flight are re-emitted); it registers again when it
+                # hears it is unknown.
+                if tid in self.state.tracers:
+                    self._lost.append(tid)
                 return
             self.bytes_out += sum(memoryview(f).nbytes for f in box.popleft())
 

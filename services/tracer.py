@@ -71,6 +71,7 @@ class TracerProcess:
         self.stopped: str | None = None
         self._rejoining = False
         self._backoff, self._next_rejoin = 0.0, 0.0
+        self._last_register = 0.0
         self.bytes_to_server = self.bytes_to_peers = 0
         self._outbox_rays = 0
 
@@ -288,10 +289,13 @@ class TracerProcess:
 
     def _rejoin(self) -> None:
         """The server no longer knows us (it evicted us while we were
-        silent): register again, once, and carry on when welcomed."""
-        if self._rejoining:
+        silent): register again, and again at most once a second while it
+        keeps saying so (a register or its welcome can be lost with a
+        connection libzmq replaces), until welcomed."""
+        now = time.monotonic()
+        if self._rejoining and now - self._last_register < 1.0:
             return
-        self._rejoining = True
+        self._rejoining, self._last_register = True, now
         log.warning("no server, or it dropped this tracer: registering again")
         self._to_server(wire.encode(
             "register", tracer_id=self.tracer_id, endpoint=self.endpoint,

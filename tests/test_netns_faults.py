@@ -13,7 +13,7 @@ discarded jobs count towards it too):
   gives up after its --retry;
 - a tracer's cable is pulled for 8 s, more than --tracer-timeout, and
   plugged in again mid-render: the tracer should rejoin, get chunks and
-  help finish the render (an expected failure for now: see REJOIN_BUG);
+  help finish the render (flaky: see REJOIN_GAP);
 - 5% of the packets a tracer receives are dropped (iptables): the render
   is slower.
 
@@ -320,20 +320,22 @@ class RejoinFailed(AssertionError):
     """The cut-off tracer did not come back and help finish the render."""
 
 
-# Seen on every 7-10 s cut tried (none rejoined; 5 s and 12 s cuts did).
-REJOIN_BUG = (
-    "product bug: a tracer cut off for 8 s (more than --tracer-timeout 3) never rejoins. Its registers "
-    "wait in the old TCP connection, whose retransmission back-off outlasts the cut; libzmq's 10 s "
-    "heartbeat timeout then replaces that connection, and what was queued in it is lost. Either (a) "
-    "the registers got through first: the server re-registers the tracer and sends welcome, peer table "
-    "and jobs into the dying connection (lost; the tracer never logs 'rejoined'), then takes the tracer's "
-    "heartbeats on the new one as a live tracer; the tracer, hearing the server's heartbeats, never "
-    "registers again; the jobs never complete and the render stalls; or (b) the registers were lost: "
-    "the server answers each heartbeat 'is not registered', which the tracer ignores because it still "
-    "has a register outstanding (_rejoining), and the tracer stays out for good")
+# A cut of 7-10 s used to leave the tracer out for good: its registers, or
+# the server's welcome and jobs, were queued in the TCP connection libzmq
+# replaces after its 10 s heartbeat timeout, and were lost without an
+# error. Now a tracer that registers again has its jobs in flight
+# re-emitted, an unreachable tracer is dropped, a tracer keeps registering
+# while the server says it is unknown, and a watchdog re-emits jobs no
+# result has touched for 30 s; the tracer may be evicted twice on the way
+# back. It rejoins in most runs. Still open: when the welcome itself is
+# lost, the server lists the tracer but the tracer never hears it was
+# welcomed (no handshake acknowledges a welcome), and the render can
+# wait for the watchdog past this test's patience.
+REJOIN_GAP = ("a welcome lost with a replaced connection is not acknowledged or resent: the tracer "
+              "works on unwelcomed and lost jobs wait for the 30 s watchdog (flaky, not strict)")
 
 
-@pytest.mark.xfail(strict=True, raises=RejoinFailed, reason=REJOIN_BUG)
+@pytest.mark.xfail(strict=False, raises=RejoinFailed, reason=REJOIN_GAP)
 def test_a_cut_off_tracer_rejoins_once_the_link_is_back(lan, tmp_path, healthy):
     r = Render(lan.hosts, tmp_path / "rejoin", 3, photons=PHOTONS_REJOIN)
     try:
@@ -373,7 +375,7 @@ def test_a_cut_off_tracer_rejoins_once_the_link_is_back(lan, tmp_path, healthy):
         r.close()
     _assert_exact(res, healthy, photons=PHOTONS_REJOIN)
     k = res["summary"]["counters"]
-    assert k["tracers_evicted"] == 1, k
+    assert k["tracers_evicted"] >= 1, k
     final = {t["id"]: t for t in res["summary"]["tracers"]}
     assert sorted(final) == ["tracer-t1", "tracer-t2"] and final["tracer-t1"]["results"] > 0, final
 
