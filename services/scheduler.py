@@ -71,6 +71,8 @@ class TracerInfo:
     store_key: str | None
     last_seen_s: float
     public_key: str | None = None   # its CURVE key, handed to its peers
+    session: int = 0                # counts its registrations; heartbeats echo the one welcomed
+    welcomed_s: float = 0.0
     queued: int = 0                 # rays waiting at the tracer, as last reported
     sent_since_report: int = 0      # rays sent to it since
     status: dict = field(default_factory=dict)
@@ -180,14 +182,15 @@ class ServerState:
                          "over_counted_paths": 0, "results": 0, "updates": 0,
                          "photons_discarded": 0, "jobs_discarded": 0, "tracers_evicted": 0,
                          "eye_iterations_restarted": 0, "deposits_discarded": 0, "deposits_stale": 0,
-                         "refused": 0, "tracers_rejoined": 0, "jobs_timed_out": 0}
+                         "refused": 0, "tracers_rejoined": 0, "jobs_timed_out": 0, "welcomes_resent": 0}
         self.path_ends = np.zeros(len(END_NAMES), np.int64)
 
     # -- tracers -------------------------------------------------------------------
     def welcome_fields(self, t: TracerInfo) -> dict:
         s = self.settings
         return dict(tracer_index=t.index, settings={"max_depth": s.max_depth, "seed": s.seed,
-                                                    "client_batching": self.client_batching},
+                                                    "client_batching": self.client_batching,
+                                                    "session": t.session},
                     scene=self.header.to_wire(), tree=self.tree.to_wire(), store_key=self.store_key,
                     chunks=[k for k, o in enumerate(self.owners) if t.id in o],
                     manifest=None if t.store_key == self.store_key else self.manifest)
@@ -213,6 +216,8 @@ class ServerState:
             t.queued = t.sent_since_report = 0
             self.counters["tracers_rejoined"] += 1
             self._discard_jobs_in_flight()
+        t.session += 1
+        t.welcomed_s = now
         self._reassign()
         return [Out(tid, "welcome", self.welcome_fields(t)), *self._peer_tables()]
 
@@ -237,11 +242,25 @@ class ServerState:
         t.last_seen_s = now
         if msg.type == "heartbeat":
             t.status = dict(msg.status)
+            return self._check_welcomed(t, now)
         elif msg.type == "results":
             return self._on_results(t, msg)
         return []
 
     # -- results and exact accounting ----------------------------------------------------
+    def _check_welcomed(self, t: TracerInfo, now: float) -> list[Out]:
+        """A tracer whose heartbeats do not echo its latest welcome never got
+        it (lost with a connection libzmq replaced): it still holds queues
+        of its old session. Welcome it again, with the jobs in flight
+        re-emitted, since it forgets its queues when welcomed."""
+        echoed = t.status.get("session")
+        if echoed is None or echoed == t.session or now - t.welcomed_s < 2 * HEARTBEAT_INTERVAL_S:
+            return []
+        self.counters["welcomes_resent"] += 1
+        t.welcomed_s = now
+        self._discard_jobs_in_flight()
+        return [Out(t.id, "welcome", self.welcome_fields(t)), *self._peer_tables()]
+
     def _check_results(self, msg) -> str | None:
         """What the wire cannot know: ranges of chunks, pixels, materials."""
         if msg.chunk >= self.tree.chunk_count:

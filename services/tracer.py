@@ -69,6 +69,7 @@ class TracerProcess:
         self.peers: dict[str, zmq.Socket] = {}
         self.outbox: list = []        # (endpoint, frames) waiting for a full peer pipe
         self.stopped: str | None = None
+        self.session = None            # the registration the server last welcomed
         self._rejoining = False
         self._backoff, self._next_rejoin = 0.0, 0.0
         self._last_register = 0.0
@@ -204,6 +205,7 @@ class TracerProcess:
             welcome = self._register()
             provider = self._provider(welcome)
             batching = welcome.settings.get("client_batching", True)
+            self.session = welcome.settings.get("session")
             self.state = TracerState(self.endpoint, provider, welcome.settings["max_depth"],
                                      memory_bytes=self.memory_bytes, threads=self.threads,
                                      step_rays=STEP_RAYS if batching else 0)
@@ -239,7 +241,8 @@ class TracerProcess:
 
     def _status(self) -> dict:
         s = self.state.status()
-        s.update(outbox=len(self.outbox), outbox_rays=self._outbox_rays, cpu_s=round(time.process_time(), 3),
+        s.update(session=self.session, outbox=len(self.outbox), outbox_rays=self._outbox_rays,
+                 cpu_s=round(time.process_time(), 3),
                  bytes_to_server=self.bytes_to_server, bytes_to_peers=self.bytes_to_peers)
         return s
 
@@ -261,6 +264,7 @@ class TracerProcess:
                 # Back after the server dropped us (we were hung or cut off)
                 # or restarted: what we still hold belongs to jobs it has
                 # discarded or never knew.
+                self.session = msg.settings.get("session")
                 self.state.reset()
                 self._rejoining, self._backoff = False, 0.0
                 log.warning("rejoined the server as tracer %d", msg.tracer_index)
