@@ -161,24 +161,24 @@ def add_worker_parser(sub) -> None:
     p.set_defaults(func=cmd_worker)
 
 
-def cmd_server(args) -> int:
-    from .local import serve
+def _resolve_or_say(args, role: str, options) -> dict | None:
     try:
-        values = resolve(args, "server", SERVER)
+        return resolve(args, role, options)
     except ConfigError as e:
         print(f"dosppm: error: {e}", file=sys.stderr)
-        return 2
-    return serve(args.scene, values, quiet=args.quiet)
+        return None
+
+
+def cmd_server(args) -> int:
+    from .local import serve
+    values = _resolve_or_say(args, "server", SERVER)
+    return 2 if values is None else serve(args.scene, values, quiet=args.quiet)
 
 
 def cmd_worker(args) -> int:
     from .local import work
-    try:
-        values = resolve(args, "worker", WORKER)
-    except ConfigError as e:
-        print(f"dosppm: error: {e}", file=sys.stderr)
-        return 2
-    return work(values, quiet=args.quiet)
+    values = _resolve_or_say(args, "worker", WORKER)
+    return 2 if values is None else work(values, quiet=args.quiet)
 
 
 def add_keys_parser(sub) -> None:

@@ -111,22 +111,11 @@ class TracerProcess:
 
     # -- registration ----------------------------------------------------------------
     def _register(self):
-        key = self._local_store_key()
-        wire.send(self.dealer, wire.encode(
-            "register", tracer_id=self.tracer_id, endpoint=self.endpoint,
-            capacity={"cores": self.threads, "memory_bytes": int(self.memory_bytes or 0)},
-            has_store=key is not None, store_key=key, public_key=self.public_key))
+        wire.send(self.dealer, self._register_frames(self._local_store_key()))
         # The DEALER queues the register until the server is up (libzmq
         # reconnects with its own backoff), so waiting is all it takes.
         timeout_s = self.connect_timeout_s
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if not self.dealer.poll(200):
-                continue
-            got = wire.recv_or_reply(self.dealer)
-            if got is None:
-                continue
-            msg = got[1]
+        for msg in self._server_messages(time.monotonic() + timeout_s):
             if msg.type == "refused":
                 raise TracerError(f"server refused this tracer: {msg.reason}")
             if msg.type == "welcome":
@@ -134,6 +123,21 @@ class TracerProcess:
             if msg.type == "error":
                 raise TracerError(f"server: {msg.reason}")
         raise TracerError(f"no answer from server {self.server_url} within {timeout_s:.0f} s")
+
+    def _register_frames(self, store_key: str | None) -> list:
+        return wire.encode("register", tracer_id=self.tracer_id, endpoint=self.endpoint,
+                           capacity={"cores": self.threads, "memory_bytes": int(self.memory_bytes or 0)},
+                           has_store=store_key is not None, store_key=store_key,
+                           public_key=self.public_key)
+
+    def _server_messages(self, deadline: float):
+        """Decoded messages from the server until `deadline` (bad ones are
+        answered and skipped by `recv_or_reply`)."""
+        while time.monotonic() < deadline:
+            if self.dealer.poll(200):
+                got = wire.recv_or_reply(self.dealer)
+                if got is not None:
+                    yield got[1]
 
     def _local_store_key(self) -> str | None:
         if not self.store_path:
@@ -159,14 +163,8 @@ class TracerProcess:
         """Ask the server for chunk `chunk` by id and wait for its parts;
         other messages arriving meanwhile are handled as usual."""
         wire.send(self.dealer, wire.encode("chunk_request", chunk=chunk))
-        parts, deadline = [], time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if not self.dealer.poll(200):
-                continue
-            got = wire.recv_or_reply(self.dealer)
-            if got is None:
-                continue
-            msg = got[1]
+        parts = []
+        for msg in self._server_messages(time.monotonic() + timeout_s):
             if msg.type == "chunk_data" and msg.chunk == chunk:
                 parts.append(msg)
                 if len(parts) == msg.parts:
@@ -301,11 +299,7 @@ class TracerProcess:
             return
         self._rejoining, self._last_register = True, now
         log.warning("no server, or it dropped this tracer: registering again")
-        self._to_server(wire.encode(
-            "register", tracer_id=self.tracer_id, endpoint=self.endpoint,
-            capacity={"cores": self.threads, "memory_bytes": int(self.memory_bytes or 0)},
-            has_store=True, store_key=self.state.provider_key, public_key=self.public_key),
-            disposable=True)
+        self._to_server(self._register_frames(self.state.provider_key), disposable=True)
 
     def _drain_peers(self) -> None:
         while True:
