@@ -69,14 +69,14 @@ def scatter_photons(surf: SurfaceData, batch: RayBatch, prim, u, v,
                     cull_box: np.ndarray, max_depth: int):
     """The photon bounce at known hits (`prim` -1: escaped), for any
     aggregate: the whole scene or one chunk (`surf` indexes like `prim`)."""
-    ends, culled, dep, (g, no, nd, nf, st) = paths.scatter_photons(
-        batch.origin, batch.direction, batch.weight, batch.depth, batch.rng, prim, u, v,
-        surf.vertices, surf.triangles, surf.tri_material, surf.kind, surf.reflectance,
-        surf.ior, surf.roughness, surf.two_sided, cull_box[0], cull_box[1], max_depth,
-        EPS_REL, surf.eps_abs)
-    nxt = RayBatch(no, nd, nf, batch.pixel[g], batch.depth[g] + 1, st, job=batch.job[g])
-    pos, inc, nrm, flux, source = dep
-    return PhotonDeposits(pos, inc, nrm, flux, batch.job[source]), nxt, ends, culled
+    ends, culled, dep, nxt = paths.scatter_photons(
+        batch.origin, batch.direction, batch.weight, batch.depth, batch.rng, batch.job,
+        batch.pixel, prim, u, v, surf.vertices, surf.triangles, surf.tri_material, surf.kind,
+        surf.reflectance, surf.ior, surf.roughness, surf.two_sided, cull_box[0], cull_box[1],
+        max_depth, EPS_REL, surf.eps_abs)
+    no, nd, nf, st, depth, job, pixel = nxt
+    return (PhotonDeposits(*dep), RayBatch(no, nd, nf, pixel, depth, st, job=job),
+            ends, culled)
 
 
 def eye_step(accel: Accelerator, surf: SurfaceData, batch: RayBatch, max_depth: int):

@@ -990,3 +990,31 @@ def test_eye_furnace_through_glass_sees_n_squared_radiance_inside(camera_in_glas
     mean, se = seen.mean(0), seen.std(0, ddof=1) / math.sqrt(len(seen))
     assert np.all(mean - expected <= Z * se) and np.all(expected - mean <= Z * se + lost * expected), \
         f"radiance seen {mean} vs {expected} (se {se})"
+
+
+def test_photon_bounce_of_a_large_batch_equals_the_bounce_of_each_row_alone():
+    """The bounce kernel compacts deposits and survivors in parallel blocks;
+    a batch of many blocks must give exactly the rows, in order, that the
+    same rows give one at a time (a one-row call is a single block)."""
+    scene = _furnace((0.7, 0.5, 0.3), ball="glass")
+    surf = tracing.SurfaceData.from_scene(scene)
+    accel = Accelerator(scene.vertices, scene.triangles)
+    try:
+        batch = tracing.emit_photon_job(scene, 3, 0, 20_000, surf.eps_abs)
+        batch.job = np.arange(len(batch), dtype=np.int64) // 7
+        for _ in range(2):   # a bounce deep, so the depths and fluxes vary
+            _, batch, _, _ = tracing.photon_step(accel, surf, batch, tracing.NO_CULL, 10)
+        prim, _t, u, v = accel.intersect(batch.origin, batch.direction)
+        cull = np.array([[-0.5, -2.0, -2.0], [2.0, 2.0, 2.0]])  # some deposits culled
+        dep, nxt, ends, culled = tracing.scatter_photons(surf, batch, prim, u, v, cull, 10)
+        rows = [tracing.scatter_photons(surf, batch.slice(i, i + 1), prim[i:i + 1], u[i:i + 1],
+                                        v[i:i + 1], cull, 10) for i in range(len(batch))]
+    finally:
+        accel.close()
+    assert len(batch) > 8192 and 0 < culled < len(batch)
+    assert culled == sum(r[3] for r in rows)
+    np.testing.assert_array_equal(ends, np.sum([r[2] for r in rows], axis=0))
+    for got, parts in ((dep, [r[0] for r in rows]), (nxt, [r[1] for r in rows])):
+        want = type(got).concat(parts)
+        for name, column in got.arrays().items():
+            np.testing.assert_array_equal(column, getattr(want, name), err_msg=name)

@@ -72,93 +72,151 @@ def _ends(end):
     return counts
 
 
+@nb.njit(cache=True, error_model="numpy")
+def _block_starts(counts, col):
+    """Exclusive prefix sum of one column of per-block counts."""
+    out = np.empty(counts.shape[0] + 1, np.int64)
+    out[0] = 0
+    for b in range(counts.shape[0]):
+        out[b + 1] = out[b] + counts[b, col]
+    return out
+
+
 @nb.njit(cache=True, parallel=True, error_model="numpy")
-def scatter_photons(origin, direction, flux, depth, states, prim, u, v,
+def scatter_photons(origin, direction, flux, depth, states, job, pixel, prim, u, v,
                     vertices, triangles, tri_material, mat_kind, mat_refl, mat_ior,
                     mat_rough, mat_two_sided, cull_lo, cull_hi, max_depth,
                     eps_rel, eps_abs):
     """Deposit photons at non-specular hits (if inside the cull box) and
     scatter them with Russian roulette. Returns (end counts, culled count,
-    deposits (position, incoming, normal, flux), continuing paths (index
-    into the batch, origin, direction, flux, rng state)), compacted here:
-    numpy's boolean indexing cost more than the bounce itself."""
+    deposits (position, incoming, normal, flux, job), continuing paths
+    (origin, direction, flux, rng state, depth, job, pixel)).
+
+    Compaction is done here, in blocks: each block of rows writes its
+    deposits and survivors densely from its own start, then one parallel
+    pass packs the blocks. A mask-then-gather compaction (or numpy's
+    boolean indexing) cost as much as the bounce itself."""
     n = origin.shape[0]
+    nblk = max(1, min(64, n // 2048))   # enough blocks to balance threads
     end = np.empty(n, np.int8)
-    deposited = np.zeros(n, np.bool_)
     culled = np.zeros(n, np.bool_)
     dep_pos = np.empty((n, 3), np.float32)
     dep_in = np.empty((n, 3), np.float32)
     dep_n = np.empty((n, 3), np.float32)
+    dep_f = np.empty((n, 3), np.float32)
+    dep_job = np.empty(n, np.int64)
     new_o = np.empty((n, 3), np.float32)
     new_d = np.empty((n, 3), np.float32)
     new_f = np.empty((n, 3), np.float32)
-    out_states = states.copy()
-    for i in nb.prange(n):
-        tri = prim[i]
-        if tri < 0:
-            end[i] = ESCAPED
-            continue
-        t0, t1, t2 = triangles[tri, 0], triangles[tri, 1], triangles[tri, 2]
-        p0, p1, p2, n0, n1, n2 = surface(vertices[t0], vertices[t1], vertices[t2],
-                                         np.float64(u[i]), np.float64(v[i]))
-        w0, w1, w2 = -direction[i, 0], -direction[i, 1], -direction[i, 2]
-        m = tri_material[tri]
-        kind = mat_kind[m]
-        front = n0 * w0 + n1 * w1 + n2 * w2 > 0.0
-        if not is_specular(kind):
-            if not front and not mat_two_sided[m]:
-                end[i] = ABSORBED   # the black back of a one-sided surface
+    new_st = np.empty(n, np.uint64)
+    new_depth = np.empty(n, np.int32)
+    new_job = np.empty(n, np.int64)
+    new_pix = np.empty(n, np.int32)
+    counts = np.zeros((nblk, 2), np.int64)
+    for b in nb.prange(nblk):
+        a = b * n // nblk
+        e = (b + 1) * n // nblk
+        dc = a
+        gc = a
+        for i in range(a, e):
+            tri = prim[i]
+            if tri < 0:
+                end[i] = ESCAPED
                 continue
-            inside = True
+            t0, t1, t2 = triangles[tri, 0], triangles[tri, 1], triangles[tri, 2]
+            p0, p1, p2, n0, n1, n2 = surface(vertices[t0], vertices[t1], vertices[t2],
+                                             np.float64(u[i]), np.float64(v[i]))
+            w0, w1, w2 = -direction[i, 0], -direction[i, 1], -direction[i, 2]
+            m = tri_material[tri]
+            kind = mat_kind[m]
+            front = n0 * w0 + n1 * w1 + n2 * w2 > 0.0
+            if not is_specular(kind):
+                if not front and not mat_two_sided[m]:
+                    end[i] = ABSORBED
+                    continue
+                if (p0 < cull_lo[0] or p0 > cull_hi[0] or p1 < cull_lo[1] or p1 > cull_hi[1]
+                        or p2 < cull_lo[2] or p2 > cull_hi[2]):
+                    culled[i] = True
+                else:
+                    s = 1.0 if front else -1.0
+                    dep_pos[dc, 0], dep_pos[dc, 1], dep_pos[dc, 2] = p0, p1, p2
+                    dep_in[dc, 0], dep_in[dc, 1], dep_in[dc, 2] = w0, w1, w2
+                    dep_n[dc, 0], dep_n[dc, 1], dep_n[dc, 2] = s * n0, s * n1, s * n2
+                    dep_f[dc, 0], dep_f[dc, 1], dep_f[dc, 2] = flux[i, 0], flux[i, 1], flux[i, 2]
+                    dep_job[dc] = job[i]
+                    dc += 1
+            if depth[i] + 1 >= max_depth:
+                end[i] = MAX_DEPTH
+                continue
+            st = states[i]
+            st, u1 = next_float(st)
+            st, u2 = next_float(st)
+            st, u3 = next_float(st)
+            st, ur = next_float(st)
+            ok, d0, d1, d2, scale, spec = sample_bsdf(kind, mat_two_sided[m], np.float64(mat_ior[m]),
+                                                      np.float64(mat_rough[m]), n0, n1, n2, w0, w1, w2,
+                                                      u1, u2, u3, False)
+            if not ok:
+                end[i] = ABSORBED
+                continue
+            old_max = max(flux[i, 0], flux[i, 1], flux[i, 2])
+            nf0 = flux[i, 0] * mat_refl[m, 0] * scale
+            nf1 = flux[i, 1] * mat_refl[m, 1] * scale
+            nf2 = flux[i, 2] * mat_refl[m, 2] * scale
+            q = max(0.0, 1.0 - max(nf0, nf1, nf2) / old_max) if old_max > 0 else 1.0
+            if ur < q:
+                end[i] = ABSORBED
+                continue
+            keep = 1.0 / (1.0 - q)
+            new_f[gc, 0], new_f[gc, 1], new_f[gc, 2] = nf0 * keep, nf1 * keep, nf2 * keep
+            dl = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+            new_d[gc, 0], new_d[gc, 1], new_d[gc, 2] = d0 / dl, d1 / dl, d2 / dl
+            new_o[gc, 0], new_o[gc, 1], new_o[gc, 2] = offset_origin(
+                p0, p1, p2, n0, n1, n2, d0, d1, d2, eps_rel, eps_abs)
+            new_st[gc] = st
+            new_depth[gc] = depth[i] + 1
+            new_job[gc] = job[i]
+            new_pix[gc] = pixel[i]
+            gc += 1
+            end[i] = CONTINUES
+        counts[b, 0] = dc - a
+        counts[b, 1] = gc - a
+    ds = _block_starts(counts, 0)
+    gs = _block_starts(counts, 1)
+    o_pos = np.empty((ds[nblk], 3), np.float32)
+    o_in = np.empty((ds[nblk], 3), np.float32)
+    o_n = np.empty((ds[nblk], 3), np.float32)
+    o_f = np.empty((ds[nblk], 3), np.float32)
+    o_job = np.empty(ds[nblk], np.int64)
+    c_o = np.empty((gs[nblk], 3), np.float32)
+    c_d = np.empty((gs[nblk], 3), np.float32)
+    c_f = np.empty((gs[nblk], 3), np.float32)
+    c_st = np.empty(gs[nblk], np.uint64)
+    c_depth = np.empty(gs[nblk], np.int32)
+    c_job = np.empty(gs[nblk], np.int64)
+    c_pix = np.empty(gs[nblk], np.int32)
+    for b in nb.prange(nblk):
+        a = b * n // nblk
+        for j in range(counts[b, 0]):
+            o = ds[b] + j
             for k in range(3):
-                pk = p0 if k == 0 else (p1 if k == 1 else p2)
-                if pk < cull_lo[k] or pk > cull_hi[k]:
-                    inside = False
-            if inside:
-                s = 1.0 if front else -1.0
-                deposited[i] = True
-                dep_pos[i, 0], dep_pos[i, 1], dep_pos[i, 2] = p0, p1, p2
-                dep_in[i, 0], dep_in[i, 1], dep_in[i, 2] = w0, w1, w2
-                dep_n[i, 0], dep_n[i, 1], dep_n[i, 2] = s * n0, s * n1, s * n2
-            else:
-                culled[i] = True
-        if depth[i] + 1 >= max_depth:
-            end[i] = MAX_DEPTH
-            continue
-        st = states[i]
-        st, u1 = next_float(st)
-        st, u2 = next_float(st)
-        st, u3 = next_float(st)
-        st, ur = next_float(st)
-        out_states[i] = st
-        ok, d0, d1, d2, scale, spec = sample_bsdf(kind, mat_two_sided[m], np.float64(mat_ior[m]),
-                                                  np.float64(mat_rough[m]), n0, n1, n2, w0, w1, w2,
-                                                  u1, u2, u3, False)
-        if not ok:
-            end[i] = ABSORBED
-            continue
-        # Russian roulette on the throughput change (pbrt-v4's SPPM rule):
-        # survivors are boosted so the expected flux is unchanged.
-        old_max = max(flux[i, 0], flux[i, 1], flux[i, 2])
-        nf0 = flux[i, 0] * mat_refl[m, 0] * scale
-        nf1 = flux[i, 1] * mat_refl[m, 1] * scale
-        nf2 = flux[i, 2] * mat_refl[m, 2] * scale
-        q = max(0.0, 1.0 - max(nf0, nf1, nf2) / old_max) if old_max > 0 else 1.0
-        if ur < q:
-            end[i] = ABSORBED
-            continue
-        keep = 1.0 / (1.0 - q)
-        new_f[i, 0], new_f[i, 1], new_f[i, 2] = nf0 * keep, nf1 * keep, nf2 * keep
-        dl = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-        new_d[i, 0], new_d[i, 1], new_d[i, 2] = d0 / dl, d1 / dl, d2 / dl
-        new_o[i, 0], new_o[i, 1], new_o[i, 2] = offset_origin(
-            p0, p1, p2, n0, n1, n2, d0, d1, d2, eps_rel, eps_abs)
-        end[i] = CONTINUES
-    d = _indices(deposited)
-    deposits = (_rows(dep_pos, d), _rows(dep_in, d), _rows(dep_n, d), _rows(flux, d), d)
-    g = _indices(end == CONTINUES)
-    return (_ends(end), int(culled.sum()), deposits,
-            (g, _rows(new_o, g), _rows(new_d, g), _rows(new_f, g), out_states[g]))
+                o_pos[o, k] = dep_pos[a + j, k]
+                o_in[o, k] = dep_in[a + j, k]
+                o_n[o, k] = dep_n[a + j, k]
+                o_f[o, k] = dep_f[a + j, k]
+            o_job[o] = dep_job[a + j]
+        for j in range(counts[b, 1]):
+            o = gs[b] + j
+            for k in range(3):
+                c_o[o, k] = new_o[a + j, k]
+                c_d[o, k] = new_d[a + j, k]
+                c_f[o, k] = new_f[a + j, k]
+            c_st[o] = new_st[a + j]
+            c_depth[o] = new_depth[a + j]
+            c_job[o] = new_job[a + j]
+            c_pix[o] = new_pix[a + j]
+    return (_ends(end), int(culled.sum()), (o_pos, o_in, o_n, o_f, o_job),
+            (c_o, c_d, c_f, c_st, c_depth, c_job, c_pix))
 
 
 @nb.njit(cache=True, parallel=True, error_model="numpy")
