@@ -8,6 +8,7 @@ Entries carry their cell key, so two cells hashing to one slot can neither
 lend each other hit points nor count a hit point twice.
 """
 import math
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
@@ -52,13 +53,18 @@ def build_grid(hp_pos, hp_radius, lo, cell, dims):
     while size < 2 * total:
         size *= 2
     mask = size - 1
-    counts = np.zeros(size + 1, np.int64)
+    # int32 slot offsets: half the cache footprint of the table the
+    # gather indexes at random. 2^31 entries would be 60 GB of table.
+    if total >= 2 ** 31:
+        raise ValueError("grid gather: over 2^31 cell entries (radii too large for the grid)")
+    start = np.zeros(size + 1, np.int32)
     for i in range(n):
         for ix in range(lo_c[i, 0], hi_c[i, 0] + 1):
             for iy in range(lo_c[i, 1], hi_c[i, 1] + 1):
                 for iz in range(lo_c[i, 2], hi_c[i, 2] + 1):
-                    counts[slot_of(ix, iy, iz, mask) + 1] += 1
-    start = np.cumsum(counts)
+                    start[slot_of(ix, iy, iz, mask) + 1] += 1
+    for s in range(size):
+        start[s + 1] += start[s]
     fill = start[:-1].copy()
     entry_hp = np.empty(total, np.int32)
     entry_key = np.empty(total, np.int64)
@@ -139,15 +145,21 @@ def gather_photons(ph_pos, ph_in, ph_n, ph_flux, start, entry_hp, entry_key, ent
                     f = eval_bsdf(kind, np.float64(rows[h, HP_ALPHA]), n0, n1, n2,
                                   rows[h, HP_OUT], rows[h, HP_OUT + 1], rows[h, HP_OUT + 2],
                                   wi0, wi1, wi2)
+                # The hit point's reflectance times eye weight is the same
+                # for every photon: it multiplies the sum once, at the end.
                 acc[t, h, 0] += 1.0
-                if f > 0.0:
-                    mat = int(rows[h, HP_MAT])
-                    for k in range(3):
-                        acc[t, h, 1 + k] += f * mat_refl[mat, k] * rows[h, HP_WEIGHT + k] * ph_flux[j, k]
+                acc[t, h, 1] += f * ph_flux[j, 0]
+                acc[t, h, 2] += f * ph_flux[j, 1]
+                acc[t, h, 3] += f * ph_flux[j, 2]
     total = acc[0].copy()
     for t in range(1, threads):
         total += acc[t]
-    return total[:, 0].copy(), total[:, 1:].copy()
+    phi = np.empty((nhp, 3))
+    for h in range(nhp):
+        mat = int(rows[h, HP_MAT])
+        for k in range(3):
+            phi[h, k] = total[h, 1 + k] * mat_refl[mat, k] * rows[h, HP_WEIGHT + k]
+    return total[:, 0].copy(), phi
 
 
 def grid_layout(hp_pos: np.ndarray, hp_radius: np.ndarray):
@@ -163,14 +175,34 @@ def grid_layout(hp_pos: np.ndarray, hp_radius: np.ndarray):
     return lo, cell, dims
 
 
-def gather_grid(ph, hp, hp_radius, materials, threads: int):
-    """Exact gather of photon deposits `ph` at hit points `hp`. Returns
-    (M, Phi) per hit point."""
+class HitPointGrid(NamedTuple):
+    """The hit points of one update registered in their cells, plus their
+    packed rows: everything gather_photons reads besides the photons."""
+    lo: np.ndarray
+    cell: float
+    dims: np.ndarray
+    start: np.ndarray
+    entry_hp: np.ndarray
+    entry_key: np.ndarray
+    entry_pos: np.ndarray
+    mask: int
+    rows: np.ndarray
+
+
+def build_hit_point_grid(hp, hp_radius, materials) -> HitPointGrid:
+    """The grid of hit points `hp` with radii `hp_radius` (serial, and
+    free of the GIL: a caller can build it while it sorts the photons)."""
+    lo, cell, dims = grid_layout(hp.position, hp_radius)
+    table = build_grid(hp.position, hp_radius, lo, cell, dims)
+    return HitPointGrid(lo, cell, dims, *table, pack_hit_points(hp, materials))
+
+
+def gather_grid(ph, hp, hp_radius, materials, threads: int, grid: HitPointGrid | None = None):
+    """Exact gather of photon deposits `ph` at hit points `hp` (through
+    `grid` if the caller built it already). Returns (M, Phi) per hit point."""
     if len(hp) == 0 or len(ph) == 0:
         return np.zeros(len(hp)), np.zeros((len(hp), 3))
-    lo, cell, dims = grid_layout(hp.position, hp_radius)
-    start, entry_hp, entry_key, entry_pos, mask = build_grid(hp.position, hp_radius, lo, cell, dims)
-    rows = pack_hit_points(hp, materials)
-    return gather_photons(ph.position, ph.incoming, ph.normal, ph.flux, start, entry_hp,
-                          entry_key, entry_pos, mask, lo, cell, dims, rows,
+    g = grid if grid is not None else build_hit_point_grid(hp, hp_radius, materials)
+    return gather_photons(ph.position, ph.incoming, ph.normal, ph.flux, g.start, g.entry_hp,
+                          g.entry_key, g.entry_pos, g.mask, g.lo, g.cell, g.dims, g.rows,
                           materials.reflectance, threads)

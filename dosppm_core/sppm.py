@@ -14,6 +14,8 @@ update runs on another thread (§4.3 server batching).
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
@@ -22,13 +24,16 @@ from .jobs import HitPoints, PhotonDeposits
 from .scene import Scene
 
 GATHERS = ("grid", "hash")
+# One helper thread for the part of an update that overlaps the photon sort.
+_PREP = ThreadPoolExecutor(1, thread_name_prefix="dosppm-gather-prep")
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
-def morton_keys(pos, lo, scale):
-    """30-bit Morton code of positions quantised to 1024^3 over a box."""
+def morton_packed(pos, lo, scale):
+    """Per point, its 30-bit Morton code (positions quantised to 1024^3
+    over a box) in the high 32 bits and its row in the low 32."""
     n = pos.shape[0]
-    out = np.empty(n, np.uint32)
+    out = np.empty(n, np.uint64)
     for i in nb.prange(n):
         code = np.uint32(0)
         for k in range(3):
@@ -40,35 +45,54 @@ def morton_keys(pos, lo, scale):
             x = (x | (x << np.uint32(4))) & np.uint32(0x030C30C3)
             x = (x | (x << np.uint32(2))) & np.uint32(0x09249249)
             code |= x << np.uint32(k)
-        out[i] = code
+        out[i] = (np.uint64(code) << np.uint64(32)) | np.uint64(i)
     return out
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
-def _permute_deposits(pos, inc, nrm, flux, job, order):
-    """All deposit columns permuted in one parallel pass (numpy takes
-    ~40 ms per (n, 3) array for 1M rows here, and a separate take of the
-    job column ~10 ms; this is the whole reorder)."""
-    n = order.shape[0]
+def _permute_gather_columns(pos, inc, nrm, flux, packed):
+    """The four columns the gather reads, permuted in one parallel pass by
+    the row index in the low 32 bits of `packed` (numpy takes ~40 ms per
+    (n, 3) array for 1M rows here). The job column is not needed by the
+    gather, so it is not moved."""
+    n = packed.shape[0]
     out = np.empty((4, n, 3), np.float32)
-    out_job = np.empty(n, np.int64)
     for i in nb.prange(n):
-        j = order[i]
-        out_job[i] = job[j]
+        j = np.int64(packed[i] & np.uint64(0xFFFFFFFF))
         for k in range(3):
             out[0, i, k] = pos[j, k]
             out[1, i, k] = inc[j, k]
             out[2, i, k] = nrm[j, k]
             out[3, i, k] = flux[j, k]
-    return out, out_job
+    return out
 
 
-def reorder_deposits(deposits: PhotonDeposits, box: np.ndarray | None) -> PhotonDeposits:
-    """Deposits sorted along a Morton curve over `box` (the gather's box)."""
-    order = spatial_order(deposits.position, box)
-    out, job = _permute_deposits(deposits.position, deposits.incoming, deposits.normal,
-                                 deposits.flux, deposits.job, order)
-    return PhotonDeposits(out[0], out[1], out[2], out[3], job)
+class GatherPhotons(NamedTuple):
+    """What a gather reads of photon deposits (PhotonDeposits has the same
+    attributes, so either can be gathered)."""
+    position: np.ndarray
+    incoming: np.ndarray
+    normal: np.ndarray
+    flux: np.ndarray
+
+
+def reorder_deposits(deposits: PhotonDeposits, box: np.ndarray | None) -> GatherPhotons:
+    """The gather's columns of `deposits`, sorted along a Morton curve over
+    `box` (the gather's box)."""
+    out = _permute_gather_columns(deposits.position, deposits.incoming, deposits.normal,
+                                  deposits.flux, _morton_sorted(deposits.position, box))
+    return GatherPhotons(out[0], out[1], out[2], out[3])
+
+
+def _morton_sorted(pos: np.ndarray, box: np.ndarray | None) -> np.ndarray:
+    """(Morton key << 32 | row) of every point, sorted. Sorting one packed
+    uint64 is 3-5x faster than a stable argsort here, and as deterministic."""
+    if box is None:
+        box = np.stack([pos.min(0), pos.max(0)]).astype(np.float64)
+    ext = np.maximum(box[1] - box[0], 1e-30)
+    packed = morton_packed(pos, box[0], 1023.999 / ext)
+    packed.sort()
+    return packed
 
 
 def spatial_order(pos: np.ndarray, box: np.ndarray | None = None) -> np.ndarray:
@@ -77,15 +101,7 @@ def spatial_order(pos: np.ndarray, box: np.ndarray | None = None) -> np.ndarray:
     (the reordering of the Photon Pipeline paper; 5-10x on this machine)."""
     if len(pos) == 0:
         return np.zeros(0, np.int64)
-    if box is None:
-        box = np.stack([pos.min(0), pos.max(0)]).astype(np.float64)
-    ext = np.maximum(box[1] - box[0], 1e-30)
-    keys = morton_keys(pos, box[0], 1023.999 / ext)
-    # Sorting (key << 32 | index) as one uint64 is 3-5x faster than a stable
-    # argsort here, and just as deterministic.
-    packed = (keys.astype(np.uint64) << np.uint64(32)) | np.arange(len(keys), dtype=np.uint64)
-    packed.sort()
-    return (packed & np.uint64(0xFFFFFFFF)).astype(np.int64)
+    return (_morton_sorted(pos, box) & np.uint64(0xFFFFFFFF)).astype(np.int64)
 
 
 def initial_radius(scene: Scene, hits: HitPoints, pixels_across: float = 3.0) -> float:
@@ -156,17 +172,20 @@ class PixelStatistics:
         self.photons_emitted += int(emitted)
         if len(hp) == 0 or len(deposits) == 0:
             return
+        if gather not in GATHERS:
+            raise ValueError(f"unknown gather {gather!r} (known: {', '.join(GATHERS)})")
+        from .gather_grid import build_hit_point_grid, gather_grid
+        from .gather_hash import gather_hash
+        radius = self.radius[hp.pixel]
+        # Registering the hit points in the grid and sorting the photons are
+        # both mostly serial: do them at once, on two cores.
+        grid = _PREP.submit(build_hit_point_grid, hp, radius, materials) if gather == "grid" else None
         if reorder:
             deposits = reorder_deposits(deposits, self.gather_box())
-        radius = self.radius[hp.pixel]
-        if gather == "grid":
-            from .gather_grid import gather_grid
-            m, phi = gather_grid(deposits, hp, radius, materials, threads)
-        elif gather == "hash":
-            from .gather_hash import gather_hash
-            m, phi = gather_hash(deposits, hp, radius, materials, threads, **(hash_options or {}))
+        if grid is not None:
+            m, phi = gather_grid(deposits, hp, radius, materials, threads, grid.result())
         else:
-            raise ValueError(f"unknown gather {gather!r} (known: {', '.join(GATHERS)})")
+            m, phi = gather_hash(deposits, hp, radius, materials, threads, **(hash_options or {}))
         self._update(hp.pixel, m, phi)
 
     def _update(self, pixel: np.ndarray, m: np.ndarray, phi: np.ndarray) -> None:
