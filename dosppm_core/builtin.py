@@ -40,6 +40,7 @@ SCENES = {
     "many-lights": "a room lit by 400 small ceiling lamps of four powers (light selection by power)",
     "glossy-floor": "cornell-box with a glossy GGX floor of roughness 0.15 (slow SPPM convergence)",
     "glass-small-light": "a 20 mm lamp inside a glass lantern: seen through glass, the room lit by caustics",
+    "cardioid": "a point light's cardioid caustic off a mirror ring (a path tracer cannot render it)",
 }
 DEFAULT = "cornell-glass"
 
@@ -257,6 +258,7 @@ _MAKERS = {
     "many-lights": _suite("many_lights"),
     "glossy-floor": _suite("glossy_floor"),
     "glass-small-light": _suite("glass_small_light"),
+    "cardioid": _suite("cardioid"),
 }
 
 

@@ -252,6 +252,7 @@ def make_parser() -> tuple[argparse.ArgumentParser, argparse._SubParsersAction]:
     from . import cli_tools
     cli_tools.add_reference_parser(sub)
     cli_tools.add_compare_parser(sub)
+    cli_tools.add_evaluate_parser(sub)
     from . import cli_chunks
     cli_chunks.add_subdivide_parser(sub)
     return parser, sub

@@ -10,6 +10,7 @@ builds them by name.
 | `many-lights`       | light choice among 400 lamps of 4 powers | soft light, noise as for one lamp |
 | `glossy-floor`      | SPPM converges slowly on a GGX floor     | a blurred reflection, no blotches |
 | `glass-small-light` | a 20 mm lamp inside a glass lantern      | a room lit by caustics alone      |
+| `cardioid`          | a point light's caustic off a mirror ring | a bright cardioid on the floor   |
 
 Each function's docstring gives the layout and what it tests; its keyword
 arguments vary the scene (the built-in names use the defaults).
@@ -221,4 +222,39 @@ def glass_small_light(lamp_mm: float = 20.0, lantern_mm: float = 120.0, pane_mm:
     builder.add_mesh(*box_mesh(centre - half, centre + half), "light", "builtin:glass-small-light: lamp")
     builder.camera = Camera(position=(280.0, 420.0, 20.0), look_at=tuple(float(x) for x in centre),
                             up=(0.0, 1.0, 0.0), fov_deg=55.0, width=256, height=256)
+    return builder.build()
+
+
+def cardioid(segments: int = 128, radius_mm: float = 300.0, height_mm: float = 60.0) -> Scene:
+    """MNRT's cardioid scene, made procedurally: an open ring of mirror
+    (`segments` facets, `radius_mm`, `height_mm` tall, mirror on both
+    sides) standing on a grey floor 2 m square, lit by one point light
+    above and to the side of the ring, seen from above at an angle.
+
+    Tests a caustic from a point light (light-specular-diffuse-eye): the
+    cardioid that the ring's inside focuses onto the floor. A path tracer
+    cannot render it at all: a floor point's paths reach the light only
+    through the mirror, and a point light cannot be hit. Light tracing
+    (Mitsuba's `ptracer`) renders the floor; the mirror itself, seen by
+    the camera, needs `path`.
+    """
+    builder = SceneBuilder(source="builtin:cardioid", name="cardioid")
+    builder.add_material(Material("floor", "diffuse", reflectance=(0.5, 0.5, 0.5), two_sided=False))
+    builder.add_material(Material("mirror", "mirror", reflectance=(0.9, 0.85, 0.6)))
+    builder.add_mesh(*rectangle_mesh((0.0, 0.0, 0.0), (0.0, 0.0, 1000.0), (1000.0, 0.0, 0.0)),
+                     "floor", "builtin:cardioid: floor")
+    angle = np.linspace(0.0, 2 * np.pi, int(segments), endpoint=False)
+    ring = np.stack([radius_mm * np.cos(angle), np.zeros_like(angle), radius_mm * np.sin(angle)], 1)
+    vertices = np.concatenate([ring, ring + (0.0, float(height_mm), 0.0)])
+    n = len(angle)
+    i = np.arange(n)
+    j = (i + 1) % n
+    faces = np.concatenate([np.stack([i, n + i, j], 1), np.stack([j, n + i, n + j], 1)])
+    builder.add_mesh(vertices, faces, "mirror", "builtin:cardioid: ring")
+    # Intensity L * A of Cornell's luminaire (radiance L, area A): the floor
+    # under the light is then about as bright as the Cornell box's walls.
+    intensity = np.asarray(builtin.CORNELL_LIGHT_RADIANCE) * CORNELL_LIGHT_AREA_MM2
+    builder.add_point_light((0.0, 250.0, 450.0), tuple(intensity), "builtin:cardioid: light")
+    builder.camera = Camera(position=(0.0, 700.0, -500.0), look_at=(0.0, 0.0, 0.0),
+                            up=(0.0, 1.0, 0.0), fov_deg=60.0, width=256, height=256)
     return builder.build()

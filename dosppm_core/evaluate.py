@@ -1,0 +1,446 @@
+"""`dosppm evaluate SUITE`: speed against accuracy, beside other renderers.
+
+Every method renders every scene of a suite on this machine, in one run,
+and is stopped at several time budgets; each stop is compared with the
+scene's reference image (relMSE, RMSE, mean-luminance bias, and the relMSE
+of blurred images, which averages noise away so that mostly bias is left).
+
+Time is render time: scene loading, BVH builds, compiled-kernel loading and
+process start are not counted for any method (Mitsuba's scene load neither).
+The in-process methods are progressive, so one run is stopped at each
+budget in turn; Mitsuba renders once per sample count (1, 2, 4, ... spp);
+DOSPPM runs `dosppm render --mode dosppm --time T` once per budget, as a
+user would, and its clock is the server's (`seconds` in OUT.json).
+
+References come from Mitsuba 3 at high sample counts, cached on disk:
+`path`, or `ptracer` where a point light's caustic is seen directly (a
+path tracer cannot render it), blended per pixel with `path` where the
+camera sees a mirror or glass first (which light tracing cannot render).
+"""
+from __future__ import annotations
+
+import csv
+import datetime
+import json
+import math
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from . import builtin, metrics
+from .render import RenderSettings, Renderer
+from .scene import Scene
+
+BLUR_SIGMA_PX = 2.0
+BUDGET_FRACTIONS = (0.125, 0.25, 0.5, 1.0)
+
+
+@dataclass(frozen=True)
+class Case:
+    """One scene of a suite: what it tests and how its reference is made."""
+    scene: str
+    tests: str
+    reference: str = "path"       # 'path', 'ptracer' or 'ptracer+path'
+    spp: int = 4096               # reference samples per pixel
+
+
+@dataclass(frozen=True)
+class Suite:
+    name: str
+    width: int
+    height: int
+    cases: tuple
+    methods: tuple
+    reference_spp_scale: float = 1.0
+
+
+@dataclass(frozen=True)
+class Method:
+    name: str
+    kind: str                     # 'sppm', 'osppm', 'dosppm' or 'mitsuba'
+    options: dict = field(default_factory=dict)
+    about: str = ""
+
+
+METHODS = {m.name: m for m in (
+    Method("sppm-grid", "sppm", {"gather": "grid"}, "SPPM, exact grid gather"),
+    Method("sppm-hash-512x128x512", "sppm", {"gather": "hash", "resolution": (512, 128, 512)},
+           "SPPM, stochastic hash at the paper's table size"),
+    Method("sppm-hash-128x32x128", "sppm", {"gather": "hash", "resolution": (128, 32, 128)},
+           "SPPM, stochastic hash, 64x fewer cells"),
+    Method("sppm-hash-32x8x32", "sppm", {"gather": "hash", "resolution": (32, 8, 32)},
+           "SPPM, stochastic hash too coarse for the scene (collisions lose photons)"),
+    Method("osppm-c4", "osppm", {"chunks": 4}, "OSPPM, 4 chunks, one process"),
+    Method("osppm-c8", "osppm", {"chunks": 8}, "OSPPM, 8 chunks, one process"),
+    Method("dosppm", "dosppm", {}, "DOSPPM: server and 2 tracer processes on this machine"),
+    Method("mitsuba-path", "mitsuba", {"integrator": "path"}, "Mitsuba 3 path tracer"),
+    Method("mitsuba-ptracer", "mitsuba", {"integrator": "ptracer"}, "Mitsuba 3 light tracer"),
+)}
+
+CAUSTIC_SCENES = ("cardioid", "cornell-caustic", "glass-small-light")
+
+SUITES = {s.name: s for s in (
+    Suite("failure-modes", 128, 128, (
+        Case("cornell-box", "plain diffuse light transport: path tracing's home ground"),
+        Case("cornell-caustic", "caustics of a glass and a mirror sphere, seen directly and "
+             "in the mirror (specular-diffuse-specular)", "ptracer+path"),
+        Case("cardioid", "a point light's caustic off a mirror ring: path tracing cannot "
+             "render it", "ptracer+path"),
+        Case("glass-small-light", "a small lamp seen through glass; the room lit by caustics",
+             "ptracer+path"),
+        Case("thin-wall", "light leaking through a wall 1% of the room thick"),
+        Case("glossy-floor", "a glossy GGX floor, where SPPM converges slowly"),
+        Case("many-lights", "400 small lamps chosen by power"),
+        Case("far-from-origin", "coordinates near 1e5: float32 precision"),
+    ), tuple(METHODS)),
+    # CI's version: tiny images, seconds per method, the orderings that must
+    # hold on any machine (error falls with time; nothing is NaN).
+    Suite("mini", 32, 32, (
+        Case("cornell-box", "diffuse", spp=1024),
+        Case("cardioid", "point-light caustic", "ptracer+path", spp=1024),
+    ), ("sppm-grid", "sppm-hash-128x32x128", "osppm-c4", "mitsuba-path")),
+)}
+
+
+@dataclass
+class Sample:
+    """One stop of one method on one scene."""
+    scene: str
+    method: str
+    budget_s: float
+    seconds: float
+    photons: int
+    finite: bool
+    relmse: float = math.nan
+    rmse: float = math.nan
+    bias: float = math.nan
+    blurred_relmse: float = math.nan
+    note: str = ""
+
+
+# -- scenes and references ----------------------------------------------------
+
+def suite_scene(suite: Suite, case: Case) -> Scene:
+    scene = builtin.make(case.scene)
+    scene.camera.width, scene.camera.height = suite.width, suite.height
+    return scene
+
+
+def reference_image(scene: Scene, case: Case, spp: int, cache_dir: str) -> np.ndarray:
+    """The case's Mitsuba reference (cached): `path`, `ptracer`, or the two
+    blended by the share of each pixel's eye rays whose first surface is a
+    mirror or glass (path there, light tracing elsewhere)."""
+    from .reference import cached_reference
+    if case.reference in ("path", "ptracer"):
+        return cached_reference(scene, spp, cache_dir, integrator=case.reference)
+    if case.reference != "ptracer+path":
+        raise ValueError(f"unknown reference {case.reference!r}")
+    light = cached_reference(scene, spp, cache_dir, integrator="ptracer")
+    eye = cached_reference(scene, spp, cache_dir, integrator="path")
+    share = specular_first_hit_share(scene)[..., None]
+    return (share * eye + (1.0 - share) * light).astype(np.float32)
+
+
+def specular_first_hit_share(scene: Scene, rays_per_pixel: int = 64) -> np.ndarray:
+    """(H, W): the fraction of a pixel's jittered eye rays whose first
+    surface is a mirror or glass (geometry only: no radiance of ours)."""
+    from .accel import Accelerator
+    from .kernels.bsdf import is_specular
+    from .tracing import eye_ray_job
+    w, h = int(scene.camera.width), int(scene.camera.height)
+    accel = Accelerator(scene.vertices, scene.triangles)
+    try:
+        count = np.zeros(w * h)
+        for k in range(rays_per_pixel):
+            rays = eye_ray_job(scene, 12345, k, 0, w * h)
+            prim = accel.intersect(rays.origin, rays.direction)[0]
+            hit = prim >= 0
+            kinds = scene.materials.kind[scene.tri_material[prim[hit]]]
+            count[rays.pixel[hit]] += [bool(is_specular(int(x))) for x in kinds]
+    finally:
+        accel.close()
+    return (count / rays_per_pixel).reshape(h, w)
+
+
+# -- running the methods --------------------------------------------------------
+
+def method_available(method: Method) -> str | None:
+    """None, or why the method is skipped on this machine."""
+    if method.kind == "mitsuba":
+        try:
+            import mitsuba  # noqa: F401
+        except ImportError:
+            return "mitsuba is not installed (pip install .[reference])"
+    return None
+
+
+def run_method(method: Method, scene: Scene, budgets: list[float], seed: int,
+               work: str) -> list[tuple[float, float, int, np.ndarray]]:
+    """(budget, seconds, photons, image) at each budget."""
+    if method.kind == "sppm":
+        return _progressive(lambda: Renderer(scene, _settings(method, seed)), budgets)
+    if method.kind == "osppm":
+        return _progressive(lambda: _osppm(method, scene, seed, work), budgets)
+    if method.kind == "dosppm":
+        return _dosppm(scene, budgets, seed, work)
+    if method.kind == "mitsuba":
+        return _mitsuba(scene, method.options["integrator"], budgets, seed)
+    raise ValueError(f"unknown method kind {method.kind!r}")
+
+
+def _settings(method: Method, seed: int) -> RenderSettings:
+    s = RenderSettings(seed=seed, gather=method.options.get("gather", "grid"))
+    if "resolution" in method.options:
+        s.hash_options = {"resolution": tuple(method.options["resolution"])}
+    return s
+
+
+def _osppm(method: Method, scene: Scene, seed: int, work: str):
+    from .chunkstore import ChunkStore
+    from .osppm import OutOfCoreRenderer
+    from .soup import SceneSource
+    from .subdivide import subdivide
+    path = tempfile.mkdtemp(prefix="store-", dir=work)
+    os.rmdir(path)
+    subdivide(SceneSource(scene), path, chunks=int(method.options["chunks"]))
+    return OutOfCoreRenderer(ChunkStore.open(path), _settings(method, seed))
+
+
+def _progressive(make, budgets):
+    """Run a progressive renderer, stopping at each budget in turn (an
+    iteration that spans several budgets stops once, at the last)."""
+    renderer = make()
+    try:
+        out, k, t0 = [], 0, time.perf_counter()
+        while k < len(budgets):
+            renderer.run_iteration()
+            elapsed = time.perf_counter() - t0
+            if elapsed >= budgets[k]:
+                while k + 1 < len(budgets) and elapsed >= budgets[k + 1]:
+                    k += 1
+                out.append((budgets[k], elapsed, int(renderer.stats.photons_emitted),
+                            renderer.image().copy()))
+                k += 1
+        return out
+    finally:
+        renderer.close()
+
+
+def _mitsuba(scene: Scene, integrator: str, budgets, seed: int):
+    """Mitsuba at 1, 2, 4, ... spp, each timed alone, up to the last budget;
+    each render is filed under the smallest budget it fits."""
+    from .reference import render_reference
+    render_reference(scene, 1, integrator=integrator, seed=seed)   # load and warm up
+    out, spp = [], 1
+    while True:
+        t0 = time.perf_counter()
+        image = render_reference(scene, spp, integrator=integrator, seed=seed + spp)
+        seconds = time.perf_counter() - t0
+        if seconds > budgets[-1] * 1.25 and out:
+            return out
+        budget = next((b for b in budgets if seconds <= b), budgets[-1])
+        out.append((budget, seconds, 0, image))
+        if seconds > budgets[-1]:
+            return out
+        spp *= 2
+
+
+def _dosppm(scene: Scene, budgets, seed: int, work: str):
+    """`dosppm render --mode dosppm` per budget, on the scene's built-in
+    name; the clock is the server's render time from OUT.json."""
+    from .film_io import read_exr
+    out = []
+    for budget in budgets:
+        target = os.path.join(work, f"dosppm-{scene.name}-{budget:g}.exr")
+        cmd = [sys.executable, "-m", "services.cli", "render", scene.name, "--mode", "dosppm",
+               "--time", f"{budget:g}", "--seed", str(seed), "--width", str(scene.camera.width),
+               "--height", str(scene.camera.height), "--out", target, "--quiet", "--http", "off"]
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=budget * 4 + 120)
+        if done.returncode != 0:
+            raise RuntimeError(f"dosppm render failed: {done.stderr.strip().splitlines()[-1:]}")
+        with open(os.path.splitext(target)[0] + ".json", encoding="utf-8") as f:
+            summary = json.load(f)
+        seconds = float(summary["seconds"])          # rendering, the final drain included
+        photons = int(summary["photons_in_image"])
+        out.append((budget, seconds, photons, read_exr(target)[0]))
+    return out
+
+
+# -- scoring --------------------------------------------------------------------
+
+def score(scene: str, method: str, budget: float, seconds: float, photons: int,
+          image: np.ndarray, reference: np.ndarray) -> Sample:
+    """The sample's errors against `reference`; a non-finite image is
+    recorded as such (its errors stay NaN)."""
+    finite = bool(np.isfinite(image).all())
+    s = Sample(scene, method, float(budget), float(seconds), int(photons), finite)
+    if finite:
+        s.relmse = metrics.relmse(image, reference)
+        s.rmse = metrics.rmse(image, reference)
+        s.bias = metrics.mean_luminance_bias(image, reference)
+        s.blurred_relmse = metrics.blurred_relmse(image, reference, BLUR_SIGMA_PX)
+    return s
+
+
+@dataclass
+class Evaluation:
+    suite: str
+    budget_s: float
+    samples: list = field(default_factory=list)
+    skipped: dict = field(default_factory=dict)      # method -> why
+    failed: dict = field(default_factory=dict)       # "scene/method" -> error
+    references: dict = field(default_factory=dict)   # scene -> description
+    images: dict = field(default_factory=dict)       # (scene, method) -> image at full budget
+
+
+def evaluate(suite: Suite, budget_s: float, methods: list[str] | None = None,
+             scenes: list[str] | None = None, cache_dir: str | None = None, seed: int = 1,
+             log=print) -> Evaluation:
+    """Run the suite; `methods` / `scenes` restrict it."""
+    cache_dir = cache_dir or os.path.join(os.path.expanduser("~"), ".cache", "dosppm", "references")
+    chosen = [METHODS[m] for m in (methods or suite.methods)]
+    budgets = [budget_s * f for f in BUDGET_FRACTIONS]
+    ev = Evaluation(suite.name, budget_s)
+    for m in chosen:
+        why = method_available(m)
+        if why:
+            ev.skipped[m.name] = why
+            log(f"skipped {m.name}: {why}")
+    _warm_kernels()
+    with tempfile.TemporaryDirectory(prefix="dosppm-evaluate-") as work:
+        for case in suite.cases:
+            if scenes and case.scene not in scenes:
+                continue
+            scene = suite_scene(suite, case)
+            spp = max(16, int(case.spp * suite.reference_spp_scale))
+            log(f"{case.scene}: reference ({case.reference}, {spp} spp)")
+            reference = reference_image(scene, case, spp, cache_dir)
+            ev.references[case.scene] = f"Mitsuba 3 {case.reference}, {spp} spp"
+            ev.images[(case.scene, "reference")] = reference
+            for m in chosen:
+                if m.name in ev.skipped:
+                    continue
+                log(f"{case.scene}: {m.name}")
+                try:
+                    stops = run_method(m, scene, budgets, seed, work)
+                except Exception as exc:  # noqa: BLE001 - one failing method must not end the suite
+                    ev.failed[f"{case.scene}/{m.name}"] = " ".join(str(exc).split()) or type(exc).__name__
+                    log(f"{case.scene}: {m.name} failed: {ev.failed[f'{case.scene}/{m.name}']}")
+                    continue
+                for budget, seconds, photons, image in stops:
+                    ev.samples.append(score(case.scene, m.name, budget, seconds, photons,
+                                            image, reference))
+                if stops:
+                    ev.images[(case.scene, m.name)] = stops[-1][3]
+    return ev
+
+
+def _warm_kernels() -> None:
+    """Compile (or load) the numba kernels before any clock starts."""
+    scene = builtin.make("cornell-box")
+    scene.camera.width = scene.camera.height = 8
+    r = Renderer(scene, RenderSettings(photons_per_iteration=2000))
+    for gather in ("grid", "hash"):
+        r.settings.gather = gather
+        r.run_iteration()
+    r.close()
+
+
+# -- output ---------------------------------------------------------------------
+
+def write_results(ev: Evaluation, out_dir: str) -> list[str]:
+    """results.json, results.csv, summary.md and, with matplotlib, the
+    charts. Returns the paths written."""
+    os.makedirs(out_dir, exist_ok=True)
+    rows = [{k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+             for k, v in asdict(s).items()} for s in ev.samples]
+    doc = {"suite": ev.suite, "budget_s": ev.budget_s, "machine": _machine(),
+           "commit": _commit(), "date": datetime.datetime.now().isoformat(timespec="seconds"),
+           "references": ev.references, "skipped": ev.skipped, "failed": ev.failed,
+           "methods": {m: METHODS[m].about for m in {r["method"] for r in rows}},
+           "samples": rows}
+    paths = [os.path.join(out_dir, "results.json"), os.path.join(out_dir, "results.csv"),
+             os.path.join(out_dir, "summary.md")]
+    with open(paths[0], "w", encoding="utf-8") as f:
+        json.dump(doc, f, indent=1, allow_nan=False)
+    with open(paths[1], "w", newline="", encoding="utf-8") as f:
+        writer = csv.DictWriter(f, fieldnames=list(Sample.__dataclass_fields__))
+        writer.writeheader()
+        writer.writerows(rows)
+    with open(paths[2], "w", encoding="utf-8") as f:
+        f.write(summary_markdown(ev))
+    try:
+        from . import evaluate_charts
+    except ImportError as exc:
+        print(f"charts skipped: {exc}", file=sys.stderr)
+    else:
+        paths += evaluate_charts.write_charts(ev, out_dir)
+    return paths
+
+
+def final_samples(ev: Evaluation) -> dict:
+    """(scene, method) -> the sample at the largest budget."""
+    best = {}
+    for s in ev.samples:
+        key = (s.scene, s.method)
+        if key not in best or s.budget_s >= best[key].budget_s:
+            best[key] = s
+    return best
+
+
+def summary_markdown(ev: Evaluation) -> str:
+    last = final_samples(ev)
+    scenes = list(dict.fromkeys(s.scene for s in ev.samples))
+    methods = list(dict.fromkeys(s.method for s in ev.samples))
+    lines = [f"relMSE at {ev.budget_s:g} s of render time (suite `{ev.suite}`; "
+             "bias = mean-luminance bias; ! = a non-finite pixel)", "",
+             "| scene | " + " | ".join(methods) + " |", "|---|" + "---|" * len(methods)]
+    for scene in scenes:
+        cells = []
+        for m in methods:
+            s = last.get((scene, m))
+            cells.append("-" if s is None else ("!" if not s.finite else
+                                                 f"{s.relmse:.3g} ({s.bias:+.1%})"))
+        lines.append(f"| {scene} | " + " | ".join(cells) + " |")
+    lines += ["", *claims(ev)]
+    if ev.skipped:
+        lines += ["", "Skipped: " + "; ".join(f"{m} ({why})" for m, why in ev.skipped.items())]
+    if ev.failed:
+        lines += ["", "Failed: " + "; ".join(f"{k} ({why})" for k, why in ev.failed.items())]
+    return "\n".join(lines) + "\n"
+
+
+def claims(ev: Evaluation) -> list[str]:
+    """The issue's two claims as measured: SPPM against Mitsuba `path` at
+    equal time, on the caustic scenes and on the diffuse Cornell box."""
+    last = final_samples(ev)
+    out = []
+    for scene in dict.fromkeys(s.scene for s in ev.samples):
+        ours, path = last.get((scene, "sppm-grid")), last.get((scene, "mitsuba-path"))
+        if not (ours and path and ours.finite and path.finite):
+            continue
+        ratio = path.relmse / ours.relmse if ours.relmse > 0 else math.inf
+        kind = "caustic" if scene in CAUSTIC_SCENES else "other"
+        out.append(f"- {scene} ({kind}): Mitsuba path relMSE / SPPM grid relMSE = {ratio:.3g} "
+                   f"({'SPPM lower' if ratio > 1 else 'path lower'})")
+    return out
+
+
+def _machine() -> dict:
+    return {"cpus": os.cpu_count(), "platform": platform.platform(),
+            "python": platform.python_version()}
+
+
+def _commit() -> str:
+    try:
+        here = os.path.dirname(os.path.abspath(__file__))
+        return subprocess.run(["git", "-C", here, "rev-parse", "--short", "HEAD"], capture_output=True,
+                              text=True, timeout=10).stdout.strip() or "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"

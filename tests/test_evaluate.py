@@ -1,0 +1,100 @@
+"""`dosppm evaluate`, the CI-sized suite: on any machine, error falls as
+render time grows (consistency) and no pixel is ever NaN or Inf; the
+outputs are complete and a peer that is not installed is skipped."""
+import json
+import math
+import os
+
+import numpy as np
+import pytest
+
+from dosppm_core import evaluate
+from dosppm_core.cli import main
+
+pytest.importorskip("mitsuba")
+
+
+@pytest.fixture(scope="module")
+def mini(tmp_path_factory):
+    out = tmp_path_factory.mktemp("evaluation")
+    cache = os.environ.get("DOSPPM_TEST_REFERENCE_CACHE") or str(out / "references")
+    ev = evaluate.evaluate(evaluate.SUITES["mini"], 4.0, cache_dir=cache, log=lambda _l: None)
+    evaluate.write_results(ev, str(out))
+    return ev, out
+
+
+def _curve(ev, scene, method):
+    return sorted((s.seconds, s) for s in ev.samples if s.scene == scene and s.method == method)
+
+
+def test_every_method_stops_at_every_budget_with_finite_pixels(mini):
+    ev, _ = mini
+    assert not ev.failed and not ev.skipped
+    for case in evaluate.SUITES["mini"].cases:
+        for method in evaluate.SUITES["mini"].methods:
+            curve = _curve(ev, case.scene, method)
+            assert len(curve) >= 2, f"{case.scene}/{method}: {len(curve)} stops"
+            assert all(s.finite for _, s in curve), f"{case.scene}/{method}: NaN or Inf pixels"
+            assert all(math.isfinite(s.relmse) for _, s in curve)
+
+
+@pytest.mark.parametrize("scene", ["cornell-box", "cardioid"])
+@pytest.mark.parametrize("method", ["sppm-grid", "osppm-c4"])
+def test_error_falls_as_render_time_grows(mini, scene, method):
+    """Consistency: the longest render is better than the shortest by a
+    margin noise cannot close (the time ratio is 8)."""
+    ev, _ = mini
+    curve = _curve(ev, scene, method)
+    first, last = curve[0][1], curve[-1][1]
+    assert last.seconds >= 4 * first.seconds
+    assert last.relmse < 0.8 * first.relmse, [(round(t, 2), s.relmse) for t, s in curve]
+    assert last.blurred_relmse < first.blurred_relmse
+
+
+def test_sppm_renders_the_point_light_caustic_that_path_tracing_cannot(mini):
+    """On the cardioid, a path tracer misses the caustic altogether: the
+    error of its blurred image (noise averaged away, bias left) stops
+    falling once noise is gone, and stays above SPPM's, which keeps falling."""
+    ev, _ = mini
+    path = [s for _, s in _curve(ev, "cardioid", "mitsuba-path") if s.seconds >= 0.1]
+    sppm = [s for _, s in _curve(ev, "cardioid", "sppm-grid")]
+    assert path[-1].blurred_relmse > 0.9 * path[0].blurred_relmse
+    assert path[-1].bias < -0.02                      # darker: the caustic is missing
+    assert sppm[-1].blurred_relmse < sppm[0].blurred_relmse
+    assert sppm[-1].blurred_relmse < 0.7 * path[-1].blurred_relmse
+
+
+def test_outputs_name_every_sample_and_the_claims(mini):
+    ev, out = mini
+    doc = json.loads((out / "results.json").read_text())
+    assert len(doc["samples"]) == len(ev.samples)
+    assert doc["references"].keys() == {"cornell-box", "cardioid"}
+    rows = (out / "results.csv").read_text().splitlines()
+    assert len(rows) == len(ev.samples) + 1
+    summary = (out / "summary.md").read_text()
+    assert "cardioid (caustic): Mitsuba path relMSE / SPPM grid relMSE" in summary
+
+
+def test_the_blended_reference_uses_path_exactly_where_the_camera_sees_the_mirror():
+    scene = evaluate.suite_scene(evaluate.SUITES["mini"], evaluate.SUITES["mini"].cases[1])
+    share = evaluate.specular_first_hit_share(scene, rays_per_pixel=8)
+    assert share.shape == (32, 32)
+    assert 0.02 < share.mean() < 0.5          # the ring covers part of the view
+    assert share.max() == 1.0 and share.min() == 0.0
+
+
+def test_a_missing_peer_is_skipped_not_failed(monkeypatch, tmp_path):
+    monkeypatch.setattr(evaluate, "method_available",
+                        lambda m: "not installed" if m.kind == "mitsuba" else None)
+    monkeypatch.setattr(evaluate, "reference_image",
+                        lambda scene, case, spp, cache: np.ones((32, 32, 3), np.float32))
+    ev = evaluate.evaluate(evaluate.SUITES["mini"], 0.5, methods=["sppm-grid", "mitsuba-path"],
+                           scenes=["cornell-box"], log=lambda _l: None)
+    assert ev.skipped == {"mitsuba-path": "not installed"} and not ev.failed
+    assert {s.method for s in ev.samples} == {"sppm-grid"}
+
+
+def test_cli_rejects_a_scene_outside_the_suite(capsys):
+    assert main(["evaluate", "mini", "--scene", "thin-wall"]) == 2
+    err = capsys.readouterr().err
+    assert "'thin-wall' is not in suite 'mini'" in err and len(err.strip().splitlines()) == 1
