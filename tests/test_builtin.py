@@ -56,7 +56,7 @@ def test_registry():
     assert builtin.DEFAULT in builtin.SCENES
     assert set(builtin.SCENES) == {"cornell-box", "cornell-caustic", "cornell-glass", "furnace-sphere",
                                    "thin-wall", "far-from-origin", "many-lights", "glossy-floor",
-                                   "glass-small-light"}
+                                   "glass-small-light", "cardioid"}
     with pytest.raises(SceneError, match="cornell-box.*furnace-sphere"):
         builtin.make("cornell-dragon")
 

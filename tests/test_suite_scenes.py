@@ -16,7 +16,7 @@ from dosppm_core.render import Renderer, RenderSettings
 from dosppm_core.scene import GLASS, GLOSSY, LIGHT_TRIANGLE
 from dosppm_core.tracing import NO_CULL, SurfaceData, emit_photon_job, trace_photon_jobs
 
-SUITE = ("thin-wall", "far-from-origin", "many-lights", "glossy-floor", "glass-small-light")
+SUITE = ("thin-wall", "far-from-origin", "many-lights", "glossy-floor", "glass-small-light", "cardioid")
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
