@@ -49,6 +49,9 @@ TOTAL_CREDIT_RAYS = 1 << 20   # rays queued at all tracers together, at most (se
 MAX_TRACERS = 1024            # registrations beyond this are refused (memory stays bounded)
 UNKNOWN, IN_FLIGHT, COMPLETE, DISCARDED = 0, 1, 2, 3     # photon job status
 HEARTBEAT_INTERVAL_S = 1.0
+# A job message an idle tracer has not acknowledged this long after it was
+# sent is lost (see `_check_delivery`).
+JOB_MESSAGE_LOST_S = 4.0
 # Tracer heartbeat fields the server passes on in its status.
 STATUS_KEYS = ("load", "resident", "busy_s", "steps", "rays_traced", "portal_rays_out", "portal_rays_in",
                "forwarded_rays", "cpu_s", "bytes_to_server", "bytes_to_peers", "outbox", "outbox_rays")
@@ -71,8 +74,10 @@ class TracerInfo:
     store_key: str | None
     last_seen_s: float
     public_key: str | None = None   # its CURVE key, handed to its peers
-    session: int = 0                # counts its registrations; heartbeats echo the one welcomed
+    session: int = 0                # counts its welcomes; heartbeats echo the one it got
     welcomed_s: float = 0.0
+    jobs_sent: int = 0              # job messages sent since the welcome...
+    unacked: deque = field(default_factory=deque)   # ...and when, for those not yet acknowledged
     queued: int = 0                 # rays waiting at the tracer, as last reported
     sent_since_report: int = 0      # rays sent to it since
     status: dict = field(default_factory=dict)
@@ -182,7 +187,8 @@ class ServerState:
                          "over_counted_paths": 0, "results": 0, "updates": 0,
                          "photons_discarded": 0, "jobs_discarded": 0, "tracers_evicted": 0,
                          "eye_iterations_restarted": 0, "deposits_discarded": 0, "deposits_stale": 0,
-                         "refused": 0, "tracers_rejoined": 0, "jobs_timed_out": 0, "welcomes_resent": 0}
+                         "refused": 0, "tracers_rejoined": 0, "jobs_timed_out": 0, "welcomes_resent": 0,
+                         "job_messages_lost": 0}
         self.path_ends = np.zeros(len(END_NAMES), np.int64)
 
     # -- tracers -------------------------------------------------------------------
@@ -216,8 +222,7 @@ class ServerState:
             t.queued = t.sent_since_report = 0
             self.counters["tracers_rejoined"] += 1
             self._discard_jobs_in_flight()
-        t.session += 1
-        t.welcomed_s = now
+        self._welcomed(t, now)
         self._reassign()
         return [Out(tid, "welcome", self.welcome_fields(t)), *self._peer_tables()]
 
@@ -242,24 +247,53 @@ class ServerState:
         t.last_seen_s = now
         if msg.type == "heartbeat":
             t.status = dict(msg.status)
-            return self._check_welcomed(t, now)
+            return self._check_welcomed(t, now) or self._check_delivery(t, now)
         elif msg.type == "results":
-            return self._on_results(t, msg)
+            return self._counted(self._on_results(t, msg), now)
         return []
 
     # -- results and exact accounting ----------------------------------------------------
     def _check_welcomed(self, t: TracerInfo, now: float) -> list[Out]:
         """A tracer whose heartbeats do not echo its latest welcome never got
         it (lost with a connection libzmq replaced): it still holds queues
-        of its old session. Welcome it again, with the jobs in flight
-        re-emitted, since it forgets its queues when welcomed."""
+        of its old session. Welcome it again."""
         echoed = t.status.get("session")
         if echoed is None or echoed == t.session or now - t.welcomed_s < 2 * HEARTBEAT_INTERVAL_S:
             return []
         self.counters["welcomes_resent"] += 1
-        t.welcomed_s = now
+        return self._welcome_again(t, now)
+
+    def _check_delivery(self, t: TracerInfo, now: float) -> list[Out]:
+        """Job messages can vanish without an error, queued in a connection
+        libzmq replaces after a cut. A tracer counts the job messages it got
+        since its welcome; one that is idle while a job message sent to it
+        JOB_MESSAGE_LOST_S ago is still unacknowledged lost it. Rather than
+        wait for the watchdog, welcome it again at once (its count restarts)
+        with the jobs in flight re-emitted. A busy tracer is never suspected:
+        it may simply not have read its socket yet."""
+        got = t.status.get("jobs_received")
+        if got is None:
+            return []
+        while len(t.unacked) > max(0, t.jobs_sent - int(got)):
+            t.unacked.popleft()
+        if not t.unacked or now - t.unacked[0] < JOB_MESSAGE_LOST_S or t.status.get("queue", 1):
+            return []
+        self.counters["job_messages_lost"] += len(t.unacked)
+        return self._welcome_again(t, now)
+
+    def _welcome_again(self, t: TracerInfo, now: float) -> list[Out]:
+        """A new welcome under a new session (heartbeats of the old one are
+        then told apart), with every job in flight re-emitted: the tracer
+        forgets its queues when welcomed."""
+        self._welcomed(t, now)
         self._discard_jobs_in_flight()
         return [Out(t.id, "welcome", self.welcome_fields(t)), *self._peer_tables()]
+
+    def _welcomed(self, t: TracerInfo, now: float) -> None:
+        t.session += 1
+        t.welcomed_s = now
+        t.jobs_sent = 0
+        t.unacked.clear()
 
     def _check_results(self, msg) -> str | None:
         """What the wire cannot know: ranges of chunks, pixels, materials."""
@@ -361,6 +395,18 @@ class ServerState:
     # -- emission ------------------------------------------------------------------------
     def tick(self, now: float) -> list[Out]:
         """Start eye iterations, top up and send photon jobs, heartbeats."""
+        return self._counted(self._tick(now), now)
+
+    def _counted(self, out: list[Out], now: float) -> list[Out]:
+        """Note every job message on its way to a tracer (see `_check_delivery`)."""
+        for o in out:
+            if o.type in ("photon_job", "eye_job") and o.dest in self.tracers:
+                t = self.tracers[o.dest]
+                t.jobs_sent += 1
+                t.unacked.append(now)
+        return out
+
+    def _tick(self, now: float) -> list[Out]:
         out = []
         self._now = now
         if now - self._last_heartbeat >= HEARTBEAT_INTERVAL_S:

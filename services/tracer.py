@@ -70,6 +70,7 @@ class TracerProcess:
         self.outbox: list = []        # (endpoint, frames) waiting for a full peer pipe
         self.stopped: str | None = None
         self.session = None            # the registration the server last welcomed
+        self.jobs_received = 0         # job messages since that welcome (acknowledged in heartbeats)
         self._rejoining = False
         self._backoff, self._next_rejoin = 0.0, 0.0
         self._last_register = 0.0
@@ -233,13 +234,20 @@ class TracerProcess:
             self._flush_outbox()
             if now - last_beat >= HEARTBEAT_INTERVAL_S:
                 last_beat = now
+                # Read what arrived during a long step first: the heartbeat
+                # acknowledges job messages (`jobs_received`), and one that
+                # is only unread must not look lost.
+                if self.dealer.poll(0):
+                    last_heard = now
+                    self._drain_server(True)
                 self._to_server(wire.encode("heartbeat", status=self._status()), disposable=True)
             if now - last_heard > SERVER_SILENT_S:
                 self._reconnect(now, now - last_heard)
 
     def _status(self) -> dict:
         s = self.state.status()
-        s.update(session=self.session, outbox=len(self.outbox), outbox_rays=self._outbox_rays,
+        s.update(session=self.session, jobs_received=self.jobs_received, outbox=len(self.outbox),
+                 outbox_rays=self._outbox_rays,
                  cpu_s=round(time.process_time(), 3),
                  bytes_to_server=self.bytes_to_server, bytes_to_peers=self.bytes_to_peers)
         return s
@@ -263,6 +271,7 @@ class TracerProcess:
                 # or restarted: what we still hold belongs to jobs it has
                 # discarded or never knew.
                 self.session = msg.settings.get("session")
+                self.jobs_received = 0
                 self.state.reset()
                 self._rejoining, self._backoff = False, 0.0
                 log.warning("rejoined the server as tracer %d", msg.tracer_index)
@@ -271,6 +280,8 @@ class TracerProcess:
             else:
                 if msg.type == "peers":
                     self.peer_keys.update(msg.keys)
+                elif msg.type in ("photon_job", "eye_job"):
+                    self.jobs_received += 1
                 self._send(self.state.handle(msg))
                 if msg.type == "peers":
                     log.info("peer table %d: this tracer serves chunks %s", msg.table_version,

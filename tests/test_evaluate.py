@@ -87,7 +87,7 @@ def test_a_missing_peer_is_skipped_not_failed(monkeypatch, tmp_path):
     monkeypatch.setattr(evaluate, "method_available",
                         lambda m: "not installed" if m.kind == "mitsuba" else None)
     monkeypatch.setattr(evaluate, "reference_image",
-                        lambda scene, case, spp, cache: np.ones((32, 32, 3), np.float32))
+                        lambda scene, case, spp, cache: (np.ones((32, 32, 3), np.float32), None))
     ev = evaluate.evaluate(evaluate.SUITES["mini"], 0.5, methods=["sppm-grid", "mitsuba-path"],
                            scenes=["cornell-box"], log=lambda _l: None)
     assert ev.skipped == {"mitsuba-path": "not installed"} and not ev.failed

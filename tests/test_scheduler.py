@@ -162,3 +162,43 @@ def test_eviction_re_emits_the_same_photons_under_new_job_ids(state):
     old = next(iter(common))
     state.on_message("a", _results([old], [3], deposits_job=[old]), 1.1)
     assert state.counters["stale_paths"] == 3
+
+
+def _beat(state, tid, now, **status):
+    return state.on_message(tid, _msg("heartbeat", status=status), now)
+
+
+def test_job_messages_an_idle_tracer_never_got_are_re_emitted_at_once(state):
+    """Job messages lost with a connection libzmq replaced: the tracer's
+    heartbeats acknowledge fewer than were sent, it is idle, and the oldest
+    unacknowledged one is JOB_MESSAGE_LOST_S old, so it is welcomed again
+    (a new session) and the jobs in flight are re-emitted, long before the
+    30 s watchdog. A busy tracer, or one that acknowledged everything, is
+    left alone."""
+    from services.scheduler import JOB_MESSAGE_LOST_S
+    _register(state, "a")
+    state.gather_box = np.array([[-1e9] * 3, [1e9] * 3])
+    state.eye_completed = 1
+    sent = sum(o.type in ("photon_job", "eye_job") for o in state.tick(0.0))
+    t = state.tracers["a"]
+    assert sent > 2 and t.jobs_sent == sent
+    in_flight = {j for j, job in state.jobs.items() if job.sent}
+    session = t.session
+    late = JOB_MESSAGE_LOST_S + 0.5
+    # Too recent, or busy: nothing happens.
+    assert _beat(state, "a", 1.0, session=session, jobs_received=sent - 2, queue=0) == []
+    assert _beat(state, "a", late, session=session, jobs_received=sent - 2, queue=500) == []
+    assert state.counters["job_messages_lost"] == 0 and in_flight <= set(state.jobs)
+    # Idle, two unacknowledged for long enough: lost.
+    out = _beat(state, "a", late, session=session, jobs_received=sent - 2, queue=0)
+    assert [o.type for o in out][:1] == ["welcome"] and out[0].fields["settings"]["session"] == session + 1
+    assert state.counters["job_messages_lost"] == 2
+    assert not (set(state.jobs) & in_flight), "the jobs in flight were not discarded"
+    assert t.jobs_sent == 0 and not t.unacked
+    # Heartbeats of the old session do not count against the new one, and
+    # in the new one everything acknowledged is never suspected.
+    assert _beat(state, "a", late + 1.0, session=session, jobs_received=0, queue=0) == []
+    resent = sum(o.type in ("photon_job", "eye_job") for o in state.tick(late + 1.0))
+    assert resent > 0 and t.jobs_sent == resent
+    assert _beat(state, "a", late + 60, session=session + 1, jobs_received=resent, queue=0) == []
+    assert state.counters["job_messages_lost"] == 2
