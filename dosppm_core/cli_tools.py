@@ -180,7 +180,7 @@ def run_evaluate(args) -> int:
                                   f"(known: {', '.join(sorted(known))})", EXIT_BAD_INPUT)
     suite = dataclasses.replace(suite, reference_spp_scale=args.reference_spp_scale)
     ev = evaluate.evaluate(suite, args.budget_s, args.method, args.scene, args.reference_cache,
-                           args.seed, log=lambda line: print(line, file=sys.stderr))
+                           args.seed, log=lambda line: print(line, file=sys.stderr), out_dir=args.out)
     for path in evaluate.write_results(ev, args.out):
         print(path)
     print(evaluate.summary_markdown(ev))

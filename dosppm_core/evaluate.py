@@ -48,9 +48,10 @@ class Case:
     tests: str
     reference: str = "path"       # 'path', 'ptracer' or 'ptracer+path'
     spp: int = 4096               # reference samples per pixel
-    # Pixels scored: 'all', or 'no-specular-in-view' where the camera sees a
-    # mirror showing a point light's caustic (specular-diffuse-specular
-    # paths from a point light): no independent method converges there.
+    # Pixels scored: 'all', or 'no-specular-in-view' where what the camera
+    # sees in a mirror or through glass is lit by caustics of a point light
+    # or a tiny lamp (specular-diffuse-specular paths): no independent
+    # method converges there (a path tracer's fireflies stay at 4096 spp).
     scored: str = "all"
 
 
@@ -97,7 +98,7 @@ SUITES = {s.name: s for s in (
         Case("cardioid", "a point light's caustic off a mirror ring: path tracing cannot "
              "render it", "ptracer+path", scored="no-specular-in-view"),
         Case("glass-small-light", "a small lamp seen through glass; the room lit by caustics",
-             "ptracer+path"),
+             "ptracer+path", scored="no-specular-in-view"),
         Case("thin-wall", "light leaking through a wall 1% of the room thick"),
         Case("glossy-floor", "a glossy GGX floor, where SPPM converges slowly"),
         Case("many-lights", "400 small lamps chosen by power"),
@@ -124,8 +125,9 @@ class Sample:
     finite: bool
     relmse: float = math.nan
     rmse: float = math.nan
-    bias: float = math.nan
+    bias: float = math.nan             # relative; NaN where the reference is black
     blurred_relmse: float = math.nan
+    mean_luminance: float = math.nan   # absolute: what leaks into a black reference
     note: str = ""
 
 
@@ -227,7 +229,8 @@ def _osppm(method: Method, scene: Scene, seed: int, work: str):
 
 def _progressive(make, budgets):
     """Run a progressive renderer, stopping at each budget in turn (an
-    iteration that spans several budgets stops once, at the last)."""
+    iteration that spans several budgets stops once, at the last), and
+    going on from there."""
     renderer = make()
     try:
         out, k, t0 = [], 0, time.perf_counter()
@@ -237,6 +240,12 @@ def _progressive(make, budgets):
             if elapsed >= budgets[k]:
                 while k + 1 < len(budgets) and elapsed >= budgets[k + 1]:
                     k += 1
+                if hasattr(renderer, "finish"):
+                    # OSPPM's image lacks the photons still queued at
+                    # portals until they are traced, as `dosppm render`
+                    # does before it writes (the time counts).
+                    renderer.finish()
+                    elapsed = time.perf_counter() - t0
                 out.append((budgets[k], elapsed, int(renderer.stats.photons_emitted),
                             renderer.image().copy()))
                 k += 1
@@ -298,7 +307,9 @@ def score(scene: str, method: str, budget: float, seconds: float, photons: int,
         pick = (lambda x: x) if scored is None else (lambda x: x[scored])
         s.relmse = metrics.relmse(pick(image), pick(reference))
         s.rmse = metrics.rmse(pick(image), pick(reference))
-        s.bias = metrics.mean_luminance_bias(pick(image), pick(reference))
+        s.mean_luminance = float(np.mean(metrics.luminance(pick(image))))
+        if np.mean(metrics.luminance(pick(reference))) > 0:
+            s.bias = metrics.mean_luminance_bias(pick(image), pick(reference))
         s.blurred_relmse = metrics.relmse(pick(metrics.gaussian_blur(image, BLUR_SIGMA_PX)),
                                           pick(metrics.gaussian_blur(reference, BLUR_SIGMA_PX)))
     return s
@@ -317,12 +328,17 @@ class Evaluation:
 
 def evaluate(suite: Suite, budget_s: float, methods: list[str] | None = None,
              scenes: list[str] | None = None, cache_dir: str | None = None, seed: int = 1,
-             log=print) -> Evaluation:
-    """Run the suite; `methods` / `scenes` restrict it."""
+             log=print, out_dir: str | None = None) -> Evaluation:
+    """Run the suite; `methods` / `scenes` restrict it. With `out_dir`, the
+    results so far are written after every scene, so a run that is cut
+    short keeps what it measured."""
     cache_dir = cache_dir or os.path.join(os.path.expanduser("~"), ".cache", "dosppm", "references")
     chosen = [METHODS[m] for m in (methods or suite.methods)]
     budgets = [budget_s * f for f in BUDGET_FRACTIONS]
     ev = Evaluation(suite.name, budget_s)
+    running = {c.scene for c in suite.cases if not scenes or c.scene in scenes}
+    if out_dir:
+        carry_over(ev, out_dir, running)
     for m in chosen:
         why = method_available(m)
         if why:
@@ -336,7 +352,12 @@ def evaluate(suite: Suite, budget_s: float, methods: list[str] | None = None,
             scene = suite_scene(suite, case)
             spp = max(16, int(case.spp * suite.reference_spp_scale))
             log(f"{case.scene}: reference ({case.reference}, {spp} spp)")
-            reference, scored = reference_image(scene, case, spp, cache_dir)
+            try:
+                reference, scored = reference_image(scene, case, spp, cache_dir)
+            except Exception as exc:  # noqa: BLE001 - nothing to score against; the other scenes go on
+                ev.failed[f"{case.scene}/reference"] = " ".join(str(exc).split()) or type(exc).__name__
+                log(f"{case.scene}: reference failed: {ev.failed[f'{case.scene}/reference']}")
+                continue
             ev.references[case.scene] = f"Mitsuba 3 {case.reference}, {spp} spp" + (
                 "" if scored is None else f"; {scored.mean():.0%} of pixels scored ({case.scored})")
             ev.images[(case.scene, "reference")] = reference
@@ -346,16 +367,39 @@ def evaluate(suite: Suite, budget_s: float, methods: list[str] | None = None,
                 log(f"{case.scene}: {m.name}")
                 try:
                     stops = run_method(m, scene, budgets, seed, work)
+                    ev.samples += [score(case.scene, m.name, budget, seconds, photons, image,
+                                         reference, scored)
+                                   for budget, seconds, photons, image in stops]
                 except Exception as exc:  # noqa: BLE001 - one failing method must not end the suite
                     ev.failed[f"{case.scene}/{m.name}"] = " ".join(str(exc).split()) or type(exc).__name__
                     log(f"{case.scene}: {m.name} failed: {ev.failed[f'{case.scene}/{m.name}']}")
                     continue
-                for budget, seconds, photons, image in stops:
-                    ev.samples.append(score(case.scene, m.name, budget, seconds, photons,
-                                            image, reference, scored))
                 if stops:
                     ev.images[(case.scene, m.name)] = stops[-1][3]
+            if out_dir:
+                write_results(ev, out_dir)
     return ev
+
+
+def carry_over(ev: Evaluation, out_dir: str, running: set) -> None:
+    """Keep the results of scenes this run does not repeat, from an earlier
+    run of the same suite and budget into `out_dir` (re-run one scene
+    without losing the others)."""
+    try:
+        with open(os.path.join(out_dir, "results.json"), encoding="utf-8") as f:
+            doc = json.load(f)
+    except (OSError, ValueError):
+        return
+    if doc.get("suite") != ev.suite or doc.get("budget_s") != ev.budget_s:
+        return
+    names = Sample.__dataclass_fields__
+    for row in doc.get("samples", []):
+        if row.get("scene") not in running:
+            ev.samples.append(Sample(**{k: (math.nan if v is None else v)
+                                        for k, v in row.items() if k in names}))
+    ev.references.update({k: v for k, v in doc.get("references", {}).items() if k not in running})
+    ev.failed.update({k: v for k, v in doc.get("failed", {}).items()
+                      if k.split("/")[0] not in running})
 
 
 def _warm_kernels() -> None:
@@ -413,17 +457,19 @@ def final_samples(ev: Evaluation) -> dict:
 
 def summary_markdown(ev: Evaluation) -> str:
     last = final_samples(ev)
-    scenes = list(dict.fromkeys(s.scene for s in ev.samples))
+    scenes = _scene_order(ev)
     methods = list(dict.fromkeys(s.method for s in ev.samples))
-    lines = [f"relMSE at {ev.budget_s:g} s of render time (suite `{ev.suite}`; "
-             "bias = mean-luminance bias; ! = a non-finite pixel)", "",
+    lines = [f"relMSE at {ev.budget_s:g} s of render time (suite `{ev.suite}`), with the "
+             "mean-luminance bias, or the mean luminance Y where the reference is black "
+             "(light that leaked); ! = a non-finite pixel", "",
              "| scene | " + " | ".join(methods) + " |", "|---|" + "---|" * len(methods)]
     for scene in scenes:
         cells = []
         for m in methods:
             s = last.get((scene, m))
-            cells.append("-" if s is None else ("!" if not s.finite else
-                                                 f"{s.relmse:.3g} ({s.bias:+.1%})"))
+            cells.append("-" if s is None else "!" if not s.finite else
+                         f"{s.relmse:.3g} ({s.bias:+.1%})" if math.isfinite(s.bias) else
+                         f"{s.relmse:.3g} (Y {s.mean_luminance:.2g})")
         lines.append(f"| {scene} | " + " | ".join(cells) + " |")
     lines += ["", *claims(ev)]
     if ev.skipped:
@@ -435,18 +481,30 @@ def summary_markdown(ev: Evaluation) -> str:
 
 def claims(ev: Evaluation) -> list[str]:
     """The issue's two claims as measured: SPPM against Mitsuba `path` at
-    equal time, on the caustic scenes and on the diffuse Cornell box."""
+    equal time, on the caustic scenes and the others; where the reference
+    is black (a dark room behind a thin wall), the light each leaked."""
     last = final_samples(ev)
     out = []
-    for scene in dict.fromkeys(s.scene for s in ev.samples):
+    for scene in _scene_order(ev):
         ours, path = last.get((scene, "sppm-grid")), last.get((scene, "mitsuba-path"))
         if not (ours and path and ours.finite and path.finite):
+            continue
+        if not math.isfinite(ours.bias):
+            out.append(f"- {scene} (black reference): mean luminance leaked, SPPM grid "
+                       f"{ours.mean_luminance:.2g}, Mitsuba path {path.mean_luminance:.2g}")
             continue
         ratio = path.relmse / ours.relmse if ours.relmse > 0 else math.inf
         kind = "caustic" if scene in CAUSTIC_SCENES else "other"
         out.append(f"- {scene} ({kind}): Mitsuba path relMSE / SPPM grid relMSE = {ratio:.3g} "
                    f"({'SPPM lower' if ratio > 1 else 'path lower'})")
     return out
+
+
+def _scene_order(ev: Evaluation) -> list[str]:
+    """The scenes with samples, in the suite's order."""
+    order = [c.scene for c in SUITES[ev.suite].cases] if ev.suite in SUITES else []
+    seen = list(dict.fromkeys(s.scene for s in ev.samples))
+    return [s for s in order if s in seen] + [s for s in seen if s not in order]
 
 
 def _machine() -> dict:

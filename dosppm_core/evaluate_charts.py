@@ -18,7 +18,8 @@ def write_charts(ev, out_dir: str) -> list[str]:
     paths = []
     for scene in dict.fromkeys(s.scene for s in ev.samples):
         paths.append(_error_chart(ev, scene, os.path.join(out_dir, f"error-{scene}.png")))
-        paths.append(_strip(ev, scene, os.path.join(out_dir, f"strip-{scene}.png")))
+        if (scene, "reference") in ev.images:      # not for scenes carried over unrendered
+            paths.append(_strip(ev, scene, os.path.join(out_dir, f"strip-{scene}.png")))
     return paths
 
 
@@ -34,7 +35,7 @@ def _error_chart(ev, scene: str, path: str) -> str:
     ax.set_yscale("log")
     ax.set_xlabel("render time (s)")
     ax.set_ylabel("relMSE to reference")
-    ax.set_title(f"{scene} (reference: {ev.references.get(scene, '?')})", fontsize=9)
+    ax.set_title(f"{scene}\nreference: {ev.references.get(scene, '?')}", fontsize=8)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7)
     fig.tight_layout()

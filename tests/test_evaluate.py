@@ -98,3 +98,19 @@ def test_cli_rejects_a_scene_outside_the_suite(capsys):
     assert main(["evaluate", "mini", "--scene", "thin-wall"]) == 2
     err = capsys.readouterr().err
     assert "'thin-wall' is not in suite 'mini'" in err and len(err.strip().splitlines()) == 1
+
+
+def test_re_running_one_scene_keeps_the_others_results(monkeypatch, tmp_path):
+    monkeypatch.setattr(evaluate, "reference_image",
+                        lambda scene, case, spp, cache: (np.ones((32, 32, 3), np.float32), None))
+    run = dict(methods=["sppm-grid"], log=lambda _l: None, out_dir=str(tmp_path))
+    evaluate.evaluate(evaluate.SUITES["mini"], 0.3, scenes=["cornell-box"], **run)
+    evaluate.evaluate(evaluate.SUITES["mini"], 0.3, scenes=["cardioid"], **run)
+    again = evaluate.evaluate(evaluate.SUITES["mini"], 0.3, scenes=["cardioid"], **run)
+    doc = json.loads((tmp_path / "results.json").read_text())
+    counts = {scene: sum(r["scene"] == scene for r in doc["samples"]) for scene in ("cornell-box", "cardioid")}
+    assert counts["cornell-box"] >= 1 and counts["cardioid"] == sum(s.scene == "cardioid" for s in again.samples)
+    # A different budget starts afresh.
+    evaluate.evaluate(evaluate.SUITES["mini"], 0.2, scenes=["cardioid"], **run)
+    doc = json.loads((tmp_path / "results.json").read_text())
+    assert {r["scene"] for r in doc["samples"]} == {"cardioid"}
