@@ -52,6 +52,8 @@ HEARTBEAT_INTERVAL_S = 1.0
 # A job message an idle tracer has not acknowledged this long after it was
 # sent is lost (see `_check_delivery`).
 JOB_MESSAGE_LOST_S = 4.0
+# A job untouched this long while every tracer is idle is lost (`_watchdog`).
+STALL_S = 4.0
 # Tracer heartbeat fields the server passes on in its status.
 STATUS_KEYS = ("load", "resident", "busy_s", "steps", "rays_traced", "portal_rays_out", "portal_rays_in",
                "forwarded_rays", "cpu_s", "bytes_to_server", "bytes_to_peers", "outbox", "outbox_rays")
@@ -76,6 +78,7 @@ class TracerInfo:
     public_key: str | None = None   # its CURVE key, handed to its peers
     session: int = 0                # counts its welcomes; heartbeats echo the one it got
     welcomed_s: float = 0.0
+    status_s: float = -1e30         # when its last heartbeat came
     jobs_sent: int = 0              # job messages sent since the welcome...
     unacked: deque = field(default_factory=deque)   # ...and when, for those not yet acknowledged
     queued: int = 0                 # rays waiting at the tracer, as last reported
@@ -246,7 +249,7 @@ class ServerState:
                                            about=msg.type))]
         t.last_seen_s = now
         if msg.type == "heartbeat":
-            t.status = dict(msg.status)
+            t.status, t.status_s = dict(msg.status), now
             return self._check_welcomed(t, now) or self._check_delivery(t, now)
         elif msg.type == "results":
             return self._counted(self._on_results(t, msg), now)
@@ -458,14 +461,23 @@ class ServerState:
 
     def _watchdog(self, now: float) -> None:
         """Messages can vanish without any error (queued in a TCP connection
-        that libzmq replaces after a cut): a job no result has touched for
-        `job_timeout_s` is presumed lost with them, and all jobs in flight
-        are discarded and re-emitted. Correctness never depends on it: a
-        job presumed lost that was only slow has its late results ignored."""
-        limit = self.job_timeout_s
+        that libzmq replaces after a cut, between the server and a tracer or
+        between two tracers): a job no result has touched for
+        `job_timeout_s` is presumed lost with them, or for only STALL_S when
+        every tracer reports, in a fresh heartbeat, nothing queued and
+        nothing waiting to go to a peer (no one is working on it), and all
+        jobs in flight are discarded and re-emitted. Correctness never
+        depends on it: a job presumed lost that was only slow has its late
+        results ignored."""
+        limit = STALL_S if self._all_idle(now) else self.job_timeout_s
         if any(job.sent and now - job.progress_s > limit for job in self.jobs.values()):
             self.counters["jobs_timed_out"] += 1
             self._discard_jobs_in_flight()
+
+    def _all_idle(self, now: float) -> bool:
+        return bool(self.tracers) and all(
+            now - t.status_s < 2 * HEARTBEAT_INTERVAL_S and t.status.get("queue", 1) == 0
+            and t.status.get("outbox_rays", 1) == 0 for t in self.tracers.values())
 
     def evict(self, tid: str, reason: str) -> list[Out]:
         """Drop tracer `tid`: its chunks go to the live tracers (new peer

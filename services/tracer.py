@@ -76,26 +76,47 @@ class TracerProcess:
         self._last_register = 0.0
         self.bytes_to_server = self.bytes_to_peers = 0
         self._outbox_rays = 0
+        self._poller: zmq.Poller | None = None
 
     # -- sockets -------------------------------------------------------------------
     def _open(self) -> None:
-        self.dealer = wire.configure(self.ctx.socket(zmq.DEALER))
-        self.dealer.setsockopt(zmq.IDENTITY, self.tracer_id.encode())
+        self.dealer = self._connect_server()
         self.router = wire.configure(self.ctx.socket(zmq.ROUTER))
         if self.curve:
-            # To the server as a CURVE client; to peers as a CURVE server
-            # that admits only the listed tracers' keys.
-            secret, server_key, clients = self.curve
-            wire.curve_client(self.dealer, secret, wire.load_keys(server_key)[0])
+            # To peers as a CURVE server that admits only the listed
+            # tracers' keys (to the server as a client: _connect_server).
+            secret, _server_key, clients = self.curve
             self.auth = wire.start_authenticator(self.ctx, clients)
             self.public_key = wire.curve_server(self.router, secret).decode()
-        self.dealer.connect(self.server_url)
         self.router.bind(self.bind)
         bound = self.router.getsockopt(zmq.LAST_ENDPOINT).decode()
         if self.advertise:   # bound to 0.0.0.0: peers need a reachable address
             host = reachable_address(self.server_url) if self.advertise == "auto" else self.advertise
             bound = f"tcp://{host}:{bound.rsplit(':', 1)[1]}"
         self.endpoint = bound
+
+    def _connect_server(self) -> zmq.Socket:
+        """A DEALER to the server under this tracer's identity."""
+        dealer = wire.configure(self.ctx.socket(zmq.DEALER))
+        dealer.setsockopt(zmq.IDENTITY, self.tracer_id.encode())
+        if self.curve:
+            secret, server_key, _clients = self.curve
+            wire.curve_client(dealer, secret, wire.load_keys(server_key)[0])
+        dealer.connect(self.server_url)
+        return dealer
+
+    def _replace_connection(self) -> None:
+        """The server went silent: drop the connection and open a new one.
+        The old one may be a TCP connection a network cut left half dead;
+        closing it tells the server (once packets flow) to let go of this
+        identity, which its ROUTER otherwise keeps, ignoring the new
+        connection, until its heartbeat times out. What was queued in it
+        belongs to jobs the server re-emits when this tracer registers."""
+        old, self.dealer = self.dealer, self._connect_server()
+        if self._poller is not None:
+            self._poller.unregister(old)
+            self._poller.register(self.dealer, zmq.POLLIN)
+        old.close(linger=0)
 
     def _peer(self, endpoint: str) -> zmq.Socket:
         s = self.peers.get(endpoint)
@@ -216,7 +237,7 @@ class TracerProcess:
         return self.stopped or ""
 
     def _loop(self) -> None:
-        poller = zmq.Poller()
+        self._poller = poller = zmq.Poller()
         poller.register(self.dealer, zmq.POLLIN)
         poller.register(self.router, zmq.POLLIN)
         last_beat = last_heard = time.monotonic()
@@ -288,9 +309,9 @@ class TracerProcess:
                              self.state.chunks)
 
     def _reconnect(self, now: float, silent_s: float) -> None:
-        """The server went quiet (restarting, or the link is down): register
-        again with backoff (1, 2, 4, ... 16 s; libzmq reconnects the socket
-        itself), and give up only after `connect_timeout_s` of silence."""
+        """The server went quiet (restarting, or the link is down): open a
+        new connection and register again, with backoff (1, 2, 4, ... 16 s),
+        and give up only after `connect_timeout_s` of silence."""
         if silent_s > self.connect_timeout_s:
             raise TracerError(f"server {self.server_url} silent for {silent_s:.0f} s")
         if now < self._next_rejoin:
@@ -298,6 +319,7 @@ class TracerProcess:
         self._backoff = min(2 * self._backoff, 16.0) if self._backoff else 1.0
         self._next_rejoin = now + self._backoff
         self._rejoining = False
+        self._replace_connection()
         self._rejoin()
 
     def _rejoin(self) -> None:

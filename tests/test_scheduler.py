@@ -202,3 +202,32 @@ def test_job_messages_an_idle_tracer_never_got_are_re_emitted_at_once(state):
     assert resent > 0 and t.jobs_sent == resent
     assert _beat(state, "a", late + 60, session=session + 1, jobs_received=resent, queue=0) == []
     assert state.counters["job_messages_lost"] == 2
+
+
+def test_jobs_untouched_while_every_tracer_is_idle_are_re_emitted_after_the_stall_time(state):
+    """Portal packages lost between two tracers leave jobs in flight that no
+    one works on. When every tracer's fresh heartbeat says it holds nothing
+    (no queue, no outbox), a job untouched for STALL_S is lost; a busy
+    tracer, or one whose heartbeat is stale (loading a chunk), defers to
+    the 30 s watchdog."""
+    from services.scheduler import STALL_S
+    _register(state, "a")
+    _register(state, "b")
+    state.gather_box = np.array([[-1e9] * 3, [1e9] * 3])
+    state.eye_completed = 1
+    state.tick(0.0)
+    sent = {j for j, job in state.jobs.items() if job.sent}
+    assert sent
+    late = STALL_S + 1.0
+    _beat(state, "a", late - 0.5, queue=0, outbox_rays=0)
+    _beat(state, "b", late - 0.5, queue=120, outbox_rays=0)            # b is busy
+    state.tick(late)
+    assert state.counters["jobs_timed_out"] == 0 and sent <= set(state.jobs)
+    _beat(state, "b", late + 1.5, queue=0, outbox_rays=0)
+    state.tick(late + 2.5)                                                 # a's heartbeat is stale now
+    assert state.counters["jobs_timed_out"] == 0 and sent <= set(state.jobs)
+    _beat(state, "a", late + 3.0, queue=0, outbox_rays=0)
+    _beat(state, "b", late + 3.0, queue=0, outbox_rays=0)
+    state.tick(late + 3.5)
+    assert state.counters["jobs_timed_out"] == 1
+    assert not (sent & set(state.jobs)), "the stalled jobs were not discarded"
