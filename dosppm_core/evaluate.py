@@ -310,8 +310,7 @@ def score(scene: str, method: str, budget: float, seconds: float, photons: int,
         s.mean_luminance = float(np.mean(metrics.luminance(pick(image))))
         if np.mean(metrics.luminance(pick(reference))) > 0:
             s.bias = metrics.mean_luminance_bias(pick(image), pick(reference))
-        s.blurred_relmse = metrics.relmse(pick(metrics.gaussian_blur(image, BLUR_SIGMA_PX)),
-                                          pick(metrics.gaussian_blur(reference, BLUR_SIGMA_PX)))
+        s.blurred_relmse = metrics.blurred_relmse(image, reference, BLUR_SIGMA_PX, where=scored)
     return s
 
 
@@ -403,14 +402,19 @@ def carry_over(ev: Evaluation, out_dir: str, running: set) -> None:
 
 
 def _warm_kernels() -> None:
-    """Compile (or load) the numba kernels before any clock starts."""
+    """Compile (or load) the numba kernels, the chunked ones included,
+    before any clock starts."""
     scene = builtin.make("cornell-box")
     scene.camera.width = scene.camera.height = 8
-    r = Renderer(scene, RenderSettings(photons_per_iteration=2000))
-    for gather in ("grid", "hash"):
-        r.settings.gather = gather
-        r.run_iteration()
-    r.close()
+    with tempfile.TemporaryDirectory(prefix="dosppm-warm-") as work:
+        for make in (lambda: Renderer(scene, RenderSettings(photons_per_iteration=2000)),
+                     lambda: _osppm(METHODS["osppm-c4"], scene, 0, work)):
+            r = make()
+            r.settings.photons_per_iteration = 2000
+            for gather in ("grid", "hash"):
+                r.settings.gather = gather
+                r.run_iteration()
+            r.close()
 
 
 # -- output ---------------------------------------------------------------------

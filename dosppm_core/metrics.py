@@ -51,11 +51,15 @@ def mean_luminance_bias(a, ref) -> float:
     return (float(np.mean(luminance(a))) - y_ref) / y_ref
 
 
-def blurred_relmse(a, ref, sigma: float, eps: float = 1e-2) -> float:
+def blurred_relmse(a, ref, sigma: float, eps: float = 1e-2, where=None) -> float:
     """relMSE of both images after a Gaussian blur of `sigma` pixels: what
-    remains after noise is averaged away is mostly bias."""
+    remains after noise is averaged away is mostly bias. `where` (H, W)
+    bool: score only those pixels (the blur still sees the whole image)."""
     a, ref = _pair(a, ref, ("a", "ref"))
-    return relmse(gaussian_blur(a, sigma), gaussian_blur(ref, sigma), eps)
+    a, ref = gaussian_blur(a, sigma), gaussian_blur(ref, sigma)
+    if where is not None:
+        a, ref = a[where], ref[where]
+    return relmse(a, ref, eps)
 
 
 def gaussian_blur(img, sigma: float) -> np.ndarray:

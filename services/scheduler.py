@@ -42,7 +42,7 @@ from dosppm_core.jobs import END_NAMES, HitPoints, PhotonDeposits, RayBatch
 from dosppm_core.render import RenderSettings
 from dosppm_core.tracing import emit_photon_job, eye_ray_job
 
-from .wire import PROTOCOL_VERSION
+from .wire import JOB_MESSAGES, PROTOCOL_VERSION
 
 MESSAGE_RAYS = 32_768         # rays per job message the server aims for
 TOTAL_CREDIT_RAYS = 1 << 20   # rays queued at all tracers together, at most (see `credit`)
@@ -403,7 +403,7 @@ class ServerState:
     def _counted(self, out: list[Out], now: float) -> list[Out]:
         """Note every job message on its way to a tracer (see `_check_delivery`)."""
         for o in out:
-            if o.type in ("photon_job", "eye_job") and o.dest in self.tracers:
+            if o.type in JOB_MESSAGES and o.dest in self.tracers:
                 t = self.tracers[o.dest]
                 t.jobs_sent += 1
                 t.unacked.append(now)

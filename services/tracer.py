@@ -301,7 +301,7 @@ class TracerProcess:
             else:
                 if msg.type == "peers":
                     self.peer_keys.update(msg.keys)
-                elif msg.type in ("photon_job", "eye_job"):
+                elif msg.type in wire.JOB_MESSAGES:
                     self.jobs_received += 1
                 self._send(self.state.handle(msg))
                 if msg.type == "peers":

@@ -438,6 +438,9 @@ _SPECS = (
          check=_check_portal_rays, defaults={"eye_iteration": None}),
 )
 MESSAGES: dict[str, Spec] = {s.name: s for s in _SPECS}
+# The messages that carry work to a tracer: counted by both ends since the
+# tracer's welcome, and acknowledged in its heartbeats.
+JOB_MESSAGES = ("photon_job", "eye_job")
 _RESERVED = ("v", "type", "arrays")
 
 
