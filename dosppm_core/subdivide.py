@@ -42,17 +42,18 @@ ROOT_MARGIN = 1e-4       # root box = header bounds grown by this x diagonal on 
 DEFAULT_GRID = 32768     # bins in the uniform grid (the paper: 4k to 262k)
 MAX_DEPTH = 60           # ChunkTree.validate refuses deeper trees
 
-# Memory model of a loaded chunk: the arrays as stored, plus Embree's copy of
-# the vertices and its BVH. Measured as the peak RSS growth (VmHWM after
-# resetting it through /proc/self/clear_refs) of building an `Accelerator`
-# in a fresh process, Embree 4.4 via embreex 4.4.0.post1, on 1M and 2M
-# triangles: 84.8 B per triangle for a shared-vertex grid mesh, 111-116 B for
-# random overlapping triangles (the worst case seen); per vertex 17.6 B (the
-# same mesh with its vertices tripled). The peak exceeds the final size by
-# ~30% (builder scratch), and the budget must hold at the peak.
+# Memory model of a loaded chunk: the arrays as stored, plus the padded
+# vertex copy that Embree reads in place (12 B per vertex; accel.py shares
+# the triangle array with Embree, copying nothing else) and the BVH.
+# Measured as the peak RSS growth (VmHWM after resetting it through
+# /proc/self/clear_refs) of building an `Accelerator` in a fresh process,
+# Embree 4.4 from embreex 4.4.0.post1, robust scene flag, on random
+# overlapping triangles (the worst case seen): 99 B per triangle at 1M
+# triangles, 103 B at 2M. The peak exceeds the final size (builder scratch),
+# and the budget must hold at the peak.
 # `measure_embree_bytes_per_triangle()` repeats the triangle measurement.
-EMBREE_BYTES_PER_TRIANGLE = 120
-EMBREE_BYTES_PER_VERTEX = 18
+EMBREE_BYTES_PER_TRIANGLE = 110
+EMBREE_BYTES_PER_VERTEX = 12
 STORED_BYTES_PER_TRIANGLE = 12 + 4 + 4   # triangles, tri_material, global_id
 STORED_BYTES_PER_VERTEX = 12
 # Before insertion only triangle counts are known; a closed mesh has about
