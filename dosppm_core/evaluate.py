@@ -16,6 +16,11 @@ References come from Mitsuba 3 at high sample counts, cached on disk:
 `path`, or `ptracer` where a point light's caustic is seen directly (a
 path tracer cannot render it), blended per pixel with `path` where the
 camera sees a mirror or glass first (which light tracing cannot render).
+Where the camera sees a point light's caustic in a mirror, neither
+converges; those pixels are left out of the scores above and, where the
+case allows it, scored apart against the mirror's limit (`mirror_limit`:
+the reflectance times the floor radiance that light tracing renders from
+above).
 """
 from __future__ import annotations
 
@@ -53,6 +58,10 @@ class Case:
     # or a tiny lamp (specular-diffuse-specular paths): no independent
     # method converges there (a path tracer's fireflies stay at 4096 spp).
     scored: str = "all"
+    # Also score the pixels where the camera sees a mirror against the
+    # limit reference of `mirror_limit` (a flat Lambertian floor seen in
+    # perfect mirrors).
+    mirror_limit: bool = False
 
 
 @dataclass(frozen=True)
@@ -96,7 +105,7 @@ SUITES = {s.name: s for s in (
         Case("cornell-caustic", "caustics of a glass and a mirror sphere, seen directly and "
              "in the mirror (specular-diffuse-specular)", "ptracer+path"),
         Case("cardioid", "a point light's caustic off a mirror ring: path tracing cannot "
-             "render it", "ptracer+path", scored="no-specular-in-view"),
+             "render it", "ptracer+path", scored="no-specular-in-view", mirror_limit=True),
         Case("glass-small-light", "a small lamp seen through glass; the room lit by caustics",
              "ptracer+path", scored="no-specular-in-view"),
         Case("thin-wall", "light leaking through a wall 1% of the room thick"),
@@ -128,6 +137,11 @@ class Sample:
     bias: float = math.nan             # relative; NaN where the reference is black
     blurred_relmse: float = math.nan
     mean_luminance: float = math.nan   # absolute: what leaks into a black reference
+    # Over the pixels where the camera sees a mirror, against its limit
+    # reference (cases with `mirror_limit`; NaN elsewhere).
+    mirror_limit_relmse: float = math.nan
+    mirror_limit_blurred_relmse: float = math.nan
+    mirror_limit_bias: float = math.nan
     note: str = ""
 
 
@@ -181,6 +195,21 @@ def specular_first_hit_share(scene: Scene, rays_per_pixel: int = 64) -> np.ndarr
     finally:
         accel.close()
     return (count / rays_per_pixel).reshape(h, w)
+
+
+def mirror_reference(scene: Scene, reference: np.ndarray, scored, cache_dir: str):
+    """(reference with the mirror limit in the pixels where the camera sees
+    a mirror, those pixels (H, W) bool, a description): the mirror pixels
+    are the ones the blended reference leaves unscored."""
+    from .mirror_limit import LimitSettings, mirror_limit
+    pixels = ~scored if scored is not None else specular_first_hit_share(scene) > 0
+    limit = mirror_limit(scene, cache_dir, pixels)
+    image = np.where(pixels[..., None], limit.image, reference).astype(np.float32)
+    s = LimitSettings()
+    about = (f"mirror pixels ({pixels.mean():.0%}): limit, mirror reflectance x the floor "
+             f"seen from above by Mitsuba 3 ptracer ({s.floor_resolution}^2, {s.floor_spp} spp), "
+             f"{s.rays_per_pixel} eye rays per pixel")
+    return image, pixels, about
 
 
 # -- running the methods --------------------------------------------------------
@@ -314,6 +343,18 @@ def score(scene: str, method: str, budget: float, seconds: float, photons: int,
     return s
 
 
+def score_mirror_limit(s: Sample, image: np.ndarray, limit: np.ndarray,
+                       pixels: np.ndarray) -> Sample:
+    """Add the errors over the mirror `pixels` against `limit` (the
+    reference with the mirror limit there; the blur sees the whole image)."""
+    if s.finite:
+        s.mirror_limit_relmse = metrics.relmse(image[pixels], limit[pixels])
+        s.mirror_limit_blurred_relmse = metrics.blurred_relmse(image, limit, BLUR_SIGMA_PX,
+                                                               where=pixels)
+        s.mirror_limit_bias = metrics.mean_luminance_bias(image[pixels], limit[pixels])
+    return s
+
+
 @dataclass
 class Evaluation:
     suite: str
@@ -360,15 +401,18 @@ def evaluate(suite: Suite, budget_s: float, methods: list[str] | None = None,
             ev.references[case.scene] = f"Mitsuba 3 {case.reference}, {spp} spp" + (
                 "" if scored is None else f"; {scored.mean():.0%} of pixels scored ({case.scored})")
             ev.images[(case.scene, "reference")] = reference
+            limit = _mirror_limit(ev, case, scene, reference, scored, cache_dir, log)
             for m in chosen:
                 if m.name in ev.skipped:
                     continue
                 log(f"{case.scene}: {m.name}")
                 try:
                     stops = run_method(m, scene, budgets, seed, work)
-                    ev.samples += [score(case.scene, m.name, budget, seconds, photons, image,
-                                         reference, scored)
-                                   for budget, seconds, photons, image in stops]
+                    for budget, seconds, photons, image in stops:
+                        s = score(case.scene, m.name, budget, seconds, photons, image,
+                                  reference, scored)
+                        ev.samples.append(s if limit is None else
+                                          score_mirror_limit(s, image, *limit))
                 except Exception as exc:  # noqa: BLE001 - one failing method must not end the suite
                     ev.failed[f"{case.scene}/{m.name}"] = " ".join(str(exc).split()) or type(exc).__name__
                     log(f"{case.scene}: {m.name} failed: {ev.failed[f'{case.scene}/{m.name}']}")
@@ -378,6 +422,23 @@ def evaluate(suite: Suite, budget_s: float, methods: list[str] | None = None,
             if out_dir:
                 write_results(ev, out_dir)
     return ev
+
+
+def _mirror_limit(ev: Evaluation, case: Case, scene: Scene, reference, scored, cache_dir, log):
+    """(limit reference, mirror pixels) for a case that asks for it, else
+    None; a failure is recorded and the ordinary scores go on."""
+    if not case.mirror_limit:
+        return None
+    log(f"{case.scene}: mirror limit reference")
+    try:
+        image, pixels, about = mirror_reference(scene, reference, scored, cache_dir)
+    except Exception as exc:  # noqa: BLE001 - the rest of the scene is still scored
+        ev.failed[f"{case.scene}/mirror-limit"] = " ".join(str(exc).split()) or type(exc).__name__
+        log(f"{case.scene}: mirror limit failed: {ev.failed[f'{case.scene}/mirror-limit']}")
+        return None
+    ev.references[case.scene] += f"; {about}"
+    ev.images[(case.scene, "mirror limit")] = image
+    return image, pixels
 
 
 def carry_over(ev: Evaluation, out_dir: str, running: set) -> None:
@@ -475,12 +536,34 @@ def summary_markdown(ev: Evaluation) -> str:
                          f"{s.relmse:.3g} ({s.bias:+.1%})" if math.isfinite(s.bias) else
                          f"{s.relmse:.3g} (Y {s.mean_luminance:.2g})")
         lines.append(f"| {scene} | " + " | ".join(cells) + " |")
+    lines += mirror_limit_table(ev, last, methods)
     lines += ["", *claims(ev)]
     if ev.skipped:
         lines += ["", "Skipped: " + "; ".join(f"{m} ({why})" for m, why in ev.skipped.items())]
     if ev.failed:
         lines += ["", "Failed: " + "; ".join(f"{k} ({why})" for k, why in ev.failed.items())]
     return "\n".join(lines) + "\n"
+
+
+def mirror_limit_table(ev: Evaluation, last: dict, methods: list) -> list[str]:
+    """The pixels where the camera sees a mirror, against the mirror's limit
+    reference: relMSE, blurred relMSE and bias at the last stop."""
+    scenes = [sc for sc in _scene_order(ev)
+              if any(math.isfinite(s.mirror_limit_relmse) for k, s in last.items() if k[0] == sc)]
+    if not scenes:
+        return []
+    lines = ["", f"Mirror pixels against the mirror limit at {ev.budget_s:g} s: relMSE / "
+             f"blurred relMSE ({BLUR_SIGMA_PX:g} px) (mean-luminance bias)", "",
+             "| scene | " + " | ".join(methods) + " |", "|---|" + "---|" * len(methods)]
+    for scene in scenes:
+        cells = []
+        for m in methods:
+            s = last.get((scene, m))
+            cells.append("-" if s is None or not math.isfinite(s.mirror_limit_relmse) else
+                         f"{s.mirror_limit_relmse:.3g} / {s.mirror_limit_blurred_relmse:.3g} "
+                         f"({s.mirror_limit_bias:+.1%})")
+        lines.append(f"| {scene} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def claims(ev: Evaluation) -> list[str]:

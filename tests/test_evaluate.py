@@ -114,3 +114,31 @@ def test_re_running_one_scene_keeps_the_others_results(monkeypatch, tmp_path):
     evaluate.evaluate(evaluate.SUITES["mini"], 0.2, scenes=["cardioid"], **run)
     doc = json.loads((tmp_path / "results.json").read_text())
     assert {r["scene"] for r in doc["samples"]} == {"cardioid"}
+
+
+def test_mirror_pixels_are_scored_apart_against_the_mirror_limit(monkeypatch, tmp_path):
+    """A case with `mirror_limit` adds the mirror pixels' errors against the
+    limit to every sample (json, csv and a table of their own), leaving the
+    ordinary scores as they were."""
+    mirror = np.zeros((32, 32), bool)
+    mirror[8:12] = True
+    reference = np.full((32, 32, 3), 0.5, np.float32)
+    limit = np.where(mirror[..., None], 2.0 * reference, reference).astype(np.float32)
+    monkeypatch.setattr(evaluate, "reference_image", lambda scene, case, spp, cache: (reference, ~mirror))
+    monkeypatch.setattr(evaluate, "mirror_reference",
+                        lambda scene, ref, scored, cache: (limit, mirror, "a limit"))
+    case = evaluate.Case("cardioid", "mirror", "ptracer+path", scored="no-specular-in-view",
+                         mirror_limit=True)
+    suite = evaluate.Suite("mirror-test", 32, 32, (case,), ("sppm-grid",))
+    ev = evaluate.evaluate(suite, 0.3, log=lambda _l: None, out_dir=str(tmp_path))
+    assert ev.samples and not ev.failed
+    for s in ev.samples:
+        assert math.isfinite(s.mirror_limit_relmse) and math.isfinite(s.mirror_limit_blurred_relmse)
+        assert math.isfinite(s.relmse)
+    # The render is near 0.5 or below where the limit is 1.0: about -50%.
+    assert all(s.mirror_limit_bias < -0.3 for s in ev.samples)
+    doc = json.loads((tmp_path / "results.json").read_text())
+    assert "a limit" in doc["references"]["cardioid"]
+    assert all(r["mirror_limit_bias"] is not None for r in doc["samples"])
+    assert "mirror_limit_blurred_relmse" in (tmp_path / "results.csv").read_text().splitlines()[0]
+    assert "Mirror pixels against the mirror limit" in (tmp_path / "summary.md").read_text()
