@@ -97,6 +97,7 @@ def main() -> int:
     p.add_argument("--iterations", type=int, default=3)
     p.add_argument("--photons", type=int, default=1_000_000, help="photons per iteration")
     p.add_argument("--chunks", type=int, nargs="*", default=list(CHUNKS))
+    p.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results", "osppm.json"))
     args = p.parse_args()
     args.building_triangles = int(args.building_triangles)
     settings = RenderSettings(seed=1, photons_per_iteration=args.photons, threads=2)
@@ -123,8 +124,8 @@ def main() -> int:
                 import shutil
                 shutil.rmtree(path)
     _report(results)
-    os.makedirs(os.path.join(ROOT, "benchmarks", "results"), exist_ok=True)
-    with open(os.path.join(ROOT, "benchmarks", "results", "osppm.json"), "w") as f:
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    with open(args.out, "w") as f:
         json.dump(results, f, indent=2)
     return 0
 

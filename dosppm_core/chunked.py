@@ -20,6 +20,7 @@ from .chunktree import ChunkTree
 from .jobs import ESCAPED, HitPoints, PhotonDeposits, RayBatch
 from .portals import PORTAL_EPS, enter, intersect_in_chunk
 from .scene import SceneHeader
+from .kernels.paths import ELSEWHERE
 from .tracing import END_KINDS, SurfaceData, advance_eye, scatter_photons
 
 
@@ -83,21 +84,18 @@ def start_chunks(tree: ChunkTree, batch: RayBatch) -> tuple[dict[int, RayBatch],
     return routed, 0 if lost is None else len(lost)
 
 
-def _split_leaving(view: ChunkView, batch: RayBatch, counts: np.ndarray):
-    """Intersect; return (rays that stay for a bounce with their hits,
-    rays leaving through portals grouped by next chunk)."""
+def _find_hits(view: ChunkView, batch: RayBatch):
+    """Intersect; return (prim, u, v, rays leaving through portals grouped
+    by next chunk). A leaving ray keeps its row with prim ELSEWHERE, which
+    the bounce kernels skip: only the leaving rows are copied, resuming at
+    t_exit. A miss that leaves the scene stays a miss (escaped)."""
     prim, _t, u, v, nxt, t_exit = view.intersect(batch)
-    leaving = (prim < 0) & (nxt >= 0)
-    if not leaving.any():
-        return batch, (prim, u, v), {}
-    # One partition: key -1 stays for the bounce (hit, or escaping the
-    # scene), other keys leave for that chunk, resuming at t_exit.
-    key = np.where(leaving, nxt, -1)
-    batch.tmin = np.where(leaving, t_exit, batch.tmin).astype(np.float32)
-    out = route(batch, key)
-    stay = ~leaving
-    here = out.pop(-1, RayBatch.empty())
-    return here, (prim[stay], u[stay], v[stay]), out
+    leaving = np.flatnonzero((prim < 0) & (nxt >= 0))
+    if not len(leaving):
+        return prim, u, v, {}
+    out = batch.partition(nxt[leaving], rows=leaving, replace={"tmin": t_exit.astype(np.float32)})
+    prim[leaving] = ELSEWHERE
+    return prim, u, v, out
 
 
 def _merge(into: dict, parts: dict) -> None:
@@ -120,10 +118,8 @@ def trace_photons_in_chunk(view: ChunkView, batch: RayBatch, cull_box, max_depth
     deposits, outgoing = [], {}
     counts, culled = np.zeros(END_KINDS, np.int64), 0
     while len(batch):
-        batch, (prim, u, v), out = _split_leaving(view, batch, counts)
+        prim, u, v, out = _find_hits(view, batch)
         _merge(outgoing, out)
-        if not len(batch):
-            break
         dep, nxt, ends, c = scatter_photons(view.surf, batch, prim, u, v, cull_box, max_depth)
         deposits.append(dep)
         counts += ends
@@ -139,10 +135,8 @@ def trace_eye_in_chunk(view: ChunkView, batch: RayBatch, max_depth: int):
     hits, pix, rgb, outgoing = [], [], [], {}
     counts = np.zeros(END_KINDS, np.int64)
     while len(batch):
-        batch, (prim, u, v), out = _split_leaving(view, batch, counts)
+        prim, u, v, out = _find_hits(view, batch)
         _merge(outgoing, out)
-        if not len(batch):
-            break
         h, (p, e), nxt, ends = advance_eye(view.surf, batch, prim, u, v, max_depth)
         hits.append(h)
         pix.append(p)

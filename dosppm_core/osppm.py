@@ -298,7 +298,7 @@ class OutOfCoreRenderer:
         deposits = PhotonDeposits.concat(self._deposits)
         emitted, self._deposits, self._emitted_unapplied = self._emitted_unapplied, [], 0
         for start in range(0, max(len(deposits), 1), s.photon_batch):
-            part = deposits.take(np.arange(start, min(start + s.photon_batch, len(deposits))))
+            part = deposits.slice(start, min(start + s.photon_batch, len(deposits)))
             self.stats.apply_photons(part, emitted if start == 0 else 0, self.header.materials,
                                      gather=s.gather, threads=s.threads, reorder=s.reorder,
                                      hash_options=s.hash_options)

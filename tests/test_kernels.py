@@ -1018,3 +1018,43 @@ def test_photon_bounce_of_a_large_batch_equals_the_bounce_of_each_row_alone():
         want = type(got).concat(parts)
         for name, column in got.arrays().items():
             np.testing.assert_array_equal(column, getattr(want, name), err_msg=name)
+
+
+@pytest.mark.parametrize("kind", ["photon", "eye"])
+def test_rows_whose_hit_is_elsewhere_are_skipped_as_if_absent(kind):
+    """A ray that left its chunk through a portal keeps its row with prim
+    ELSEWHERE: the bounce must give exactly what the batch without those
+    rows gives, and count no end for them."""
+    from dosppm_core.kernels.paths import ELSEWHERE
+    scene = _furnace((0.7, 0.5, 0.3), ball="glass")
+    surf = tracing.SurfaceData.from_scene(scene)
+    accel = Accelerator(scene.vertices, scene.triangles)
+    try:
+        if kind == "photon":
+            batch = tracing.emit_photon_job(scene, 5, 0, 20_000, surf.eps_abs)
+        else:
+            batch = tracing.eye_ray_job(scene, 5, 0, 0, 20_000)
+        prim, _t, u, v = accel.intersect(batch.origin, batch.direction)
+    finally:
+        accel.close()
+    away = np.random.default_rng(1).random(len(batch)) < 0.3
+    marked = np.where(away, ELSEWHERE, prim).astype(np.int32)
+    kept = np.flatnonzero(~away)
+    if kind == "photon":
+        got = tracing.scatter_photons(surf, batch, marked, u, v, tracing.NO_CULL, 10)
+        want = tracing.scatter_photons(surf, batch.take(kept), prim[kept], u[kept], v[kept],
+                                       tracing.NO_CULL, 10)
+        records = ((got[0], want[0]), (got[1], want[1]))
+        ends = (got[2], want[2])
+    else:
+        got = tracing.advance_eye(surf, batch, marked, u, v, 10)
+        want = tracing.advance_eye(surf, batch.take(kept), prim[kept], u[kept], v[kept], 10)
+        records = ((got[0], want[0]), (got[2], want[2]))
+        ends = (got[3], want[3])
+        np.testing.assert_array_equal(got[1][1], want[1][1])
+    np.testing.assert_array_equal(*ends)
+    assert ends[0].sum() == len(kept)
+    for a, b in records:
+        assert len(a) > 0
+        for name, column in a.arrays().items():
+            np.testing.assert_array_equal(column, getattr(b, name), err_msg=name)

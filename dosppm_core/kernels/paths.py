@@ -14,6 +14,12 @@ from ..jobs import ABSORBED, CONTINUES, ESCAPED, MAX_DEPTH, STORED
 from .bsdf import is_specular, sample_bsdf
 from .rng import next_float
 
+# `prim` of a ray whose hit lies in another chunk (it left through a
+# portal): the bounce kernels skip its row, so a chunk's batch need not be
+# split and copied before each bounce; only the leaving rows are moved.
+ELSEWHERE = -2
+SKIPPED = -1    # its end code: counted nowhere, output nowhere
+
 
 @nb.njit(cache=True, error_model="numpy")
 def surface(v0, v1, v2, u, v):
@@ -68,7 +74,8 @@ def _rows(a, idx):
 def _ends(end):
     counts = np.zeros(5, np.int64)
     for i in range(end.shape[0]):
-        counts[end[i]] += 1
+        if end[i] >= 0:                 # SKIPPED rows are not this step's
+            counts[end[i]] += 1
     return counts
 
 
@@ -121,7 +128,7 @@ def scatter_photons(origin, direction, flux, depth, states, job, pixel, prim, u,
         for i in range(a, e):
             tri = prim[i]
             if tri < 0:
-                end[i] = ESCAPED
+                end[i] = ESCAPED if tri != ELSEWHERE else SKIPPED
                 continue
             t0, t1, t2 = triangles[tri, 0], triangles[tri, 1], triangles[tri, 2]
             p0, p1, p2, n0, n1, n2 = surface(vertices[t0], vertices[t1], vertices[t2],
@@ -241,7 +248,7 @@ def advance_eye_paths(direction, weight, depth, states, prim, u, v,
     for i in nb.prange(n):
         tri = prim[i]
         if tri < 0:
-            end[i] = ESCAPED
+            end[i] = ESCAPED if tri != ELSEWHERE else SKIPPED
             continue
         t0, t1, t2 = triangles[tri, 0], triangles[tri, 1], triangles[tri, 2]
         p0, p1, p2, n0, n1, n2 = surface(vertices[t0], vertices[t1], vertices[t2],
