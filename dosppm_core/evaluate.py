@@ -39,6 +39,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from . import builtin, metrics
+from .film_io import one_line
 from .render import RenderSettings, Renderer
 from .scene import Scene
 
@@ -395,8 +396,7 @@ def evaluate(suite: Suite, budget_s: float, methods: list[str] | None = None,
             try:
                 reference, scored = reference_image(scene, case, spp, cache_dir)
             except Exception as exc:  # noqa: BLE001 - nothing to score against; the other scenes go on
-                ev.failed[f"{case.scene}/reference"] = " ".join(str(exc).split()) or type(exc).__name__
-                log(f"{case.scene}: reference failed: {ev.failed[f'{case.scene}/reference']}")
+                _record_failure(ev, f"{case.scene}/reference", exc, log)
                 continue
             ev.references[case.scene] = f"Mitsuba 3 {case.reference}, {spp} spp" + (
                 "" if scored is None else f"; {scored.mean():.0%} of pixels scored ({case.scored})")
@@ -414,14 +414,19 @@ def evaluate(suite: Suite, budget_s: float, methods: list[str] | None = None,
                         ev.samples.append(s if limit is None else
                                           score_mirror_limit(s, image, *limit))
                 except Exception as exc:  # noqa: BLE001 - one failing method must not end the suite
-                    ev.failed[f"{case.scene}/{m.name}"] = " ".join(str(exc).split()) or type(exc).__name__
-                    log(f"{case.scene}: {m.name} failed: {ev.failed[f'{case.scene}/{m.name}']}")
+                    _record_failure(ev, f"{case.scene}/{m.name}", exc, log)
                     continue
                 if stops:
                     ev.images[(case.scene, m.name)] = stops[-1][3]
             if out_dir:
                 write_results(ev, out_dir)
     return ev
+
+
+def _record_failure(ev: Evaluation, what: str, exc: BaseException, log) -> None:
+    """A failure is recorded in one line and the suite goes on."""
+    ev.failed[what] = one_line(exc)
+    log(f"{what} failed: {ev.failed[what]}")
 
 
 def _mirror_limit(ev: Evaluation, case: Case, scene: Scene, reference, scored, cache_dir, log):
@@ -433,8 +438,7 @@ def _mirror_limit(ev: Evaluation, case: Case, scene: Scene, reference, scored, c
     try:
         image, pixels, about = mirror_reference(scene, reference, scored, cache_dir)
     except Exception as exc:  # noqa: BLE001 - the rest of the scene is still scored
-        ev.failed[f"{case.scene}/mirror-limit"] = " ".join(str(exc).split()) or type(exc).__name__
-        log(f"{case.scene}: mirror limit failed: {ev.failed[f'{case.scene}/mirror-limit']}")
+        _record_failure(ev, f"{case.scene}/mirror-limit", exc, log)
         return None
     ev.references[case.scene] += f"; {about}"
     ev.images[(case.scene, "mirror limit")] = image

@@ -109,7 +109,7 @@ def read_exr(path: str) -> tuple[np.ndarray, dict]:
             # The channel dict empties when the block exits: copy inside.
             channels = {k: np.array(v.pixels, dtype=np.float32) for k, v in exr.channels().items()}
     except Exception as exc:  # OpenEXR raises bare RuntimeError
-        raise FilmError(f"{path}: cannot read EXR: {_one_line(exc)}") from None
+        raise FilmError(f"{path}: cannot read EXR: {one_line(exc)}") from None
     return _split_channels(channels, path)
 
 
@@ -173,7 +173,7 @@ def _atomic_write(path: str, write, suffix: str) -> None:
         _remove_quietly(tmp)
         if isinstance(exc, FilmError):
             raise
-        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else _one_line(exc)
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else one_line(exc)
         raise FilmError(f"{path}: cannot write: {reason}") from exc
 
 
@@ -184,6 +184,6 @@ def _remove_quietly(path: str) -> None:
         pass
 
 
-def _one_line(exc: BaseException) -> str:
-    text = " ".join(str(exc).split())
-    return text or type(exc).__name__
+def one_line(exc: BaseException) -> str:
+    """An exception as one line, for errors that name a file or field."""
+    return " ".join(str(exc).split()) or type(exc).__name__

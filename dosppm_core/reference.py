@@ -56,6 +56,7 @@ from dataclasses import asdict
 
 import numpy as np
 
+from .film_io import one_line
 from .scene import (DIFFUSE, GLASS, GLOSSY, LIGHT_POINT, LIGHT_SPOT, LIGHT_TRIANGLE, MIRROR,
                     Scene, SceneError)
 
@@ -89,7 +90,7 @@ def _mitsuba(variant: str | None = None):
             mi.set_variant(variant)
         except Exception as exc:
             raise ReferenceRenderError(f"Mitsuba variant {variant!r} is unavailable: "
-                                 f"{_one_line(exc)}") from None
+                                 f"{one_line(exc)}") from None
     return mi
 
 
@@ -266,10 +267,6 @@ def _safe_name(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_]", "_", str(name))[:40]
 
 
-def _one_line(exc: BaseException) -> str:
-    return " ".join(str(exc).split()) or type(exc).__name__
-
-
 # -- Rendering -------------------------------------------------------------
 def render_reference(scene: Scene, spp: int, max_depth: int = DEFAULT_MAX_DEPTH,
                      integrator: str = "path", seed: int = 0,
@@ -281,7 +278,7 @@ def render_reference(scene: Scene, spp: int, max_depth: int = DEFAULT_MAX_DEPTH,
     try:
         image = mi.render(mi.load_dict(scene_dict), spp=int(spp), seed=int(seed))
     except Exception as exc:
-        raise ReferenceRenderError(f"{scene.source}: Mitsuba render failed: {_one_line(exc)}") from None
+        raise ReferenceRenderError(f"{scene.source}: Mitsuba render failed: {one_line(exc)}") from None
     return np.ascontiguousarray(np.asarray(image, dtype=np.float32)[..., :3])
 
 
