@@ -45,7 +45,7 @@ RUN pip install -q --no-deps /src && rm -rf /src
 # the CPU it was compiled on: on a host with another CPU the kernels are
 # compiled again at first use (see deploy/README.md).
 RUN cd / && python -c "from services.local import warm_kernels; warm_kernels()" \
- && python -c "from dosppm_core.progress import kernels_cached; assert kernels_cached(), 'numba cache is empty'"
+ && python -c "from services.progress import kernels_cached; assert kernels_cached(), 'numba cache is empty'"
 
 # Tracer health probe (docker-compose.yml's healthcheck for the tracer).
 COPY deploy/tracer-health.py /usr/local/bin/dosppm-tracer-health

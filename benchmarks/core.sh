@@ -8,5 +8,5 @@ mkdir -p benchmarks/results
 DRAGON=../shared/scenes/stanford_dragon/dragon_100k.ply
 MESH=()
 [ -f "$DRAGON" ] && MESH=(--mesh "$DRAGON")
-python -m dosppm_core.cli bench cornell-glass "${MESH[@]}" --photons 1000000 --repeats 5 \
+dosppm bench cornell-glass "${MESH[@]}" --photons 1000000 --repeats 5 \
     --json benchmarks/results/core.json "$@"

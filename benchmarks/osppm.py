@@ -28,13 +28,13 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-from dosppm_core import builtin  # noqa: E402
-from dosppm_core.chunked import ChunkView  # noqa: E402
-from dosppm_core.chunkstore import ChunkStore  # noqa: E402
-from dosppm_core.osppm import OutOfCoreRenderer  # noqa: E402
-from dosppm_core.render import RenderSettings  # noqa: E402
-from dosppm_core.soup import SceneSource  # noqa: E402
-from dosppm_core.subdivide import subdivide  # noqa: E402
+from dosppm_core.scene import builtin  # noqa: E402
+from dosppm_core.chunks.view import ChunkView  # noqa: E402
+from dosppm_core.chunks.store import ChunkStore  # noqa: E402
+from dosppm_core.modes.osppm import OutOfCoreRenderer  # noqa: E402
+from dosppm_core.modes.sppm import RenderSettings  # noqa: E402
+from dosppm_core.scene.soup import SceneSource  # noqa: E402
+from dosppm_core.chunks.subdivide import subdivide  # noqa: E402
 
 CHUNKS = (1, 2, 4, 8, 16)
 DRAGON = os.path.join(ROOT, "..", "shared", "scenes", "stanford_dragon", "dragon_100k.ply")
@@ -47,8 +47,8 @@ def _sources(args, work: str):
     else:
         out.append(("cornell-glass", SceneSource(builtin.make("cornell-glass"))))
     if args.building_triangles:
-        from dosppm_core.generate import generate_building
-        from dosppm_core.soupfile import open_soup
+        from dosppm_core.scene.generate import generate_building
+        from dosppm_core.scene.soupfile import open_soup
         path = os.path.join(work, "building")
         t0 = time.perf_counter()
         generate_building(path, triangles=args.building_triangles, lights=args.lights, seed=1)

@@ -16,7 +16,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "passive")
 # layer (OpenMP or TBB), so a missing one is a clear error at the start.
 os.environ.setdefault("NUMBA_THREADING_LAYER", "threadsafe")
 
-from . import _kernel_cache  # noqa: E402
+from dosppm_core import _kernel_cache  # noqa: E402
 
 __version__ = "0.1.0"
 _kernel_cache.refresh()

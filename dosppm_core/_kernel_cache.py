@@ -18,8 +18,7 @@ _STAMP = "dosppm-kernels.sha256"
 
 def _kernel_sources() -> list[str]:
     """The modules that define numba functions (the others may change freely)."""
-    paths = sorted(glob.glob(os.path.join(_HERE, "*.py")) +
-                   glob.glob(os.path.join(_HERE, "kernels", "*.py")))
+    paths = sorted(glob.glob(os.path.join(_HERE, "**", "*.py"), recursive=True))
     out = []
     for path in paths:
         with open(path, "rb") as f:
@@ -31,7 +30,7 @@ def _kernel_sources() -> list[str]:
 def source_digest() -> str:
     h = hashlib.sha256()
     for path in _kernel_sources():
-        h.update(os.path.basename(path).encode())
+        h.update(os.path.relpath(path, _HERE).encode())
         with open(path, "rb") as f:
             h.update(f.read())
     return h.hexdigest()
@@ -43,9 +42,8 @@ def refresh() -> None:
         stamp = os.path.join(_HERE, "__pycache__", _STAMP)
         if os.path.exists(stamp) and open(stamp).read() == digest:
             return
-        for folder in (_HERE, os.path.join(_HERE, "kernels")):
-            for path in glob.glob(os.path.join(folder, "__pycache__", "*.nb[ic]")):
-                os.remove(path)
+        for path in glob.glob(os.path.join(_HERE, "**", "__pycache__", "*.nb[ic]"), recursive=True):
+            os.remove(path)
         os.makedirs(os.path.dirname(stamp), exist_ok=True)
         with open(stamp, "w") as f:
             f.write(digest)

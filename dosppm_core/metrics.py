@@ -126,7 +126,7 @@ def difference_png(path: str, a, b, scale: float | None = None, eps: float = 1e-
     blue where a is darker, white where equal, red where brighter, saturating
     at +-`scale` (default: the 99th percentile of |difference|). Returns the
     scale used so a caption can state it."""
-    from .film_io import write_png_rgb8
+    from dosppm_core.film import write_png_rgb8
     diff = relative_difference(a, b, eps)
     if scale is None:
         scale = float(np.percentile(np.abs(diff), 99))

@@ -33,7 +33,7 @@ import math
 
 import numpy as np
 
-from .scene import DIFFUSE, MIRROR, Camera, Scene
+from dosppm_core.scene.model import DIFFUSE, MIRROR, Camera, Scene
 
 # The top-down camera stands this far above the floor, so the mirror ring
 # (a wall seen edge-on) hides a strip of floor far narrower than a texel.
@@ -278,8 +278,8 @@ def mirror_limit(scene: Scene, cache_dir: str, pixels: np.ndarray | None = None,
     """The limit image over `pixels` ((H, W) bool, None for all): each
     pixel the mean over its jittered eye rays of the mirror reflectances
     met times the floor radiance where the ray lands."""
-    from .accel import Accelerator
-    from .reference import cached_reference
+    from dosppm_core.accel import Accelerator
+    from dosppm_core.reference import cached_reference
     floor_material, floor_y = floor_height(scene)
     accel = Accelerator(scene.vertices, scene.triangles)
     try:
@@ -311,7 +311,7 @@ def mirror_limit(scene: Scene, cache_dir: str, pixels: np.ndarray | None = None,
 def _eye_rays(scene: Scene, pixels, rays_per_pixel: int, seed: int):
     """(pixel, origin, direction) of the jittered eye rays of `pixels`: our
     renderer's ray generation and box filter (`tracing.eye_ray_job`)."""
-    from .tracing import eye_ray_job
+    from dosppm_core.trace import eye_ray_job
     w, h = int(scene.camera.width), int(scene.camera.height)
     chosen = np.ones(w * h, bool) if pixels is None else np.asarray(pixels, bool).ravel()
     parts = []

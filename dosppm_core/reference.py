@@ -56,9 +56,8 @@ from dataclasses import asdict
 
 import numpy as np
 
-from .film_io import one_line
-from .scene import (DIFFUSE, GLASS, GLOSSY, LIGHT_POINT, LIGHT_SPOT, LIGHT_TRIANGLE, MIRROR,
-                    Scene, SceneError)
+from dosppm_core.film import one_line
+from dosppm_core.scene.model import DIFFUSE, GLASS, GLOSSY, LIGHT_POINT, LIGHT_SPOT, LIGHT_TRIANGLE, MIRROR, Scene, SceneError
 
 DEFAULT_MAX_DEPTH = 10
 INTEGRATORS = ("path", "ptracer")
@@ -311,7 +310,7 @@ def cached_reference(scene: Scene, spp: int, cache_dir: str,
     """`render_reference`, stored as `cache_dir/ref-<name>-<key>.exr` and read
     back on the next call with the same inputs. An unreadable cache file is
     rendered again."""
-    from .film_io import FilmError, read_exr, write_exr
+    from dosppm_core.film import FilmError, read_exr, write_exr
     key = reference_key(scene, spp, max_depth, integrator, seed)
     path = os.path.join(cache_dir, f"ref-{_safe_name(scene.name)}-{key[:24]}.exr")
     if os.path.exists(path):

@@ -147,7 +147,7 @@ def _read_table(path: str, role: str, known: set) -> dict:
 
 
 def add_server_parser(sub) -> None:
-    from dosppm_core import builtin
+    from dosppm_core.scene import builtin
     p = sub.add_parser("server", help="run the render server (tracers join with `dosppm worker`)")
     p.add_argument("scene", nargs="?", default=builtin.DEFAULT,
                    help="built-in scene, scene file or chunk store")
@@ -170,13 +170,13 @@ def _resolve_or_say(args, role: str, options) -> dict | None:
 
 
 def cmd_server(args) -> int:
-    from .local import serve
+    from services.local import serve
     values = _resolve_or_say(args, "server", SERVER)
     return 2 if values is None else serve(args.scene, values, quiet=args.quiet)
 
 
 def cmd_worker(args) -> int:
-    from .local import work
+    from services.local import work
     values = _resolve_or_say(args, "worker", WORKER)
     return 2 if values is None else work(values, quiet=args.quiet)
 
@@ -189,7 +189,7 @@ def add_keys_parser(sub) -> None:
 
 
 def cmd_keys(args) -> int:
-    from . import wire
+    from services import wire
     for name in args.names:
         public, secret = wire.make_keys(args.out, name)
         print(f"{name}: public {public}, secret {secret}")

@@ -7,12 +7,12 @@ from __future__ import annotations
 
 from collections import deque
 
-from dosppm_core.render import RenderSettings
+from dosppm_core.modes.sppm import RenderSettings
 
-from . import wire
-from .scheduler import ServerState
-from .statistics import ServerStatistics
-from .tracer_state import SERVER, Out, TracerState
+from services import wire
+from services.server.state import ServerState
+from services.server.statistics import ServerStatistics
+from services.tracer.state import SERVER, Out, TracerState
 
 
 def _over_the_wire(msg_type: str, fields: dict):

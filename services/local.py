@@ -12,9 +12,9 @@ import tempfile
 import time
 import warnings
 
-from dosppm_core import cli as core
-from dosppm_core.render import RenderSettings
-from dosppm_core.scene import SceneError
+from services.cli import render as core
+from dosppm_core.modes.sppm import RenderSettings
+from dosppm_core.scene.model import SceneError
 
 RENDER_KEYS = ("time", "photons", "iterations", "out", "seed", "gather", "alpha", "radius", "max_depth",
                "photons_per_iteration", "photons_per_job", "photon_batch", "width", "height", "threads",
@@ -77,11 +77,11 @@ def _http(text: str):
 
 
 def serve(scene: str, v: dict, quiet: bool = False, spawn_tracers: int = 0) -> int:
-    from dosppm_core.progress import ProgressReporter, kernels_cached
+    from services.progress import ProgressReporter, kernels_cached
 
-    from .server import Limits, ServerProcess
+    from services.server.node import Limits, ServerProcess
     say = (lambda *a: None) if quiet else (lambda *a: print(*a, file=sys.stderr))
-    from . import checkpoint
+    from services.server import checkpoint
     try:
         settings = _settings(v)
         http = _http(v["http"])
@@ -171,14 +171,14 @@ def _reap(tracers: list, timeout_s: float = 10.0) -> None:
 
 
 def work(v: dict, quiet: bool = False) -> int:
-    from dosppm_core.cli_chunks import parse_bytes
+    from services.cli.chunks import parse_bytes
 
-    from .tracer import TracerError, TracerProcess
+    from services.tracer.node import TracerError, TracerProcess
     try:
         memory = parse_bytes(v["memory"]) if v["memory"] else None
     except argparse.ArgumentTypeError as e:
         return core._error(f"--memory: {e}")
-    from .wire import WireError
+    from services.wire import WireError
     try:
         tp = TracerProcess(v["server"], bind=v["bind"], advertise=v["advertise"], store=v["store"],
                            cache_dir=v["cache_dir"], memory_bytes=memory, threads=v["threads"],
@@ -198,12 +198,12 @@ def warm_kernels() -> None:
     """Compile every kernel a render uses (eye, photon, portal, gather) on
     a tiny two-chunk scene, so numba's cache holds them before any tracer
     starts its clock (tracers would otherwise each compile at once)."""
-    from dosppm_core import builtin
-    from dosppm_core.chunkstore import ChunkStore
-    from dosppm_core.soup import SceneSource
-    from dosppm_core.subdivide import subdivide
+    from dosppm_core.scene import builtin
+    from dosppm_core.chunks.store import ChunkStore
+    from dosppm_core.scene.soup import SceneSource
+    from dosppm_core.chunks.subdivide import subdivide
 
-    from .inproc import InProcessCluster
+    from services.inproc import InProcessCluster
     scene = builtin.make("cornell-box")
     scene.camera.width = scene.camera.height = 16
     with tempfile.TemporaryDirectory(prefix="dosppm-warm-") as tmp:

@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from dosppm_core.chunked import ChunkGeometry
-from dosppm_core.chunktree import LEAF, ChunkTree
-from dosppm_core.portals import INSERT_MARGIN
+from dosppm_core.chunks.view import ChunkGeometry
+from dosppm_core.chunks.tree import LEAF, ChunkTree
+from dosppm_core.chunks.portals import INSERT_MARGIN
 
 
 def uniform_tree(box, cells) -> ChunkTree:

@@ -6,8 +6,8 @@ import functools
 
 import numpy as np
 
-from dosppm_core import builtin
-from dosppm_core.render import Renderer, RenderSettings
+from dosppm_core.scene import builtin
+from dosppm_core.modes.sppm import Renderer, RenderSettings
 
 ITERATIONS = 6
 SIZE = 64

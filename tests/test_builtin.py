@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from dosppm_core import builtin, loaders
-from dosppm_core.scene import LIGHT_POINT, LIGHT_TRIANGLE, SceneError
+from dosppm_core.scene import builtin, loaders
+from dosppm_core.scene.model import LIGHT_POINT, LIGHT_TRIANGLE, SceneError
 
 CBOX = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "scenes", "cornell_box", "mitsuba")
 needs_cbox = pytest.mark.skipif(not os.path.isdir(CBOX), reason="../shared Cornell box data absent")

@@ -16,7 +16,7 @@ import pytest
 from chunk_helpers import MemoryChunks, lattice_tree, root_box, uniform_tree
 from cluster_helpers import (ITERATIONS, assert_same_within_noise, caustic_reference,
                              caustic_scene, settings)
-from dosppm_core.render import Renderer
+from dosppm_core.modes.sppm import Renderer
 from services.inproc import InProcessCluster
 
 PHOTONS = 240_000
@@ -147,8 +147,8 @@ def test_tracers_cull_deposits_outside_the_box_they_were_sent():
     before sending, and coalesced packages use the union of their boxes."""
     import numpy as np
 
-    from dosppm_core.tracing import emit_photon_job
-    from services.tracer_state import TracerState, union_box
+    from dosppm_core.trace import emit_photon_job
+    from services.tracer.state import TracerState, union_box
     scene = caustic_scene()
     provider = MemoryChunks(scene, uniform_tree(root_box(scene), (1, 1, 1)))
     a, b = np.array([[0, 0, 0], [1, 2, 3]], float), np.array([[-1, 1, 1], [0.5, 5, 2]], float)

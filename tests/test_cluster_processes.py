@@ -15,7 +15,7 @@ import urllib.request
 import pytest
 
 from cluster_helpers import assert_same_within_noise, caustic_reference
-from dosppm_core.film_io import read_exr
+from dosppm_core.film import read_exr
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PHOTONS = 240_000

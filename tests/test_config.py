@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from services import cli, config
+from services.cli import main as cli
+from services import config
 
 
 def _args(argv):

@@ -13,11 +13,11 @@ import pytest
 
 mi = pytest.importorskip("mitsuba")
 
-from dosppm_core import builtin  # noqa: E402
-from dosppm_core.film_io import read_exr, write_exr  # noqa: E402
+from dosppm_core.scene import builtin  # noqa: E402
+from dosppm_core.film import read_exr, write_exr  # noqa: E402
 from dosppm_core.metrics import mean_luminance_bias, relmse  # noqa: E402
 from dosppm_core.reference import cached_reference, mitsuba_max_depth  # noqa: E402
-from dosppm_core.render import RenderSettings, Renderer  # noqa: E402
+from dosppm_core.modes.sppm import RenderSettings, Renderer  # noqa: E402
 
 pytestmark = pytest.mark.reference
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -74,7 +74,7 @@ def _mitsuba_file_reference(path: str) -> np.ndarray:
 
 @pytest.mark.skipif(not os.path.isdir(SHARED), reason="../shared/scenes not present")
 def test_mitsuba_cbox_file_matches_mitsuba():
-    from dosppm_core.mitsuba_xml import load_mitsuba_xml
+    from dosppm_core.scene.mitsuba_xml import load_mitsuba_xml
     path = os.path.join(SHARED, "cbox-rgb.xml")   # box filter, RGB: nothing to convert
     ref = _mitsuba_file_reference(path)
     scene = load_mitsuba_xml(path, res=RES)

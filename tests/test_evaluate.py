@@ -8,8 +8,8 @@ import os
 import numpy as np
 import pytest
 
-from dosppm_core import evaluate
-from dosppm_core.cli import main
+from services.evaluation import evaluate
+from services.cli.render import main
 
 pytest.importorskip("mitsuba")
 

@@ -18,7 +18,7 @@ import urllib.request
 import pytest
 
 from cluster_helpers import assert_same_within_noise
-from dosppm_core.film_io import read_exr
+from dosppm_core.film import read_exr
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PHOTONS = 1_500_000
@@ -155,7 +155,7 @@ def test_the_server_killed_and_resumed_from_its_checkpoint(tmp_path, failure_fre
     """SIGKILL the server mid-render and start it again with --resume: the
     tracers find it again by themselves, and the render goes on from the
     checkpoint to the same total photon count."""
-    from services import checkpoint
+    from services.server import checkpoint
     saved = {}
 
     def crash(c: Cluster):

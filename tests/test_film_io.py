@@ -6,8 +6,7 @@ import zlib
 import numpy as np
 import pytest
 
-from dosppm_core.film_io import (FilmError, read_exr, tonemap_srgb8, write_exr, write_png,
-                                 write_png_rgb8)
+from dosppm_core.film import FilmError, read_exr, tonemap_srgb8, write_exr, write_png, write_png_rgb8
 
 
 def _decode_png(path):

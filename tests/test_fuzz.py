@@ -15,11 +15,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from chunk_helpers import MemoryChunks, root_box, uniform_tree
-from dosppm_core import builtin
-from dosppm_core.render import RenderSettings
+from dosppm_core.scene import builtin
+from dosppm_core.modes.sppm import RenderSettings
 from services import wire
-from services.scheduler import ServerState
-from services.tracer_state import TracerState
+from services.server.state import ServerState
+from services.tracer.state import TracerState
 from test_wire import sample_fields
 
 FRAMES = 100_000

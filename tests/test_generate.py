@@ -8,11 +8,11 @@ import sys
 import numpy as np
 import pytest
 
-from dosppm_core import generate
+from dosppm_core.scene import generate
 from dosppm_core.accel import MISS, Accelerator
-from dosppm_core.generate import BuildingSpec, building_scene, generate_building, plan_building
-from dosppm_core.scene import GLASS, LIGHT_TRIANGLE, SceneError
-from dosppm_core.soupfile import open_soup
+from dosppm_core.scene.generate import BuildingSpec, building_scene, generate_building, plan_building
+from dosppm_core.scene.model import GLASS, LIGHT_TRIANGLE, SceneError
+from dosppm_core.scene.soupfile import open_soup
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -191,7 +191,7 @@ def test_every_interior_wall_has_an_open_door():
 
 
 def test_small_building_renders():
-    from dosppm_core.render import Renderer, RenderSettings
+    from dosppm_core.modes.sppm import Renderer, RenderSettings
     scene = building_scene(triangles=200_000, lights=24)
     assert abs(scene.triangle_count - 200_000) <= 20_000 and len(scene.lights.kind) == 48
     renderer = Renderer(scene, RenderSettings(photons_per_iteration=20_000))
@@ -249,14 +249,14 @@ def test_generation_streams_in_bounded_memory(tmp_path):
 
 
 def test_cli_generates_and_rejects_bad_counts(tmp_path):
-    out = _run(["-m", "dosppm_core.cli", "scenes", "generate", "building", "--triangles", "100k",
+    out = _run(["-m", "services.cli", "scenes", "generate", "building", "--triangles", "100k",
                 "--lights", "12", "--out", str(tmp_path / "b")])
     assert out.returncode == 0, out.stderr
     assert "triangles" in out.stdout and "12 lights" in out.stdout and "bytes" in out.stdout
     assert open_soup(str(tmp_path / "b")).count == pytest.approx(100_000, rel=0.1)
-    bad = _run(["-m", "dosppm_core.cli", "scenes", "generate", "building", "--triangles", "lots",
+    bad = _run(["-m", "services.cli", "scenes", "generate", "building", "--triangles", "lots",
                 "--out", str(tmp_path / "c")])
     assert bad.returncode == 2
     assert bad.stderr.strip().count("\n") == 0 and "--triangles" in bad.stderr
-    listing = _run(["-m", "dosppm_core.cli", "scenes"])
+    listing = _run(["-m", "services.cli", "scenes"])
     assert listing.returncode == 0 and "cornell-box" in listing.stdout

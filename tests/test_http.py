@@ -18,8 +18,8 @@ from urllib.parse import urlsplit
 import numpy as np
 import pytest
 
-from dosppm_core.film_io import encode_png
-from services.status_http import StatusServer
+from dosppm_core.film import encode_png
+from services.server.http import StatusServer
 
 pytestmark = pytest.mark.timeout(120)
 

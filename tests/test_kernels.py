@@ -20,13 +20,12 @@ import numpy as np
 import pytest
 import trimesh
 
-from dosppm_core import tracing
+from dosppm_core import trace as tracing
 from dosppm_core.accel import Accelerator
 from dosppm_core.jobs import ESCAPED, MAX_DEPTH
 from dosppm_core.kernels import bsdf, emit, rng
 from dosppm_core.kernels.emit import EMIT_EPS_REL
-from dosppm_core.scene import (DIFFUSE, GLASS, GLOSSY, MIRROR, Camera, Material,
-                               SceneBuilder)
+from dosppm_core.scene.model import DIFFUSE, GLASS, GLOSSY, MIRROR, Camera, Material, SceneBuilder
 
 ALPHA = 1e-4
 TWO_PI = 2.0 * math.pi

@@ -30,9 +30,9 @@ import time
 import numpy as np
 import pytest
 
-from dosppm_core.generate import generate_building
-from dosppm_core.soupfile import open_soup
-from dosppm_core.subdivide import subdivide
+from dosppm_core.scene.generate import generate_building
+from dosppm_core.scene.soupfile import open_soup
+from dosppm_core.chunks.subdivide import subdivide
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 MiB = 2 ** 20

@@ -6,8 +6,9 @@ import sys
 import numpy as np
 import pytest
 
-from dosppm_core import cli_tools, metrics
-from dosppm_core.film_io import write_exr
+from services.cli import tools as cli_tools
+from dosppm_core import metrics
+from dosppm_core.film import write_exr
 
 RNG = np.random.default_rng(7)
 

@@ -10,13 +10,15 @@ import importlib.util
 import numpy as np
 import pytest
 
-from dosppm_core import builtin, evaluate, metrics
+from dosppm_core.scene import builtin
+from services.evaluation import evaluate
+from dosppm_core import metrics
 from dosppm_core import mirror_limit as ml
 from dosppm_core.accel import Accelerator
 from dosppm_core.reference import render_reference
-from dosppm_core.render import Renderer, RenderSettings
-from dosppm_core.scene import Camera, Material, SceneBuilder
-from dosppm_core.suite_scenes import rectangle_mesh
+from dosppm_core.modes.sppm import Renderer, RenderSettings
+from dosppm_core.scene.model import Camera, Material, SceneBuilder
+from dosppm_core.scene.suite import rectangle_mesh
 
 MIRROR_RHO = np.array([0.5, 0.6, 0.7])
 MIRROR_RHO_CARDIOID = np.array([0.9, 0.85, 0.6])      # suite_scenes.cardioid's "mirror"

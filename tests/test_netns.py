@@ -64,8 +64,8 @@ def _reachable_from_root(ip: str, port: int) -> bool:
 
 
 def test_server_and_two_tracers_on_separate_hosts(lan, tmp_path):
-    from dosppm_core.chunkstore import ChunkStore, is_store
-    from dosppm_core.film_io import read_exr
+    from dosppm_core.chunks.store import ChunkStore, is_store
+    from dosppm_core.film import read_exr
 
     server_ns, server_ip = lan["server"]
     store_cache, out = tmp_path / "store-cache", tmp_path / "out.exr"

@@ -185,7 +185,7 @@ class Render:
             self.procs.kill_all()
         self.tails = self.procs.tails()
         assert rc == expect, f"exit statuses {rc}, expected {expect} (None: still running)\n{self.tails}"
-        from dosppm_core.film_io import read_exr
+        from dosppm_core.film import read_exr
         summary = json.loads(self.out.with_suffix(".json").read_text())
         img, _ = read_exr(str(self.out))
         return {"summary": summary, "img": img, "history": self.history(), "tails": self.tails,

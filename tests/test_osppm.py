@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 from chunk_helpers import MemoryChunks, lattice_tree, root_box, skewed_tree, uniform_tree
-from dosppm_core import builtin
-from dosppm_core.osppm import OutOfCoreRenderer
-from dosppm_core.render import Renderer, RenderSettings
+from dosppm_core.scene import builtin
+from dosppm_core.modes.osppm import OutOfCoreRenderer
+from dosppm_core.modes.sppm import Renderer, RenderSettings
 
 ITERATIONS = 3
 ROOT = __import__("os").path.dirname(__import__("os").path.dirname(__import__("os").path.abspath(__file__)))
@@ -116,9 +116,9 @@ def test_memory_below_one_chunk_is_refused(caustic):
 def test_store_with_exact_insertion_renders_the_unchunked_image(caustic, tmp_path):
     """The real pipeline: subdivide (exact triangle-box insertion) into
     8 chunks, open the store, render OSPPM from it."""
-    from dosppm_core.chunkstore import ChunkStore
-    from dosppm_core.soup import SceneSource
-    from dosppm_core.subdivide import subdivide
+    from dosppm_core.chunks.store import ChunkStore
+    from dosppm_core.scene.soup import SceneSource
+    from dosppm_core.chunks.subdivide import subdivide
     scene, ref, _ = caustic
     subdivide(SceneSource(scene), str(tmp_path / "store"), chunks=8)
     store = ChunkStore.open(str(tmp_path / "store"))
@@ -138,10 +138,10 @@ def test_cli_renders_chunked_and_reuses_the_store(tmp_path):
     import subprocess
     import sys
 
-    from dosppm_core.film_io import read_exr
+    from dosppm_core.film import read_exr
 
     def run(*extra):
-        cmd = [sys.executable, "-m", "dosppm_core.cli", "render", "cornell-box", "--iterations", "2",
+        cmd = [sys.executable, "-m", "services.cli", "render", "cornell-box", "--mode", "osppm", "--iterations", "2",
                "--width", "32", "--height", "32", "--store-cache", str(tmp_path / "cache"), "--quiet",
                *extra]
         return subprocess.run(cmd, capture_output=True, text=True, timeout=600, cwd=tmp_path,

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 
 from chunk_helpers import bbox_chunks, root_box, skewed_tree, uniform_tree
-from dosppm_core import builtin
+from dosppm_core.scene import builtin
 from dosppm_core.accel import Accelerator
-from dosppm_core.chunked import ChunkView
-from dosppm_core.chunktree import ChunkTree
+from dosppm_core.chunks.view import ChunkView
+from dosppm_core.chunks.tree import ChunkTree
 from dosppm_core.jobs import RayBatch
-from dosppm_core.portals import enter, exit_chunk
+from dosppm_core.chunks.portals import enter, exit_chunk
 
 
 def _unit(v):
@@ -193,7 +193,7 @@ def test_exit_through_a_corner_goes_to_the_diagonal_neighbour():
 def test_hit_on_a_triangle_lying_in_a_portal_is_found_once():
     """A triangle lying exactly in the portal plane x = 1 belongs to both
     chunks; rays crossing it hit it once, from either side."""
-    from dosppm_core.scene import Camera, Material, SceneBuilder
+    from dosppm_core.scene.model import Camera, Material, SceneBuilder
     b = SceneBuilder(source="test")
     b.camera = Camera((1, 1, -5), (1, 1, 0), (0, 1, 0), 40, 8, 8)
     b.add_material(Material("white", "diffuse", reflectance=(0.5, 0.5, 0.5)))
@@ -226,9 +226,9 @@ def test_hit_on_a_triangle_lying_in_a_portal_is_found_once():
 def test_million_rays_through_a_real_store_match_unchunked(glass_scene, tmp_path, chunks):
     """The same check on the subdivider's own output: kd-tree splits at
     bin boundaries and exact triangle-box insertion."""
-    from dosppm_core.chunkstore import ChunkStore
-    from dosppm_core.soup import SceneSource
-    from dosppm_core.subdivide import subdivide
+    from dosppm_core.chunks.store import ChunkStore
+    from dosppm_core.scene.soup import SceneSource
+    from dosppm_core.chunks.subdivide import subdivide
     scene, accel = glass_scene
     subdivide(SceneSource(scene), str(tmp_path / "s"), chunks=chunks)
     store = ChunkStore.open(str(tmp_path / "s"))

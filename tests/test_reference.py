@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from dosppm_core import reference
-from dosppm_core.scene import Camera, Material, SceneBuilder
+from dosppm_core.scene.model import Camera, Material, SceneBuilder
 
 pytest.importorskip("mitsuba")
 pytestmark = pytest.mark.reference
@@ -174,7 +174,7 @@ def test_best_variant_is_a_working_variant():
 
 # -- dosppm reference ---------------------------------------------------------
 def _run_reference(argv):
-    from dosppm_core import cli_tools
+    from services.cli import tools as cli_tools
     parser = argparse.ArgumentParser(prog="dosppm")
     cli_tools.add_reference_parser(parser.add_subparsers(dest="command"))
     args = parser.parse_args(["reference", *argv])
@@ -182,8 +182,8 @@ def _run_reference(argv):
 
 
 def test_reference_command_writes_exr(tmp_path, monkeypatch, capsys):
-    from dosppm_core import loaders
-    from dosppm_core.film_io import read_exr
+    from dosppm_core.scene import loaders
+    from dosppm_core.film import read_exr
     seen = {}
 
     def fake_load(spec, **overrides):
@@ -203,8 +203,8 @@ def test_reference_command_writes_exr(tmp_path, monkeypatch, capsys):
 
 
 def test_reference_command_bad_scene_exits_2(tmp_path, monkeypatch, capsys):
-    from dosppm_core import loaders
-    from dosppm_core.scene import SceneError
+    from dosppm_core.scene import loaders
+    from dosppm_core.scene.model import SceneError
 
     def broken(spec, **overrides):
         raise SceneError(f"{spec}: no such file, and not a built-in scene")

@@ -6,9 +6,9 @@ import math
 import numpy as np
 import pytest
 
-from dosppm_core import builtin
-from dosppm_core.render import RenderSettings, Renderer, render
-from dosppm_core.scene import Camera, Material, SceneBuilder
+from dosppm_core.scene import builtin
+from dosppm_core.modes.sppm import RenderSettings, Renderer, render
+from dosppm_core.scene.model import Camera, Material, SceneBuilder
 
 
 def furnace_expected(albedo: float, intensity: float, depth: int) -> float:
@@ -89,8 +89,8 @@ def test_thin_wall_does_not_leak_light():
 
 
 def test_cli_render_writes_exr_png_and_log(tmp_path):
-    from dosppm_core.cli import main
-    from dosppm_core.film_io import read_exr
+    from services.cli.render import main
+    from dosppm_core.film import read_exr
     out = tmp_path / "img.exr"
     log = tmp_path / "progress.jsonl"
     code = main(["render", "cornell-box", "--iterations", "2", "--width", "24", "--height", "16",
@@ -106,7 +106,7 @@ def test_cli_render_writes_exr_png_and_log(tmp_path):
 
 
 def test_cli_bad_scene_is_one_line_error(tmp_path, capsys):
-    from dosppm_core.cli import main
+    from services.cli.render import main
     assert main(["render", str(tmp_path / "missing.toml"), "--quiet"]) == 2
     err = capsys.readouterr().err.strip()
     assert "missing.toml" in err and "\n" not in err

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from dosppm_core import loaders, shapes
-from dosppm_core.scene import GLASS, LIGHT_POINT, LIGHT_SPOT, LIGHT_TRIANGLE, SceneError
-from dosppm_core.scenefile import load_toml
+from dosppm_core.scene import loaders, shapes
+from dosppm_core.scene.model import GLASS, LIGHT_POINT, LIGHT_SPOT, LIGHT_TRIANGLE, SceneError
+from dosppm_core.scene.tomlfile import load_toml
 
 EXAMPLE = os.path.join(os.path.dirname(__file__), "..", "examples", "cornell.toml")
 

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from chunk_helpers import MemoryChunks, root_box, uniform_tree
-from dosppm_core import builtin
+from dosppm_core.scene import builtin
 from dosppm_core.jobs import PhotonDeposits
-from dosppm_core.render import RenderSettings
+from dosppm_core.modes.sppm import RenderSettings
 from services import wire
-from services.scheduler import ServerState, assign_chunks
+from services.server.state import ServerState, assign_chunks
 
 
 def _msg(msg_type, **fields):
@@ -175,7 +175,7 @@ def test_job_messages_an_idle_tracer_never_got_are_re_emitted_at_once(state):
     (a new session) and the jobs in flight are re-emitted, long before the
     30 s watchdog. A busy tracer, or one that acknowledged everything, is
     left alone."""
-    from services.scheduler import JOB_MESSAGE_LOST_S
+    from services.server.state import JOB_MESSAGE_LOST_S
     _register(state, "a")
     state.gather_box = np.array([[-1e9] * 3, [1e9] * 3])
     state.eye_completed = 1
@@ -210,7 +210,7 @@ def test_jobs_untouched_while_every_tracer_is_idle_are_re_emitted_after_the_stal
     (no queue, no outbox), a job untouched for STALL_S is lost; a busy
     tracer, or one whose heartbeat is stale (loading a chunk), defers to
     the 30 s watchdog."""
-    from services.scheduler import STALL_S
+    from services.server.state import STALL_S
     _register(state, "a")
     _register(state, "b")
     state.gather_box = np.array([[-1e9] * 3, [1e9] * 3])

@@ -12,10 +12,10 @@ import pytest
 import zmq
 
 from chunk_helpers import MemoryChunks, root_box, uniform_tree
-from dosppm_core import builtin
-from dosppm_core.render import RenderSettings
+from dosppm_core.scene import builtin
+from dosppm_core.modes.sppm import RenderSettings
 from services import wire
-from services.server import Limits, ServerProcess
+from services.server.node import Limits, ServerProcess
 
 
 @pytest.fixture()

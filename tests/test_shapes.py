@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from dosppm_core import shapes
+from dosppm_core.scene import shapes
 
 
 def _mesh(vertices, faces):

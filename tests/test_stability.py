@@ -6,10 +6,10 @@ import math
 import numpy as np
 import pytest
 
-from dosppm_core import builtin
+from dosppm_core.scene import builtin
 from dosppm_core.jobs import HitPoints, PhotonDeposits
-from dosppm_core.render import RenderSettings, Renderer
-from dosppm_core.sppm import PixelStatistics
+from dosppm_core.modes.sppm import RenderSettings, Renderer
+from dosppm_core.sppm.statistics import PixelStatistics
 
 ALPHA = 0.7
 

@@ -12,15 +12,13 @@ import numpy as np
 import pytest
 
 from chunk_helpers import skewed_tree
-from dosppm_core import builtin
-from dosppm_core.chunkstore import (MANIFEST, ChunkStore, Portals, StoreError, open_or_subdivide,
-                                    store_key)
-from dosppm_core.portals import INSERT_MARGIN
-from dosppm_core.scene import SceneError
-from dosppm_core.soup import SceneSource
-from dosppm_core.soupfile import SoupWriter, open_soup
-from dosppm_core.subdivide import (chunk_memory_bytes, dedup_geometry, overlap_matrix,
-                                   source_records, subdivide, triangle_box_overlap)
+from dosppm_core.scene import builtin
+from dosppm_core.chunks.store import MANIFEST, ChunkStore, Portals, StoreError, open_or_subdivide, store_key
+from dosppm_core.chunks.portals import INSERT_MARGIN
+from dosppm_core.scene.model import SceneError
+from dosppm_core.scene.soup import SceneSource
+from dosppm_core.scene.soupfile import SoupWriter, open_soup
+from dosppm_core.chunks.subdivide import chunk_memory_bytes, dedup_geometry, overlap_matrix, source_records, subdivide, triangle_box_overlap
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -400,7 +398,7 @@ def test_open_or_subdivide_reuses_only_a_matching_store(glass, tmp_path):
 # -- the command line ------------------------------------------------------------
 def _cli(*args):
     env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    return subprocess.run([sys.executable, "-m", "dosppm_core.cli", *args], cwd=REPO, env=env,
+    return subprocess.run([sys.executable, "-m", "services.cli", *args], cwd=REPO, env=env,
                           capture_output=True, text=True, timeout=300)
 
 
@@ -425,7 +423,7 @@ def test_soup_gives_the_same_chunks_as_memory(glass, forced, tmp_path):
         w.append(corners[start:start + 30_000], scene.tri_material[start:start + 30_000])
     w.close(scene.header())
     soup = open_soup(str(tmp_path / "soup"))
-    from dosppm_core.loaders import load_source
+    from dosppm_core.scene.loaders import load_source
     assert type(load_source(str(tmp_path / "soup"))) is type(soup)
     for kw, mem in (({"chunks": 8}, forced[8]), ({"budget_bytes": 1 << 20}, None)):
         if mem is None:

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import trimesh
 
-from dosppm_core import builtin, loaders, suite_scenes
+from dosppm_core.scene import builtin, loaders, suite as suite_scenes
 from dosppm_core.accel import MISS, Accelerator
-from dosppm_core.render import Renderer, RenderSettings
-from dosppm_core.scene import GLASS, GLOSSY, LIGHT_TRIANGLE
-from dosppm_core.tracing import NO_CULL, SurfaceData, emit_photon_job, trace_photon_jobs
+from dosppm_core.modes.sppm import Renderer, RenderSettings
+from dosppm_core.scene.model import GLASS, GLOSSY, LIGHT_TRIANGLE
+from dosppm_core.trace import NO_CULL, SurfaceData, emit_photon_job, trace_photon_jobs
 
 SUITE = ("thin-wall", "far-from-origin", "many-lights", "glossy-floor", "glass-small-light", "cardioid")
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")

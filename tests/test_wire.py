@@ -167,9 +167,9 @@ def test_encode_is_zero_copy_on_the_senders_arrays():
 
 def test_welcome_carries_a_real_scene_header_and_chunk_tree():
     from chunk_helpers import uniform_tree
-    from dosppm_core import builtin
-    from dosppm_core.chunktree import ChunkTree
-    from dosppm_core.scene import SceneHeader
+    from dosppm_core.scene import builtin
+    from dosppm_core.chunks.tree import ChunkTree
+    from dosppm_core.scene.model import SceneHeader
 
     header = builtin.cornell_box().header()
     tree = uniform_tree(header.bounds, (2, 1, 2))

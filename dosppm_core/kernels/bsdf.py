@@ -12,7 +12,7 @@ import math
 import numba as nb
 import numpy as np
 
-from ..scene import DIFFUSE, GLASS, GLOSSY, MIRROR
+from dosppm_core.scene.model import DIFFUSE, GLASS, GLOSSY, MIRROR
 
 INV_PI = np.float32(1.0 / math.pi)
 

@@ -10,9 +10,9 @@ import math
 import numba as nb
 import numpy as np
 
-from ..jobs import ABSORBED, CONTINUES, ESCAPED, MAX_DEPTH, STORED
-from .bsdf import is_specular, sample_bsdf
-from .rng import next_float
+from dosppm_core.jobs import ABSORBED, CONTINUES, ESCAPED, MAX_DEPTH, STORED
+from dosppm_core.kernels.bsdf import is_specular, sample_bsdf
+from dosppm_core.kernels.rng import next_float
 
 # `prim` of a ray whose hit lies in another chunk (it left through a
 # portal): the bounce kernels skip its row, so a chunk's batch need not be

@@ -1,0 +1,404 @@
+"""The chunk store: a subdivided scene on disk, one file per chunk (§4.1).
+
+    DIR/manifest.msgpack   written last; everything below is described here
+    DIR/chunk-0000.bin     chunk 0's raw arrays, little-endian, each at a
+    DIR/chunk-0001.bin     64-byte-aligned offset given in the manifest:
+    ...                      vertices float32 (nv, 3), triangles int32 (nt, 3),
+                             tri_material int32 (nt,), global_id int32 (nt,)
+
+The manifest (msgpack, no pickle) holds: format "dosppm-chunks", version,
+the store key, the chunk tree (`ChunkTree.to_wire`), the portals, the scene
+header (materials, lights, camera, render settings), the source's content
+hash and triangle count, the budget, grid and forced chunk count it was made
+with, and per chunk: file name, triangle and vertex counts, the (offset,
+nbytes) of each array, the file size, the estimated memory when loaded
+(arrays + Embree's copy and BVH) and the SHA-256 of the whole file.
+
+The checksum covers the whole file: it is computed for free while writing
+and checked by `load` (which reads the whole file anyway; SHA-256 runs at
+over 1 GB/s, far faster than the BVH build that follows). `open` checks
+only sizes, so opening a store of many gigabytes costs milliseconds.
+
+A store is built in `DIR.partial-<pid>` and renamed into place once its
+manifest is on disk, so an interrupted subdivision leaves nothing that
+`ChunkStore.open` accepts under DIR.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+from dataclasses import dataclass
+
+import msgpack
+import numpy as np
+
+from dosppm_core.chunks.tree import ChunkTree
+from dosppm_core.scene.model import SceneError, SceneHeader
+
+FORMAT, FORMAT_VERSION = "dosppm-chunks", 1
+MANIFEST = "manifest.msgpack"
+ALIGN = 64
+# (name, dtype, columns; 0 = a plain vector), in file order.
+ARRAYS = (("vertices", "<f4", 3), ("triangles", "<i4", 3),
+          ("tri_material", "<i4", 0), ("global_id", "<i4", 0))
+
+
+class StoreError(ValueError):
+    """A missing, corrupt or foreign chunk store; one line naming the path
+    and the field or file at fault."""
+
+
+def chunk_file_name(k: int) -> str:
+    return f"chunk-{k:04d}.bin"
+
+
+# -- portals -------------------------------------------------------------------
+_OTHER = ((1, 2), (0, 2), (0, 1))   # the two axes spanning a face normal to axis a
+
+
+@dataclass
+class Portals:
+    """The shared faces between neighbouring chunks (§4.1, stage 3).
+
+    Record i is the rectangle where the upper face (along `axis[i]`) of chunk
+    `chunk_a[i]` meets the lower face of chunk `chunk_b[i]`, at coordinate
+    `plane[i]`; `lo[i]`, `hi[i]` span it in the two other axes, in increasing
+    order (axis x: y, z; axis y: x, z; axis z: x, y). A face bordering several
+    chunks (a T-junction) gives one record per neighbour."""
+    chunk_a: np.ndarray   # int32 (p,)  the lower side
+    chunk_b: np.ndarray   # int32 (p,)  the upper side
+    axis: np.ndarray      # int8 (p,)
+    plane: np.ndarray     # float64 (p,)
+    lo: np.ndarray        # float64 (p, 2)
+    hi: np.ndarray        # float64 (p, 2)
+    root_box: np.ndarray  # float64 (2, 3)
+
+    def __len__(self) -> int:
+        return int(self.chunk_a.shape[0])
+
+    @classmethod
+    def of_tree(cls, tree: ChunkTree) -> "Portals":
+        """Every pair of chunk boxes touching across a face of positive area.
+        Chunk boxes share split values bit for bit, so touching is equality."""
+        b = tree.boxes
+        rows = []
+        for a in range(3):
+            u, v = _OTHER[a]
+            for i in range(tree.chunk_count):
+                js = np.flatnonzero(b[:, 0, a] == b[i, 1, a])
+                lo = np.maximum(b[js, 0][:, (u, v)], b[i, 0, (u, v)])
+                hi = np.minimum(b[js, 1][:, (u, v)], b[i, 1, (u, v)])
+                ok = np.all(hi > lo, axis=1)
+                rows += [(i, j, a, b[i, 1, a], *l, *h) for j, l, h in zip(js[ok], lo[ok], hi[ok])]
+        r = np.array(rows, np.float64).reshape(-1, 8)
+        return cls(r[:, 0].astype(np.int32), r[:, 1].astype(np.int32), r[:, 2].astype(np.int8),
+                   r[:, 3].copy(), r[:, 4:6].copy(), r[:, 6:8].copy(), tree.root_box)
+
+    def of_chunk(self, chunk: int) -> np.ndarray:
+        """Indices of the records that border `chunk` (either side)."""
+        return np.flatnonzero((self.chunk_a == chunk) | (self.chunk_b == chunk))
+
+    def neighbour(self, chunk: int, axis: int, upward: bool, points) -> np.ndarray:
+        """The chunk behind `chunk`'s face on `axis` (its upper face if
+        `upward`) at each point of that face; -1 on the root box's boundary.
+
+        Agrees with `ChunkTree.locate(points, ±e_axis)`: as in the tree's tie
+        rule, a point on a line where portals meet (a T-junction) belongs to
+        the portal above it. So the face is taken half-open: a point on the
+        face's own upper edge inside the root box is no point of this face
+        (the tree sends it to an edge or corner neighbour) and gives -1 too."""
+        p = np.asarray(points, np.float64).reshape(-1, 3)
+        mine = self.chunk_a if upward else self.chunk_b
+        recs = np.flatnonzero((mine == chunk) & (self.axis == axis))
+        other = self.chunk_b if upward else self.chunk_a
+        uv = p[:, _OTHER[axis]]
+        top = self.root_box[1, _OTHER[axis]]
+        inside = (uv[:, None, :] >= self.lo[recs][None]) & (
+            (uv[:, None, :] < self.hi[recs][None]) | (uv[:, None, :] == top))
+        hit = np.all(inside, axis=2)
+        out = np.full(len(p), -1, np.int32)
+        rows, cols = np.nonzero(hit)
+        out[rows] = other[recs[cols]]
+        return out
+
+    def to_wire(self) -> dict:
+        return {"count": len(self), "chunk_a": self.chunk_a.astype("<i4").tobytes(),
+                "chunk_b": self.chunk_b.astype("<i4").tobytes(),
+                "axis": self.axis.astype("<i1").tobytes(), "plane": self.plane.astype("<f8").tobytes(),
+                "lo": self.lo.astype("<f8").tobytes(), "hi": self.hi.astype("<f8").tobytes(),
+                "root_box": self.root_box.astype("<f8").tobytes()}
+
+    @classmethod
+    def from_wire(cls, d: dict) -> "Portals":
+        n = int(d["count"])
+        return cls(np.frombuffer(d["chunk_a"], "<i4").astype(np.int32).reshape(n),
+                   np.frombuffer(d["chunk_b"], "<i4").astype(np.int32).reshape(n),
+                   np.frombuffer(d["axis"], "<i1").astype(np.int8).reshape(n),
+                   np.frombuffer(d["plane"], "<f8").astype(np.float64).reshape(n),
+                   np.frombuffer(d["lo"], "<f8").astype(np.float64).reshape(n, 2),
+                   np.frombuffer(d["hi"], "<f8").astype(np.float64).reshape(n, 2),
+                   np.frombuffer(d["root_box"], "<f8").astype(np.float64).reshape(2, 3))
+
+    def same_as(self, other: "Portals") -> bool:
+        return all(np.array_equal(getattr(self, f), getattr(other, f))
+                   for f in ("chunk_a", "chunk_b", "axis", "plane", "lo", "hi", "root_box"))
+
+
+# -- chunk files ---------------------------------------------------------------
+def chunk_layout(triangles: int, vertices: int) -> tuple[dict, int]:
+    """{array name: (offset, nbytes)} and the file size, arrays 64-byte aligned."""
+    rows = {"vertices": vertices}
+    out, offset = {}, 0
+    for name, dtype, cols in ARRAYS:
+        nbytes = rows.get(name, triangles) * max(cols, 1) * np.dtype(dtype).itemsize
+        out[name] = (offset, nbytes)
+        offset += -(-nbytes // ALIGN) * ALIGN
+    return out, offset
+
+
+def write_chunk_file(path: str, geometry) -> dict:
+    """Write one chunk's arrays; returns its manifest entry (less the file
+    name and memory estimate, which the caller adds)."""
+    nt, nv = int(geometry.triangles.shape[0]), int(geometry.vertices.shape[0])
+    layout, size = chunk_layout(nt, nv)
+    h = hashlib.sha256()
+    with open(path, "wb") as f:
+        for name, dtype, _cols in ARRAYS:
+            offset, nbytes = layout[name]
+            pad = b"\0" * (offset - f.tell())
+            data = np.ascontiguousarray(getattr(geometry, name), dtype).tobytes()
+            assert len(data) == nbytes, name
+            for part in (pad, data):
+                f.write(part)
+                h.update(part)
+        pad = b"\0" * (size - f.tell())
+        f.write(pad)
+        h.update(pad)
+    return {"triangles": nt, "vertices": nv, "file_bytes": size, "sha256": h.hexdigest(),
+            "arrays": {k: list(v) for k, v in layout.items()}}
+
+
+def partial_path(path: str) -> str:
+    """Where the store for `path` is built before being renamed into place."""
+    return f"{os.path.abspath(path).rstrip(os.sep)}.partial-{os.getpid()}"
+
+
+def commit_store(partial: str, path: str, manifest: dict) -> None:
+    """Write the manifest last (temp file, fsync, rename), then move the
+    finished directory to `path`, replacing an older chunk store there. A
+    directory at `path` that is not a chunk store is never deleted."""
+    tmp = os.path.join(partial, MANIFEST + ".tmp")
+    with open(tmp, "wb") as f:
+        f.write(msgpack.packb(manifest))
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, os.path.join(partial, MANIFEST))
+    _fsync_dir(partial)
+    check_target(path)
+    old = None
+    if os.path.exists(path):
+        old = f"{os.path.abspath(path).rstrip(os.sep)}.old-{os.getpid()}"
+        os.rename(path, old)
+    os.rename(partial, path)
+    _fsync_dir(os.path.dirname(os.path.abspath(path)))
+    if old:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def check_target(path: str) -> None:
+    """Refuse to replace anything but a chunk store or an empty directory."""
+    if os.path.exists(path) and not (os.path.isdir(path) and (
+            not os.listdir(path) or _looks_like_store(path))):
+        raise StoreError(f"{path}: exists and is not a chunk store; not replacing it")
+
+
+def is_store(path: str) -> bool:
+    """True for a directory with a chunk store manifest (open() validates it)."""
+    return os.path.isdir(path) and os.path.exists(os.path.join(path, MANIFEST))
+
+
+def _looks_like_store(path: str) -> bool:
+    names = os.listdir(path)
+    return all(n == MANIFEST or (n.startswith("chunk-") and n.endswith(".bin")) for n in names)
+
+
+def _fsync_dir(path: str) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+# -- the store -----------------------------------------------------------------
+class ChunkStore:
+    """An opened, validated chunk store: what OSPPM and the tracers read.
+    Chunk k's geometry is read by `load(k)` from its own file only."""
+
+    def __init__(self, path: str, doc: dict, header: SceneHeader, tree: ChunkTree, portals: Portals):
+        self.path, self.manifest = path, doc
+        self.header, self.tree, self.portals = header, tree, portals
+        self.key = doc["key"]
+        self.source_hash = doc["source_hash"]
+        self.source_triangles = int(doc["source_triangles"])
+        self.budget_bytes = doc["budget_bytes"]
+        self.grid = tuple(doc["grid"])
+        self.chunks_forced = doc["chunks_forced"]
+        self.chunk_count = tree.chunk_count
+        entries = doc["chunks"]
+        self.chunk_triangles = np.array([e["triangles"] for e in entries], np.int64)
+        self.chunk_vertices = np.array([e["vertices"] for e in entries], np.int64)
+        self.chunk_memory = np.array([e["memory_bytes"] for e in entries], np.float64)
+
+    @classmethod
+    def open(cls, path: str) -> "ChunkStore":
+        return cls.from_manifest(path, _read_manifest(path))
+
+    @classmethod
+    def from_manifest(cls, path: str, doc: dict, check_files: bool = True) -> "ChunkStore":
+        """A store described by manifest `doc` with its chunk files under
+        `path`; `check_files=False` for a tracer that fetches its chunk
+        files later (each is checked against its SHA-256 when loaded)."""
+        where = os.path.join(path, MANIFEST)
+        _check_manifest_doc(where, doc)
+        try:
+            tree = ChunkTree.from_wire(doc["tree"])
+        except (KeyError, TypeError, ValueError) as e:
+            raise StoreError(f"{where}: field 'tree': {e}") from None
+        try:
+            header = SceneHeader.from_wire(doc["header"])
+        except SceneError as e:
+            raise StoreError(f"{where}: field 'header': {e}") from None
+        try:
+            portals = Portals.from_wire(doc["portals"])
+        except (KeyError, TypeError, ValueError) as e:
+            raise StoreError(f"{where}: field 'portals': {e}") from None
+        if not portals.same_as(Portals.of_tree(tree)):
+            raise StoreError(f"{where}: field 'portals' does not match the chunk tree")
+        _check_entries(path, doc, tree.chunk_count, check_files)
+        return cls(path, doc, header, tree, portals)
+
+    def load(self, k: int, mmap: bool = False):
+        """Chunk k's geometry (`chunked.ChunkGeometry`), read from its file
+        and checked against its SHA-256; `mmap` maps the file instead (no
+        checksum: nothing is read until used)."""
+        from dosppm_core.chunks.view import ChunkGeometry
+        if not 0 <= k < self.chunk_count:
+            raise IndexError(f"chunk {k} out of range (store has {self.chunk_count})")
+        entry = self.manifest["chunks"][k]
+        file = os.path.join(self.path, entry["file"])
+        if mmap:
+            buf = np.memmap(file, np.uint8, "r")
+        else:
+            buf = _read_checked(file, entry)
+        nt, nv = entry["triangles"], entry["vertices"]
+        rows = {"vertices": nv}
+        arrays = {}
+        for name, dtype, cols in ARRAYS:
+            offset, nbytes = entry["arrays"][name]
+            a = buf[offset:offset + nbytes].view(dtype)
+            arrays[name] = a.reshape(rows.get(name, nt), cols) if cols else a
+        return ChunkGeometry(**arrays)
+
+
+def _read_manifest(path: str) -> dict:
+    where = os.path.join(path, MANIFEST)
+    if not os.path.isdir(path):
+        raise StoreError(f"{path}: no such chunk store directory")
+    if not os.path.exists(where):
+        raise StoreError(f"{where}: missing (an interrupted subdivision, or not a chunk store)")
+    try:
+        with open(where, "rb") as f:
+            doc = msgpack.unpackb(f.read())
+    except (OSError, ValueError, msgpack.ExtraData) as e:
+        raise StoreError(f"{where}: unreadable manifest: {e}") from None
+    return doc
+
+
+def _check_manifest_doc(where: str, doc) -> None:
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+        raise StoreError(f"{where}: field 'format' is not {FORMAT!r} (a foreign file)")
+    if doc.get("version") != FORMAT_VERSION:
+        raise StoreError(f"{where}: field 'version' is {doc.get('version')!r}, "
+                         f"this program reads version {FORMAT_VERSION}")
+    for key in ("key", "tree", "header", "portals", "source_hash", "source_triangles",
+                "budget_bytes", "grid", "chunks_forced", "chunks"):
+        if key not in doc:
+            raise StoreError(f"{where}: field {key!r} missing")
+
+
+def _check_entries(path: str, doc: dict, chunk_count: int, check_files: bool = True) -> None:
+    """Every chunk's entry is consistent and its file has the right size."""
+    where = os.path.join(path, MANIFEST)
+    entries = doc["chunks"]
+    if not isinstance(entries, list) or len(entries) != chunk_count:
+        raise StoreError(f"{where}: field 'chunks' does not list {chunk_count} chunks")
+    for k, e in enumerate(entries):
+        try:
+            nt, nv = int(e["triangles"]), int(e["vertices"])
+            layout, size = chunk_layout(nt, nv)
+            ok = (e["file"] == chunk_file_name(k) and int(e["file_bytes"]) == size
+                  and all(tuple(e["arrays"][n]) == layout[n] for n in layout)
+                  and float(e["memory_bytes"]) >= 0 and isinstance(e["sha256"], str))
+        except (KeyError, TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise StoreError(f"{where}: field 'chunks[{k}]' is malformed")
+        if not check_files:
+            continue
+        file = os.path.join(path, e["file"])
+        actual = os.path.getsize(file) if os.path.isfile(file) else -1
+        if actual != size:
+            raise StoreError(f"{file}: {actual} bytes, expected {size} (missing or truncated chunk file)")
+
+
+def _read_checked(file: str, entry: dict) -> np.ndarray:
+    buf = np.empty(int(entry["file_bytes"]), np.uint8)
+    try:
+        with open(file, "rb") as f:
+            got = f.readinto(memoryview(buf))
+            extra = f.read(1)
+    except OSError as e:
+        raise StoreError(f"{file}: cannot read chunk file: {e}") from None
+    if got != buf.size or extra:
+        raise StoreError(f"{file}: size changed since the store was opened")
+    if hashlib.sha256(buf).hexdigest() != entry["sha256"]:
+        raise StoreError(f"{file}: checksum mismatch (corrupt chunk file)")
+    return buf
+
+
+# -- reuse -----------------------------------------------------------------------
+def store_key(source_hash: str, budget, grid: int, chunks) -> str:
+    """Names a store by everything that shapes it: the same key means the
+    same chunks, so a cache hit can never be stale."""
+    text = f"{FORMAT}/{FORMAT_VERSION}/{source_hash}/{budget}/{grid}/{chunks}"
+    return hashlib.sha256(text.encode()).hexdigest()[:24]
+
+
+def open_or_subdivide(source, cache_dir: str, budget=None, grid: int | None = None,
+                      chunks: int | None = None) -> ChunkStore:
+    """The store for (source, budget, grid, chunks) under `cache_dir`:
+    reused when one with the same key is there and opens cleanly, made
+    (replacing a stale or damaged one) otherwise."""
+    from dosppm_core.chunks.subdivide import DEFAULT_GRID, subdivide
+    grid = DEFAULT_GRID if grid is None else int(grid)
+    budget = None if budget is None else int(budget)
+    key = store_key(source.content_hash(), budget, grid, chunks)
+    path = os.path.join(cache_dir, key)
+    try:
+        store = ChunkStore.open(path)
+        if store.key == key:
+            return store
+    except StoreError:
+        pass
+    if os.path.isdir(path):
+        shutil.rmtree(path)   # ours by construction: the name is the key
+    os.makedirs(cache_dir, exist_ok=True)
+    subdivide(source, path, budget_bytes=budget, grid=grid, chunks=chunks)
+    return ChunkStore.open(path)

@@ -1,0 +1,149 @@
+"""Tracing inside one chunk: the step every out-of-core mode repeats.
+
+`ChunkView` is one loaded chunk (its geometry, BVH and surface arrays).
+`trace_photons_in_chunk` and `trace_eye_in_chunk` follow a batch of paths
+until each ends or leaves the chunk, and return the leaving rays grouped by
+the chunk they enter next: OSPPM queues them in this process, the tracer
+service sends them to the tracer owning that chunk. Both use the same
+bounce kernels as the unchunked renderer (`tracing.scatter_photons`,
+`tracing.advance_eye`), so a chunked render differs from an unchunked one
+only by floating-point noise.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dosppm_core.accel import Accelerator
+from dosppm_core.chunks.tree import ChunkTree
+from dosppm_core.jobs import ESCAPED, HitPoints, PhotonDeposits, RayBatch
+from dosppm_core.chunks.portals import PORTAL_EPS, enter, intersect_in_chunk
+from dosppm_core.scene.model import SceneHeader
+from dosppm_core.kernels.paths import ELSEWHERE
+from dosppm_core.trace import END_KINDS, SurfaceData, advance_eye, scatter_photons
+
+
+@dataclass
+class ChunkGeometry:
+    """One chunk's triangles, chunk-local; `global_id` maps to the source."""
+    vertices: np.ndarray     # float32 (nv, 3)
+    triangles: np.ndarray    # int32 (nt, 3)
+    tri_material: np.ndarray  # int32 (nt,)
+    global_id: np.ndarray    # int32 (nt,)
+
+    @property
+    def nbytes(self) -> int:
+        return sum(a.nbytes for a in (self.vertices, self.triangles, self.tri_material, self.global_id))
+
+
+class ChunkView:
+    """A resident chunk: BVH plus the arrays the bounce kernels read."""
+
+    def __init__(self, index: int, geometry: ChunkGeometry, header: SceneHeader,
+                 tree: ChunkTree, threads: int = 1):
+        self.index, self.tree, self.geometry = index, tree, geometry
+        self.eps = PORTAL_EPS * header.diagonal()
+        m = header.materials
+        self.surf = SurfaceData(geometry.vertices, geometry.triangles, geometry.tri_material,
+                                m.kind, m.reflectance, m.emission, m.ior, m.roughness,
+                                m.two_sided, 1e-6 * header.diagonal())
+        # An empty chunk (air between walls) still routes rays; Embree
+        # needs one triangle, so give it one that no ray can reach.
+        verts, tris = geometry.vertices, geometry.triangles
+        if len(tris) == 0:
+            far = tree.root_box[1] + 1e6 * (1 + np.abs(tree.root_box[1]))
+            verts = np.array([far, far + (1, 0, 0), far + (0, 1, 0)], np.float32)
+            tris = np.array([[0, 1, 2]], np.int32)
+        self.accel = Accelerator(verts, tris, threads=threads)
+
+    def intersect(self, batch: RayBatch):
+        """(prim, t, u, v, next chunk, t_exit); see `portals.intersect_in_chunk`."""
+        return intersect_in_chunk(self.accel, self.tree, self.index, batch.origin,
+                                  batch.direction, batch.tmin, self.eps)
+
+    def close(self) -> None:
+        """Free the BVH and drop the arrays: a closed view still referenced
+        somewhere (a caller's local variable) must not keep the chunk."""
+        self.accel.close()
+        self.geometry = self.surf = None
+
+
+def route(batch: RayBatch, chunks: np.ndarray) -> dict[int, RayBatch]:
+    """Split a batch by destination chunk (-1 entries must be removed first)."""
+    return batch.partition(chunks)
+
+
+def start_chunks(tree: ChunkTree, batch: RayBatch) -> tuple[dict[int, RayBatch], int]:
+    """Route new rays (tmin 0) to the chunk each starts in; rays that miss
+    the scene's box altogether are returned as a count (escaped)."""
+    chunk, tmin = enter(tree, batch.origin, batch.direction)
+    batch.tmin = np.maximum(batch.tmin, tmin)
+    routed = route(batch, chunk)
+    lost = routed.pop(-1, None)
+    return routed, 0 if lost is None else len(lost)
+
+
+def _find_hits(view: ChunkView, batch: RayBatch):
+    """Intersect; return (prim, u, v, rays leaving through portals grouped
+    by next chunk). A leaving ray keeps its row with prim ELSEWHERE, which
+    the bounce kernels skip: only the leaving rows are copied, resuming at
+    t_exit. A miss that leaves the scene stays a miss (escaped)."""
+    prim, _t, u, v, nxt, t_exit = view.intersect(batch)
+    leaving = np.flatnonzero((prim < 0) & (nxt >= 0))
+    if not len(leaving):
+        return prim, u, v, {}
+    out = batch.partition(nxt[leaving], rows=leaving, replace={"tmin": t_exit.astype(np.float32)})
+    prim[leaving] = ELSEWHERE
+    return prim, u, v, out
+
+
+def _merge(into: dict, parts: dict) -> None:
+    for k, b in parts.items():
+        into.setdefault(k, []).append(b)
+
+
+def _continue_here(view: ChunkView, nxt: RayBatch, outgoing: dict, counts: np.ndarray) -> RayBatch:
+    """Bounced rays start where they were spawned: keep those in this chunk."""
+    routed, lost = start_chunks(view.tree, nxt)
+    counts[ESCAPED] += lost
+    here = routed.pop(view.index, RayBatch.empty())
+    _merge(outgoing, routed)
+    return here
+
+
+def trace_photons_in_chunk(view: ChunkView, batch: RayBatch, cull_box, max_depth: int):
+    """Follow photons in this chunk. Returns (deposits, end counts, culled,
+    {chunk: [RayBatch]} of photons leaving through portals)."""
+    deposits, outgoing = [], {}
+    counts, culled = np.zeros(END_KINDS, np.int64), 0
+    while len(batch):
+        prim, u, v, out = _find_hits(view, batch)
+        _merge(outgoing, out)
+        dep, nxt, ends, c = scatter_photons(view.surf, batch, prim, u, v, cull_box, max_depth)
+        deposits.append(dep)
+        counts += ends
+        culled += c
+        batch = _continue_here(view, nxt, outgoing, counts)
+    counts[0] = 0
+    return PhotonDeposits.concat(deposits), counts, culled, outgoing
+
+
+def trace_eye_in_chunk(view: ChunkView, batch: RayBatch, max_depth: int):
+    """Follow eye paths in this chunk. Returns (hit points, (pixel, rgb)
+    of emission seen, end counts, {chunk: [RayBatch]} leaving)."""
+    hits, pix, rgb, outgoing = [], [], [], {}
+    counts = np.zeros(END_KINDS, np.int64)
+    while len(batch):
+        prim, u, v, out = _find_hits(view, batch)
+        _merge(outgoing, out)
+        h, (p, e), nxt, ends = advance_eye(view.surf, batch, prim, u, v, max_depth)
+        hits.append(h)
+        pix.append(p)
+        rgb.append(e)
+        counts += ends
+        batch = _continue_here(view, nxt, outgoing, counts)
+    counts[0] = 0
+    emitted = (np.concatenate(pix) if pix else np.empty(0, np.int32),
+               np.concatenate(rgb) if rgb else np.empty((0, 3), np.float32))
+    return HitPoints.concat(hits), emitted, counts, outgoing

@@ -1,0 +1,42 @@
+"""One entry point from a user's scene argument to a `Scene`: a built-in
+name, a TOML scene file or a Mitsuba 3 XML file; and to a `TriangleSource`,
+which may also be a triangle soup directory too big for memory."""
+from __future__ import annotations
+
+import os
+
+from dosppm_core.scene.model import Scene, SceneError
+
+
+def load_scene(spec: str, **overrides) -> Scene:
+    """`overrides` may set `width` and `height` of the camera."""
+    from dosppm_core.scene import builtin
+    if spec in builtin.SCENES:
+        scene = builtin.make(spec)
+    else:
+        if not os.path.exists(spec):
+            raise SceneError(f"{spec}: no such file, and not a built-in scene "
+                             f"(built-in: {', '.join(builtin.SCENES)})")
+        ext = os.path.splitext(spec)[1].lower()
+        if ext == ".toml":
+            from dosppm_core.scene.tomlfile import load_toml
+            scene = load_toml(spec)
+        elif ext == ".xml":
+            from dosppm_core.scene.mitsuba_xml import load_mitsuba_xml
+            scene = load_mitsuba_xml(spec)
+        else:
+            raise SceneError(f"{spec}: unknown scene format {ext!r} (expected .toml or .xml)")
+    for key in ("width", "height"):
+        if overrides.get(key):
+            setattr(scene.camera, key, int(overrides[key]))
+    return scene
+
+
+def load_source(spec: str):
+    """A `TriangleSource`: a soup directory is memory-mapped, anything else
+    is loaded by `load_scene` and wrapped."""
+    from dosppm_core.scene.soup import SceneSource
+    from dosppm_core.scene.soupfile import is_soup, open_soup
+    if is_soup(spec):
+        return open_soup(spec)
+    return SceneSource(load_scene(spec))

@@ -1,0 +1,158 @@
+"""Tracing steps: new paths, and one bounce of a batch against one
+aggregate. Chunked and distributed modes call the same steps; only what
+happens to the continuing rays between steps differs."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dosppm_core.accel import Accelerator
+from dosppm_core.jobs import CONTINUES, STORED, HitPoints, PhotonDeposits, RayBatch
+from dosppm_core.kernels import emit, paths
+from dosppm_core.scene.model import Scene
+
+NO_CULL = np.array([[-np.inf] * 3, [np.inf] * 3])
+EPS_REL = 2e-5   # spawn offset relative to |p|: ~300 float32 ulps
+END_KINDS = 5
+
+
+@dataclass
+class SurfaceData:
+    """The arrays the bounce kernels read: geometry and materials."""
+    vertices: np.ndarray
+    triangles: np.ndarray
+    tri_material: np.ndarray
+    kind: np.ndarray
+    reflectance: np.ndarray
+    emission: np.ndarray
+    ior: np.ndarray
+    roughness: np.ndarray
+    two_sided: np.ndarray
+    eps_abs: float
+
+    @classmethod
+    def from_scene(cls, scene: Scene) -> "SurfaceData":
+        m = scene.materials
+        return cls(scene.vertices, scene.triangles, scene.tri_material, m.kind,
+                   m.reflectance, m.emission, m.ior, m.roughness, m.two_sided,
+                   1e-6 * scene.diagonal())
+
+
+def emit_photon_job(scene: Scene, seed: int, job: int, count: int, eps_abs: float) -> RayBatch:
+    """The `count` photons of emission job `job` (a pure function of its
+    arguments, so a job can be re-emitted and traces the same photons)."""
+    L = scene.lights
+    o, d, f, st = emit.emit_photons(L.kind, L.p0, L.p1, L.p2, L.value, L.cone, L.power,
+                                    L.cdf, np.uint64(seed), np.uint64(job), count, eps_abs)
+    return RayBatch(o, d, f, np.full(count, -1, np.int32), np.zeros(count, np.int32), st,
+                    job=np.full(count, job, np.int64))
+
+
+def eye_ray_job(scene: Scene, seed: int, iteration: int, pixel_start: int, count: int) -> RayBatch:
+    """Eye rays of pixels [pixel_start, pixel_start + count) of one iteration."""
+    frame = scene.camera.frame()
+    o, d, st = emit.generate_eye_rays(frame, int(scene.camera.width), np.uint64(seed),
+                                      np.uint64(iteration), pixel_start, count)
+    pixel = np.arange(pixel_start, pixel_start + count, dtype=np.int32)
+    return RayBatch(o, d, np.ones((count, 3), np.float32), pixel, np.zeros(count, np.int32), st)
+
+
+def photon_step(accel: Accelerator, surf: SurfaceData, batch: RayBatch,
+                cull_box: np.ndarray, max_depth: int):
+    """One bounce. Returns (deposits, continuing batch, end counts, culled)."""
+    prim, _t, u, v = accel.intersect(batch.origin, batch.direction)
+    return scatter_photons(surf, batch, prim, u, v, cull_box, max_depth)
+
+
+def scatter_photons(surf: SurfaceData, batch: RayBatch, prim, u, v,
+                    cull_box: np.ndarray, max_depth: int):
+    """The photon bounce at known hits (`prim` -1: escaped), for any
+    aggregate: the whole scene or one chunk (`surf` indexes like `prim`)."""
+    ends, culled, dep, nxt = paths.scatter_photons(
+        batch.origin, batch.direction, batch.weight, batch.depth, batch.rng, batch.job,
+        batch.pixel, prim, u, v, surf.vertices, surf.triangles, surf.tri_material, surf.kind,
+        surf.reflectance, surf.ior, surf.roughness, surf.two_sided, cull_box[0], cull_box[1],
+        max_depth, EPS_REL, surf.eps_abs)
+    no, nd, nf, st, depth, job, pixel = nxt
+    return (PhotonDeposits(*dep), RayBatch(no, nd, nf, pixel, depth, st, job=job),
+            ends, culled)
+
+
+def eye_step(accel: Accelerator, surf: SurfaceData, batch: RayBatch, max_depth: int):
+    """One bounce of eye paths. Returns (hit points, emitted (pixel, rgb),
+    continuing batch, end counts)."""
+    prim, _t, u, v = accel.intersect(batch.origin, batch.direction)
+    return advance_eye(surf, batch, prim, u, v, max_depth)
+
+
+def advance_eye(surf: SurfaceData, batch: RayBatch, prim, u, v, max_depth: int):
+    """The eye-path bounce at known hits, for any aggregate."""
+    ends, (lit, rgb), (h, hpos, hn), (g, no, nd, nw, st) = paths.advance_eye_paths(
+        batch.direction, batch.weight, batch.depth, batch.rng, prim, u, v,
+        surf.vertices, surf.triangles, surf.tri_material, surf.kind, surf.reflectance,
+        surf.emission, surf.ior, surf.roughness, surf.two_sided, max_depth,
+        EPS_REL, surf.eps_abs)
+    hits = HitPoints(hpos, hn, -batch.direction[h], batch.weight[h],
+                     surf.tri_material[prim[h]], batch.pixel[h])
+    nxt = RayBatch(no, nd, nw, batch.pixel[g], batch.depth[g] + 1, st, job=batch.job[g])
+    return hits, (batch.pixel[lit], rgb), nxt, ends
+
+
+def trace_photons(accel, surf, batch, cull_box, max_depth):
+    """Follow a photon batch until every path ends (one aggregate)."""
+    deposits, ends, culled = [], np.zeros(END_KINDS, np.int64), 0
+    while len(batch):
+        dep, batch, e, c = photon_step(accel, surf, batch, cull_box, max_depth)
+        deposits.append(dep)
+        ends += e
+        culled += c
+    ends[0] = 0
+    return PhotonDeposits.concat(deposits), ends, culled
+
+
+def trace_photon_jobs(accel, surf, jobs, cull_box, max_depth, min_batch: int = 32_768,
+                      on_batch=None):
+    """Trace an iterable of photon jobs (RayBatches) as one stream: new jobs
+    join the continuing paths whenever fewer than `min_batch` are in flight
+    (client batching, §4.3), so Russian roulette's thinning tail never
+    leaves Embree and the kernels with tiny batches. Paths draw from their
+    own random streams, so the photons traced do not depend on the batching.
+    `on_batch(batch)` sees every traced batch (benchmarks replay them)."""
+    jobs = iter(jobs)
+    deposits, ends, culled = [], np.zeros(END_KINDS, np.int64), 0
+    active, exhausted = RayBatch.empty(), False
+    while True:
+        pending = [active]
+        size = len(active)
+        while not exhausted and size < min_batch:
+            job = next(jobs, None)
+            if job is None:
+                exhausted = True
+            else:
+                pending.append(job)
+                size += len(job)
+        active = RayBatch.concat(pending) if len(pending) > 1 else active
+        if not len(active):
+            break
+        if on_batch is not None:
+            on_batch(active)
+        dep, active, e, c = photon_step(accel, surf, active, cull_box, max_depth)
+        deposits.append(dep)
+        ends += e
+        culled += c
+    ends[0] = 0
+    return PhotonDeposits.concat(deposits), ends, culled
+
+
+def trace_eye(accel, surf, batch, max_depth):
+    """Follow eye paths until each stores a hit point or ends."""
+    hits, pix, rgb, ends = [], [], [], np.zeros(END_KINDS, np.int64)
+    while len(batch):
+        h, (p, e), batch, c = eye_step(accel, surf, batch, max_depth)
+        hits.append(h)
+        pix.append(p)
+        rgb.append(e)
+        ends += c
+    ends[0] = 0
+    return HitPoints.concat(hits), (np.concatenate(pix), np.concatenate(rgb)), ends

@@ -1,0 +1,127 @@
+"""`dosppm bench`: throughput of the core pipeline, measured side by side in
+one run, beside the paper's Table 4 (Günther & Grosch, one 2010 CPU thread
+and a GTX 460).
+
+Reported per scene (medians of `repeats` runs):
+- raw Embree closest-hit rays/s on exactly the rays our photon paths trace
+  (the limit), our photon rays/s through the whole step (emission,
+  intersection, scattering, deposits, compaction) and their ratio;
+- photon paths/s and hit points/s (eye passes);
+- the statistics update per 1M deposited photons for each gather, with and
+  without Morton reordering.
+"""
+from __future__ import annotations
+
+import json
+import platform
+import statistics
+import time
+
+import numpy as np
+
+from dosppm_core.jobs import PhotonDeposits
+from dosppm_core.modes.sppm import RenderSettings, Renderer
+from dosppm_core.trace import NO_CULL, emit_photon_job, trace_photon_jobs
+
+PAPER_TABLE4 = {
+    "photon_tracing_ms_per_100k_photons_cpu_1thread": 2633.1,
+    "hit_point_tracing_ms_per_640k_cpu_1thread": 3659.7,
+    "statistics_update_ms_per_1M_cpu_1thread": 792.5,
+    "statistics_update_ms_per_1M_gpu_gtx460": 18.4,
+}
+
+
+def _median_time(fn, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def _photon_rays(r: Renderer, photons: int, job0: int):
+    """Trace `photons` photons as the renderer does; returns (deposits,
+    emitted paths, the (origin, direction) of every traced batch)."""
+    s = r.settings
+    batches = []
+    jobs = (emit_photon_job(r.scene, s.seed, job0 + k, min(s.photons_per_job, photons - done),
+                            r.surf.eps_abs)
+            for k, done in enumerate(range(0, photons, s.photons_per_job)))
+    deposits, _ends, _culled = trace_photon_jobs(
+        r.accel, r.surf, jobs, NO_CULL, s.max_depth,
+        on_batch=lambda b: batches.append((b.origin, b.direction)))
+    return deposits, photons, batches
+
+
+def bench_scene(scene, photons: int = 1_000_000, repeats: int = 3, threads: int = 2) -> dict:
+    r = Renderer(scene, RenderSettings(threads=threads, photons_per_iteration=50_000))
+    for _ in range(3):      # compile, then let radii shrink to working size
+        r.run_iteration()
+    out = {"scene": scene.name, "triangles": scene.triangle_count,
+           "resolution": [int(scene.camera.width), int(scene.camera.height)]}
+    # Photon tracing, whole pipeline vs raw Embree on the same rays.
+    t_ours = _median_time(lambda: _photon_rays(r, photons, 10_000), repeats)
+    deposits, emitted, batches = _photon_rays(r, photons, 10_000)
+    rays = sum(len(o) for o, _ in batches)
+    t_raw = _median_time(lambda: [r.accel.intersect(o, d) for o, d in batches], repeats)
+    out.update(photon_rays=rays, photon_rays_per_s=rays / t_ours, raw_embree_rays_per_s=rays / t_raw,
+               ratio_to_raw=t_raw / t_ours, photon_paths_per_s=emitted / t_ours,
+               deposits_per_photon=len(deposits) / emitted)
+    n_pix = int(scene.camera.width) * int(scene.camera.height)
+    t_eye = _median_time(r._eye_pass, repeats)
+    out["hit_points_per_s"] = len(r.stats.hit_points) / t_eye
+    out["eye_rays_per_s"] = n_pix / t_eye
+    # Statistics update per 1M deposits, each gather, with/without reordering.
+    batch = deposits.take(np.arange(min(len(deposits), 1_000_000)))
+    out["update_deposits"] = len(batch)
+    out["hit_points"] = len(r.stats.hit_points)
+    for gather in ("grid", "hash"):
+        for reorder in (True, False):
+            def update():
+                saved = (r.stats.photon_count.copy(), r.stats.radius.copy(), r.stats.tau.copy(),
+                         r.stats.photons_emitted)
+                r.stats.apply_photons(batch, 0, scene.materials, gather=gather,
+                                      threads=threads, reorder=reorder)
+                (r.stats.photon_count, r.stats.radius, r.stats.tau,
+                 r.stats.photons_emitted) = saved
+            update()   # compile
+            ms = 1e3 * _median_time(update, repeats) * 1e6 / max(len(batch), 1)
+            out[f"update_ms_per_1M_{gather}_{'sorted' if reorder else 'unsorted'}"] = ms
+    r.close()
+    return out
+
+
+def report(results: list[dict]) -> str:
+    lines = ["| figure | " + " | ".join(r["scene"] for r in results) + " | paper (Table 4) |",
+             "|---|" + "---|" * len(results) + "---|"]
+    rows = [
+        ("triangles", "triangles", "{:,}", ""),
+        ("raw Embree rays/s (same rays)", "raw_embree_rays_per_s", "{:,.0f}", ""),
+        ("our photon rays/s", "photon_rays_per_s", "{:,.0f}", ""),
+        ("ratio to raw (target >= 0.5)", "ratio_to_raw", "{:.2f}", ""),
+        ("photon paths/s", "photon_paths_per_s", "{:,.0f}",
+         f"{1e5 / PAPER_TABLE4['photon_tracing_ms_per_100k_photons_cpu_1thread'] * 1e3:,.0f} (1 thread)"),
+        ("hit points/s", "hit_points_per_s", "{:,.0f}",
+         f"{640e3 / PAPER_TABLE4['hit_point_tracing_ms_per_640k_cpu_1thread'] * 1e3:,.0f} (1 thread)"),
+        ("update ms / 1M, grid, sorted (target <= 150)", "update_ms_per_1M_grid_sorted", "{:.0f}",
+         "792.5 CPU / 18.4 GPU"),
+        ("update ms / 1M, grid, unsorted", "update_ms_per_1M_grid_unsorted", "{:.0f}", ""),
+        ("update ms / 1M, hash, sorted", "update_ms_per_1M_hash_sorted", "{:.0f}", ""),
+        ("update ms / 1M, hash, unsorted", "update_ms_per_1M_hash_unsorted", "{:.0f}", ""),
+    ]
+    for title, key, fmt, paper in rows:
+        cells = [fmt.format(r[key]) if key in r else "-" for r in results]
+        lines.append(f"| {title} | " + " | ".join(cells) + f" | {paper} |")
+    return "\n".join(lines)
+
+
+def machine() -> dict:
+    import os
+    return {"cpu_count": os.cpu_count(), "platform": platform.platform(),
+            "processor": platform.processor() or platform.machine()}
+
+
+def write_json(path: str, results: list[dict]) -> None:
+    with open(path, "w", encoding="utf-8") as f:
+        json.dump({"machine": machine(), "paper_table4": PAPER_TABLE4, "results": results}, f, indent=2)

@@ -1,0 +1,613 @@
+"""`dosppm evaluate SUITE`: speed against accuracy, beside other renderers.
+
+Every method renders every scene of a suite on this machine, in one run,
+and is stopped at several time budgets; each stop is compared with the
+scene's reference image (relMSE, RMSE, mean-luminance bias, and the relMSE
+of blurred images, which averages noise away so that mostly bias is left).
+
+Time is render time: scene loading, BVH builds, compiled-kernel loading and
+process start are not counted for any method (Mitsuba's scene load neither).
+The in-process methods are progressive, so one run is stopped at each
+budget in turn; Mitsuba renders once per sample count (1, 2, 4, ... spp);
+DOSPPM runs `dosppm render --mode dosppm --time T` once per budget, as a
+user would, and its clock is the server's (`seconds` in OUT.json).
+
+References come from Mitsuba 3 at high sample counts, cached on disk:
+`path`, or `ptracer` where a point light's caustic is seen directly (a
+path tracer cannot render it), blended per pixel with `path` where the
+camera sees a mirror or glass first (which light tracing cannot render).
+Where the camera sees a point light's caustic in a mirror, neither
+converges; those pixels are left out of the scores above and, where the
+case allows it, scored apart against the mirror's limit (`mirror_limit`:
+the reflectance times the floor radiance that light tracing renders from
+above).
+"""
+from __future__ import annotations
+
+import csv
+import datetime
+import json
+import math
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from dosppm_core.scene import builtin
+from dosppm_core import metrics
+from dosppm_core.film import one_line
+from dosppm_core.modes.sppm import RenderSettings, Renderer
+from dosppm_core.scene.model import Scene
+
+BLUR_SIGMA_PX = 2.0
+BUDGET_FRACTIONS = (0.125, 0.25, 0.5, 1.0)
+
+
+@dataclass(frozen=True)
+class Case:
+    """One scene of a suite: what it tests and how its reference is made."""
+    scene: str
+    tests: str
+    reference: str = "path"       # 'path', 'ptracer' or 'ptracer+path'
+    spp: int = 4096               # reference samples per pixel
+    # Pixels scored: 'all', or 'no-specular-in-view' where what the camera
+    # sees in a mirror or through glass is lit by caustics of a point light
+    # or a tiny lamp (specular-diffuse-specular paths): no independent
+    # method converges there (a path tracer's fireflies stay at 4096 spp).
+    scored: str = "all"
+    # Also score the pixels where the camera sees a mirror against the
+    # limit reference of `mirror_limit` (a flat Lambertian floor seen in
+    # perfect mirrors).
+    mirror_limit: bool = False
+
+
+@dataclass(frozen=True)
+class Suite:
+    name: str
+    width: int
+    height: int
+    cases: tuple
+    methods: tuple
+    reference_spp_scale: float = 1.0
+
+
+@dataclass(frozen=True)
+class Method:
+    name: str
+    kind: str                     # 'sppm', 'osppm', 'dosppm' or 'mitsuba'
+    options: dict = field(default_factory=dict)
+    about: str = ""
+
+
+METHODS = {m.name: m for m in (
+    Method("sppm-grid", "sppm", {"gather": "grid"}, "SPPM, exact grid gather"),
+    Method("sppm-hash-512x128x512", "sppm", {"gather": "hash", "resolution": (512, 128, 512)},
+           "SPPM, stochastic hash at the paper's table size"),
+    Method("sppm-hash-128x32x128", "sppm", {"gather": "hash", "resolution": (128, 32, 128)},
+           "SPPM, stochastic hash, 64x fewer cells"),
+    Method("sppm-hash-32x8x32", "sppm", {"gather": "hash", "resolution": (32, 8, 32)},
+           "SPPM, stochastic hash too coarse for the scene (collisions lose photons)"),
+    Method("osppm-c4", "osppm", {"chunks": 4}, "OSPPM, 4 chunks, one process"),
+    Method("osppm-c8", "osppm", {"chunks": 8}, "OSPPM, 8 chunks, one process"),
+    Method("dosppm", "dosppm", {}, "DOSPPM: server and 2 tracer processes on this machine"),
+    Method("mitsuba-path", "mitsuba", {"integrator": "path"}, "Mitsuba 3 path tracer"),
+    Method("mitsuba-ptracer", "mitsuba", {"integrator": "ptracer"}, "Mitsuba 3 light tracer"),
+)}
+
+CAUSTIC_SCENES = ("cardioid", "cornell-caustic", "glass-small-light")
+
+SUITES = {s.name: s for s in (
+    Suite("failure-modes", 128, 128, (
+        Case("cornell-box", "plain diffuse light transport: path tracing's home ground"),
+        Case("cornell-caustic", "caustics of a glass and a mirror sphere, seen directly and "
+             "in the mirror (specular-diffuse-specular)", "ptracer+path"),
+        Case("cardioid", "a point light's caustic off a mirror ring: path tracing cannot "
+             "render it", "ptracer+path", scored="no-specular-in-view", mirror_limit=True),
+        Case("glass-small-light", "a small lamp seen through glass; the room lit by caustics",
+             "ptracer+path", scored="no-specular-in-view"),
+        Case("thin-wall", "light leaking through a wall 1% of the room thick"),
+        Case("glossy-floor", "a glossy GGX floor, where SPPM converges slowly"),
+        Case("many-lights", "400 small lamps chosen by power"),
+        Case("far-from-origin", "coordinates near 1e5: float32 precision"),
+    ), tuple(METHODS)),
+    # CI's version: tiny images, seconds per method, the orderings that must
+    # hold on any machine (error falls with time; nothing is NaN).
+    Suite("mini", 32, 32, (
+        Case("cornell-box", "diffuse", spp=1024),
+        Case("cardioid", "point-light caustic", "ptracer+path", spp=1024,
+             scored="no-specular-in-view"),
+    ), ("sppm-grid", "sppm-hash-128x32x128", "osppm-c4", "mitsuba-path")),
+)}
+
+
+@dataclass
+class Sample:
+    """One stop of one method on one scene."""
+    scene: str
+    method: str
+    budget_s: float
+    seconds: float
+    photons: int
+    finite: bool
+    relmse: float = math.nan
+    rmse: float = math.nan
+    bias: float = math.nan             # relative; NaN where the reference is black
+    blurred_relmse: float = math.nan
+    mean_luminance: float = math.nan   # absolute: what leaks into a black reference
+    # Over the pixels where the camera sees a mirror, against its limit
+    # reference (cases with `mirror_limit`; NaN elsewhere).
+    mirror_limit_relmse: float = math.nan
+    mirror_limit_blurred_relmse: float = math.nan
+    mirror_limit_bias: float = math.nan
+    note: str = ""
+
+
+# -- scenes and references ----------------------------------------------------
+
+def suite_scene(suite: Suite, case: Case) -> Scene:
+    scene = builtin.make(case.scene)
+    scene.camera.width, scene.camera.height = suite.width, suite.height
+    return scene
+
+
+def reference_image(scene: Scene, case: Case, spp: int, cache_dir: str):
+    """(image, scored pixels (H, W) bool or None for all): the case's
+    Mitsuba reference (cached): `path`, `ptracer`, or the two blended by
+    the share of each pixel's eye rays whose first surface is a mirror or
+    glass (path there, light tracing elsewhere)."""
+    from dosppm_core.reference import cached_reference
+    share = None
+    if case.reference in ("path", "ptracer"):
+        image = cached_reference(scene, spp, cache_dir, integrator=case.reference)
+    elif case.reference == "ptracer+path":
+        light = cached_reference(scene, spp, cache_dir, integrator="ptracer")
+        eye = cached_reference(scene, spp, cache_dir, integrator="path")
+        share = specular_first_hit_share(scene)
+        image = (share[..., None] * eye + (1.0 - share[..., None]) * light).astype(np.float32)
+    else:
+        raise ValueError(f"unknown reference {case.reference!r}")
+    if case.scored == "all":
+        return image, None
+    if case.scored == "no-specular-in-view":
+        return image, (share if share is not None else specular_first_hit_share(scene)) == 0.0
+    raise ValueError(f"unknown pixel selection {case.scored!r}")
+
+
+def specular_first_hit_share(scene: Scene, rays_per_pixel: int = 64) -> np.ndarray:
+    """(H, W): the fraction of a pixel's jittered eye rays whose first
+    surface is a mirror or glass (geometry only: no radiance of ours)."""
+    from dosppm_core.accel import Accelerator
+    from dosppm_core.kernels.bsdf import is_specular
+    from dosppm_core.trace import eye_ray_job
+    w, h = int(scene.camera.width), int(scene.camera.height)
+    accel = Accelerator(scene.vertices, scene.triangles)
+    try:
+        count = np.zeros(w * h)
+        for k in range(rays_per_pixel):
+            rays = eye_ray_job(scene, 12345, k, 0, w * h)
+            prim = accel.intersect(rays.origin, rays.direction)[0]
+            hit = prim >= 0
+            kinds = scene.materials.kind[scene.tri_material[prim[hit]]]
+            count[rays.pixel[hit]] += [bool(is_specular(int(x))) for x in kinds]
+    finally:
+        accel.close()
+    return (count / rays_per_pixel).reshape(h, w)
+
+
+def mirror_reference(scene: Scene, reference: np.ndarray, scored, cache_dir: str):
+    """(reference with the mirror limit in the pixels where the camera sees
+    a mirror, those pixels (H, W) bool, a description): the mirror pixels
+    are the ones the blended reference leaves unscored."""
+    from dosppm_core.mirror_limit import LimitSettings, mirror_limit
+    pixels = ~scored if scored is not None else specular_first_hit_share(scene) > 0
+    limit = mirror_limit(scene, cache_dir, pixels)
+    image = np.where(pixels[..., None], limit.image, reference).astype(np.float32)
+    s = LimitSettings()
+    about = (f"mirror pixels ({pixels.mean():.0%}): limit, mirror reflectance x the floor "
+             f"seen from above by Mitsuba 3 ptracer ({s.floor_resolution}^2, {s.floor_spp} spp), "
+             f"{s.rays_per_pixel} eye rays per pixel")
+    return image, pixels, about
+
+
+# -- running the methods --------------------------------------------------------
+
+def method_available(method: Method) -> str | None:
+    """None, or why the method is skipped on this machine."""
+    if method.kind == "mitsuba":
+        try:
+            import mitsuba  # noqa: F401
+        except ImportError:
+            return "mitsuba is not installed (pip install .[reference])"
+    return None
+
+
+def run_method(method: Method, scene: Scene, budgets: list[float], seed: int,
+               work: str) -> list[tuple[float, float, int, np.ndarray]]:
+    """(budget, seconds, photons, image) at each budget."""
+    if method.kind == "sppm":
+        return _progressive(lambda: Renderer(scene, _settings(method, seed)), budgets)
+    if method.kind == "osppm":
+        return _progressive(lambda: _osppm(method, scene, seed, work), budgets)
+    if method.kind == "dosppm":
+        return _dosppm(scene, budgets, seed, work)
+    if method.kind == "mitsuba":
+        return _mitsuba(scene, method.options["integrator"], budgets, seed)
+    raise ValueError(f"unknown method kind {method.kind!r}")
+
+
+def _settings(method: Method, seed: int) -> RenderSettings:
+    s = RenderSettings(seed=seed, gather=method.options.get("gather", "grid"))
+    if "resolution" in method.options:
+        s.hash_options = {"resolution": tuple(method.options["resolution"])}
+    return s
+
+
+def _osppm(method: Method, scene: Scene, seed: int, work: str):
+    from dosppm_core.chunks.store import ChunkStore
+    from dosppm_core.modes.osppm import OutOfCoreRenderer
+    from dosppm_core.scene.soup import SceneSource
+    from dosppm_core.chunks.subdivide import subdivide
+    path = tempfile.mkdtemp(prefix="store-", dir=work)
+    os.rmdir(path)
+    subdivide(SceneSource(scene), path, chunks=int(method.options["chunks"]))
+    return OutOfCoreRenderer(ChunkStore.open(path), _settings(method, seed))
+
+
+def _progressive(make, budgets):
+    """Run a progressive renderer, stopping at each budget in turn (an
+    iteration that spans several budgets stops once, at the last), and
+    going on from there."""
+    renderer = make()
+    try:
+        out, k, t0 = [], 0, time.perf_counter()
+        while k < len(budgets):
+            renderer.run_iteration()
+            elapsed = time.perf_counter() - t0
+            if elapsed >= budgets[k]:
+                while k + 1 < len(budgets) and elapsed >= budgets[k + 1]:
+                    k += 1
+                if hasattr(renderer, "finish"):
+                    # OSPPM's image lacks the photons still queued at
+                    # portals until they are traced, as `dosppm render`
+                    # does before it writes (the time counts).
+                    renderer.finish()
+                    elapsed = time.perf_counter() - t0
+                out.append((budgets[k], elapsed, int(renderer.stats.photons_emitted),
+                            renderer.image().copy()))
+                k += 1
+        return out
+    finally:
+        renderer.close()
+
+
+def _mitsuba(scene: Scene, integrator: str, budgets, seed: int):
+    """Mitsuba at 1, 2, 4, ... spp, each timed alone, up to the last budget;
+    each render is filed under the smallest budget it fits."""
+    from dosppm_core.reference import render_reference
+    render_reference(scene, 1, integrator=integrator, seed=seed)   # load and warm up
+    out, spp = [], 1
+    while True:
+        t0 = time.perf_counter()
+        image = render_reference(scene, spp, integrator=integrator, seed=seed + spp)
+        seconds = time.perf_counter() - t0
+        if seconds > budgets[-1] * 1.25 and out:
+            return out
+        budget = next((b for b in budgets if seconds <= b), budgets[-1])
+        out.append((budget, seconds, 0, image))
+        if seconds > budgets[-1]:
+            return out
+        spp *= 2
+
+
+def _dosppm(scene: Scene, budgets, seed: int, work: str):
+    """`dosppm render --mode dosppm` per budget, on the scene's built-in
+    name; the clock is the server's render time from OUT.json."""
+    from dosppm_core.film import read_exr
+    out = []
+    for budget in budgets:
+        target = os.path.join(work, f"dosppm-{scene.name}-{budget:g}.exr")
+        cmd = [sys.executable, "-m", "services.cli", "render", scene.name, "--mode", "dosppm",
+               "--time", f"{budget:g}", "--seed", str(seed), "--width", str(scene.camera.width),
+               "--height", str(scene.camera.height), "--out", target, "--quiet", "--http", "off"]
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=budget * 4 + 120)
+        if done.returncode != 0:
+            raise RuntimeError(f"dosppm render failed: {done.stderr.strip().splitlines()[-1:]}")
+        with open(os.path.splitext(target)[0] + ".json", encoding="utf-8") as f:
+            summary = json.load(f)
+        seconds = float(summary["seconds"])          # rendering, the final drain included
+        photons = int(summary["photons_in_image"])
+        out.append((budget, seconds, photons, read_exr(target)[0]))
+    return out
+
+
+# -- scoring --------------------------------------------------------------------
+
+def score(scene: str, method: str, budget: float, seconds: float, photons: int,
+          image: np.ndarray, reference: np.ndarray, scored: np.ndarray | None = None) -> Sample:
+    """The sample's errors against `reference` over the `scored` pixels
+    (all if None; the blur sees the whole image); a non-finite image is
+    recorded as such (its errors stay NaN)."""
+    finite = bool(np.isfinite(image).all())
+    s = Sample(scene, method, float(budget), float(seconds), int(photons), finite)
+    if finite:
+        pick = (lambda x: x) if scored is None else (lambda x: x[scored])
+        s.relmse = metrics.relmse(pick(image), pick(reference))
+        s.rmse = metrics.rmse(pick(image), pick(reference))
+        s.mean_luminance = float(np.mean(metrics.luminance(pick(image))))
+        if np.mean(metrics.luminance(pick(reference))) > 0:
+            s.bias = metrics.mean_luminance_bias(pick(image), pick(reference))
+        s.blurred_relmse = metrics.blurred_relmse(image, reference, BLUR_SIGMA_PX, where=scored)
+    return s
+
+
+def score_mirror_limit(s: Sample, image: np.ndarray, limit: np.ndarray,
+                       pixels: np.ndarray) -> Sample:
+    """Add the errors over the mirror `pixels` against `limit` (the
+    reference with the mirror limit there; the blur sees the whole image)."""
+    if s.finite:
+        s.mirror_limit_relmse = metrics.relmse(image[pixels], limit[pixels])
+        s.mirror_limit_blurred_relmse = metrics.blurred_relmse(image, limit, BLUR_SIGMA_PX,
+                                                               where=pixels)
+        s.mirror_limit_bias = metrics.mean_luminance_bias(image[pixels], limit[pixels])
+    return s
+
+
+@dataclass
+class Evaluation:
+    suite: str
+    budget_s: float
+    samples: list = field(default_factory=list)
+    skipped: dict = field(default_factory=dict)      # method -> why
+    failed: dict = field(default_factory=dict)       # "scene/method" -> error
+    references: dict = field(default_factory=dict)   # scene -> description
+    images: dict = field(default_factory=dict)       # (scene, method) -> image at full budget
+
+
+def evaluate(suite: Suite, budget_s: float, methods: list[str] | None = None,
+             scenes: list[str] | None = None, cache_dir: str | None = None, seed: int = 1,
+             log=print, out_dir: str | None = None) -> Evaluation:
+    """Run the suite; `methods` / `scenes` restrict it. With `out_dir`, the
+    results so far are written after every scene, so a run that is cut
+    short keeps what it measured."""
+    cache_dir = cache_dir or os.path.join(os.path.expanduser("~"), ".cache", "dosppm", "references")
+    chosen = [METHODS[m] for m in (methods or suite.methods)]
+    budgets = [budget_s * f for f in BUDGET_FRACTIONS]
+    ev = Evaluation(suite.name, budget_s)
+    running = {c.scene for c in suite.cases if not scenes or c.scene in scenes}
+    if out_dir:
+        carry_over(ev, out_dir, running)
+    for m in chosen:
+        why = method_available(m)
+        if why:
+            ev.skipped[m.name] = why
+            log(f"skipped {m.name}: {why}")
+    _warm_kernels()
+    with tempfile.TemporaryDirectory(prefix="dosppm-evaluate-") as work:
+        for case in suite.cases:
+            if scenes and case.scene not in scenes:
+                continue
+            scene = suite_scene(suite, case)
+            spp = max(16, int(case.spp * suite.reference_spp_scale))
+            log(f"{case.scene}: reference ({case.reference}, {spp} spp)")
+            try:
+                reference, scored = reference_image(scene, case, spp, cache_dir)
+            except Exception as exc:  # noqa: BLE001 - nothing to score against; the other scenes go on
+                _record_failure(ev, f"{case.scene}/reference", exc, log)
+                continue
+            ev.references[case.scene] = f"Mitsuba 3 {case.reference}, {spp} spp" + (
+                "" if scored is None else f"; {scored.mean():.0%} of pixels scored ({case.scored})")
+            ev.images[(case.scene, "reference")] = reference
+            limit = _mirror_limit(ev, case, scene, reference, scored, cache_dir, log)
+            for m in chosen:
+                if m.name in ev.skipped:
+                    continue
+                log(f"{case.scene}: {m.name}")
+                try:
+                    stops = run_method(m, scene, budgets, seed, work)
+                    for budget, seconds, photons, image in stops:
+                        s = score(case.scene, m.name, budget, seconds, photons, image,
+                                  reference, scored)
+                        ev.samples.append(s if limit is None else
+                                          score_mirror_limit(s, image, *limit))
+                except Exception as exc:  # noqa: BLE001 - one failing method must not end the suite
+                    _record_failure(ev, f"{case.scene}/{m.name}", exc, log)
+                    continue
+                if stops:
+                    ev.images[(case.scene, m.name)] = stops[-1][3]
+            if out_dir:
+                write_results(ev, out_dir)
+    return ev
+
+
+def _record_failure(ev: Evaluation, what: str, exc: BaseException, log) -> None:
+    """A failure is recorded in one line and the suite goes on."""
+    ev.failed[what] = one_line(exc)
+    log(f"{what} failed: {ev.failed[what]}")
+
+
+def _mirror_limit(ev: Evaluation, case: Case, scene: Scene, reference, scored, cache_dir, log):
+    """(limit reference, mirror pixels) for a case that asks for it, else
+    None; a failure is recorded and the ordinary scores go on."""
+    if not case.mirror_limit:
+        return None
+    log(f"{case.scene}: mirror limit reference")
+    try:
+        image, pixels, about = mirror_reference(scene, reference, scored, cache_dir)
+    except Exception as exc:  # noqa: BLE001 - the rest of the scene is still scored
+        _record_failure(ev, f"{case.scene}/mirror-limit", exc, log)
+        return None
+    ev.references[case.scene] += f"; {about}"
+    ev.images[(case.scene, "mirror limit")] = image
+    return image, pixels
+
+
+def carry_over(ev: Evaluation, out_dir: str, running: set) -> None:
+    """Keep the results of scenes this run does not repeat, from an earlier
+    run of the same suite and budget into `out_dir` (re-run one scene
+    without losing the others)."""
+    try:
+        with open(os.path.join(out_dir, "results.json"), encoding="utf-8") as f:
+            doc = json.load(f)
+    except (OSError, ValueError):
+        return
+    if doc.get("suite") != ev.suite or doc.get("budget_s") != ev.budget_s:
+        return
+    names = Sample.__dataclass_fields__
+    for row in doc.get("samples", []):
+        if row.get("scene") not in running:
+            ev.samples.append(Sample(**{k: (math.nan if v is None else v)
+                                        for k, v in row.items() if k in names}))
+    ev.references.update({k: v for k, v in doc.get("references", {}).items() if k not in running})
+    ev.failed.update({k: v for k, v in doc.get("failed", {}).items()
+                      if k.split("/")[0] not in running})
+
+
+def _warm_kernels() -> None:
+    """Compile (or load) the numba kernels, the chunked ones included,
+    before any clock starts."""
+    scene = builtin.make("cornell-box")
+    scene.camera.width = scene.camera.height = 8
+    with tempfile.TemporaryDirectory(prefix="dosppm-warm-") as work:
+        for make in (lambda: Renderer(scene, RenderSettings(photons_per_iteration=2000)),
+                     lambda: _osppm(METHODS["osppm-c4"], scene, 0, work)):
+            r = make()
+            r.settings.photons_per_iteration = 2000
+            for gather in ("grid", "hash"):
+                r.settings.gather = gather
+                r.run_iteration()
+            r.close()
+
+
+# -- output ---------------------------------------------------------------------
+
+def write_results(ev: Evaluation, out_dir: str) -> list[str]:
+    """results.json, results.csv, summary.md and, with matplotlib, the
+    charts. Returns the paths written."""
+    os.makedirs(out_dir, exist_ok=True)
+    rows = [{k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+             for k, v in asdict(s).items()} for s in ev.samples]
+    doc = {"suite": ev.suite, "budget_s": ev.budget_s, "machine": _machine(),
+           "commit": _commit(), "date": datetime.datetime.now().isoformat(timespec="seconds"),
+           "references": ev.references, "skipped": ev.skipped, "failed": ev.failed,
+           "methods": {m: METHODS[m].about for m in {r["method"] for r in rows}},
+           "samples": rows}
+    paths = [os.path.join(out_dir, "results.json"), os.path.join(out_dir, "results.csv"),
+             os.path.join(out_dir, "summary.md")]
+    with open(paths[0], "w", encoding="utf-8") as f:
+        json.dump(doc, f, indent=1, allow_nan=False)
+    with open(paths[1], "w", newline="", encoding="utf-8") as f:
+        writer = csv.DictWriter(f, fieldnames=list(Sample.__dataclass_fields__))
+        writer.writeheader()
+        writer.writerows(rows)
+    with open(paths[2], "w", encoding="utf-8") as f:
+        f.write(summary_markdown(ev))
+    try:
+        from services.evaluation import charts as evaluate_charts
+    except ImportError as exc:
+        print(f"charts skipped: {exc}", file=sys.stderr)
+    else:
+        paths += evaluate_charts.write_charts(ev, out_dir)
+    return paths
+
+
+def final_samples(ev: Evaluation) -> dict:
+    """(scene, method) -> the sample at the largest budget."""
+    best = {}
+    for s in ev.samples:
+        key = (s.scene, s.method)
+        if key not in best or s.budget_s >= best[key].budget_s:
+            best[key] = s
+    return best
+
+
+def summary_markdown(ev: Evaluation) -> str:
+    last = final_samples(ev)
+    scenes = _scene_order(ev)
+    methods = list(dict.fromkeys(s.method for s in ev.samples))
+    lines = [f"relMSE at {ev.budget_s:g} s of render time (suite `{ev.suite}`), with the "
+             "mean-luminance bias, or the mean luminance Y where the reference is black "
+             "(light that leaked); ! = a non-finite pixel", "",
+             "| scene | " + " | ".join(methods) + " |", "|---|" + "---|" * len(methods)]
+    for scene in scenes:
+        cells = []
+        for m in methods:
+            s = last.get((scene, m))
+            cells.append("-" if s is None else "!" if not s.finite else
+                         f"{s.relmse:.3g} ({s.bias:+.1%})" if math.isfinite(s.bias) else
+                         f"{s.relmse:.3g} (Y {s.mean_luminance:.2g})")
+        lines.append(f"| {scene} | " + " | ".join(cells) + " |")
+    lines += mirror_limit_table(ev, last, methods)
+    lines += ["", *claims(ev)]
+    if ev.skipped:
+        lines += ["", "Skipped: " + "; ".join(f"{m} ({why})" for m, why in ev.skipped.items())]
+    if ev.failed:
+        lines += ["", "Failed: " + "; ".join(f"{k} ({why})" for k, why in ev.failed.items())]
+    return "\n".join(lines) + "\n"
+
+
+def mirror_limit_table(ev: Evaluation, last: dict, methods: list) -> list[str]:
+    """The pixels where the camera sees a mirror, against the mirror's limit
+    reference: relMSE, blurred relMSE and bias at the last stop."""
+    scenes = [sc for sc in _scene_order(ev)
+              if any(math.isfinite(s.mirror_limit_relmse) for k, s in last.items() if k[0] == sc)]
+    if not scenes:
+        return []
+    lines = ["", f"Mirror pixels against the mirror limit at {ev.budget_s:g} s: relMSE / "
+             f"blurred relMSE ({BLUR_SIGMA_PX:g} px) (mean-luminance bias)", "",
+             "| scene | " + " | ".join(methods) + " |", "|---|" + "---|" * len(methods)]
+    for scene in scenes:
+        cells = []
+        for m in methods:
+            s = last.get((scene, m))
+            cells.append("-" if s is None or not math.isfinite(s.mirror_limit_relmse) else
+                         f"{s.mirror_limit_relmse:.3g} / {s.mirror_limit_blurred_relmse:.3g} "
+                         f"({s.mirror_limit_bias:+.1%})")
+        lines.append(f"| {scene} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def claims(ev: Evaluation) -> list[str]:
+    """The issue's two claims as measured: SPPM against Mitsuba `path` at
+    equal time, on the caustic scenes and the others; where the reference
+    is black (a dark room behind a thin wall), the light each leaked."""
+    last = final_samples(ev)
+    out = []
+    for scene in _scene_order(ev):
+        ours, path = last.get((scene, "sppm-grid")), last.get((scene, "mitsuba-path"))
+        if not (ours and path and ours.finite and path.finite):
+            continue
+        if not math.isfinite(ours.bias):
+            out.append(f"- {scene} (black reference): mean luminance leaked, SPPM grid "
+                       f"{ours.mean_luminance:.2g}, Mitsuba path {path.mean_luminance:.2g}")
+            continue
+        ratio = path.relmse / ours.relmse if ours.relmse > 0 else math.inf
+        kind = "caustic" if scene in CAUSTIC_SCENES else "other"
+        out.append(f"- {scene} ({kind}): Mitsuba path relMSE / SPPM grid relMSE = {ratio:.3g} "
+                   f"({'SPPM lower' if ratio > 1 else 'path lower'})")
+    return out
+
+
+def _scene_order(ev: Evaluation) -> list[str]:
+    """The scenes with samples, in the suite's order."""
+    order = [c.scene for c in SUITES[ev.suite].cases] if ev.suite in SUITES else []
+    seen = list(dict.fromkeys(s.scene for s in ev.samples))
+    return [s for s in order if s in seen] + [s for s in seen if s not in order]
+
+
+def _machine() -> dict:
+    return {"cpus": os.cpu_count(), "platform": platform.platform(),
+            "python": platform.python_version()}
+
+
+def _commit() -> str:
+    try:
+        here = os.path.dirname(os.path.abspath(__file__))
+        return subprocess.run(["git", "-C", here, "rev-parse", "--short", "HEAD"], capture_output=True,
+                              text=True, timeout=10).stdout.strip() or "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"

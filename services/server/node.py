@@ -1,0 +1,413 @@
+"""The server process: `ServerState` behind a ZeroMQ ROUTER (`dosppm server`).
+
+One thread runs the message loop: receive, feed the state, send what it
+returns (never blocking on a tracer: each has an outbox), and every so
+often report progress, write snapshots and check the stop limits. A second
+thread applies the statistics updates the state hands over (server
+batching, §4.3); their kernels release the GIL, so heartbeats, status and
+deposits keep flowing during an update, and emission pauses while updates
+queue up rather than letting deposits pile up in memory. A third serves
+the read-only HTTP status page.
+
+The render stops at a time, photon or iteration limit, or on SIGINT /
+SIGTERM: emission stops, every job in flight is awaited (up to a drain
+timeout), the last partial batch is applied and the image is written. A
+second signal skips the wait; the image so far is written in every case.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import queue
+import signal
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+
+import zmq
+
+from dosppm_core.film import encode_png, tonemap_srgb8, write_exr, write_png
+from dosppm_core.jobs import PhotonDeposits
+from dosppm_core.modes.sppm import Progress, RenderSettings
+
+from services.server import checkpoint
+from services import wire
+from services.server.state import ServerState, Update
+from services.server.statistics import ServerStatistics
+from services.server.http import StatusServer
+
+log = logging.getLogger("dosppm.server")
+ACCEPT = {"register", "heartbeat", "results", "chunk_request", "error"}
+STATUS_INTERVAL_S = 0.5
+PROGRESS_INTERVAL_S = 1.0
+MAX_UPDATES_QUEUED = 2       # statistics updates waiting before emission pauses
+
+
+@dataclass
+class Limits:
+    seconds: float | None = None
+    photons: float | None = None
+    iterations: int | None = None
+
+    def reached(self, seconds: float, photons: int, iterations: int) -> bool:
+        return ((self.seconds is not None and seconds >= self.seconds)
+                or (self.photons is not None and photons >= self.photons)
+                or (self.iterations is not None and iterations >= self.iterations))
+
+
+class ServerProcess:
+    def __init__(self, store, settings: RenderSettings, bind: str = "tcp://127.0.0.1:5555",
+                 http: tuple[str, int] | None = ("127.0.0.1", 8080), out: str = "out.exr",
+                 limits: Limits | None = None, snapshot_interval_s: float = 60.0,
+                 min_photon_jobs: int = 1000, min_tracers: int = 1,
+                 queue_target_rays: int = 262_144, threads: int = 2, exposure: float = 0.0,
+                 drain_timeout_s: float = 60.0, reporter=None, context: zmq.Context | None = None,
+                 concurrent: bool = True, client_batching: bool = True, tracer_timeout_s: float = 10.0,
+                 checkpoint_dir: str | None = None, checkpoint_interval_s: float = 60.0,
+                 resume: dict | None = None, curve_secret: str | None = None,
+                 curve_clients: str | None = None):
+        self.store, self.settings = store, settings
+        self.out, self.exposure, self.reporter = out, exposure, reporter
+        self.limits = limits or Limits(seconds=30.0)
+        self.snapshot_interval_s, self.drain_timeout_s = snapshot_interval_s, drain_timeout_s
+        self.state = ServerState(store.header, store.tree, settings, store.key, store.manifest,
+                                 min_photon_jobs=min_photon_jobs, queue_target_rays=queue_target_rays,
+                                 min_tracers=min_tracers, concurrent=concurrent,
+                                 client_batching=client_batching, tracer_timeout_s=tracer_timeout_s)
+        self.statistics = ServerStatistics(store.header, settings, threads=threads)
+        self.checkpoint_dir, self.checkpoint_interval_s = checkpoint_dir, checkpoint_interval_s
+        if resume is not None:
+            checkpoint.restore(self.statistics.stats, resume)
+            self.state.resume(resume)
+        self.ctx = context or zmq.Context.instance()
+        self.router = wire.configure(self.ctx.socket(zmq.ROUTER))
+        self.auth = None
+        if curve_secret:   # CURVE: encrypted, and only listed tracers get in
+            if not curve_clients:
+                raise wire.WireError("--curve-secret needs --curve-clients (the tracers' public keys)")
+            self.auth = wire.start_authenticator(self.ctx, curve_clients)
+            wire.curve_server(self.router, curve_secret)
+        self.router.bind(bind)
+        self.endpoint = self.router.getsockopt(zmq.LAST_ENDPOINT).decode()
+        self.http = StatusServer(self._status_snapshot, self._preview_png, *http) if http else None
+        self._outbox: dict[str, deque] = {}
+        self._lost: list[str] = []
+        self._updates: queue.Queue = queue.Queue()
+        self._boxes: queue.Queue = queue.Queue()
+        self._status: dict = {}
+        self._status_lock = threading.Lock()
+        self._preview: tuple[float, bytes | None] = (-1e30, None)
+        self._signals = 0
+        self.watch = None          # () -> error text or None, checked with the status
+        self.failure: str | None = None
+        self.started_at: float | None = None
+        self.finished_at: float | None = None
+        self.bytes_in = self.bytes_out = 0
+        self.undeliverable = 0
+
+    @property
+    def status_url(self) -> str | None:
+        return self.http.url if self.http else None
+
+    # -- the loop ----------------------------------------------------------------------
+    def run(self) -> dict:
+        """Render until a limit or a signal; write the image; return a summary."""
+        worker = threading.Thread(target=self._apply_updates, name="statistics", daemon=True)
+        worker.start()
+        if self.http:
+            self.http.start()
+        restore = self._install_signal_handlers()
+        try:
+            self._serve()
+            self.finished_at = time.monotonic()
+        finally:
+            self._coalesce_queued_updates()
+            if self.checkpoint_dir and self.state.counters["photons_committed"]:
+                self._checkpoint()
+            self._updates.put(None)
+            worker.join()
+            self._write_image()
+            self._say_goodbye()
+            restore()
+            if self.http:
+                self.http.close()
+            self.router.close(linger=wire.LINGER_MS)
+            if self.auth is not None:
+                self.auth.stop()
+        return self.summary()
+
+    def _serve(self) -> None:
+        phase, drain_deadline = "render", None
+        last_status = last_progress = last_snapshot = 0.0
+        last_checkpoint = time.monotonic()
+        while True:
+            now = time.monotonic()
+            self._receive(now)
+            self._send(self.state.tick(now))
+            self._pump_updates()
+            if self.state.started and self.started_at is None:
+                self.started_at = now
+            if now - last_status >= STATUS_INTERVAL_S:
+                last_status = now
+                self._publish_status(now, phase)
+                self._check_watch()
+            if now - last_progress >= PROGRESS_INTERVAL_S and self.reporter and self.started_at:
+                last_progress = now
+                self.reporter(self.progress())
+            if now - last_snapshot >= self.snapshot_interval_s and self.state.eye_completed:
+                last_snapshot = now
+                self._write_image()
+            if self._checkpoint_due(now - last_checkpoint):
+                last_checkpoint = now
+                self._checkpoint()
+            if phase == "render" and (self._signals or self._limit_reached(now)):
+                phase, drain_deadline = "draining", now + self.drain_timeout_s
+                self.state.stop_emitting()
+            if phase == "draining" and (self.state.drained or now > drain_deadline or self._signals > 1):
+                if not self.state.drained:
+                    log.warning("stopping with %d jobs in flight", len(self.state.jobs))
+                self.state.finish()
+                self._pump_updates()
+                return
+
+    def _checkpoint_due(self, since_s: float) -> bool:
+        return bool(self.checkpoint_dir) and self.checkpoint_interval_s > 0 and \
+            since_s >= self.checkpoint_interval_s and self.state.counters["photons_committed"] > 0
+
+    def _checkpoint(self) -> None:
+        """Queued behind the updates before it, so it saves exactly the
+        photons handed over so far (written on the statistics thread)."""
+        self._updates.put(Update("checkpoint", directory=self.checkpoint_dir,
+                                 meta=self.state.checkpoint_meta()))
+
+    @property
+    def interrupted(self) -> bool:
+        return self._signals > 0
+
+    def _check_watch(self) -> None:
+        problem = self.watch() if self.watch and not self.failure else None
+        if problem:
+            log.error("%s: stopping", problem)
+            self.failure = problem
+            self._signals = 2        # stop now; the image so far is still written
+
+    def _limit_reached(self, now: float) -> bool:
+        # Never stop before one batch of photons has been applied: a render
+        # whose time went to compiling or loading still yields an image.
+        if self.started_at is None or not self.state.counters["photons_committed"]:
+            return False
+        c = self.state.counters
+        # Photon and iteration limits count the whole render, resumed part included.
+        st = self.state
+        return self.limits.reached(now - self.started_at, st.photons_before + c["photons_emitted"],
+                                   st.iterations_before + st.eye_completed)
+
+    def _receive(self, now: float) -> None:
+        if not self.router.poll(5):
+            return
+        for _ in range(1000):           # bounded, so ticks and status keep their pace
+            try:
+                got = wire.recv_or_reply(self.router, accept=ACCEPT, flags=zmq.NOBLOCK)
+            except zmq.Again:
+                return
+            if got is None:
+                continue
+            prefix, msg = got
+            tid = prefix[0].decode("utf-8", "replace")
+            if msg.type == "register":
+                self._send(self.state.on_register(tid, msg, now))
+            elif msg.type == "chunk_request":
+                self._send_chunk(tid, msg.chunk)
+            elif msg.type == "error":
+                log.warning("tracer %s reports: %s", tid, msg.reason)
+            else:
+                self._send(self.state.on_message(tid, msg, now))
+
+    def _send_chunk(self, tid: str, chunk: int) -> None:
+        """A chunk file by index (never by path: no traversal possible)."""
+        if not 0 <= chunk < self.store.chunk_count:
+            self._queue(tid, wire.encode("error", reason=f"chunk_request: no chunk {chunk} "
+                                         f"(store has {self.store.chunk_count})", about="chunk_request"))
+            return
+        entry = self.store.manifest["chunks"][chunk]
+        with open(os.path.join(self.store.path, entry["file"]), "rb") as f:
+            data = f.read()
+        for frames in wire.chunk_parts(chunk, entry["sha256"], data):
+            self._queue(tid, frames)
+
+    def _send(self, outs) -> None:
+        for o in outs:
+            self._queue(o.dest, wire.encode(o.type, **o.fields))
+        while self._lost:
+            tid = self._lost.pop()
+            if tid in self.state.tracers:
+                self._send(self.state.evict(tid, "unreachable"))
+
+    def _queue(self, tid: str, frames) -> None:
+        self._outbox.setdefault(tid, deque()).append(frames)
+        self._flush(tid)
+
+    def _flush(self, tid: str) -> None:
+        """Non-blocking, in order; what the tracer's pipe cannot take yet
+        waits in its outbox (bounded by the credit the state gives it)."""
+        box = self._outbox[tid]
+        while box:
+            try:
+                wire.send(self.router, box[0], [tid.encode()], block=False)
+            except zmq.Again:
+                return
+            except zmq.ZMQError as e:
+                if e.errno != zmq.EHOSTUNREACH:
+                    raise
+                self.undeliverable += len(box)
+                log.warning("tracer %s unreachable: %d messages not delivered", tid, len(box))
+                box.clear()
+                # Jobs may have been in what was lost: drop the tracer (its
+                # jobs in flight are re-emitted); it registers again when it
+                # hears it is unknown.
+                if tid in self.state.tracers:
+                    self._lost.append(tid)
+                return
+            self.bytes_out += sum(memoryview(f).nbytes for f in box.popleft())
+
+    # -- statistics --------------------------------------------------------------------
+    def _pump_updates(self) -> None:
+        for tid in [t for t, b in self._outbox.items() if b]:
+            self._flush(tid)
+        while self.state.updates:
+            self._updates.put(self.state.updates.popleft())
+        while True:
+            try:
+                box = self._boxes.get_nowait()
+            except queue.Empty:
+                break
+            if box is not None:
+                self.state.gather_box = box
+        # Server batching's back-pressure (§5.7, the server as bottleneck):
+        # stop emitting photons while updates queue, instead of holding ever
+        # more deposits.
+        self.state.paused = self._updates.qsize() >= MAX_UPDATES_QUEUED
+
+    def _coalesce_queued_updates(self) -> None:
+        """At the end, merge runs of queued photon batches into one update
+        each: a server that fell behind (tiny --photon-batch) finishes in
+        one gather per run instead of one per batch, and the result is the
+        same photons applied once."""
+        queued = []
+        while True:
+            try:
+                queued.append(self._updates.get_nowait())
+                self._updates.task_done()
+            except queue.Empty:
+                break
+        merged: list[Update] = []
+        for u in queued:
+            if merged and u.kind == "photons" and merged[-1].kind == "photons":
+                last = merged[-1]
+                merged[-1] = Update("photons", deposits=PhotonDeposits.concat([last.deposits, u.deposits]),
+                                    photons_emitted=last.photons_emitted + u.photons_emitted)
+            else:
+                merged.append(u)
+        for u in merged:
+            self._updates.put(u)
+
+    def _apply_updates(self) -> None:
+        while True:
+            u = self._updates.get()
+            if u is None:
+                return
+            try:
+                self._boxes.put(self.statistics.apply(u))
+            except Exception:   # noqa: BLE001 - log and keep the render alive
+                log.exception("statistics update failed")
+                self._boxes.put(None)
+            finally:
+                self._updates.task_done()
+
+    # -- output ----------------------------------------------------------------------
+    def _write_image(self) -> None:
+        if not self.state.eye_completed or not self.out:
+            return
+        img = self.statistics.image()
+        os.makedirs(os.path.dirname(os.path.abspath(self.out)), exist_ok=True)
+        write_exr(self.out, img, self.statistics.layers())
+        write_png(os.path.splitext(self.out)[0] + ".png", img, exposure=self.exposure)
+
+    def _say_goodbye(self) -> None:
+        reason = "interrupted" if self._signals else "render complete"
+        if self.failure:
+            reason = f"stopped: {self.failure}"
+        self._send(self.state.shutdown_messages(reason))
+        deadline = time.monotonic() + 2.0
+        while any(self._outbox.values()) and time.monotonic() < deadline:
+            for tid in [t for t, b in self._outbox.items() if b]:
+                self._flush(tid)
+            time.sleep(0.01)
+
+    # -- status --------------------------------------------------------------------------
+    def progress(self) -> Progress:
+        s = self.state
+        seconds = time.monotonic() - self.started_at if self.started_at else 0.0
+        return Progress(s.eye_completed, s.counters["photons_emitted"], s.counters["hit_points"],
+                        seconds, {k: v for k, v in s.status()["path_ends"].items()})
+
+    def _publish_status(self, now: float, phase: str) -> None:
+        st = self.state.status()
+        seconds = now - self.started_at if self.started_at else 0.0
+        st.update(phase=phase, seconds=round(seconds, 3), endpoint=self.endpoint,
+                  photons_per_s=st["photons_emitted"] / seconds if seconds > 0 else 0.0,
+                  hit_points_per_s=st["hit_points"] / seconds if seconds > 0 else 0.0,
+                  eta_s=self._eta(seconds, st), update_seconds=round(self.statistics.update_seconds, 3),
+                  updates_queued=self._updates.qsize(), bytes_out=self.bytes_out,
+                  cpu_s=round(time.process_time(), 3),
+                  undeliverable=self.undeliverable)
+        with self._status_lock:
+            self._status = st
+
+    def _eta(self, seconds: float, st: dict) -> float | None:
+        lim = self.limits
+        if lim.seconds is not None:
+            return max(0.0, lim.seconds - seconds)
+        if lim.photons is not None and st["photons_emitted"] > 0:
+            return max(0.0, (lim.photons - st["photons_emitted"]) * seconds / st["photons_emitted"])
+        if lim.iterations is not None and st["iteration"] > 0:
+            return max(0.0, (lim.iterations - st["iteration"]) * seconds / st["iteration"])
+        return None
+
+    def _status_snapshot(self) -> dict:
+        with self._status_lock:
+            return dict(self._status)
+
+    def _preview_png(self) -> bytes | None:
+        """The current image as PNG, made at most every 2 s (HTTP thread)."""
+        made, png = self._preview
+        if time.monotonic() - made < 2.0:
+            return png
+        if not self.statistics.stats.has_radius:
+            return None
+        png = encode_png(tonemap_srgb8(self.statistics.image(), self.exposure))
+        self._preview = (time.monotonic(), png)
+        return png
+
+    def summary(self) -> dict:
+        st = self._status_snapshot() or self.state.status()
+        st = dict(st, **self.state.status())
+        st["update_seconds"] = self.statistics.update_seconds
+        st["photons_applied"] = self.statistics.photons_applied
+        st["photons_in_image"] = int(self.statistics.stats.photons_emitted)   # N_e, resumed part included
+        st["cpu_s"] = round(time.process_time(), 3)
+        if self.started_at is not None and self.finished_at is not None:
+            st["seconds"] = self.finished_at - self.started_at   # rendering, drain included
+        return st
+
+    # -- signals -------------------------------------------------------------------------
+    def _install_signal_handlers(self):
+        if threading.current_thread() is not threading.main_thread():
+            return lambda: None
+
+        def handler(signum, frame):
+            self._signals += 1
+            log.warning("signal %d: %s", signum, "stopping" if self._signals == 1 else "stopping now")
+        old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+        return lambda: [signal.signal(s, h) for s, h in old.items()]

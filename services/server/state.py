@@ -1,0 +1,678 @@
+"""The server's state (Günther & Grosch §3.1 "Network", §3.3, §4.3), apart
+from its sockets.
+
+`ServerState` is fed decoded messages and clock ticks and returns `Out`
+records to send; the I/O shell (`server.py`) moves frames and runs the
+statistics updates it hands over. What it does:
+
+- Registration: tracers join at any time; chunks are assigned round robin
+  (c >= n: tracer i serves chunks i, i + n, ...; c < n: chunk k is shared
+  by tracers k, k + c, ...), and every tracer gets the table of who serves
+  which chunk whenever it changes.
+- Emission: photon jobs are created while fewer than `min_photon_jobs` are
+  in flight (§3.3) and sent, as they fit, to the tracers serving the chunks
+  their photons start in; a tracer whose reported queue plus what was sent
+  since passes `queue_target_rays` gets nothing more until it reports
+  again (back-pressure by credit, so a slow tracer slows only its share).
+  Eye iterations are split into tiles (§5.6) and run at the same time as
+  photons: the next starts once the last is complete and
+  `photons_per_iteration` photons have been emitted since it started.
+- Exact accounting: the server made every path, so it knows each job's
+  path count; tracers report ended paths per job; a job is complete when
+  all its paths have ended (no timeout). Only then do its photons count as
+  emitted (N_e), exactly once, and only complete eye iterations replace
+  the hit points.
+- Server batching: deposits are held until their job is complete and
+  handed over for one statistics update per `photon_batch` deposits (§4.3);
+  `finish` hands over the last partial batch.
+- Culling: emission jobs carry the hit-point box grown by the largest
+  radius (the shell sets it after each update), so tracers cull deposits
+  before sending them (§4.3).
+"""
+from __future__ import annotations
+
+import itertools
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from dosppm_core.chunks.view import start_chunks
+from dosppm_core.jobs import END_NAMES, HitPoints, PhotonDeposits, RayBatch
+from dosppm_core.modes.sppm import RenderSettings
+from dosppm_core.trace import emit_photon_job, eye_ray_job
+
+from services.wire import JOB_MESSAGES, PROTOCOL_VERSION
+
+MESSAGE_RAYS = 32_768         # rays per job message the server aims for
+TOTAL_CREDIT_RAYS = 1 << 20   # rays queued at all tracers together, at most (see `credit`)
+MAX_TRACERS = 1024            # registrations beyond this are refused (memory stays bounded)
+UNKNOWN, IN_FLIGHT, COMPLETE, DISCARDED = 0, 1, 2, 3     # photon job status
+HEARTBEAT_INTERVAL_S = 1.0
+# A job message an idle tracer has not acknowledged this long after it was
+# sent is lost (see `_check_delivery`).
+JOB_MESSAGE_LOST_S = 4.0
+# A job untouched this long while every tracer is idle is lost (`_watchdog`).
+STALL_S = 4.0
+# Tracer heartbeat fields the server passes on in its status.
+STATUS_KEYS = ("load", "resident", "busy_s", "steps", "rays_traced", "portal_rays_out", "portal_rays_in",
+               "forwarded_rays", "cpu_s", "bytes_to_server", "bytes_to_peers", "outbox", "outbox_rays")
+
+
+@dataclass
+class Out:
+    dest: str                 # tracer id
+    type: str
+    fields: dict
+
+
+@dataclass
+class TracerInfo:
+    id: str
+    index: int
+    endpoint: str
+    cores: int
+    memory_bytes: int
+    store_key: str | None
+    last_seen_s: float
+    public_key: str | None = None   # its CURVE key, handed to its peers
+    session: int = 0                # counts its welcomes; heartbeats echo the one it got
+    welcomed_s: float = 0.0
+    status_s: float = -1e30         # when its last heartbeat came
+    jobs_sent: int = 0              # job messages sent since the welcome...
+    unacked: deque = field(default_factory=deque)   # ...and when, for those not yet acknowledged
+    queued: int = 0                 # rays waiting at the tracer, as last reported
+    sent_since_report: int = 0      # rays sent to it since
+    status: dict = field(default_factory=dict)
+    rays_sent: int = 0
+    results: int = 0
+
+    @property
+    def load_estimate(self) -> int:
+        return self.queued + self.sent_since_report
+
+
+@dataclass
+class Job:
+    kind: str                        # "photon" or "eye"
+    paths: int                       # N_j, counted as emitted when complete
+    eye_iteration: int | None = None
+    open: int = 0                    # path segments sent or passed on, not yet traced
+    sent: bool = False               # all its paths have left the server
+    progress_s: float = 0.0          # when a result last touched it (the watchdog's clock)
+    # The photon job whose random streams this one traces: itself, or the
+    # job it re-emits after a tracer failure (the same photons, a new id).
+    rng_key: int | None = None
+
+
+@dataclass
+class EyeIteration:
+    index: int
+    open_jobs: int
+    hits: list = field(default_factory=list)
+    pixels: list = field(default_factory=list)
+    rgb: list = field(default_factory=list)
+
+
+@dataclass
+class Update:
+    """One statistics step for the shell to run, in order: install the hit
+    points of a complete eye iteration, or apply a batch of photons."""
+    kind: str                        # "hits", "photons" or "checkpoint"
+    hits: HitPoints | None = None
+    emitted_light: tuple | None = None
+    deposits: PhotonDeposits | None = None
+    photons_emitted: int = 0
+    directory: str | None = None     # "checkpoint": where, and what besides the statistics
+    meta: dict | None = None
+
+
+def assign_chunks(chunk_count: int, endpoints: list[str]) -> list[list[str]]:
+    """Who serves each chunk, round robin over the tracers in join order."""
+    n = len(endpoints)
+    if n == 0:
+        return [[] for _ in range(chunk_count)]
+    if chunk_count >= n:
+        return [[endpoints[k % n]] for k in range(chunk_count)]
+    return [[endpoints[i] for i in range(n) if i % chunk_count == k] for k in range(chunk_count)]
+
+
+class ServerState:
+    def __init__(self, header, tree, settings: RenderSettings, store_key: str,
+                 manifest: dict | None = None, min_photon_jobs: int = 1000,
+                 queue_target_rays: int = 262_144, min_tracers: int = 1,
+                 concurrent: bool = True, client_batching: bool = True,
+                 tracer_timeout_s: float = 10.0):
+        """`concurrent` False and `client_batching` False switch off two of
+        the paper's optimisations, for the Figure 15 benchmark."""
+        settings.validate()
+        self.header, self.tree, self.settings = header, tree, settings
+        self.store_key, self.manifest = store_key, manifest
+        self.min_photon_jobs, self.queue_target = int(min_photon_jobs), int(queue_target_rays)
+        self.min_tracers = int(min_tracers)
+        self.concurrent, self.client_batching = bool(concurrent), bool(client_batching)
+        self.tracer_timeout_s = float(tracer_timeout_s)
+        self.job_timeout_s = max(30.0, 3 * self.tracer_timeout_s)
+        self._now = 0.0
+        self.discarded: set[int] = set()          # job ids whose late results are ignored
+        self.evicted: list[dict] = []
+        self.eps_abs = 1e-6 * header.diagonal()
+        self.n_pixels = int(header.camera.width) * int(header.camera.height)
+        self.tracers: dict[str, TracerInfo] = {}
+        self._indices = itertools.count()
+        self.owners: list[list[str]] = [[] for _ in range(tree.chunk_count)]   # tracer ids
+        self.table_version = 0
+        self.emitting = True
+        self.paused = False              # set by the shell while statistics updates queue up
+        self.started = False
+        self.gather_box: np.ndarray | None = None
+        self.jobs: dict[int, Job] = {}
+        self.next_job = 0                          # job ids are never reused
+        self._status = np.zeros(1024, np.int8)     # per photon job id: UNKNOWN, IN_FLIGHT, ...
+        self._photon_pending: deque = deque()         # job ids created, not yet sent
+        self._photon_receivers: set = set()
+        self.photon_jobs_in_flight = 0
+        self.eye: EyeIteration | None = None
+        self.photons_before = self.iterations_before = 0    # from a resumed checkpoint
+        self._eye_restart = False
+        self.eye_started = 0
+        self.eye_completed = 0
+        self._photons_at_eye_start = 0
+        self._held: list[PhotonDeposits] = []
+        self._held_rows = 0
+        self._next_batch_at = settings.photon_batch
+        self._ready_emitted = 0
+        self.updates: deque[Update] = deque()
+        self._last_heartbeat = -1e30
+        self.counters = {"photons_emitted": 0, "photons_completed": 0, "photons_committed": 0,
+                         "photon_jobs_completed": 0, "eye_jobs_completed": 0, "hit_points": 0,
+                         "deposits_received": 0, "culled": 0, "stale_paths": 0,
+                         "over_counted_paths": 0, "results": 0, "updates": 0,
+                         "photons_discarded": 0, "jobs_discarded": 0, "tracers_evicted": 0,
+                         "eye_iterations_restarted": 0, "deposits_discarded": 0, "deposits_stale": 0,
+                         "refused": 0, "tracers_rejoined": 0, "jobs_timed_out": 0, "welcomes_resent": 0,
+                         "job_messages_lost": 0}
+        self.path_ends = np.zeros(len(END_NAMES), np.int64)
+
+    # -- tracers -------------------------------------------------------------------
+    def welcome_fields(self, t: TracerInfo) -> dict:
+        s = self.settings
+        return dict(tracer_index=t.index, settings={"max_depth": s.max_depth, "seed": s.seed,
+                                                    "client_batching": self.client_batching,
+                                                    "session": t.session},
+                    scene=self.header.to_wire(), tree=self.tree.to_wire(), store_key=self.store_key,
+                    chunks=[k for k, o in enumerate(self.owners) if t.id in o],
+                    manifest=None if t.store_key == self.store_key else self.manifest)
+
+    def on_register(self, tid: str, msg, now: float) -> list[Out]:
+        """A tracer joins (or rejoins under the same id): welcome it and
+        hand every tracer the new chunk table."""
+        t = self.tracers.get(tid)
+        cap = msg.capacity
+        if t is None and len(self.tracers) >= MAX_TRACERS:
+            self.counters["refused"] += 1
+            return [Out(tid, "refused", dict(reason=f"the server takes at most {MAX_TRACERS} tracers"))]
+        if t is None:
+            t = TracerInfo(tid, next(self._indices), msg.endpoint, cap["cores"], cap["memory_bytes"],
+                           msg.store_key, now, msg.public_key)
+            self.tracers[tid] = t
+        else:
+            # A tracer registering again has forgotten its queues (it was
+            # cut off, or lost our welcome): its share of the work in flight
+            # is gone, so every job in flight is discarded and re-emitted.
+            t.endpoint, t.store_key, t.last_seen_s = msg.endpoint, msg.store_key, now
+            t.public_key = msg.public_key
+            t.queued = t.sent_since_report = 0
+            self.counters["tracers_rejoined"] += 1
+            self._discard_jobs_in_flight()
+        self._welcomed(t, now)
+        self._reassign()
+        return [Out(tid, "welcome", self.welcome_fields(t)), *self._peer_tables()]
+
+    def _reassign(self) -> None:
+        ids = [t.id for t in sorted(self.tracers.values(), key=lambda t: t.index)]
+        by_id = assign_chunks(self.tree.chunk_count, ids)
+        if by_id != self.owners:
+            self.owners = by_id
+            self.table_version += 1
+
+    def _peer_tables(self) -> list[Out]:
+        peers = [[self.tracers[i].endpoint for i in o] for o in self.owners]
+        keys = {t.endpoint: t.public_key for t in self.tracers.values() if t.public_key}
+        return [Out(tid, "peers", dict(table_version=self.table_version, peers=peers, keys=keys))
+                for tid in self.tracers]
+
+    def on_message(self, tid: str, msg, now: float) -> list[Out]:
+        t = self.tracers.get(tid)
+        if t is None:
+            return [Out(tid, "error", dict(reason=f"{msg.type}: tracer {tid!r} is not registered",
+                                           about=msg.type))]
+        t.last_seen_s = now
+        if msg.type == "heartbeat":
+            t.status, t.status_s = dict(msg.status), now
+            return self._check_welcomed(t, now) or self._check_delivery(t, now)
+        elif msg.type == "results":
+            return self._counted(self._on_results(t, msg), now)
+        return []
+
+    # -- results and exact accounting ----------------------------------------------------
+    def _check_welcomed(self, t: TracerInfo, now: float) -> list[Out]:
+        """A tracer whose heartbeats do not echo its latest welcome never got
+        it (lost with a connection libzmq replaced): it still holds queues
+        of its old session. Welcome it again."""
+        echoed = t.status.get("session")
+        if echoed is None or echoed == t.session or now - t.welcomed_s < 2 * HEARTBEAT_INTERVAL_S:
+            return []
+        self.counters["welcomes_resent"] += 1
+        return self._welcome_again(t, now)
+
+    def _check_delivery(self, t: TracerInfo, now: float) -> list[Out]:
+        """Job messages can vanish without an error, queued in a connection
+        libzmq replaces after a cut. A tracer counts the job messages it got
+        since its welcome; one that is idle while a job message sent to it
+        JOB_MESSAGE_LOST_S ago is still unacknowledged lost it. Rather than
+        wait for the watchdog, welcome it again at once (its count restarts)
+        with the jobs in flight re-emitted. A busy tracer is never suspected:
+        it may simply not have read its socket yet."""
+        got = t.status.get("jobs_received")
+        if got is None:
+            return []
+        while len(t.unacked) > max(0, t.jobs_sent - int(got)):
+            t.unacked.popleft()
+        if not t.unacked or now - t.unacked[0] < JOB_MESSAGE_LOST_S or t.status.get("queue", 1):
+            return []
+        self.counters["job_messages_lost"] += len(t.unacked)
+        return self._welcome_again(t, now)
+
+    def _welcome_again(self, t: TracerInfo, now: float) -> list[Out]:
+        """A new welcome under a new session (heartbeats of the old one are
+        then told apart), with every job in flight re-emitted: the tracer
+        forgets its queues when welcomed."""
+        self._welcomed(t, now)
+        self._discard_jobs_in_flight()
+        return [Out(t.id, "welcome", self.welcome_fields(t)), *self._peer_tables()]
+
+    def _welcomed(self, t: TracerInfo, now: float) -> None:
+        t.session += 1
+        t.welcomed_s = now
+        t.jobs_sent = 0
+        t.unacked.clear()
+
+    def _check_results(self, msg) -> str | None:
+        """What the wire cannot know: ranges of chunks, pixels, materials."""
+        if msg.chunk >= self.tree.chunk_count:
+            return f"field 'chunk' {msg.chunk} out of range (scene has {self.tree.chunk_count})"
+        if msg.hits is not None and len(msg.hits):
+            h = msg.hits
+            if h.pixel.min() < 0 or h.pixel.max() >= self.n_pixels:
+                return "field 'hits.pixel' out of range"
+            if h.material.min() < 0 or h.material.max() >= len(self.header.materials.kind):
+                return "field 'hits.material' out of range"
+        p = msg.emitted_pixels
+        if p is not None and len(p) and (p.min() < 0 or p.max() >= self.n_pixels):
+            return "field 'emitted_pixels' out of range"
+        return None
+
+    def _on_results(self, t: TracerInfo, msg) -> list[Out]:
+        problem = self._check_results(msg)
+        if problem:
+            self.counters["refused"] += 1
+            return [Out(t.id, "error", dict(reason=f"results: {problem}", about="results"))]
+        t.queued, t.sent_since_report = msg.queued, 0
+        t.results += 1
+        c = self.counters
+        c["results"] += 1
+        c["culled"] += msg.culled
+        self.path_ends += msg.ends
+        if msg.deposits is not None and len(msg.deposits):
+            # Only deposits of photon jobs in flight are held: a finished,
+            # discarded or never-made job's deposits can never count.
+            live = self._job_status(msg.deposits.job) == IN_FLIGHT
+            deposits = msg.deposits if live.all() else msg.deposits.take(live)
+            c["deposits_stale"] += len(msg.deposits) - len(deposits)
+            if len(deposits):
+                self._held.append(deposits)
+                self._held_rows += len(deposits)
+                c["deposits_received"] += len(deposits)
+        if msg.hits is not None and self.eye is not None and msg.eye_iteration == self.eye.index:
+            self.eye.hits.append(msg.hits)
+            self.eye.pixels.append(msg.emitted_pixels)
+            self.eye.rgb.append(msg.emitted_rgb)
+        for j, fed, left in zip(msg.job_ids.tolist(), msg.job_fed.tolist(), msg.job_left.tolist()):
+            self._segments(j, left - fed, stale=fed - left)
+        self._maybe_batch()
+        return []
+
+    def _segments(self, j: int, change: int, stale: int = 0) -> None:
+        """Open path segments of job j change by `change`; at zero, once
+        all its paths were sent, the job is complete (exact accounting)."""
+        job = self.jobs.get(j)
+        if job is None:
+            self.counters["stale_paths"] += stale   # a finished or unknown job: never counted twice
+            return
+        job.open += change
+        job.progress_s = self._now
+        if job.open < 0:
+            self.counters["over_counted_paths"] += -job.open
+        if job.open <= 0 and job.sent:
+            self._complete(j, job)
+
+    def _complete(self, j: int, job: Job) -> None:
+        del self.jobs[j]
+        if job.kind == "photon":
+            self.photon_jobs_in_flight -= 1
+            self._set_status(j, COMPLETE)
+            self.counters["photons_completed"] += job.paths
+            self.counters["photon_jobs_completed"] += 1
+            self._ready_emitted += job.paths
+            return
+        self.counters["eye_jobs_completed"] += 1
+        e = self.eye
+        e.open_jobs -= 1
+        if e.open_jobs == 0:
+            self._finish_eye_iteration(e)
+
+    def _finish_eye_iteration(self, e: EyeIteration) -> None:
+        hits = HitPoints.concat(e.hits)
+        pix = np.concatenate(e.pixels) if e.pixels else np.empty(0, np.int32)
+        rgb = np.concatenate(e.rgb) if e.rgb else np.empty((0, 3), np.float32)
+        self.updates.append(Update("hits", hits=hits, emitted_light=(pix, rgb)))
+        self.counters["hit_points"] += len(hits)
+        self.eye, self.eye_completed = None, self.eye_completed + 1
+
+    def _maybe_batch(self, final: bool = False) -> None:
+        """Hand over the deposits of complete jobs once `photon_batch` are
+        held (server batching); deposits of jobs still in flight wait."""
+        if self.eye_completed == 0 or not (final or self._held_rows >= self._next_batch_at):
+            return
+        held = PhotonDeposits.concat(self._held)
+        status = self._job_status(held.job)
+        commit, keep = held.take(status == COMPLETE), held.take(status == IN_FLIGHT)
+        self.counters["deposits_discarded"] += int(np.sum(status == DISCARDED))   # lost with a tracer
+        self.updates.append(Update("photons", deposits=commit, photons_emitted=self._ready_emitted))
+        self.counters["photons_committed"] += self._ready_emitted
+        self._ready_emitted = 0
+        self._held, self._held_rows = ([keep] if len(keep) else []), len(keep)
+        self._next_batch_at = self._held_rows + self.settings.photon_batch
+
+    # -- emission ------------------------------------------------------------------------
+    def tick(self, now: float) -> list[Out]:
+        """Start eye iterations, top up and send photon jobs, heartbeats."""
+        return self._counted(self._tick(now), now)
+
+    def _counted(self, out: list[Out], now: float) -> list[Out]:
+        """Note every job message on its way to a tracer (see `_check_delivery`)."""
+        for o in out:
+            if o.type in JOB_MESSAGES and o.dest in self.tracers:
+                t = self.tracers[o.dest]
+                t.jobs_sent += 1
+                t.unacked.append(now)
+        return out
+
+    def _tick(self, now: float) -> list[Out]:
+        out = []
+        self._now = now
+        if now - self._last_heartbeat >= HEARTBEAT_INTERVAL_S:
+            self._last_heartbeat = now
+            out += [Out(tid, "heartbeat", dict(status={})) for tid in self.tracers]
+            out += self._evict_silent(now)
+            self._watchdog(now)
+        if not self.started:
+            if len(self.tracers) < self.min_tracers:
+                return out
+            self.started = True
+        if not self.emitting or not all(self.owners):
+            return out
+        if not self.concurrent:
+            return out + self._alternate()
+        out += self._maybe_start_eye_iteration()
+        if self.gather_box is not None and not self.paused:
+            while self.photon_jobs_in_flight < self.min_photon_jobs:
+                self._photon_pending.append(self._new_job("photon", self.settings.photons_per_job))
+            out += self._send_photon_jobs()
+        return out
+
+    def _alternate(self) -> list[Out]:
+        """The schedule DOSPPM improves on (Figure 15, 'alternating'): an
+        eye pass, then `photons_per_iteration` photons, each waiting for
+        the other to finish."""
+        if self.eye is not None or self.photon_jobs_in_flight:
+            return self._send_photon_jobs() if self._photon_pending else []
+        if not self.eye_started or self.counters["photons_emitted"] - self._photons_at_eye_start \
+                >= self.settings.photons_per_iteration:
+            return self._maybe_start_eye_iteration()
+        if self.gather_box is None or self.paused:
+            return []
+        left = self.settings.photons_per_iteration
+        while left > 0:
+            count = min(self.settings.photons_per_job, left)
+            self._photon_pending.append(self._new_job("photon", count))
+            left -= count
+        return self._send_photon_jobs()
+
+    # -- tracer failure ----------------------------------------------------------------
+    def _evict_silent(self, now: float) -> list[Out]:
+        """Tracers silent for `tracer_timeout_s` (killed, hung or cut off)
+        are dropped; see `evict`."""
+        out = []
+        for t in [t for t in self.tracers.values() if now - t.last_seen_s > self.tracer_timeout_s]:
+            out += self.evict(t.id, f"silent for {now - t.last_seen_s:.1f} s")
+        return out
+
+    def _watchdog(self, now: float) -> None:
+        """Messages can vanish without any error (queued in a TCP connection
+        that libzmq replaces after a cut, between the server and a tracer or
+        between two tracers): a job no result has touched for
+        `job_timeout_s` is presumed lost with them, or for only STALL_S when
+        every tracer reports, in a fresh heartbeat, nothing queued and
+        nothing waiting to go to a peer (no one is working on it), and all
+        jobs in flight are discarded and re-emitted. Correctness never
+        depends on it: a job presumed lost that was only slow has its late
+        results ignored."""
+        limit = STALL_S if self._all_idle(now) else self.job_timeout_s
+        if any(job.sent and now - job.progress_s > limit for job in self.jobs.values()):
+            self.counters["jobs_timed_out"] += 1
+            self._discard_jobs_in_flight()
+
+    def _all_idle(self, now: float) -> bool:
+        return bool(self.tracers) and all(
+            now - t.status_s < 2 * HEARTBEAT_INTERVAL_S and t.status.get("queue", 1) == 0
+            and t.status.get("outbox_rays", 1) == 0 for t in self.tracers.values())
+
+    def evict(self, tid: str, reason: str) -> list[Out]:
+        """Drop tracer `tid`: its chunks go to the live tracers (new peer
+        tables), and every job in flight is discarded whole and re-emitted.
+        Any of them may have had paths queued at or travelling to the lost
+        tracer, and the server cannot know which, so none of their deposits
+        or hit points count; photon jobs are re-emitted with the same random
+        streams (the same photons, a new job id) and an eye iteration in
+        flight starts over. Late results of discarded jobs are stale."""
+        t = self.tracers.pop(tid)
+        self.evicted.append({"id": tid, "reason": reason})
+        self.counters["tracers_evicted"] += 1
+        self._reassign()
+        self._discard_jobs_in_flight()
+        return self._peer_tables()
+
+    def _discard_jobs_in_flight(self) -> None:
+        again = []
+        for j, job in list(self.jobs.items()):
+            if not job.sent:
+                continue                      # still at the server: nothing lost
+            del self.jobs[j]
+            self.discarded.add(j)
+            self._set_status(j, DISCARDED)
+            self.counters["jobs_discarded"] += 1
+            if job.kind == "photon":
+                self.photon_jobs_in_flight -= 1
+                self.counters["photons_discarded"] += job.paths
+                again.append(self._new_job("photon", job.paths, rng_key=job.rng_key))
+        self._photon_pending.extendleft(reversed(again))
+        if self.eye is not None:
+            for j in [j for j, job in self.jobs.items() if job.kind == "eye"]:
+                del self.jobs[j]
+                self.discarded.add(j)
+            self.eye = None                   # the next tick starts a fresh iteration
+            self._eye_restart = True
+            self.counters["eye_iterations_restarted"] += 1
+
+    @property
+    def credit(self) -> int:
+        """Rays a tracer may have queued before it gets no more photon jobs:
+        `queue_target_rays`, shared out when many tracers join, so the
+        photon jobs in the server's outboxes and tracers' pipes stay under
+        TOTAL_CREDIT_RAYS whatever their number (16 tracers: 65,536 each)."""
+        share = TOTAL_CREDIT_RAYS // max(len(self.tracers), 1)
+        return min(self.queue_target, max(MESSAGE_RAYS, share))
+
+    def _job_status(self, ids: np.ndarray) -> np.ndarray:
+        """Status of each photon job id (UNKNOWN for ids never made)."""
+        ok = (ids >= 0) & (ids < len(self._status))
+        return np.where(ok, self._status[np.where(ok, ids, 0)], UNKNOWN)
+
+    def _set_status(self, j: int, status: int) -> None:
+        if j >= len(self._status):
+            self._status = np.concatenate([self._status, np.zeros(max(j + 1, len(self._status)), np.int8)])
+        self._status[j] = status
+
+    def _new_job(self, kind: str, paths: int, eye_iteration: int | None = None,
+                 rng_key: int | None = None) -> int:
+        j = self.next_job
+        self.next_job += 1
+        if kind == "photon":
+            self._set_status(j, IN_FLIGHT)
+        self.jobs[j] = Job(kind, paths, eye_iteration=eye_iteration, rng_key=j if rng_key is None else rng_key)
+        if kind == "photon":
+            self.photon_jobs_in_flight += 1
+        return j
+
+    def _least_loaded(self, chunk: int) -> TracerInfo:
+        return min((self.tracers[i] for i in self.owners[chunk]), key=lambda t: t.load_estimate)
+
+    def _maybe_start_eye_iteration(self) -> list[Out]:
+        s = self.settings
+        if self.eye is not None or (self.eye_started and not self._eye_restart and
+                                    self.counters["photons_emitted"] - self._photons_at_eye_start
+                                    < s.photons_per_iteration):
+            return []
+        self._eye_restart = False
+        e = EyeIteration(self.eye_started, 0)
+        self.eye, self.eye_started = e, self.eye_started + 1
+        self._photons_at_eye_start = self.counters["photons_emitted"]
+        tiles = [(start, min(s.tile_pixels, self.n_pixels - start))
+                 for start in range(0, self.n_pixels, s.tile_pixels)]
+        # Every tile is open before any is routed: a tile whose rays all
+        # miss the scene completes at once, and must not close the iteration.
+        jobs = [self._new_job("eye", count, eye_iteration=e.index) for _, count in tiles]
+        e.open_jobs = len(jobs)
+        parts: dict[tuple, list] = {}
+        for j, (start, count) in zip(jobs, tiles):
+            batch = eye_ray_job(self.header, s.seed, e.index, start, count)
+            batch.job[:] = j
+            self._route(j, batch, parts)
+        return [Out(tid, "eye_job", dict(eye_iteration=e.index, chunk=k, batch=RayBatch.concat(b)))
+                for (tid, k), b in parts.items()]
+
+    def _route(self, j: int, batch: RayBatch, parts: dict) -> set:
+        """Split a new job's paths by start chunk into `parts` per (tracer,
+        chunk); paths that miss the scene end here. Returns the tracers."""
+        routed, lost = start_chunks(self.tree, batch)
+        self.path_ends[1] += lost           # ESCAPED, before any tracer saw them
+        receivers = set()
+        for k, part in routed.items():
+            t = self._least_loaded(k)
+            t.sent_since_report += len(part)
+            t.rays_sent += len(part)
+            parts.setdefault((t.id, k), []).append(part)
+            receivers.add(t.id)
+        self.jobs[j].sent = True
+        self.jobs[j].progress_s = self._now
+        self._segments(j, len(batch) - lost)
+        return receivers
+
+    def _send_photon_jobs(self) -> list[Out]:
+        s, out, parts = self.settings, [], {}
+        box = self.gather_box if s.cull else np.array([[-np.inf] * 3, [np.inf] * 3])
+        # Photon jobs start where the lights are: the tracers that got the
+        # last job's photons gate the next one, so a slow one is never
+        # sent more than one job past its credit.
+        while self._photon_pending and not any(
+                self.tracers[t].load_estimate >= self.credit
+                for t in self._photon_receivers if t in self.tracers):
+            j = self._photon_pending.popleft()
+            count = self.jobs[j].paths
+            batch = emit_photon_job(self.header, s.seed, self.jobs[j].rng_key, count, self.eps_abs)
+            batch.job[:] = j
+            self.counters["photons_emitted"] += count
+            self._photon_receivers = self._route(j, batch, parts)
+            out += self._flush(parts, box, full_only=True)
+        return out + self._flush(parts, box, full_only=False)
+
+    def _flush(self, parts: dict, box, full_only: bool) -> list[Out]:
+        out = []
+        for key in [k for k, b in parts.items() if not full_only or sum(map(len, b)) >= MESSAGE_RAYS]:
+            tid, k = key
+            out.append(Out(tid, "photon_job", dict(chunk=k, cull_box=box,
+                                                   batch=RayBatch.concat(parts.pop(key)))))
+        return out
+
+    # -- checkpoints ---------------------------------------------------------------------
+    def checkpoint_meta(self) -> dict:
+        """What a checkpoint needs besides the statistics: ids go on past
+        every one used, so a resumed render never traces a photon twice."""
+        return {"store_key": self.store_key, "settings": self.settings_dict(),
+                "next_job": self.next_job, "next_eye_iteration": self.eye_started,
+                "counters": {"photons": self.photons_before + self.counters["photons_committed"],
+                             "eye_iterations": self.iterations_before + self.eye_completed}}
+
+    def settings_dict(self) -> dict:
+        s = self.settings
+        return {k: getattr(s, k) for k in ("seed", "alpha", "radius", "max_depth", "gather",
+                                           "photons_per_iteration", "photons_per_job", "photon_batch",
+                                           "tile_pixels", "reorder", "cull")}
+
+    def resume(self, doc: dict) -> None:
+        """Continue after a checkpoint: new ids start past the old ones."""
+        self.next_job = int(doc["next_job"])
+        self.eye_started = int(doc["next_eye_iteration"])
+        self.photons_before = int(doc["counters"]["photons"])
+        self.iterations_before = int(doc["counters"]["eye_iterations"])
+        self._eye_restart = True      # hit points first: photons wait for their box
+
+    # -- the end ---------------------------------------------------------------------------
+    def stop_emitting(self) -> None:
+        """No new jobs; jobs created but not sent are dropped (never emitted,
+        never counted)."""
+        self.emitting = False
+        for j in self._photon_pending:
+            del self.jobs[j]
+            self._set_status(j, DISCARDED)
+            self.photon_jobs_in_flight -= 1
+        self._photon_pending.clear()
+
+    @property
+    def drained(self) -> bool:
+        return not self.jobs
+
+    def finish(self) -> None:
+        """Hand over the last, partial batch (call once drained)."""
+        if self._held_rows or self._ready_emitted:
+            self._maybe_batch(final=True)
+
+    def shutdown_messages(self, reason: str) -> list[Out]:
+        return [Out(tid, "shutdown", dict(reason=reason)) for tid in self.tracers]
+
+    # -- status ------------------------------------------------------------------------------
+    def status(self) -> dict:
+        c = self.counters
+        return {"protocol": PROTOCOL_VERSION, "iteration": self.eye_completed,
+                "photons_emitted": c["photons_emitted"], "photons_committed": c["photons_committed"],
+                "jobs_in_flight": len(self.jobs), "photon_jobs_in_flight": self.photon_jobs_in_flight,
+                "hit_points": c["hit_points"], "chunks": self.tree.chunk_count,
+                "path_ends": {n: int(v) for n, v in zip(END_NAMES, self.path_ends) if n != "continues"},
+                "counters": dict(c),
+                "tracers": [{"id": t.id, "index": t.index, "endpoint": t.endpoint,
+                             "chunks": [k for k, o in enumerate(self.owners) if t.id in o],
+                             "queue": t.load_estimate, "rays_sent": t.rays_sent, "results": t.results,
+                             **{k: v for k, v in t.status.items() if k in STATUS_KEYS}}
+                            for t in sorted(self.tracers.values(), key=lambda t: t.index)]}

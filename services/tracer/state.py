@@ -1,0 +1,295 @@
+"""The tracer's state (Günther & Grosch §3.1, §4.3), apart from its sockets.
+
+A tracer owns some chunks. Ray packages for them (emission jobs from the
+server, portal packages from other tracers) wait in one queue per chunk and
+kind. A step activates one chunk (loading it under the memory budget, the
+next one prefetched), coalesces what waits for it into one batch (client
+batching: packages split at portals merge again here), traces it with the
+library's chunk kernels and returns the messages to send: `results` to the
+server (ended paths per job, deposits, hit points) and `portal_rays` for
+the chunks the rays enter next. Packages for a chunk this tracer does not
+serve are passed on to a tracer that does.
+
+Nothing here opens a socket: `TracerState` takes decoded message fields
+and returns `Out` records, so tests drive whole clusters of them in one
+process, and the I/O shell (`tracer.py`) only moves frames.
+"""
+from __future__ import annotations
+
+import itertools
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from dosppm_core.chunks.view import trace_eye_in_chunk, trace_photons_in_chunk
+from dosppm_core.jobs import RayBatch, paths_per_job
+from dosppm_core.modes.osppm import ChunkCache
+
+SERVER = "server"           # Out.dest of messages for the server
+STEP_RAYS = 65_536          # rays coalesced into one traced batch
+DWELL_STEPS = 32            # steps on one chunk before moving on when not all fit
+
+
+@dataclass
+class Out:
+    """A message to send: `dest` is SERVER or a peer endpoint."""
+    dest: str
+    type: str
+    fields: dict
+
+
+@dataclass
+class Package:
+    batch: RayBatch
+    cull_box: np.ndarray | None = None     # photons only
+
+
+@dataclass
+class ChunkQueue:
+    photons: deque = field(default_factory=deque)
+    eye: dict = field(default_factory=dict)          # eye_iteration -> deque of Package
+    rays: int = 0
+
+    def __bool__(self) -> bool:
+        return self.rays > 0
+
+
+def union_box(boxes: list[np.ndarray]) -> np.ndarray:
+    """The cull box of coalesced photon packages: the union of theirs
+    ("expanded when tracing jobs are joined", §4.3), so no photon is culled
+    by a box tighter than the one it was emitted with."""
+    stack = np.stack(boxes)
+    return np.stack([stack[:, 0].min(0), stack[:, 1].max(0)])
+
+
+class TracerState:
+    """Queues, chunk cache and routing of one tracer."""
+
+    def __init__(self, endpoint: str, provider, max_depth: int, memory_bytes: float | None = None,
+                 threads: int = 1, step_rays: int = STEP_RAYS):
+        self.endpoint, self.provider, self.max_depth = endpoint, provider, int(max_depth)
+        self.step_rays = int(step_rays)
+        cost = np.asarray(provider.chunk_memory, np.float64)
+        self.cache = ChunkCache(provider, float(cost.sum()) if memory_bytes is None else memory_bytes,
+                                threads=threads)
+        self.queues: dict[int, ChunkQueue] = {}
+        self.owners: list[list[str]] = [[] for _ in range(provider.tree.chunk_count)]
+        self.table_version = -1
+        self._next_owner = [itertools.count() for _ in self.owners]
+        self._active: int | None = None
+        self._dwell = 0
+        # Portal packages for chunks no tracer serves yet (a table still
+        # being built); retried when the next table arrives.
+        self.unroutable: list = []
+        self.counters = {"steps": 0, "rays_traced": 0, "portal_rays_out": 0, "portal_rays_in": 0,
+                         "forwarded_rays": 0, "busy_s": 0.0}
+
+    # -- the peer table ----------------------------------------------------------
+    def set_peers(self, table_version: int, owners: list[list[str]]) -> list[Out]:
+        """Install the server's table of who serves each chunk; packages
+        waiting for chunks this tracer no longer serves move on."""
+        if table_version <= self.table_version:
+            return []
+        if len(owners) != len(self.owners):
+            raise ValueError(f"peer table lists {len(owners)} chunks, the scene has {len(self.owners)}")
+        self.owners, self.table_version = [list(o) for o in owners], table_version
+        out = []
+        for k in [k for k in self.queues if not self.serves(k)]:
+            out += self._hand_over(k)
+        return out + self.retry_unroutable()
+
+    def serves(self, chunk: int) -> bool:
+        return self.endpoint in self.owners[chunk]
+
+    @property
+    def chunks(self) -> list[int]:
+        return [k for k, o in enumerate(self.owners) if self.endpoint in o]
+
+    def _hand_over(self, k: int) -> list[Out]:
+        q = self.queues.pop(k)
+        out = [self._portal(k, "photon", p.batch, cull_box=p.cull_box) for p in q.photons]
+        out += [self._portal(k, "eye", p.batch, eye_iteration=e) for e, ps in q.eye.items() for p in ps]
+        self.counters["forwarded_rays"] += q.rays
+        return [o for o in out if o is not None]
+
+    # -- incoming packages -------------------------------------------------------
+    def receive(self, kind: str, chunk: int, batch: RayBatch, cull_box=None,
+                eye_iteration: int | None = None) -> list[Out]:
+        """Queue a package for `chunk` (an emission job or portal package),
+        or pass it on when another tracer serves that chunk."""
+        if not 0 <= chunk < len(self.owners):
+            raise ValueError(f"chunk {chunk} out of range (scene has {len(self.owners)})")
+        if not len(batch):
+            return []
+        if not self.serves(chunk):
+            self.counters["forwarded_rays"] += len(batch)
+            out = self._portal(chunk, kind, batch, cull_box=cull_box, eye_iteration=eye_iteration)
+            return [] if out is None else [out]
+        q = self.queues.setdefault(chunk, ChunkQueue())
+        if kind == "photon":
+            q.photons.append(Package(batch, np.asarray(cull_box, np.float64)))
+        else:
+            q.eye.setdefault(int(eye_iteration), deque()).append(Package(batch))
+        q.rays += len(batch)
+        return []
+
+    @property
+    def provider_key(self) -> str | None:
+        return getattr(self.provider, "key", None)
+
+    def reset(self) -> None:
+        """Forget every queued package (their jobs were discarded)."""
+        self.queues.clear()
+        self.unroutable = []
+        self._active = None
+
+    def handle(self, msg) -> list[Out]:
+        """A decoded message from the server or a peer."""
+        if msg.type == "peers":
+            return self.set_peers(msg.table_version, msg.peers)
+        if msg.type == "photon_job":
+            return self.receive("photon", msg.chunk, msg.batch, cull_box=msg.cull_box)
+        if msg.type == "eye_job":
+            return self.receive("eye", msg.chunk, msg.batch, eye_iteration=msg.eye_iteration)
+        if msg.type == "portal_rays":
+            self.counters["portal_rays_in"] += len(msg.batch)
+            return self.receive(msg.kind, msg.chunk, msg.batch, cull_box=msg.cull_box,
+                                eye_iteration=msg.eye_iteration)
+        return []
+
+    @property
+    def queued_rays(self) -> int:
+        return sum(q.rays for q in self.queues.values())
+
+    def has_work(self) -> bool:
+        return any(self.queues.values())
+
+    # -- tracing -----------------------------------------------------------------
+    def step(self) -> list[Out]:
+        """Trace one coalesced batch in one chunk; eye rays first (hit
+        points gate the server's next eye iteration)."""
+        k = self._pick_chunk()
+        if k is None:
+            return []
+        t0 = time.perf_counter()
+        view = self.cache.activate(k)
+        ahead = self._next_with_work(k)
+        if ahead is not None and ahead != k:
+            self.cache.prefetch(ahead, active=k)
+        q = self.queues[k]
+        out = self._trace_eye(view, q) if q.eye else self._trace_photons(view, q)
+        del view   # an evicted chunk must not outlive its eviction
+        if not q:
+            del self.queues[k]
+        self.counters["steps"] += 1
+        self.counters["busy_s"] += time.perf_counter() - t0
+        return out
+
+    def _pick_chunk(self) -> int | None:
+        """Round robin over the chunks with work. When not all of ours fit
+        in memory, stay on the active chunk while it has work, for at most
+        DWELL_STEPS (the paper's 'load the next chunk when all its jobs are
+        processed', without starving the others while work keeps coming)."""
+        a = self._active
+        all_fit = len(self.cache.resident) >= len(self.chunks)
+        if a is not None and self.queues.get(a) and not all_fit and self._dwell < DWELL_STEPS:
+            self._dwell += 1
+            return a
+        k = self._next_with_work(-1 if a is None else a)
+        if k != a:
+            self._dwell = 0
+        self._active = k
+        return k
+
+    def _next_with_work(self, after: int) -> int | None:
+        ready = sorted(k for k, q in self.queues.items() if q)
+        if not ready:
+            return None
+        return next((k for k in ready if k > after), ready[0])
+
+    def _take(self, packages: deque) -> list[Package]:
+        """Client batching (§4.3): coalesce waiting packages up to
+        `step_rays` rays; step_rays 0 traces one package per step."""
+        taken, rays = [], 0
+        while packages and (not taken or rays + len(packages[0].batch) <= self.step_rays):
+            p = packages.popleft()
+            taken.append(p)
+            rays += len(p.batch)
+        return taken
+
+    def _trace_eye(self, view, q: ChunkQueue) -> list[Out]:
+        e = min(q.eye)
+        taken = self._take(q.eye[e])
+        if not q.eye[e]:
+            del q.eye[e]
+        batch = RayBatch.concat([p.batch for p in taken])
+        q.rays -= len(batch)
+        hits, (pix, rgb), ends, outgoing = trace_eye_in_chunk(view, batch, self.max_depth)
+        jobs, fed, left = paths_per_job([batch.job], [b.job for parts in outgoing.values() for b in parts])
+        fields = dict(chunk=view.index, eye_iteration=e, ends=ends, job_ids=jobs, job_fed=fed, job_left=left,
+                      hits=hits, emitted_pixels=pix, emitted_rgb=rgb)
+        return self._after_trace(batch, fields, outgoing, "eye", eye_iteration=e)
+
+    def _trace_photons(self, view, q: ChunkQueue) -> list[Out]:
+        taken = self._take(q.photons)
+        batch = RayBatch.concat([p.batch for p in taken])
+        q.rays -= len(batch)
+        box = union_box([p.cull_box for p in taken])
+        deposits, ends, culled, outgoing = trace_photons_in_chunk(view, batch, box, self.max_depth)
+        jobs, fed, left = paths_per_job([batch.job], [b.job for parts in outgoing.values() for b in parts])
+        fields = dict(chunk=view.index, ends=ends, job_ids=jobs, job_fed=fed, job_left=left, culled=int(culled),
+                      deposits=deposits)
+        return self._after_trace(batch, fields, outgoing, "photon", cull_box=box)
+
+    def _after_trace(self, batch, fields, outgoing, kind, **extra) -> list[Out]:
+        """Results go out before the portal packages they preceded, so the
+        server sees a path's deposits no later than (in practice) its end."""
+        self.counters["rays_traced"] += len(batch)
+        portal = []
+        for chunk, parts in outgoing.items():
+            merged = RayBatch.concat(parts)
+            if self.serves(chunk):
+                portal += self.receive(kind, chunk, merged, **extra)
+            else:
+                self.counters["portal_rays_out"] += len(merged)
+                o = self._portal(chunk, kind, merged, **extra)
+                portal += [] if o is None else [o]
+        fields["queued"] = self.queued_rays
+        return [Out(SERVER, "results", fields), *portal]
+
+    def _portal(self, chunk: int, kind: str, batch: RayBatch, cull_box=None,
+                eye_iteration: int | None = None) -> Out | None:
+        """A portal package to a tracer serving `chunk`, spreading packages
+        over the tracers that share it (c < n). None while nobody serves it
+        (the caller keeps it: see `unroutable`)."""
+        owners = [o for o in self.owners[chunk] if o != self.endpoint] or self.owners[chunk]
+        if not owners:
+            self.unroutable.append((kind, chunk, batch, cull_box, eye_iteration))
+            return None
+        dest = owners[next(self._next_owner[chunk]) % len(owners)]
+        fields = dict(kind=kind, chunk=chunk, batch=batch)
+        if kind == "photon":
+            fields["cull_box"] = cull_box
+        else:
+            fields["eye_iteration"] = eye_iteration
+        return Out(dest, "portal_rays", fields)
+
+    def retry_unroutable(self) -> list[Out]:
+        """Packages for chunks nobody served yet, now that the table may
+        name an owner."""
+        held, self.unroutable = self.unroutable, []
+        out = []
+        for kind, chunk, batch, box, e in held:
+            out += self.receive(kind, chunk, batch, cull_box=box, eye_iteration=e) \
+                if self.serves(chunk) else [o for o in [self._portal(chunk, kind, batch, box, e)] if o]
+        return out
+
+    def status(self) -> dict:
+        return {"queue": self.queued_rays, "chunks": self.chunks,
+                "resident": sorted(self.cache.resident), **{k: (round(v, 3) if isinstance(v, float) else v)
+                                                            for k, v in self.counters.items()}}
+
+    def close(self) -> None:
+        self.cache.close()
