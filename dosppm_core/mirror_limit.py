@@ -98,7 +98,7 @@ def trace_mirror_paths(scene: Scene, accel, origin: np.ndarray, direction: np.nd
     out = MirrorPaths(np.zeros((n, 3)), np.ones((n, 3)), np.full(n, ESCAPED, np.int8),
                       np.zeros(n, np.int32))
     live = np.arange(n)
-    eps = 1e-6 * scene.diagonal()
+    eps = scene.spawn_epsilon()
     for bounce in range(max_bounces + 1):
         prim, t, _u, _v = accel.intersect(o, d)
         hit = prim >= 0

@@ -36,7 +36,7 @@ class SurfaceData:
         m = scene.materials
         return cls(scene.vertices, scene.triangles, scene.tri_material, m.kind,
                    m.reflectance, m.emission, m.ior, m.roughness, m.two_sided,
-                   1e-6 * scene.diagonal())
+                   scene.spawn_epsilon())
 
 
 def emit_photon_job(scene: Scene, seed: int, job: int, count: int, eps_abs: float) -> RayBatch:

@@ -47,7 +47,7 @@ class ChunkView:
         m = header.materials
         self.surf = SurfaceData(geometry.vertices, geometry.triangles, geometry.tri_material,
                                 m.kind, m.reflectance, m.emission, m.ior, m.roughness,
-                                m.two_sided, 1e-6 * header.diagonal())
+                                m.two_sided, header.spawn_epsilon())
         # An empty chunk (air between walls) still routes rays; Embree
         # needs one triangle, so give it one that no ray can reach.
         verts, tris = geometry.vertices, geometry.triangles

@@ -186,7 +186,7 @@ class OutOfCoreRenderer:
         _release_freed_memory_to_the_os()
         self.cache = ChunkCache(provider, memory_bytes, threads=s.threads)
         self.stats = PixelStatistics(int(cam.width), int(cam.height), s.radius, s.alpha)
-        self.eps_abs = 1e-6 * self.header.diagonal()
+        self.eps_abs = self.header.spawn_epsilon()
         self.iteration = 0
         self.eye_iterations = 0
         self.next_photon_job = 0

@@ -25,6 +25,12 @@ MATERIAL_KINDS = {"diffuse": DIFFUSE, "mirror": MIRROR, "glass": GLASS, "glossy"
 LIGHT_TRIANGLE, LIGHT_POINT, LIGHT_SPOT = 0, 1, 2
 
 
+# Absolute part of a spawned ray's offset from its surface, as a fraction of
+# the scene diagonal (the relative part is `trace.EPS_REL`): every mode and
+# every chunk must offset alike, or chunked and unchunked paths diverge.
+SPAWN_EPSILON = 1e-6
+
+
 class SceneError(ValueError):
     """A user mistake in a scene; the message is one line naming where it is."""
 
@@ -204,6 +210,9 @@ class Scene:
         b = self.bounds()
         return float(np.linalg.norm(b[1] - b[0]))
 
+    def spawn_epsilon(self) -> float:
+        return SPAWN_EPSILON * self.diagonal()
+
     def header(self) -> "SceneHeader":
         return SceneHeader(self.materials, self.lights, self.camera, self.bounds(), self.name,
                            self.source, dict(self.render_settings))
@@ -223,6 +232,9 @@ class SceneHeader:
 
     def diagonal(self) -> float:
         return float(np.linalg.norm(self.bounds[1] - self.bounds[0]))
+
+    def spawn_epsilon(self) -> float:
+        return SPAWN_EPSILON * self.diagonal()
 
     def to_wire(self) -> dict:
         """msgpack-ready dict: arrays as (dtype, shape, raw bytes)."""

@@ -156,7 +156,7 @@ class ServerState:
         self._now = 0.0
         self.discarded: set[int] = set()          # job ids whose late results are ignored
         self.evicted: list[dict] = []
-        self.eps_abs = 1e-6 * header.diagonal()
+        self.eps_abs = header.spawn_epsilon()
         self.n_pixels = int(header.camera.width) * int(header.camera.height)
         self.tracers: dict[str, TracerInfo] = {}
         self._indices = itertools.count()
