@@ -99,9 +99,9 @@ def test_eye_iterations_match_single_process_hit_points_exactly(caustic):
     r = Renderer(scene, _settings())
     expected = []
     for _ in range(3):
-        before = r.hit_point_total
+        before = r.sppm.hit_point_total
         r.run_iteration()
-        expected.append(r.hit_point_total - before)
+        expected.append(r.sppm.hit_point_total - before)
     r.close()
     assert per_iteration == expected
 

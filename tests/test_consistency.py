@@ -17,7 +17,8 @@ from dosppm_core.scene import builtin  # noqa: E402
 from dosppm_core.film import read_exr, write_exr  # noqa: E402
 from dosppm_core.metrics import mean_luminance_bias, relmse  # noqa: E402
 from dosppm_core.reference import cached_reference, mitsuba_max_depth  # noqa: E402
-from dosppm_core.modes.sppm import RenderSettings, Renderer  # noqa: E402
+from dosppm_core.modes.sppm import Renderer  # noqa: E402
+from dosppm_core.settings import RenderSettings
 
 pytestmark = pytest.mark.reference
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

@@ -222,7 +222,7 @@ def test_too_few_triangles_and_bad_parameters_are_scene_errors():
 
 _RSS_SCRIPT = """
 import json, resource, sys
-from dosppm_core.generate import generate_building
+from dosppm_core.scene.generate import generate_building
 before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 report = generate_building(sys.argv[1], triangles=3_000_000, lights=200)
 after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss

@@ -64,9 +64,9 @@ OVERHEAD = 40 * MiB
 CHILD = r"""
 import gc, json, resource, sys, time
 import numpy as np
-from dosppm_core.chunkstore import ChunkStore
-from dosppm_core.osppm import OutOfCoreRenderer
-from dosppm_core.render import RenderSettings
+from dosppm_core.chunks.store import ChunkStore
+from dosppm_core.modes.osppm import OutOfCoreRenderer
+from dosppm_core.settings import RenderSettings
 
 def status_bytes(key):
     with open("/proc/self/status") as f:

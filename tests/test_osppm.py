@@ -7,7 +7,8 @@ import pytest
 from chunk_helpers import MemoryChunks, lattice_tree, root_box, skewed_tree, uniform_tree
 from dosppm_core.scene import builtin
 from dosppm_core.modes.osppm import OutOfCoreRenderer
-from dosppm_core.modes.sppm import Renderer, RenderSettings
+from dosppm_core.modes.sppm import Renderer
+from dosppm_core.settings import RenderSettings
 
 ITERATIONS = 3
 ROOT = __import__("os").path.dirname(__import__("os").path.dirname(__import__("os").path.abspath(__file__)))
@@ -141,21 +142,21 @@ def test_cli_renders_chunked_and_reuses_the_store(tmp_path):
     from dosppm_core.film import read_exr
 
     def run(*extra):
-        cmd = [sys.executable, "-m", "services.cli", "render", "cornell-box", "--mode", "osppm", "--iterations", "2",
+        cmd = [sys.executable, "-m", "services.cli", "render", "cornell-box", "--iterations", "2",
                "--width", "32", "--height", "32", "--store-cache", str(tmp_path / "cache"), "--quiet",
                *extra]
         return subprocess.run(cmd, capture_output=True, text=True, timeout=600, cwd=tmp_path,
                               env={**__import__("os").environ, "PYTHONPATH": ROOT})
-    a = run("--chunks", "4", "--schedule", "drained", "--out", str(tmp_path / "a.exr"))
+    a = run("--mode", "osppm", "--chunks", "4", "--schedule", "drained", "--out", str(tmp_path / "a.exr"))
     assert a.returncode == 0, a.stderr
-    b = run("--out", str(tmp_path / "b.exr"))
+    b = run("--mode", "sppm", "--out", str(tmp_path / "b.exr"))
     assert b.returncode == 0, b.stderr
     img_a, img_b = read_exr(str(tmp_path / "a.exr"))[0], read_exr(str(tmp_path / "b.exr"))[0]
     _assert_equal_images(img_a, img_b)
     assert len(list((tmp_path / "cache").iterdir())) == 1
-    c = run("--chunks", "4", "--out", str(tmp_path / "c.exr"))   # the store is reused
+    c = run("--mode", "osppm", "--chunks", "4", "--out", str(tmp_path / "c.exr"))   # the store is reused
     assert c.returncode == 0 and len(list((tmp_path / "cache").iterdir())) == 1
-    bad = run("--budget", "12parsecs")
+    bad = run("--mode", "osppm", "--budget", "12parsecs")
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "--budget" in bad.stderr
 
 

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from dosppm_core.scene import builtin
-from dosppm_core.modes.sppm import RenderSettings, Renderer, render
+from dosppm_core.modes.sppm import Renderer, render
+from dosppm_core.settings import RenderSettings
 from dosppm_core.scene.model import Camera, Material, SceneBuilder
 
 

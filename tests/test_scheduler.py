@@ -8,7 +8,7 @@ import pytest
 from chunk_helpers import MemoryChunks, root_box, uniform_tree
 from dosppm_core.scene import builtin
 from dosppm_core.jobs import PhotonDeposits
-from dosppm_core.modes.sppm import RenderSettings
+from dosppm_core.settings import RenderSettings
 from services import wire
 from services.server.state import ServerState, assign_chunks
 

@@ -8,7 +8,8 @@ import pytest
 
 from dosppm_core.scene import builtin
 from dosppm_core.jobs import HitPoints, PhotonDeposits
-from dosppm_core.modes.sppm import RenderSettings, Renderer
+from dosppm_core.modes.sppm import Renderer
+from dosppm_core.settings import RenderSettings
 from dosppm_core.sppm.statistics import PixelStatistics
 
 ALPHA = 0.7

@@ -10,142 +10,22 @@ batching, §4.3), so packages that split at portals merge again instead of
 multiplying.
 
 An iteration is an eye phase (hit points of every pixel) and a photon
-phase, then the statistics update, exactly as in `render.Renderer`; the
+phase, then the statistics update, exactly as in `modes.sppm.Renderer` (both drive `sppm.iteration`); the
 kernels, job records and statistics are the same, so the same seed gives
 the same image whatever the number of chunks, up to floating-point noise.
 """
 from __future__ import annotations
 
 import time
-from collections import OrderedDict
-from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, field
 
 import numpy as np
 
-from dosppm_core.chunks.view import ChunkView, start_chunks, trace_eye_in_chunk, trace_photons_in_chunk
-from dosppm_core.jobs import END_NAMES, ESCAPED, HitPoints, PhotonDeposits, RayBatch
-from dosppm_core.modes.sppm import Progress, RenderSettings
-from dosppm_core.sppm.statistics import PixelStatistics, initial_radius
+from dosppm_core.chunks.cache import ChunkCache, next_with_work, release_freed_memory_to_the_os
+from dosppm_core.chunks.view import start_chunks, trace_eye_in_chunk, trace_photons_in_chunk
+from dosppm_core.jobs import ESCAPED, PhotonDeposits, RayBatch
+from dosppm_core.settings import Progress, RenderSettings
+from dosppm_core.sppm.iteration import EyePass, SPPMIteration
 from dosppm_core.trace import NO_CULL, emit_photon_job, eye_ray_job
-
-
-@dataclass
-class ChunkCounters:
-    """What the chunk machinery did: the numbers behind Figure 11."""
-    activations: int = 0
-    loads: int = 0
-    load_seconds: float = 0.0       # reading files and building BVHs
-    wait_seconds: float = 0.0       # of that, time the tracer sat waiting
-    portal_rays: int = 0            # rays handed to another chunk
-    wasted_prefetches: int = 0      # loaded ahead, then not used
-    traced_batches: int = 0
-    per_chunk_load: dict = field(default_factory=dict)
-
-
-def _release_freed_memory_to_the_os() -> None:
-    """glibc raises its mmap threshold after big frees (up to 32 MiB), so
-    evicted chunk arrays are kept in the heap for reuse and the process
-    grows past its limit over a long render (measured: +17-35 MiB after
-    12 iterations). A fixed 128 KiB threshold serves every large array
-    from mmap, returned on free. No-op off glibc."""
-    import ctypes
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-        libc.mallopt(-3, 128 * 1024)   # M_MMAP_THRESHOLD
-    except (OSError, AttributeError):
-        pass
-
-
-class ChunkCache:
-    """Resident chunks under a memory limit, least recently used evicted,
-    with one asynchronous prefetch."""
-
-    def __init__(self, provider, memory_bytes: float, threads: int = 1):
-        self.provider, self.threads = provider, threads
-        self.memory = float(memory_bytes)
-        self.cost = np.asarray(provider.chunk_memory, np.float64)
-        self.resident: OrderedDict[int, ChunkView] = OrderedDict()
-        self.counters = ChunkCounters()
-        self._pool = ThreadPoolExecutor(1, thread_name_prefix="chunk-prefetch")
-        self._pending: tuple[int, Future] | None = None
-
-    def _load(self, k: int) -> tuple[ChunkView, float]:
-        t0 = time.perf_counter()
-        view = ChunkView(k, self.provider.load(k), self.provider.header, self.provider.tree,
-                         threads=self.threads)
-        return view, time.perf_counter() - t0
-
-    def _make_room(self, k: int, keep: tuple) -> bool:
-        """Evict least recently used chunks (never those in `keep`) until
-        chunk k fits; False if it cannot fit beside them."""
-        def used():
-            return sum(self.cost[j] for j in self.resident) + \
-                (self.cost[self._pending[0]] if self._pending else 0.0)
-        while used() + self.cost[k] > self.memory:
-            victim = next((j for j in self.resident if j not in keep), None)
-            if victim is None:
-                return False
-            self.resident.pop(victim).close()
-        return True
-
-    def activate(self, k: int) -> ChunkView:
-        self.counters.activations += 1
-        if k in self.resident:
-            self.resident.move_to_end(k)
-            return self.resident[k]
-        t0 = time.perf_counter()
-        got = self._prefetched() if self._pending and self._pending[0] == k else None
-        if got is not None:
-            view, seconds = got
-        else:
-            self._drop_prefetch()
-            self._make_room(k, keep=())
-            view, seconds = self._load(k)
-        self.counters.wait_seconds += time.perf_counter() - t0
-        self._count_load(k, seconds)
-        self.resident[k] = view
-        return view
-
-    def prefetch(self, k: int, active: int) -> None:
-        """Start loading chunk k in the background if memory allows it
-        beside the active chunk."""
-        if k in self.resident or (self._pending and self._pending[0] == k):
-            return
-        self._drop_prefetch()
-        if self._make_room(k, keep=(active,)):
-            self._pending = (k, self._pool.submit(self._load, k))
-
-    def _prefetched(self):
-        """(view, seconds) of the prefetch, or None if it failed: a provider
-        may only load on the caller's thread (a tracer fetching a chunk over
-        its sockets), and then the load is simply done at activation."""
-        _, future = self._pending
-        self._pending = None
-        try:
-            return future.result()
-        except Exception:   # noqa: BLE001 - any failure is retried in the foreground
-            return None
-
-    def _drop_prefetch(self) -> None:
-        if self._pending:
-            got = self._prefetched()
-            if got is not None:
-                got[0].close()
-                self.counters.wasted_prefetches += 1
-
-    def _count_load(self, k: int, seconds: float) -> None:
-        c = self.counters
-        c.loads += 1
-        c.load_seconds += seconds
-        c.per_chunk_load[k] = c.per_chunk_load.get(k, 0) + 1
-
-    def close(self) -> None:
-        self._drop_prefetch()
-        for view in self.resident.values():
-            view.close()
-        self.resident.clear()
-        self._pool.shutdown(wait=True)
 
 
 class OutOfCoreRenderer:
@@ -158,7 +38,7 @@ class OutOfCoreRenderer:
     - `pipelined=False` (the paper's §3.1 OSPPM): an iteration drains its eye
       paths, then its photons, through every chunk until all have ended.
       Each iteration then sees exactly the photons of a single-process
-      iteration, so the image equals `render.Renderer`'s.
+      iteration, so the image equals `modes.sppm.Renderer`'s.
     - `pipelined=True` (default; §3.3): an iteration is one sweep over
       the chunks, each activated at most once, tracing whatever eye and
       photon rays wait for it. Rays that cross back to a chunk already
@@ -183,41 +63,46 @@ class OutOfCoreRenderer:
         if memory_bytes < cost.max():
             raise ValueError(f"memory limit {memory_bytes:.0f} B is below the largest chunk "
                              f"({cost.max():.0f} B)")
-        _release_freed_memory_to_the_os()
+        release_freed_memory_to_the_os()
         self.cache = ChunkCache(provider, memory_bytes, threads=s.threads)
-        self.stats = PixelStatistics(int(cam.width), int(cam.height), s.radius, s.alpha)
+        self.sppm = SPPMIteration(self.header, s)
         self.eps_abs = self.header.spawn_epsilon()
         self.iteration = 0
         self.eye_iterations = 0
         self.next_photon_job = 0
-        self.path_ends = np.zeros(len(END_NAMES), np.int64)
-        self.hit_point_total = 0
         self.seconds = 0.0
         self.phase_seconds = {"eye": 0.0, "photon": 0.0, "update": 0.0}
         self._cursor = 0
         c = self.tree.chunk_count
         self._eye_queues = [[] for _ in range(c)]
         self._photon_queues = [[] for _ in range(c)]
-        self._eye_in_flight = False
-        self._eye_parts: tuple[list, list, list] = ([], [], [])
+        self._eye: EyePass | None = None          # the eye iteration in flight
         self._deposits: list[PhotonDeposits] = []
         self._emitted_unapplied = 0
         self._cull = NO_CULL
 
+    @property
+    def stats(self):
+        return self.sppm.stats
+
+    @property
+    def hit_point_total(self) -> int:
+        return self.sppm.hit_point_total
+
     # -- the loop --------------------------------------------------------
     def run_iteration(self) -> Progress:
         t0 = time.perf_counter()
-        if not self.pipelined or not self.stats.has_radius:
+        if not self.pipelined or not self.sppm.has_hit_points:
             # The first hit points must exist before any photon can count.
             self._start_eye_iteration()
             self._sweep(until_empty=True)
             self._finish_eye_iteration()
         if self.pipelined:
-            if not self._eye_in_flight:
+            if self._eye is None:
                 self._start_eye_iteration()
             self._emit_photons()
             self._sweep(until_empty=False)
-            if self._eye_in_flight and not any(self._eye_queues):
+            if self._eye is not None and not any(self._eye_queues):
                 self._finish_eye_iteration()
         else:
             self._emit_photons()
@@ -232,7 +117,7 @@ class OutOfCoreRenderer:
         image holds every photon counted as emitted."""
         t0 = time.perf_counter()
         self._sweep(until_empty=True)
-        if self._eye_in_flight:
+        if self._eye is not None:
             self._finish_eye_iteration()
         self._apply()
         self.seconds += time.perf_counter() - t0
@@ -242,12 +127,10 @@ class OutOfCoreRenderer:
         return sum(len(b) for q in (self._eye_queues, self._photon_queues) for part in q for b in part)
 
     def progress(self) -> Progress:
-        ends = {name: int(c) for name, c in zip(END_NAMES, self.path_ends) if name != "continues"}
-        return Progress(self.iteration, self.stats.photons_emitted, self.hit_point_total,
-                        self.seconds, ends)
+        return self.sppm.progress(self.iteration, self.seconds)
 
     def image(self) -> np.ndarray:
-        return self.stats.radiance().astype(np.float32)
+        return self.sppm.image()
 
     def close(self) -> None:
         self.cache.close()
@@ -260,18 +143,11 @@ class OutOfCoreRenderer:
             batch = eye_ray_job(self.header, s.seed, self.eye_iterations, start,
                                 min(s.tile_pixels, n_pix - start))
             self._enqueue(self._eye_queues, batch)
-        self._eye_in_flight = True
+        self._eye = EyePass(self.eye_iterations)
 
     def _finish_eye_iteration(self) -> None:
-        hits, pix, rgb = self._eye_parts
-        hp = HitPoints.concat(hits)
-        self.hit_point_total += len(hp)
-        if not self.stats.has_radius:
-            self.stats.set_initial_radius(initial_radius(self.header, hp))
-        self.stats.replace_hit_points(hp, (np.concatenate(pix) if pix else np.empty(0, np.int32),
-                                           np.concatenate(rgb) if rgb else np.empty((0, 3), np.float32)))
-        self._eye_parts = ([], [], [])
-        self._eye_in_flight = False
+        self.sppm.install_eye_pass(self._eye)
+        self._eye = None
         self.eye_iterations += 1
 
     def _emit_photons(self) -> None:
@@ -279,8 +155,7 @@ class OutOfCoreRenderer:
         points' box (it travels with the photons in spirit: a photon is
         culled where it lands, by the box of its emission time)."""
         s = self.settings
-        box = self.stats.gather_box() if s.cull else None
-        self._cull = NO_CULL if box is None else box
+        self._cull = self.sppm.cull_box()
         left = s.photons_per_iteration
         while left > 0:
             count = min(s.photons_per_job, left)
@@ -291,23 +166,19 @@ class OutOfCoreRenderer:
         self._emitted_unapplied += s.photons_per_iteration
 
     def _apply(self) -> None:
-        """Server batching: update in batches of at most `photon_batch`
-        deposits; the emitted count goes with the first batch."""
+        """The iteration's deposits, applied in batches of `photon_batch`;
+        the photons emitted this iteration count with them."""
         t0 = time.perf_counter()
-        s = self.settings
-        deposits = PhotonDeposits.concat(self._deposits)
-        emitted, self._deposits, self._emitted_unapplied = self._emitted_unapplied, [], 0
-        for start in range(0, max(len(deposits), 1), s.photon_batch):
-            part = deposits.slice(start, min(start + s.photon_batch, len(deposits)))
-            self.stats.apply_photons(part, emitted if start == 0 else 0, self.header.materials,
-                                     gather=s.gather, threads=s.threads, reorder=s.reorder,
-                                     hash_options=s.hash_options)
+        deposits, emitted = PhotonDeposits.concat(self._deposits), self._emitted_unapplied
+        self._deposits, self._emitted_unapplied = [], 0
+        self.sppm.add_photons(deposits, emitted)
+        self.sppm.flush()
         self.phase_seconds["update"] += time.perf_counter() - t0
 
     # -- chunk queues --------------------------------------------------------
     def _enqueue(self, queues, batch: RayBatch) -> None:
         routed, lost = start_chunks(self.tree, batch)
-        self.path_ends[ESCAPED] += lost
+        self.sppm.path_ends[ESCAPED] += lost
         for k, b in routed.items():
             queues[k].append(b)
 
@@ -315,16 +186,7 @@ class OutOfCoreRenderer:
         return bool(self._eye_queues[k] or self._photon_queues[k])
 
     def _next_chunk(self, after: int, stop: int | None = None) -> int | None:
-        """The next chunk with work after `after` in round-robin order,
-        not going past `stop` (exclusive of wrapping beyond it)."""
-        c = self.tree.chunk_count
-        for i in range(1, c + 1):
-            k = (after + i) % c
-            if self._has_work(k):
-                return k
-            if k == stop:
-                return None
-        return None
+        return next_with_work(self._has_work, after, self.tree.chunk_count, stop)
 
     def _sweep(self, until_empty: bool) -> None:
         """Activate chunks with work in round-robin order. One sweep visits
@@ -335,10 +197,8 @@ class OutOfCoreRenderer:
         k = self._next_chunk(self._cursor - 1)
         last = None if k is None else (k - 1) % c
         while k is not None:
-            view = self.cache.activate(k)
             ahead = self._next_chunk(k, None if until_empty else last)
-            if ahead is not None and ahead != k:
-                self.cache.prefetch(ahead, active=k)
+            view = self.cache.activate(k, ahead)
             self._trace_chunk(view)
             del view    # an evicted chunk must not outlive its eviction
             self._cursor = k
@@ -356,9 +216,8 @@ class OutOfCoreRenderer:
             t0 = time.perf_counter()
             batch = RayBatch.concat(self._eye_queues[k])
             self._eye_queues[k] = []
-            h, (p, e), ends, out = trace_eye_in_chunk(view, batch, s.max_depth)
-            for part, x in zip(self._eye_parts, (h, p, e)):
-                part.append(x)
+            hits, (pixels, rgb), ends, out = trace_eye_in_chunk(view, batch, s.max_depth)
+            self._eye.add(hits, pixels, rgb)
             self._account(ends, out, self._eye_queues)
             self.phase_seconds["eye"] += time.perf_counter() - t0
         if self._photon_queues[k]:
@@ -371,7 +230,7 @@ class OutOfCoreRenderer:
             self.phase_seconds["photon"] += time.perf_counter() - t0
 
     def _account(self, ends, outgoing, queues) -> None:
-        self.path_ends += ends
+        self.sppm.count_path_ends(ends)
         self.cache.counters.traced_batches += 1
         for j, parts in outgoing.items():
             queues[j].extend(parts)

@@ -20,7 +20,8 @@ import time
 import numpy as np
 
 from dosppm_core.jobs import PhotonDeposits
-from dosppm_core.modes.sppm import RenderSettings, Renderer
+from dosppm_core.modes.sppm import Renderer
+from dosppm_core.settings import RenderSettings
 from dosppm_core.trace import NO_CULL, emit_photon_job, trace_photon_jobs
 
 PAPER_TABLE4 = {

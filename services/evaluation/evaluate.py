@@ -41,7 +41,8 @@ import numpy as np
 from dosppm_core.scene import builtin
 from dosppm_core import metrics
 from dosppm_core.film import one_line
-from dosppm_core.modes.sppm import RenderSettings, Renderer
+from dosppm_core.modes.sppm import Renderer
+from dosppm_core.settings import RenderSettings
 from dosppm_core.scene.model import Scene
 
 BLUR_SIGMA_PX = 2.0

@@ -39,7 +39,8 @@ import numpy as np
 
 from dosppm_core.chunks.view import start_chunks
 from dosppm_core.jobs import END_NAMES, HitPoints, PhotonDeposits, RayBatch
-from dosppm_core.modes.sppm import RenderSettings
+from dosppm_core.settings import RenderSettings
+from dosppm_core.sppm.iteration import EyePass
 from dosppm_core.trace import emit_photon_job, eye_ray_job
 
 from services.wire import JOB_MESSAGES, PROTOCOL_VERSION
@@ -109,9 +110,7 @@ class Job:
 class EyeIteration:
     index: int
     open_jobs: int
-    hits: list = field(default_factory=list)
-    pixels: list = field(default_factory=list)
-    rgb: list = field(default_factory=list)
+    results: EyePass = field(default_factory=EyePass)
 
 
 @dataclass
@@ -335,9 +334,7 @@ class ServerState:
                 self._held_rows += len(deposits)
                 c["deposits_received"] += len(deposits)
         if msg.hits is not None and self.eye is not None and msg.eye_iteration == self.eye.index:
-            self.eye.hits.append(msg.hits)
-            self.eye.pixels.append(msg.emitted_pixels)
-            self.eye.rgb.append(msg.emitted_rgb)
+            self.eye.results.add(msg.hits, msg.emitted_pixels, msg.emitted_rgb)
         for j, fed, left in zip(msg.job_ids.tolist(), msg.job_fed.tolist(), msg.job_left.tolist()):
             self._segments(j, left - fed, stale=fed - left)
         self._maybe_batch()
@@ -373,10 +370,8 @@ class ServerState:
             self._finish_eye_iteration(e)
 
     def _finish_eye_iteration(self, e: EyeIteration) -> None:
-        hits = HitPoints.concat(e.hits)
-        pix = np.concatenate(e.pixels) if e.pixels else np.empty(0, np.int32)
-        rgb = np.concatenate(e.rgb) if e.rgb else np.empty((0, 3), np.float32)
-        self.updates.append(Update("hits", hits=hits, emitted_light=(pix, rgb)))
+        hits, emitted_light = e.results.complete()
+        self.updates.append(Update("hits", hits=hits, emitted_light=emitted_light))
         self.counters["hit_points"] += len(hits)
         self.eye, self.eye_completed = None, self.eye_completed + 1
 
@@ -592,7 +587,7 @@ class ServerState:
 
     def _send_photon_jobs(self) -> list[Out]:
         s, out, parts = self.settings, [], {}
-        box = self.gather_box if s.cull else np.array([[-np.inf] * 3, [np.inf] * 3])
+        box = self.gather_box      # NO_CULL when culling is off (`SPPMIteration.cull_box`)
         # Photon jobs start where the lights are: the tracers that got the
         # last job's photons gate the next one, so a slow one is never
         # sent more than one job past its credit.

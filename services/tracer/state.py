@@ -23,9 +23,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dosppm_core.chunks.cache import ChunkCache, next_with_work
 from dosppm_core.chunks.view import trace_eye_in_chunk, trace_photons_in_chunk
 from dosppm_core.jobs import RayBatch, paths_per_job
-from dosppm_core.modes.osppm import ChunkCache
 
 SERVER = "server"           # Out.dest of messages for the server
 STEP_RAYS = 65_536          # rays coalesced into one traced batch
@@ -174,10 +174,7 @@ class TracerState:
         if k is None:
             return []
         t0 = time.perf_counter()
-        view = self.cache.activate(k)
-        ahead = self._next_with_work(k)
-        if ahead is not None and ahead != k:
-            self.cache.prefetch(ahead, active=k)
+        view = self.cache.activate(k, ahead=self._next_with_work(k))
         q = self.queues[k]
         out = self._trace_eye(view, q) if q.eye else self._trace_photons(view, q)
         del view   # an evicted chunk must not outlive its eviction
@@ -204,10 +201,7 @@ class TracerState:
         return k
 
     def _next_with_work(self, after: int) -> int | None:
-        ready = sorted(k for k, q in self.queues.items() if q)
-        if not ready:
-            return None
-        return next((k for k in ready if k > after), ready[0])
+        return next_with_work(lambda k: bool(self.queues.get(k)), after, len(self.owners))
 
     def _take(self, packages: deque) -> list[Package]:
         """Client batching (§4.3): coalesce waiting packages up to

@@ -1,0 +1,51 @@
+"""Render settings and progress records: one home for every default.
+
+The same `RenderSettings` reach every mode: single-process SPPM and OSPPM
+read them directly, the DOSPPM server hands them to each tracer at
+registration. The command line and the service configuration take their
+defaults from here.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass
+class RenderSettings:
+    seed: int = 0
+    alpha: float = 0.7
+    radius: float | None = None          # initial radius; None: from scene size and pixels
+    max_depth: int = 10                  # surfaces a path may hit (the paper's 10)
+    gather: str = "grid"                 # 'grid' (exact) or 'hash' (stochastic, HJ10)
+    photons_per_iteration: int = 100_000
+    photons_per_job: int = 8_192
+    photon_batch: int = 1_000_000        # deposits per statistics update (server batching)
+    tile_pixels: int = 16_384            # eye rays per eye job
+    threads: int = 2
+    reorder: bool = True                 # Morton-sort photons before the gather
+    cull: bool = True                    # drop photons outside the hit-point box (§4.3)
+    hash_options: dict = field(default_factory=dict)
+
+    def validate(self) -> None:
+        if not 0 < self.alpha < 1:
+            raise ValueError(f"alpha must lie in (0, 1), got {self.alpha}")
+        if self.max_depth < 1:
+            raise ValueError(f"max_depth must be >= 1, got {self.max_depth}")
+        if self.gather not in ("grid", "hash"):
+            raise ValueError(f"gather must be 'grid' or 'hash', got {self.gather!r}")
+        for name in ("photons_per_iteration", "photons_per_job", "photon_batch", "tile_pixels"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1")
+        if self.radius is not None and not self.radius > 0:
+            raise ValueError(f"radius must be > 0, got {self.radius}")
+
+
+@dataclass
+class Progress:
+    """Where a render stands after an iteration (what the progress line,
+    the JSON-lines log and the status page show)."""
+    iteration: int
+    photons_emitted: int
+    hit_points: int
+    seconds: float
+    path_ends: dict

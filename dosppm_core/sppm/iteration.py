@@ -1,0 +1,152 @@
+"""The SPPM iteration, written once for every mode (Günther & Grosch §3.2-3.3, §4.3).
+
+Single-process SPPM, OSPPM and the DOSPPM server differ only in how rays
+reach the kernels and how results come back. What they do with those
+results is the same, and lives here:
+
+- An eye pass's results (hit points, and emission its eye rays saw
+  directly) arrive tile by tile, from any chunk or tracer and in any order;
+  `EyePass` collects them, and `SPPMIteration.install_eye_pass` replaces
+  the hit points once the pass is complete. The first pass sets the
+  initial radius.
+- Photons are emitted against the current hit points: `cull_box` is their
+  box grown by the largest radius (§4.3), or no box at all when culling is
+  off (the DOSPPM server emits no photons before the first hit points).
+- Deposits are applied to the pixel statistics in batches of at most
+  `photon_batch` deposits (server batching, §4.3), each with the number of
+  photons emitted for it (N_e; only the total matters for eq. 5).
+
+A new kind of contribution to a pixel (for example direct light carried by
+shadow rays) is added here once, as another `install_*`/`apply_*` step,
+and every mode reaches it.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from dosppm_core.jobs import END_NAMES, HitPoints, PhotonDeposits
+from dosppm_core.settings import Progress, RenderSettings
+from dosppm_core.sppm.statistics import PixelStatistics, initial_radius
+from dosppm_core.trace import NO_CULL
+
+
+class EyePass:
+    """The results of one eye iteration, gathered as its tiles complete."""
+
+    def __init__(self, index: int = 0):
+        self.index = index
+        self.hits: list[HitPoints] = []
+        self.pixels: list[np.ndarray] = []
+        self.rgb: list[np.ndarray] = []
+
+    def add(self, hits: HitPoints, pixels: np.ndarray, rgb: np.ndarray) -> None:
+        """One traced tile (or part of one): its hit points, and the
+        emission its eye rays saw, per pixel."""
+        self.hits.append(hits)
+        self.pixels.append(pixels)
+        self.rgb.append(rgb)
+
+    def complete(self) -> tuple[HitPoints, tuple[np.ndarray, np.ndarray]]:
+        """(hit points, (pixel, rgb) of directly seen emission)."""
+        pixels = np.concatenate(self.pixels) if self.pixels else np.empty(0, np.int32)
+        rgb = np.concatenate(self.rgb) if self.rgb else np.empty((0, 3), np.float32)
+        return HitPoints.concat(self.hits), (pixels, rgb)
+
+
+class SPPMIteration:
+    """The pixel statistics of a render and the steps every mode applies to
+    them. `header` is a Scene or a SceneHeader (camera, materials, bounds)."""
+
+    def __init__(self, header, settings: RenderSettings, threads: int | None = None):
+        cam = header.camera
+        self.header, self.settings = header, settings
+        self.threads = settings.threads if threads is None else threads
+        self.stats = PixelStatistics(int(cam.width), int(cam.height), settings.radius, settings.alpha)
+        self.path_ends = np.zeros(len(END_NAMES), np.int64)
+        self.hit_point_total = 0
+        self.photons_applied = 0
+        self.deposits_applied = 0
+        self.update_seconds = 0.0
+        self._pending: list[PhotonDeposits] = []
+        self._pending_rows = 0
+        self._pending_emitted = 0
+
+    # -- eye passes --------------------------------------------------------------
+    def install_eye_pass(self, eye: EyePass) -> int:
+        """Replace the hit points by those of a complete eye pass; returns
+        how many there were."""
+        hits, emitted = eye.complete()
+        self.install_hit_points(hits, emitted)
+        return len(hits)
+
+    def install_hit_points(self, hits: HitPoints, emitted: tuple) -> None:
+        if not self.stats.has_radius:
+            self.stats.set_initial_radius(initial_radius(self.header, hits))
+        self.stats.replace_hit_points(hits, emitted)
+        self.hit_point_total += len(hits)
+
+    @property
+    def has_hit_points(self) -> bool:
+        return len(self.stats.hit_points) > 0
+
+    def cull_box(self) -> np.ndarray:
+        """The box photons emitted now are culled against (§4.3): the hit
+        points grown by the largest radius; NO_CULL when culling is off or
+        there are no hit points yet."""
+        if not (self.settings.cull and self.has_hit_points):
+            return NO_CULL
+        return self.stats.gather_box()
+
+    # -- photon batches ----------------------------------------------------------
+    def add_photons(self, deposits: PhotonDeposits, emitted: int) -> None:
+        """Deposits of `emitted` photon paths that have all ended. They are
+        applied once `photon_batch` deposits wait (server batching)."""
+        self._pending.append(deposits)
+        self._pending_rows += len(deposits)
+        self._pending_emitted += int(emitted)
+        if self._pending_rows >= self.settings.photon_batch:
+            self.flush()
+
+    def flush(self) -> None:
+        """Apply every waiting deposit, in batches of at most `photon_batch`."""
+        if not self._pending_emitted and not self._pending_rows:
+            return
+        deposits = PhotonDeposits.concat(self._pending)
+        emitted = self._pending_emitted
+        self._pending, self._pending_rows, self._pending_emitted = [], 0, 0
+        step = self.settings.photon_batch
+        for start in range(0, max(len(deposits), 1), step):
+            part = deposits.slice(start, min(start + step, len(deposits)))
+            self.apply_photon_batch(part, emitted if start == 0 else 0)
+
+    def apply_photon_batch(self, deposits: PhotonDeposits, emitted: int) -> None:
+        """One statistics update (eqs. 1-4). The server calls this directly:
+        its state cuts batches itself, since only complete jobs count."""
+        t0 = time.perf_counter()
+        s = self.settings
+        self.stats.apply_photons(deposits, emitted, self.header.materials, gather=s.gather,
+                                 threads=self.threads, reorder=s.reorder,
+                                 hash_options=s.hash_options)
+        self.photons_applied += int(emitted)
+        self.deposits_applied += len(deposits)
+        self.update_seconds += time.perf_counter() - t0
+
+    # -- what a render shows -------------------------------------------------------
+    def count_path_ends(self, ends: np.ndarray) -> None:
+        self.path_ends += ends
+
+    def progress(self, iteration: int, seconds: float) -> Progress:
+        ends = {name: int(c) for name, c in zip(END_NAMES, self.path_ends) if name != "continues"}
+        return Progress(iteration, self.stats.photons_emitted, self.hit_point_total, seconds, ends)
+
+    def image(self) -> np.ndarray:
+        """Radiance (H, W, 3) float32 (eq. 5)."""
+        return self.stats.radiance().astype(np.float32)
+
+    def layers(self) -> dict:
+        """Per-pixel radius and photon count, for the EXR's extra layers."""
+        h, w = self.stats.height, self.stats.width
+        return {"radius": self.stats.radius.reshape(h, w).astype(np.float32),
+                "photon_count": self.stats.photon_count.reshape(h, w).astype(np.float32)}
