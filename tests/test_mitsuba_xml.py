@@ -7,7 +7,8 @@ import warnings
 import numpy as np
 import pytest
 
-from dosppm_core.scene.mitsuba_xml import load_mitsuba_xml
+from dosppm_core.scene.mitsuba import load_mitsuba_xml
+from dosppm_core.scene.mitsuba.bsdfs import IORS
 from dosppm_core.scene.model import LIGHT_POINT, LIGHT_SPOT, LIGHT_TRIANGLE, SceneError
 
 SCENES = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared", "scenes")
@@ -344,8 +345,7 @@ def test_spectra_match_mitsuba(mi, tmp_path, spectrum):
 
 @pytest.mark.reference
 def test_named_iors_match_mitsuba(mi, tmp_path):
-    from dosppm_core.scene.mitsuba_xml import _IORS
-    for name, value in _IORS.items():
+    for name, value in IORS.items():
         bsdf = mi.load_dict({"type": "dielectric", "int_ior": name, "ext_ior": "vacuum"})
         assert mi.traverse(bsdf)["eta"] == pytest.approx(value, rel=1e-6), name
 

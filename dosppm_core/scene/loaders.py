@@ -5,12 +5,16 @@ from __future__ import annotations
 
 import os
 
+from dosppm_core.scene import builtin
+from dosppm_core.scene.mitsuba import load_mitsuba_xml
 from dosppm_core.scene.model import Scene, SceneError
+from dosppm_core.scene.soup import SceneSource
+from dosppm_core.scene.soupfile import is_soup, open_soup
+from dosppm_core.scene.tomlfile import load_toml
 
 
 def load_scene(spec: str, **overrides) -> Scene:
     """`overrides` may set `width` and `height` of the camera."""
-    from dosppm_core.scene import builtin
     if spec in builtin.SCENES:
         scene = builtin.make(spec)
     else:
@@ -19,10 +23,8 @@ def load_scene(spec: str, **overrides) -> Scene:
                              f"(built-in: {', '.join(builtin.SCENES)})")
         ext = os.path.splitext(spec)[1].lower()
         if ext == ".toml":
-            from dosppm_core.scene.tomlfile import load_toml
             scene = load_toml(spec)
         elif ext == ".xml":
-            from dosppm_core.scene.mitsuba_xml import load_mitsuba_xml
             scene = load_mitsuba_xml(spec)
         else:
             raise SceneError(f"{spec}: unknown scene format {ext!r} (expected .toml or .xml)")
@@ -35,8 +37,6 @@ def load_scene(spec: str, **overrides) -> Scene:
 def load_source(spec: str):
     """A `TriangleSource`: a soup directory is memory-mapped, anything else
     is loaded by `load_scene` and wrapped."""
-    from dosppm_core.scene.soup import SceneSource
-    from dosppm_core.scene.soupfile import is_soup, open_soup
     if is_soup(spec):
         return open_soup(spec)
     return SceneSource(load_scene(spec))

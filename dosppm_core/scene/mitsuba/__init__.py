@@ -1,0 +1,83 @@
+"""Import a subset of Mitsuba 3's scene XML (and Nori's dialect of it).
+
+`load_mitsuba_xml(path, **defaults)` reads a scene file and its includes and
+feeds `SceneBuilder`. Anything outside the subset below is a `SceneError`
+whose one line names ``file:line`` and the element, for example
+``cbox.xml:42: <bsdf type="plastic">: unsupported plugin``: nothing is
+silently dropped, in the spirit of Mitsuba's "unreferenced property" errors.
+
+==========  ================================================================
+element     plugins and parameters understood
+==========  ================================================================
+scene       ``version``; ``<default name value>`` and ``$name`` (keyword
+            arguments override defaults; an unused keyword is an error);
+            ``<include filename>``; ``id`` on any object, ``<ref id>``
+shape       obj, ply (filename, face_normals); rectangle; cube; sphere
+            (center, radius; an icosphere of 20,480 triangles); all take
+            to_world and flip_normals
+bsdf        diffuse (reflectance); twosided (one nested BSDF);
+            conductor (material="none", specular_reflectance) -> mirror;
+            roughconductor (distribution="ggx", alpha or alpha_u = alpha_v,
+            material="none", specular_reflectance, sample_visible) -> glossy;
+            dielectric (int_ior, ext_ior as numbers or Mitsuba's names;
+            specular_reflectance equal to specular_transmittance) -> glass
+emitter     area (radiance) in a shape or referenced by one; point (position
+            or to_world, intensity); spot (to_world, intensity,
+            cutoff_angle, beam_width)
+sensor      perspective, thinlens (fov or focal_length, fov_axis, to_world,
+            near_clip, far_clip, focus_distance, aperture_radius); film
+            hdrfilm (width, height, pixel_format, rfilter); sampler
+            (sample_count, seed)
+integrator  path, volpath, volpathmis, ptracer, direct (max_depth, rr_depth,
+            hide_emitters)
+values      float, integer, boolean, string, point, vector, rgb, spectrum
+            (constant or wavelength:value pairs); transform of translate,
+            rotate, scale, matrix, lookat (each applied after the previous)
+==========  ================================================================
+
+What `Scene` cannot hold (integrator, max_depth, spp, far_clip, film filter,
+pixel format) lands in ``scene.render_settings``, a dict with only the keys
+the file sets.
+
+Decisions:
+
+* Colours are converted exactly as Mitsuba 3's RGB variants (`scalar_rgb`)
+  do (`colour`): wavelength:value pairs are integrated against the CIE 1931
+  curves (1,000 samples over 360-830 nm) and mapped to linear sRGB;
+  reflectances are weighted by the D65 illuminant and clamped to [0, 1],
+  emission is not weighted and only clamped at 0. A constant spectrum is
+  grey for a reflectance but ``value * xyz_to_srgb(1, 1, 1)`` (slightly
+  purple) for an emitter; RGB is taken as is.
+* roughconductor accepts only GGX. Mitsuba's default is Beckmann, so a file
+  must say ``<string name="distribution" value="ggx"/>``: swapping the lobe
+  silently would make comparisons against Mitsuba disagree.
+* The front of a surface is its triangle winding (counter-clockwise), which
+  emission and one-sided BSDFs use, and flip_normals reverses. Under a
+  mirroring to_world Mitsuba keeps the front of rectangles and cubes outward
+  (so we rewind them) while spheres and meshes turn. Per-vertex normals in
+  OBJ/PLY files are ignored: Mitsuba would orient by them, and every shared
+  scene has them agreeing with the winding.
+* Nori's XML (no ``version``, ``<mesh>``, ``<camera>``, ``<color>``) is
+  cheap to support and is: it is rewritten to the Mitsuba elements it means
+  (camelCase names, albedo, mirror, a film for width/height, the top-level
+  sampler) and read by the same code. Nori's image x axis runs opposite to
+  Mitsuba's, so a Nori camera gets ``scale(-1, 1, 1)`` applied first; Nori's
+  defaults (fov 30, 1280x720, grey BSDF on emitters) are kept.
+
+Modules, in the order a file passes through them:
+
+==========  ================================================================
+xmltree     parse, with ``file:line`` on every element
+nori        detect Nori's dialect and rewrite it to Mitsuba's elements
+objects     the object tree: ``$name`` defaults, includes, ids, parameters
+values      numbers, points, rgb, spectra and transforms (used by objects)
+colour      spectra to linear sRGB as Mitsuba's RGB variants
+params      typed parameter access; `finish` rejects an unread parameter
+reader      `load_mitsuba_xml`: the steps above, then each scene-level
+            object to its family: shapes, bsdfs, emitters, sensors (with
+            film, sampler, integrator), sharing one `state.ReaderState`
+==========  ================================================================
+"""
+from dosppm_core.scene.mitsuba.reader import load_mitsuba_xml
+
+__all__ = ["load_mitsuba_xml"]

@@ -1,0 +1,127 @@
+"""BSDFs to `Material`s: diffuse; twosided (one nested BSDF); conductor
+(material="none") -> mirror; roughconductor (GGX only) -> glossy;
+dielectric (one tint) -> glass. One <bsdf> object is one material; a
+shape's (bsdf, area emitter) pair becomes one builder material, since
+emission belongs to the material."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from dosppm_core.scene.mitsuba.emitters import area_radiance
+from dosppm_core.scene.mitsuba.objects import Obj
+from dosppm_core.scene.mitsuba.params import finish, get_bool, get_float, get_rgb
+from dosppm_core.scene.mitsuba.state import ReaderState
+from dosppm_core.scene.model import Material
+
+# Mitsuba's named indices of refraction (include/mitsuba/render/ior.h).
+IORS = {
+    "vacuum": 1.0, "helium": 1.000036, "hydrogen": 1.000132, "air": 1.000277,
+    "carbon dioxide": 1.00045, "water": 1.3330, "acetone": 1.36, "ethanol": 1.361,
+    "carbon tetrachloride": 1.461, "glycerol": 1.4729, "benzene": 1.501,
+    "silicone oil": 1.52045, "bromine": 1.661, "water ice": 1.31, "fused quartz": 1.458,
+    "pyrex": 1.470, "acrylic glass": 1.49, "polypropylene": 1.49, "bk7": 1.5046,
+    "sodium chloride": 1.544, "amber": 1.55, "pet": 1.575, "diamond": 2.419,
+}
+
+
+def bsdf_material(reader: ReaderState, obj: Obj) -> Material:
+    """The material a <bsdf> describes: one object, one material."""
+    if id(obj) not in reader.bsdfs:
+        convert = {"diffuse": _diffuse, "twosided": _twosided, "conductor": _conductor,
+                   "roughconductor": _roughconductor, "dielectric": _dielectric}[obj.type]
+        material = convert(reader, obj)
+        finish(obj)
+        material.validate(obj.where())
+        reader.bsdfs[id(obj)] = material
+    return reader.bsdfs[id(obj)]
+
+
+def material_id(reader: ReaderState, bsdf, emitter, shape: Obj) -> int:
+    """Emission belongs to the material, so each (bsdf, emitter) pair a
+    shape uses becomes one builder material."""
+    key = (id(bsdf), id(emitter))
+    if key not in reader.material_ids:
+        material = bsdf_material(reader, bsdf) if bsdf is not None else _default_bsdf(reader, emitter)
+        if emitter is not None:
+            material = dataclasses.replace(material, name=f"{material.name}+{emitter.name()}",
+                                           emission=area_radiance(reader, emitter))
+        where = (bsdf or emitter or shape).where()
+        reader.material_ids[key] = reader.builder.add_material(material, where)
+    return reader.material_ids[key]
+
+
+def _default_bsdf(reader: ReaderState, emitter) -> Material:
+    # Mitsuba gives a bare emitter a black BSDF; Nori a grey one.
+    if emitter is not None and reader.dialect == "mitsuba":
+        return Material("default-black", "diffuse", (0.0, 0.0, 0.0), two_sided=False)
+    return Material("default", "diffuse", (0.5, 0.5, 0.5), two_sided=False)
+
+
+def _diffuse(reader: ReaderState, obj: Obj) -> Material:
+    reader.children(obj, ())
+    return Material(obj.name(), "diffuse", get_rgb(obj, "reflectance", 0.5), two_sided=False)
+
+
+def _twosided(reader: ReaderState, obj: Obj) -> Material:
+    inner = reader.children(obj, {"bsdf"})
+    if len(inner) != 1:
+        obj.node.fail("needs exactly one BSDF (separate front and back BSDFs are unsupported)")
+    return dataclasses.replace(bsdf_material(reader, inner[0]), name=obj.name(), two_sided=True)
+
+
+def _conductor(reader: ReaderState, obj: Obj) -> Material:
+    reader.children(obj, ())
+    _no_metal(obj)
+    return Material(obj.name(), "mirror", get_rgb(obj, "specular_reflectance", 1.0), two_sided=False)
+
+
+def _roughconductor(reader: ReaderState, obj: Obj) -> Material:
+    reader.children(obj, ())
+    _no_metal(obj)
+    prop = obj.take("distribution", ("string",))
+    if prop is None or prop.value != "ggx":
+        # Mitsuba's default is Beckmann: swapping the lobe silently would make
+        # comparisons against Mitsuba disagree.
+        (prop.node if prop else obj.node).fail(
+            f"distribution {prop.value if prop else 'beckmann (Mitsuba default)'!r} is unsupported; "
+            'only GGX: add <string name="distribution" value="ggx"/>')
+    get_bool(obj, "sample_visible")       # a sampling strategy: the image is the same
+    return Material(obj.name(), "glossy", get_rgb(obj, "specular_reflectance", 1.0),
+                    roughness=_alpha(obj), two_sided=False)
+
+
+def _alpha(obj: Obj) -> float:
+    alpha, alpha_u, alpha_v = (get_float(obj, n) for n in ("alpha", "alpha_u", "alpha_v"))
+    if alpha_u is None and alpha_v is None:
+        return 0.1 if alpha is None else alpha
+    if alpha is not None or alpha_u != alpha_v:
+        obj.node.fail("anisotropic roughness is unsupported (give alpha, or equal alpha_u and alpha_v)")
+    return alpha_u
+
+
+def _dielectric(reader: ReaderState, obj: Obj) -> Material:
+    reader.children(obj, ())
+    eta = _ior(obj, "int_ior", "bk7") / _ior(obj, "ext_ior", "air")
+    tint = get_rgb(obj, "specular_reflectance", 1.0)
+    if not np.allclose(tint, get_rgb(obj, "specular_transmittance", 1.0)):
+        obj.node.fail("specular_reflectance and specular_transmittance differ; our glass has one tint")
+    return Material(obj.name(), "glass", tint, ior=eta, two_sided=True)
+
+
+def _ior(obj: Obj, name: str, default: str) -> float:
+    prop = obj.take(name, ("float", "integer", "string"))
+    value = default if prop is None else prop.value
+    if isinstance(value, str):
+        if value.lower() not in IORS:
+            prop.node.fail(f"unknown IOR name {value!r} (known: {', '.join(IORS)})")
+        return IORS[value.lower()]
+    return float(value)
+
+
+def _no_metal(obj: Obj) -> None:
+    prop = obj.take("material", ("string",))
+    if prop is not None and prop.value != "none":
+        prop.node.fail(f"unsupported attribute: named conductor {prop.value!r} (only material=\"none\", "
+                       "a perfect mirror tinted by specular_reflectance)")

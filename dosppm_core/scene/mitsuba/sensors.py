@@ -1,0 +1,125 @@
+"""The sensor (perspective or thinlens) becomes the `Camera`; its film,
+sampler and the integrator become render settings: what `Scene` cannot
+hold (integrator, max_depth, spp, far_clip, film filter, pixel format)
+lands in ``reader.settings``, only the keys the file sets."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from dosppm_core.scene.mitsuba.objects import Obj
+from dosppm_core.scene.mitsuba.params import finish, get_bool, get_float, get_int, get_str, required
+from dosppm_core.scene.mitsuba.state import ReaderState
+from dosppm_core.scene.mitsuba.values import to_float
+from dosppm_core.scene.model import Camera
+
+
+def read_sensor(reader: ReaderState, obj: Obj) -> None:
+    """Set the builder's camera; the film and sampler go to the settings."""
+    if reader.builder.camera is not None:
+        obj.node.fail("a second sensor: only one camera is supported")
+    children = reader.children(obj, {"film", "sampler"})
+    film, sampler = reader.single(obj, children, "film"), reader.single(obj, children, "sampler")
+    width, height = _film(reader, film) if film is not None else (768, 576)
+    if sampler is not None:
+        _sampler(reader, sampler)
+    position, look_at, up = _camera_frame(reader, obj)
+    fov, axis = field_of_view(obj, width, height)
+    camera = Camera(position, look_at, up, fov, width, height, fov_axis=axis,
+                    near_clip=get_float(obj, "near_clip", 0.01))
+    far_clip = get_float(obj, "far_clip")
+    if far_clip is not None:
+        reader.settings["far_clip"] = far_clip
+    if obj.type == "thinlens":
+        camera.aperture_radius = required(obj, "aperture_radius", get_float)
+        camera.focus_distance = get_float(obj, "focus_distance", far_clip or 1e4)
+    else:                                 # stored only: a pinhole has no focus
+        camera.focus_distance = get_float(obj, "focus_distance", camera.focus_distance)
+    finish(obj)
+    camera.validate(obj.where())
+    reader.builder.camera = camera
+
+
+def _camera_frame(reader: ReaderState, obj: Obj):
+    """Mitsuba's camera looks along local +z with +y up; our camera's
+    image right is forward x up, which matches a proper rotation only."""
+    prop = obj.take("to_world", ("transform",))
+    m = np.eye(4) if prop is None else prop.value
+    rotation = m[:3, :3]
+    node = prop.node if prop else obj.node
+    if not np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-5):
+        node.fail("a sensor's to_world must be rotation and translation only (Mitsuba rejects scale)")
+    if np.linalg.det(rotation) < 0:
+        hint = ' (a Nori camera needs <scale value="-1,1,1"/> before its <lookat>)' \
+            if reader.dialect == "nori" else ""
+        node.fail("a sensor's to_world mirrors the image, which our camera cannot" + hint)
+    position = m[:3, 3]
+    return (tuple(map(float, position)), tuple(map(float, position + rotation[:, 2])),
+            tuple(map(float, rotation[:, 1])))
+
+
+def field_of_view(obj: Obj, width: int, height: int) -> tuple:
+    """(fov in degrees, axis). A focal length (default 50mm, a diagonal fov
+    of 35 mm film) and the diagonal axis become the equivalent x fov, as
+    Mitsuba's `parse_fov` computes them."""
+    fov, focal = get_float(obj, "fov"), obj.take("focal_length", ("string",))
+    axis_prop = obj.take("fov_axis", ("string",))
+    axis = "x" if axis_prop is None else axis_prop.value.lower()
+    if fov is not None and focal is not None:
+        obj.node.fail("give fov or focal_length, not both")
+    if fov is None:
+        text = "50mm" if focal is None else focal.value
+        if not text.endswith("mm"):
+            (focal.node if focal else obj.node).fail(f"focal_length must end in 'mm', got {text!r}")
+        mm = to_float(focal.node if focal else obj.node, text[:-2])
+        fov, axis = math.degrees(2 * math.atan(math.hypot(36, 24) / (2 * mm))), "diagonal"
+    if axis == "diagonal":
+        half_width = math.tan(math.radians(fov) / 2) / math.sqrt(1 + (height / width) ** 2)
+        fov, axis = math.degrees(2 * math.atan(half_width)), "x"
+    if axis not in ("x", "y", "smaller", "larger"):
+        axis_prop.node.fail(f"fov_axis must be x, y, diagonal, smaller or larger, got {axis!r}")
+    return fov, axis
+
+
+def _film(reader: ReaderState, film: Obj) -> tuple:
+    rfilter = reader.single(film, reader.children(film, {"rfilter"}), "rfilter")
+    if rfilter is not None:
+        reader.children(rfilter, ())
+        params = {n: get_float(rfilter, n) for n in ("radius", "stddev", "B", "C", "lobes")
+                  if n in rfilter.props}
+        finish(rfilter)
+        reader.settings["rfilter"] = {"type": rfilter.type, **params}
+    size = (get_int(film, "width", 768), get_int(film, "height", 576))
+    pixel_format = get_str(film, "pixel_format")
+    if pixel_format is not None:
+        reader.settings["pixel_format"] = pixel_format
+    finish(film)
+    return size
+
+
+def _sampler(reader: ReaderState, obj: Obj) -> None:
+    reader.children(obj, ())
+    reader.settings["sampler"] = obj.type
+    reader.settings["spp"] = get_int(obj, "sample_count", 4)
+    seed = get_int(obj, "seed")
+    if seed is not None:
+        reader.settings["seed"] = seed
+    finish(obj)
+
+
+def read_integrator(reader: ReaderState, obj: Obj) -> None:
+    """The integrator's type and depth settings (Nori's photon mapper: its
+    radius and photon count)."""
+    if "integrator" in reader.settings:
+        obj.node.fail("a second integrator")
+    reader.children(obj, ())
+    reader.settings["integrator"] = obj.type
+    params = {"max_depth": get_int, "rr_depth": get_int, "hide_emitters": get_bool}
+    if reader.dialect == "nori":
+        params = {"photon_radius": get_float, "photon_count": get_int}
+    for name, getter in params.items():
+        value = getter(obj, name)
+        if value is not None:
+            reader.settings[name] = value
+    finish(obj)

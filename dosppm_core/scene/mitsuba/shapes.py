@@ -1,0 +1,115 @@
+"""Shape plugins: obj and ply files, rectangle, cube and sphere (an
+icosphere), each with to_world, flip_normals and at most one BSDF and one
+area emitter.
+
+The front of a surface is its triangle winding (counter-clockwise), which
+emission and one-sided BSDFs use and flip_normals reverses. Under a
+mirroring to_world Mitsuba keeps the front of rectangles and cubes outward
+(so we rewind them) while spheres and meshes turn. Per-vertex normals in
+OBJ/PLY files are ignored: Mitsuba would orient by them, and every shared
+scene has them agreeing with the winding."""
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+
+from dosppm_core.scene.mitsuba.bsdfs import material_id
+from dosppm_core.scene.mitsuba.objects import Obj
+from dosppm_core.scene.mitsuba.params import finish, get_bool, get_float, get_matrix, get_point, get_str, required
+from dosppm_core.scene.mitsuba.state import ReaderState
+from dosppm_core.scene.mitsuba.xmltree import Node, resolve
+from dosppm_core.scene.tomlfile import read_mesh_file
+
+
+def read_shape(reader: ReaderState, obj: Obj) -> None:
+    """Add one shape's triangles, with its material, to the builder."""
+    vertices, faces = _geometry(reader, obj)
+    to_world = get_matrix(obj)
+    if obj.type == "sphere":
+        to_world = _sphere_frame(obj, to_world)
+    if obj.type in ("rectangle", "cube") and np.linalg.det(to_world[:3, :3]) < 0:
+        # Mitsuba moves these shading normals with the inverse transpose, so
+        # a mirror keeps their front outward; its sphere's turns inward.
+        faces = faces[:, ::-1]
+    if get_bool(obj, "flip_normals", False):
+        faces = faces[:, ::-1]
+    children = reader.children(obj, {"bsdf", "emitter"})
+    bsdf, emitter = reader.single(obj, children, "bsdf"), reader.single(obj, children, "emitter")
+    material = material_id(reader, bsdf, emitter, obj)
+    finish(obj)
+    reader.builder.add_mesh(vertices, faces, material, obj.where(), transform=to_world)
+
+
+def _geometry(reader: ReaderState, obj: Obj):
+    if obj.type in ("obj", "ply"):
+        filename = required(obj, "filename", get_str)
+        get_bool(obj, "face_normals")         # our normals are always the faces'
+        path = resolve(obj.take("filename", ("string",)).node, filename, reader.root_dir)
+        return _load_mesh_file(path, obj.node)
+    return {"rectangle": _rectangle, "cube": _cube, "sphere": _unit_sphere}[obj.type]()
+
+
+def _load_mesh_file(path: str, node: Node):
+    try:
+        return read_mesh_file(path)
+    except ValueError as exc:
+        node.fail(str(exc))
+
+
+def _sphere_frame(obj: Obj, to_world: np.ndarray) -> np.ndarray:
+    """Mitsuba composes to_world * translate(center) * scale(radius)."""
+    r3 = to_world[:3, :3]
+    gram = r3.T @ r3
+    if not np.allclose(gram, np.eye(3) * gram[0, 0], rtol=1e-5, atol=1e-9 * gram[0, 0]):
+        obj.node.fail("to_world of a sphere must be a similarity (Mitsuba ignores other scales)")
+    radius = get_float(obj, "radius", 1.0)
+    if not radius > 0:
+        obj.node.fail(f"radius must be positive, got {radius}")
+    local = np.diag([radius, radius, radius, 1.0])
+    local[:3, 3] = get_point(obj, "center", np.zeros(3))
+    return to_world @ local
+
+
+# -- the built-in shapes in their local frames ---------------------------------------
+
+def _orient_outward(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Wind every triangle of a shape centred on the origin to face outward."""
+    v0 = vertices[faces[:, 0]]
+    normal = np.cross(vertices[faces[:, 1]] - v0, vertices[faces[:, 2]] - v0)
+    inward = np.einsum("ij,ij->i", normal, vertices[faces].mean(axis=1)) < 0
+    faces = faces.copy()
+    faces[inward] = faces[inward][:, ::-1]
+    return faces
+
+
+def _rectangle():
+    """Mitsuba's rectangle: [-1, 1]^2 in z = 0, front +z."""
+    v = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float64)
+    return v, np.array([[0, 1, 2], [0, 2, 3]])
+
+
+@functools.lru_cache(maxsize=1)
+def _cube():
+    """Mitsuba's cube: [-1, 1]^3, 24 vertices, faces outward."""
+    vertices, faces = [], []
+    for axis in range(3):
+        for side in (-1.0, 1.0):
+            base = len(vertices)
+            for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1)):
+                p = np.zeros(3)
+                p[axis], p[(axis + 1) % 3], p[(axis + 2) % 3] = side, a, b
+                vertices.append(p)
+            faces += [[base, base + 1, base + 2], [base, base + 2, base + 3]]
+    vertices = np.array(vertices)
+    return vertices, _orient_outward(vertices, np.array(faces))
+
+
+@functools.lru_cache(maxsize=1)
+def _unit_sphere():
+    """Mitsuba's sphere is analytic; 20,480 flat triangles (subdivision 5 of
+    an icosahedron) keep the chord error under 0.03% of the radius."""
+    import trimesh                       # heavy (0.15 s): only scenes with a sphere pay it
+    mesh = trimesh.creation.icosphere(subdivisions=5, radius=1.0)
+    vertices = np.asarray(mesh.vertices, np.float64)
+    return vertices, _orient_outward(vertices, np.asarray(mesh.faces, np.int64))
