@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dosppm_core.chunks.view import ChunkGeometry
+from dosppm_core.chunks.store import ChunkGeometry
 from dosppm_core.chunks.tree import LEAF, ChunkTree
 from dosppm_core.chunks.portals import INSERT_MARGIN
 

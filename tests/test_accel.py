@@ -84,6 +84,7 @@ def test_empty_batch_and_degenerate_triangle():
 def test_memory_model_covers_a_bvh_build():
     """The subdivider's bytes per triangle must not underestimate what a
     BVH build really takes at its peak (worst case: random triangles)."""
-    from dosppm_core.chunks.subdivide import EMBREE_BYTES_PER_TRIANGLE, measure_embree_bytes_per_triangle
+    from dosppm_core.chunks.subdivide import EMBREE_BYTES_PER_TRIANGLE
+    from services.evaluation.embree_memory import measure_embree_bytes_per_triangle
     measured = measure_embree_bytes_per_triangle(1_000_000)
     assert 40 < measured <= EMBREE_BYTES_PER_TRIANGLE

@@ -44,6 +44,19 @@ ARRAYS = (("vertices", "<f4", 3), ("triangles", "<i4", 3),
           ("tri_material", "<i4", 0), ("global_id", "<i4", 0))
 
 
+@dataclass
+class ChunkGeometry:
+    """One chunk's triangles, chunk-local; `global_id` maps to the source."""
+    vertices: np.ndarray     # float32 (nv, 3)
+    triangles: np.ndarray    # int32 (nt, 3)
+    tri_material: np.ndarray  # int32 (nt,)
+    global_id: np.ndarray    # int32 (nt,)
+
+    @property
+    def nbytes(self) -> int:
+        return sum(a.nbytes for a in (self.vertices, self.triangles, self.tri_material, self.global_id))
+
+
 class StoreError(ValueError):
     """A missing, corrupt or foreign chunk store; one line naming the path
     and the field or file at fault."""
@@ -285,10 +298,9 @@ class ChunkStore:
         return cls(path, doc, header, tree, portals)
 
     def load(self, k: int, mmap: bool = False):
-        """Chunk k's geometry (`chunked.ChunkGeometry`), read from its file
+        """Chunk k's geometry (`ChunkGeometry`), read from its file
         and checked against its SHA-256; `mmap` maps the file instead (no
         checksum: nothing is read until used)."""
-        from dosppm_core.chunks.view import ChunkGeometry
         if not 0 <= k < self.chunk_count:
             raise IndexError(f"chunk {k} out of range (store has {self.chunk_count})")
         entry = self.manifest["chunks"][k]

@@ -23,8 +23,6 @@ from __future__ import annotations
 import heapq
 import os
 import shutil
-import subprocess
-import sys
 import time
 from dataclasses import dataclass, field
 
@@ -32,7 +30,7 @@ import numba
 import numpy as np
 
 from dosppm_core.chunks import store as chunkstore
-from dosppm_core.chunks.view import ChunkGeometry
+from dosppm_core.chunks.store import ChunkGeometry
 from dosppm_core.chunks.tree import LEAF, ChunkTree
 from dosppm_core.chunks.portals import INSERT_MARGIN
 from dosppm_core.scene.model import SceneError
@@ -51,7 +49,7 @@ MAX_DEPTH = 60           # ChunkTree.validate refuses deeper trees
 # overlapping triangles (the worst case seen): 99 B per triangle at 1M
 # triangles, 103 B at 2M. The peak exceeds the final size (builder scratch),
 # and the budget must hold at the peak.
-# `measure_embree_bytes_per_triangle()` repeats the triangle measurement.
+# `services.evaluation.embree_memory.measure_embree_bytes_per_triangle()` repeats the triangle measurement.
 EMBREE_BYTES_PER_TRIANGLE = 110
 EMBREE_BYTES_PER_VERTEX = 12
 STORED_BYTES_PER_TRIANGLE = 12 + 4 + 4   # triangles, tri_material, global_id
@@ -72,49 +70,6 @@ def chunk_memory_bytes(triangles: int, vertices: int) -> int:
 
 def _guess_memory(count: int) -> int:
     return chunk_memory_bytes(count, int(count * GUESS_VERTICES_PER_TRIANGLE))
-
-
-# -- measuring Embree ----------------------------------------------------------
-def measure_embree_bytes_per_triangle(triangles: int = 1_000_000) -> float:
-    """Re-measure EMBREE_BYTES_PER_TRIANGLE: peak RSS growth of an
-    `Accelerator` over random overlapping triangles (the worst case), less
-    EMBREE_BYTES_PER_VERTEX per vertex, per triangle. Runs in a fresh
-    process: memory freed by an earlier build is reused and would hide the
-    cost."""
-    code = (f"from dosppm_core.chunks.subdivide import _embree_peak_bytes; "
-            f"print(_embree_peak_bytes({int(triangles)}))")
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    env = dict(os.environ, PYTHONPATH=root + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         env=env, check=True).stdout
-    peak, nt, nv = (int(x) for x in out.split())
-    return (peak - EMBREE_BYTES_PER_VERTEX * nv) / nt
-
-
-def _embree_peak_bytes(triangles: int) -> str:
-    """'peak_bytes triangles vertices' of one BVH build in this process."""
-    from dosppm_core.accel import Accelerator
-
-    def status(key):
-        with open("/proc/self/status") as f:
-            return next(int(l.split()[1]) * 1024 for l in f if l.startswith(key))
-    rng = np.random.default_rng(0)
-    c = rng.random((triangles, 1, 3)) * 100 + rng.normal(0, 0.3, (triangles, 3, 3))
-    v = c.reshape(-1, 3).astype(np.float32)
-    t = np.arange(3 * triangles, dtype=np.int32).reshape(-1, 3)
-    del c
-    Accelerator(v[:3], t[:1]).close()          # load Embree and TBB first
-    try:
-        with open("/proc/self/clear_refs", "w") as f:
-            f.write("5")                        # reset VmHWM to the current RSS
-        key = "VmHWM"
-    except OSError:
-        key = "VmRSS"                           # no reset: final size only
-    before = status("VmRSS")
-    accel = Accelerator(v, t)
-    peak = status(key) - before
-    accel.close()
-    return f"{peak} {triangles} {len(v)}"
 
 
 # -- stage 1: binning ----------------------------------------------------------

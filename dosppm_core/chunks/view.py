@@ -11,30 +11,16 @@ only by floating-point noise.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from dosppm_core.accel import Accelerator
+from dosppm_core.chunks.store import ChunkGeometry
 from dosppm_core.chunks.tree import ChunkTree
 from dosppm_core.jobs import ESCAPED, HitPoints, PhotonDeposits, RayBatch
 from dosppm_core.chunks.portals import PORTAL_EPS, enter, intersect_in_chunk
 from dosppm_core.scene.model import SceneHeader
 from dosppm_core.kernels.paths import ELSEWHERE
 from dosppm_core.trace import END_KINDS, SurfaceData, advance_eye, scatter_photons
-
-
-@dataclass
-class ChunkGeometry:
-    """One chunk's triangles, chunk-local; `global_id` maps to the source."""
-    vertices: np.ndarray     # float32 (nv, 3)
-    triangles: np.ndarray    # int32 (nt, 3)
-    tri_material: np.ndarray  # int32 (nt,)
-    global_id: np.ndarray    # int32 (nt,)
-
-    @property
-    def nbytes(self) -> int:
-        return sum(a.nbytes for a in (self.vertices, self.triangles, self.tri_material, self.global_id))
 
 
 class ChunkView:
