@@ -21,7 +21,7 @@ from dosppm_core.scene.model import Camera, Material, SceneBuilder
 from dosppm_core.scene.suite import rectangle_mesh
 
 MIRROR_RHO = np.array([0.5, 0.6, 0.7])
-MIRROR_RHO_CARDIOID = np.array([0.9, 0.85, 0.6])      # suite_scenes.cardioid's "mirror"
+MIRROR_RHO_CARDIOID = np.array([0.9, 0.85, 0.6])      # suite.cardioid's "mirror"
 needs_mitsuba = pytest.mark.skipif(importlib.util.find_spec("mitsuba") is None,
                                    reason="the limit's floor image needs Mitsuba 3")
 

@@ -1,4 +1,4 @@
-"""The failure-mode suite's built-in scenes (`dosppm_core/suite_scenes.py`):
+"""The failure-mode suite's built-in scenes (`dosppm_core/scene/suite.py`):
 each is listed and loadable by name, holds the structure that makes it a
 test, and renders. The renders also measure what they are there to show:
 the leak through the thin wall, and far-from-origin against cornell-box."""
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from dosppm_core.scene import builtin, loaders, suite as suite_scenes
+from dosppm_core.scene import builtin, cornell, loaders, suite
 from dosppm_core.accel import MISS, Accelerator
 from dosppm_core.modes.sppm import Renderer, RenderSettings
 from dosppm_core.scene.model import GLASS, GLOSSY, LIGHT_TRIANGLE
@@ -78,7 +78,7 @@ def test_dosppm_scenes_lists_the_suite():
 
 # -- thin-wall -------------------------------------------------------------------
 
-ROOM, WALL = suite_scenes.THIN_WALL_ROOM_MM, suite_scenes.THIN_WALL_MM
+ROOM, WALL = suite.THIN_WALL_ROOM_MM, suite.THIN_WALL_MM
 ROOM_B_LO = ROOM + WALL  # room B's side of the wall
 
 
@@ -141,7 +141,7 @@ def test_thin_wall_render_leaks_only_along_the_walls_edges():
     middle of the wall stays exactly black. The bound has 2x margin; a
     larger leak means a new way through the wall."""
     dark = _render(builtin.make("thin-wall"))
-    lit = _render(suite_scenes.thin_wall(lit_side=True))
+    lit = _render(suite.thin_wall(lit_side=True))
     dark_lum, lit_lum = dark @ LUMINANCE, lit @ LUMINANCE
     assert np.all(np.isfinite(dark)) and dark.min() >= 0 and lit_lum.mean() > 0.1
     assert dark_lum.mean() < 0.02 * lit_lum.mean()
@@ -153,14 +153,14 @@ def test_thin_wall_render_leaks_only_along_the_walls_edges():
 
 def test_far_from_origin_is_cornell_box_translated():
     far, box = builtin.make("far-from-origin"), builtin.make("cornell-box")
-    offset = np.array(suite_scenes.FAR_OFFSET_MM)
+    offset = np.array(suite.FAR_OFFSET_MM)
     assert np.array_equal(far.triangles, box.triangles)
     assert np.array_equal(far.tri_material, box.tri_material)
     assert far.materials.names == box.materials.names
     for key in ("kind", "reflectance", "emission", "two_sided"):
         assert np.array_equal(getattr(far.materials, key), getattr(box.materials, key))
-    parts = builtin.CORNELL_SHELL + builtin.CORNELL_BLOCKS
-    exact = np.concatenate([builtin.cornell_part(p)[0] for p in parts])
+    parts = cornell.CORNELL_SHELL + cornell.CORNELL_BLOCKS
+    exact = np.concatenate([cornell.cornell_part(p)[0] for p in parts])
     assert np.array_equal(far.vertices, (exact + offset).astype(np.float32))
     # float32 rounds at 1e5 to 1/128 mm: within that of cornell-box moved.
     assert np.abs(far.vertices.astype(np.float64) - box.vertices - offset).max() <= 1 / 256 + 1e-4
@@ -223,7 +223,7 @@ def test_glossy_floor_uses_one_ggx_lobe():
     m = scene.materials
     glossy = m.names.index("glossy")
     assert m.kind[glossy] == GLOSSY and m.roughness[glossy] == pytest.approx(0.15)
-    assert 0.1 <= suite_scenes.GLOSSY_FLOOR_ROUGHNESS <= 0.2
+    assert 0.1 <= suite.GLOSSY_FLOOR_ROUGHNESS <= 0.2
     corners = scene.vertices[scene.triangles]
     on_floor = np.all(corners[:, :, 1] == 0, axis=1) & (np.cross(
         corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])[:, 1] > 0)

@@ -1,7 +1,8 @@
 """Built-in scenes of renderers' known failure modes, for comparing speed
 against accuracy. Each is built from nothing in milliseconds, in the
-Cornell scenes' units (mm, +y up), at 256x256 pixels; `builtin.make(name)`
-builds them by name.
+Cornell scenes' units (mm, +y up), at 256x256 pixels, from the Cornell
+box's parts where they use it (`cornell.py`); `builtin.make(name)` builds
+them by name.
 
 | name                | what goes wrong in a renderer            | the right answer                  |
 |---------------------|------------------------------------------|-----------------------------------|
@@ -19,14 +20,16 @@ from __future__ import annotations
 
 import numpy as np
 
-from dosppm_core.scene import builtin, shapes
+from dosppm_core.scene import shapes
+from dosppm_core.scene.cornell import (CORNELL_BLOCKS, CORNELL_LIGHT_RADIANCE, CORNELL_REFLECTANCE,
+                                      CORNELL_SHELL, cornell_builder, cornell_part)
 from dosppm_core.scene.model import Camera, Material, Scene, SceneBuilder
 
 # Cornell's measured luminaire (130 x 105 mm): the power every lit scene
 # here matches, so their images are about as bright as `cornell-box`.
 CORNELL_LIGHT_AREA_MM2 = 130.0 * 105.0
-WHITE = builtin.CORNELL_REFLECTANCE["white"]
-LIGHT_REFLECTANCE = builtin.CORNELL_REFLECTANCE["light"]
+WHITE = CORNELL_REFLECTANCE["white"]
+LIGHT_REFLECTANCE = CORNELL_REFLECTANCE["light"]
 
 THIN_WALL_ROOM_MM = 550.0       # each room is a cube of this side
 THIN_WALL_MM = 5.5              # 1% of the room
@@ -68,7 +71,7 @@ def _lamp_material(name: str, radiance) -> Material:
 def _cornell_light_scaled(area_mm2: float) -> np.ndarray:
     """Cornell's light radiance scaled so `area_mm2` of it emits the
     Cornell luminaire's power."""
-    return np.asarray(builtin.CORNELL_LIGHT_RADIANCE) * (CORNELL_LIGHT_AREA_MM2 / area_mm2)
+    return np.asarray(CORNELL_LIGHT_RADIANCE) * (CORNELL_LIGHT_AREA_MM2 / area_mm2)
 
 
 # -- the scenes ---------------------------------------------------------------
@@ -95,7 +98,7 @@ def thin_wall(thickness_mm: float = THIN_WALL_MM, lit_side: bool = False) -> Sce
     builder = SceneBuilder(source="builtin:thin-wall", name="thin-wall")
     builder.add_material(Material("white", "diffuse", reflectance=WHITE))
     builder.add_material(Material("wall", "diffuse", reflectance=WHITE))
-    builder.add_material(_lamp_material("light", builtin.CORNELL_LIGHT_RADIANCE))
+    builder.add_material(_lamp_material("light", CORNELL_LIGHT_RADIANCE))
     builder.add_mesh(*box_mesh((0.0, 0.0, 0.0), (2 * room + t, room, room), inward=True), "white",
                      "builtin:thin-wall: rooms")
     builder.add_mesh(*box_mesh((wall_lo, -t, -t), (wall_hi, room + t, room + t)), "wall",
@@ -123,8 +126,8 @@ def far_from_origin(offset_mm=FAR_OFFSET_MM) -> Scene:
     (dosppm fails it for now: photons leave the lamp a fixed 0.001 mm off
     it and all hit its black back; see tests/test_suite_scenes.py.)
     """
-    return builtin.cornell_builder("far-from-origin", builtin.CORNELL_SHELL + builtin.CORNELL_BLOCKS,
-                                   offset_mm=tuple(float(x) for x in offset_mm)).build()
+    return cornell_builder("far-from-origin", CORNELL_SHELL + CORNELL_BLOCKS,
+                           offset_mm=tuple(float(x) for x in offset_mm)).build()
 
 
 def many_lights(lamps_across: int = 20) -> Scene:
@@ -142,7 +145,7 @@ def many_lights(lamps_across: int = 20) -> Scene:
     size = np.array([800.0, 400.0, 800.0])
     builder = SceneBuilder(source="builtin:many-lights", name="many-lights")
     builder.add_material(Material("white", "diffuse", reflectance=WHITE))
-    builder.add_material(Material("block", "diffuse", reflectance=builtin.CORNELL_REFLECTANCE["box"]))
+    builder.add_material(Material("block", "diffuse", reflectance=CORNELL_REFLECTANCE["box"]))
     builder.add_mesh(*box_mesh((0.0, 0.0, 0.0), size, inward=True), "white", "builtin:many-lights: room")
     for block_size, yaw, centre_xz in (((200.0, 240.0, 160.0), 20.0, (250.0, 450.0)),
                                        ((120.0, 120.0, 120.0), -30.0, (560.0, 300.0)),
@@ -184,11 +187,11 @@ def glossy_floor(roughness: float = GLOSSY_FLOOR_ROUGHNESS) -> Scene:
     the blocks and walls over the gather radius, and SPPM converges slowly
     on a near-specular surface, where a path tracer samples the lobe well.
     """
-    parts = tuple(p for p in builtin.CORNELL_SHELL if p != "floor") + builtin.CORNELL_BLOCKS
-    builder = builtin.cornell_builder("glossy-floor", parts)
+    parts = tuple(p for p in CORNELL_SHELL if p != "floor") + CORNELL_BLOCKS
+    builder = cornell_builder("glossy-floor", parts)
     builder.add_material(Material("glossy", "glossy", reflectance=WHITE, roughness=float(roughness),
                                   two_sided=False))
-    builder.add_mesh(*builtin.cornell_part("floor"), "glossy", "builtin:glossy-floor: floor")
+    builder.add_mesh(*cornell_part("floor"), "glossy", "builtin:glossy-floor: floor")
     return builder.build()
 
 
@@ -253,7 +256,7 @@ def cardioid(segments: int = 128, radius_mm: float = 300.0, height_mm: float = 6
     builder.add_mesh(vertices, faces, "mirror", "builtin:cardioid: ring")
     # Intensity L * A of Cornell's luminaire (radiance L, area A): the floor
     # under the light is then about as bright as the Cornell box's walls.
-    intensity = np.asarray(builtin.CORNELL_LIGHT_RADIANCE) * CORNELL_LIGHT_AREA_MM2
+    intensity = np.asarray(CORNELL_LIGHT_RADIANCE) * CORNELL_LIGHT_AREA_MM2
     builder.add_point_light((0.0, 250.0, 450.0), tuple(intensity), "builtin:cardioid: light")
     builder.camera = Camera(position=(0.0, 700.0, -500.0), look_at=(0.0, 0.0, 0.0),
                             up=(0.0, 1.0, 0.0), fov_deg=60.0, width=256, height=256)
