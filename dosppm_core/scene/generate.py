@@ -45,6 +45,7 @@ from functools import lru_cache
 import numpy as np
 
 from dosppm_core.scene import shapes
+from dosppm_core.scene.building_geometry import KNOT_TUBE, flat, knot_slices, rects, tessellated_box
 from dosppm_core.scene.model import Camera, Material, MaterialTable, Scene, SceneBuilder, SceneError, SceneHeader, light_table
 from dosppm_core.scene.soupfile import CORNERS, MANIFEST, MATERIAL, SoupWriter
 
@@ -63,7 +64,6 @@ SLICE = 1 << 16                             # triangles per emitted block
 FURNITURE_SHARE = 0.3                       # of a room's free budget, the rest is glass
 MAX_TESSELLATION = 48                       # grid per box face (12 * 48^2 = 27,648 triangles)
 MAX_SPHERE_LEVEL = 6                        # 81,920 triangles
-KNOT_TUBE = 0.3                             # shapes.torus_knot's default, in object units
 KNOT_MIN = (24, 6)                          # (tubular, radial): 288 triangles
 KNOT_MAX_RADIAL = 192
 KNOT_ASPECT = 768 / 72                      # tubular / radial of shapes.torus_knot
@@ -276,7 +276,7 @@ def _light_quads(lo, hi, count: int) -> np.ndarray:
     y = np.full(count, hi[1] - LIGHT_DROP)
     qlo = np.stack([cx - half, y, cz - half], 1)
     qhi = np.stack([cx + half, y, cz + half], 1)
-    return _rects(1, qlo, qhi, -1)
+    return rects(1, qlo, qhi, -1)
 
 
 def _camera(spec: BuildingSpec, room: RoomPlan) -> tuple[Camera, tuple]:
@@ -489,35 +489,14 @@ def _check_budget(spec: BuildingSpec, rooms: list) -> None:
                          f"and {spec.lights} lights; need at least {need * len(rooms):,}")
 
 
-# -- geometry: triangle corners, float64 (m, 3, 3) --------------------------------
-
-def _rects(axis: int, lo, hi, facing: int) -> np.ndarray:
-    """Axis-aligned rectangles in the planes coord[axis] = lo[:, axis],
-    spanning [lo, hi] in the other two axes, as two triangles each facing
-    `facing` * axis. Corners run (lo, lo) (hi, lo) (hi, hi) (lo, hi) in
-    the cyclic next two axes (a, b), and e_a x e_b = e_axis."""
-    lo, hi = np.atleast_2d(lo).astype(np.float64), np.atleast_2d(hi).astype(np.float64)
-    a, b = (axis + 1) % 3, (axis + 2) % 3
-    quad = np.repeat(lo[:, None, :], 4, axis=1)
-    quad[:, 1:3, a] = hi[:, None, a]
-    quad[:, 2:4, b] = hi[:, None, b]
-    if facing < 0:
-        quad = quad[:, ::-1]
-    return quad[:, [[0, 1, 2], [0, 2, 3]]].reshape(-1, 3, 3)
-
-
-def _flat(lo, hi, axis: int, value: float) -> tuple[np.ndarray, np.ndarray]:
-    lo, hi = np.array(lo, np.float64), np.array(hi, np.float64)
-    lo[axis] = hi[axis] = value
-    return lo, hi
-
+# -- geometry: triangle corners, float64 (m, 3, 3) (see building_geometry) ---------
 
 def _shell(room: RoomPlan) -> tuple[np.ndarray, np.ndarray]:
     """Floor, ceiling, walls with door holes and half reveals, all facing
     into the room."""
     lo, hi = room.lo, room.hi
-    parts = [(_rects(1, *_flat(lo, hi, 1, lo[1]), +1), FLOOR_ID),
-             (_rects(1, *_flat(lo, hi, 1, hi[1]), -1), CEILING_ID)]
+    parts = [(rects(1, *flat(lo, hi, 1, lo[1]), +1), FLOOR_ID),
+             (rects(1, *flat(lo, hi, 1, hi[1]), -1), CEILING_ID)]
     doors = {(d.axis, d.sign): d for d in room.doors}
     for axis in (0, 2):
         for sign in (-1, 1):
@@ -535,13 +514,13 @@ def _wall(room: RoomPlan, axis: int, sign: int, door: Door | None) -> np.ndarray
     lo, hi, t = room.lo, room.hi, 2 - axis
     value = hi[axis] if sign > 0 else lo[axis]
     if door is None:
-        return _rects(axis, *_flat(lo, hi, axis, value), -sign)
+        return rects(axis, *flat(lo, hi, axis, value), -sign)
     pieces = []
     for t0, t1, y0 in ((lo[t], door.d0, lo[1]), (door.d1, hi[t], lo[1]),
                        (door.d0, door.d1, lo[1] + DOOR_H)):
-        plo, phi = _flat(lo, hi, axis, value)
+        plo, phi = flat(lo, hi, axis, value)
         plo[t], phi[t], plo[1] = t0, t1, y0
-        pieces.append(_rects(axis, plo, phi, -sign))
+        pieces.append(rects(axis, plo, phi, -sign))
     return np.concatenate(pieces)
 
 
@@ -555,34 +534,10 @@ def _half_reveal(room: RoomPlan, door: Door) -> np.ndarray:
     lo[a], hi[a] = sorted((wall, wall + door.sign * WALL / 2))
     lo[t], hi[t] = door.d0, door.d1
     lo[1], hi[1] = room.lo[1], room.lo[1] + DOOR_H
-    return np.concatenate([_rects(t, *_flat(lo, hi, t, door.d0), +1),
-                           _rects(t, *_flat(lo, hi, t, door.d1), -1),
-                           _rects(1, *_flat(lo, hi, 1, hi[1]), -1),
-                           _rects(1, *_flat(lo, hi, 1, lo[1]), +1)])
-
-
-def _tessellated_box(lo, hi, grid: int) -> np.ndarray:
-    """The box [lo, hi] facing out, each face a grid x grid mesh of quads
-    (12 grid^2 triangles). Edges shared by two faces come from the same
-    linspace, so the box is closed."""
-    edges = [np.linspace(lo[k], hi[k], grid + 1) for k in range(3)]
-    faces = []
-    for axis in range(3):
-        a, b = (axis + 1) % 3, (axis + 2) % 3
-        ga, gb = np.meshgrid(np.arange(grid), np.arange(grid), indexing="ij")
-        clo, chi = np.empty((grid * grid, 3)), np.empty((grid * grid, 3))
-        clo[:, a], chi[:, a] = edges[a][ga.ravel()], edges[a][ga.ravel() + 1]
-        clo[:, b], chi[:, b] = edges[b][gb.ravel()], edges[b][gb.ravel() + 1]
-        for value, facing in ((lo[axis], -1), (hi[axis], +1)):
-            clo[:, axis] = chi[:, axis] = value
-            faces.append(_rects(axis, clo, chi, facing))
-    return np.concatenate(faces)
-
-
-def _object_rotation(yaw_deg: float) -> np.ndarray:
-    """Turn about z by 90 degrees (a knot's lobe on top, its plane upright),
-    then about the vertical by `yaw_deg`."""
-    return shapes.rotation_matrix((0, 1, 0), yaw_deg) @ shapes.rotation_matrix((0, 0, 1), 90.0)
+    return np.concatenate([rects(t, *flat(lo, hi, t, door.d0), +1),
+                           rects(t, *flat(lo, hi, t, door.d1), -1),
+                           rects(1, *flat(lo, hi, 1, hi[1]), -1),
+                           rects(1, *flat(lo, hi, 1, lo[1]), +1)])
 
 
 _unit_sphere = lru_cache(maxsize=MAX_SPHERE_LEVEL + 1)(shapes.ico_sphere)  # shared by every room
@@ -598,33 +553,10 @@ def _sphere(obj: GlassObject) -> np.ndarray:
 
 
 def _knot_slices(obj: GlassObject):
-    """The glass knot in slices of its tube of at most SLICE triangles.
-    The per-ring frame is placed in the world once; every vertex is then
-    centre + r (cos k normal + sin k binormal), element-wise, so a ring
-    shared by two slices has the same bits in both."""
+    """The glass knot, resting GAP above its base, in slices of its tube of
+    at most SLICE triangles."""
     tubular, radial = obj.detail
-    t = 2 * np.pi * np.arange(tubular) / tubular
-    centre, tangent = shapes.torus_knot_curve(t)
-    # As shapes.torus_knot: a frame from the z axis, periodic along the knot.
-    normal = tangent[:, 2:3] * -tangent + np.array([0.0, 0.0, 1.0])
-    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
-    binormal = np.cross(tangent, normal)
-    rot = _object_rotation(obj.yaw_deg)
-    centre = (centre * obj.size) @ rot.T
-    lift = obj.base_y + GAP - (centre[:, 1].min() - KNOT_TUBE * obj.size)
-    centre += np.array([obj.centre_xz[0], lift, obj.centre_xz[1]])
-    normal, binormal = normal @ rot.T, binormal @ rot.T
-    angle = 2 * np.pi * np.arange(radial) / radial
-    cos, sin = np.cos(angle)[None, :, None], np.sin(angle)[None, :, None]
-    radius = KNOT_TUBE * obj.size
-    rows = max(1, SLICE // (2 * radial))
-    for i0 in range(0, tubular, rows):
-        ring = np.arange(i0, min(i0 + rows, tubular) + 1) % tubular
-        v = centre[ring][:, None] + radius * (cos * normal[ring][:, None] + sin * binormal[ring][:, None])
-        a, b = v[:-1], np.roll(v[:-1], -1, axis=1)
-        c, d = np.roll(v[1:], -1, axis=1), v[1:]
-        # (i, k) (i, k+1) (i+1, k+1) (i+1, k): counter-clockwise from outside.
-        yield np.stack([a, b, c, a, c, d], axis=2).reshape(-1, 3, 3)
+    return knot_slices(tubular, radial, obj.size, obj.yaw_deg, obj.centre_xz, obj.base_y + GAP, SLICE)
 
 
 def _room_pieces(room: RoomPlan):
@@ -634,7 +566,7 @@ def _room_pieces(room: RoomPlan):
     if len(room.lights):
         yield room.lights, LIGHT_ID
     for lo, hi, material in room.boxes:
-        yield _tessellated_box(lo, hi, room.tessellation), material
+        yield tessellated_box(lo, hi, room.tessellation), material
     for obj in room.glass:
         if obj.kind == "sphere":
             yield _sphere(obj), obj.material

@@ -11,6 +11,7 @@ from __future__ import annotations
 import hashlib
 from typing import Iterator, Protocol
 
+import msgpack
 import numpy as np
 
 from dosppm_core.scene.model import Scene, SceneHeader
@@ -55,5 +56,4 @@ class SceneSource:
 
 def header_digest(header: SceneHeader) -> bytes:
     """Bytes that change whenever anything in the header does."""
-    import msgpack
     return hashlib.sha256(msgpack.packb(header.to_wire())).digest()
