@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import pytest
 
-from chunk_helpers import MemoryChunks, lattice_tree, root_box, uniform_tree
-from cluster_helpers import (ITERATIONS, assert_same_within_noise, caustic_reference,
+from tests.helpers.chunks import MemoryChunks, lattice_tree, root_box, uniform_tree
+from tests.helpers.cluster import (ITERATIONS, assert_same_within_noise, caustic_reference,
                              caustic_scene, settings)
 from dosppm_core.modes.sppm import Renderer
 from services.inproc import InProcessCluster

@@ -14,7 +14,7 @@ import urllib.request
 
 import pytest
 
-from cluster_helpers import assert_same_within_noise, caustic_reference
+from tests.helpers.cluster import assert_same_within_noise, caustic_reference
 from dosppm_core.film import read_exr
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

@@ -17,7 +17,7 @@ import urllib.request
 
 import pytest
 
-from cluster_helpers import assert_same_within_noise
+from tests.helpers.cluster import assert_same_within_noise
 from dosppm_core.film import read_exr
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

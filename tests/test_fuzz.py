@@ -14,13 +14,13 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from chunk_helpers import MemoryChunks, root_box, uniform_tree
+from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
 from dosppm_core.scene import builtin
 from dosppm_core.modes.sppm import RenderSettings
 from services import wire
 from services.server.state import ServerState
 from services.tracer.state import TracerState
-from test_wire import sample_fields
+from tests.test_wire import sample_fields
 
 FRAMES = 100_000
 

@@ -28,8 +28,8 @@ import urllib.request
 import numpy as np
 import pytest
 
-import netns_helpers
-from netns_helpers import POLLER, Procs
+from tests.helpers import netns
+from tests.helpers.netns import POLLER, Procs
 
 RENDER_S = 8
 SERVER_TIMEOUT_S = 90     # start-up (subdivision, numba cache), render, drain, output
@@ -51,7 +51,7 @@ def lan():
     """A bridge in namespace <prefix>-lan and one namespace per host with a
     veth into it; yields {host: (namespace, address)}. No default route:
     nothing leaves the machine. The namespaces are always deleted."""
-    with netns_helpers.lan(PREFIX, HOSTS) as hosts:
+    with netns.lan(PREFIX, HOSTS) as hosts:
         yield hosts
 
 
@@ -74,7 +74,7 @@ def test_server_and_two_tracers_on_separate_hosts(lan, tmp_path):
     logs.mkdir()
     py = [sys.executable, "-m", "services.cli"]
     env = {"DOSPPM_LOG_LEVEL": "info", "PYTHONUNBUFFERED": "1"}
-    netns_helpers.warm_kernel_cache(tmp_path / "warm-up")
+    netns.warm_kernel_cache(tmp_path / "warm-up")
     procs = Procs(logs)
     try:
         procs.start("server", server_ns, py + [

@@ -1,5 +1,5 @@
 """Network faults between real hosts: a server and two tracers, each in its
-own Linux network namespace on a private bridge (tests/netns_helpers.py;
+own Linux network namespace on a private bridge (tests/helpers/netns.py;
 RECIPES.md, "Several hosts on one machine"), the tracers fetching their
 chunks over the wire and advertising their own address. While the render
 runs (a photon limit, so a slowed render emits as many photons; those of
@@ -39,8 +39,8 @@ import time
 import numpy as np
 import pytest
 
-import netns_helpers
-from netns_helpers import Procs
+from tests.helpers import netns
+from tests.helpers.netns import Procs
 
 PHOTONS = 1_500_000
 PHOTONS_REJOIN = 4_000_000   # still rendering when the cable is back
@@ -86,13 +86,13 @@ class Lan:
 
     def link(self, host: str, state: str) -> None:
         """Plug (`up`) or pull (`down`) the cable of `host` at the bridge."""
-        netns_helpers.ip("-n", self.bridge_ns, "link", "set", f"v-{host}", state)
+        netns.ip("-n", self.bridge_ns, "link", "set", f"v-{host}", state)
 
 
 @pytest.fixture
 def lan():
     prefix = f"dpf-{_PID}-{next(_LANS)}"
-    with netns_helpers.lan(prefix, HOSTS) as hosts:
+    with netns.lan(prefix, HOSTS) as hosts:
         yield Lan(prefix, hosts)
 
 
@@ -239,12 +239,12 @@ def healthy(tmp_path_factory):
     """The fault-free render, after warming numba's on-disk kernel cache
     (a cold one costs each process 10-20 s of compiling)."""
     prefix = f"dpf-{_PID}-healthy"
-    why = netns_helpers.netns_unavailable(prefix)
+    why = netns.netns_unavailable(prefix)
     if why:
         pytest.skip(why)
     folder = tmp_path_factory.mktemp("netns-faults")
-    netns_helpers.warm_kernel_cache(folder / "warm-up")
-    with netns_helpers.lan(prefix, HOSTS) as hosts:
+    netns.warm_kernel_cache(folder / "warm-up")
+    with netns.lan(prefix, HOSTS) as hosts:
         res = _render(hosts, folder / "healthy", 10)
     _assert_exact(res)
     assert res["summary"]["counters"]["tracers_evicted"] == 0, (res["summary"]["counters"], res["tails"])

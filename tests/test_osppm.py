@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from chunk_helpers import MemoryChunks, lattice_tree, root_box, skewed_tree, uniform_tree
+from tests.helpers.chunks import MemoryChunks, lattice_tree, root_box, skewed_tree, uniform_tree
 from dosppm_core.scene import builtin
 from dosppm_core.modes.osppm import OutOfCoreRenderer
 from dosppm_core.modes.sppm import Renderer

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from chunk_helpers import bbox_chunks, root_box, skewed_tree, uniform_tree
+from tests.helpers.chunks import bbox_chunks, root_box, skewed_tree, uniform_tree
 from dosppm_core.scene import builtin
 from dosppm_core.accel import Accelerator
 from dosppm_core.chunks.view import ChunkView

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from chunk_helpers import MemoryChunks, root_box, uniform_tree
+from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
 from dosppm_core.scene import builtin
 from dosppm_core.jobs import PhotonDeposits
 from dosppm_core.settings import RenderSettings

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import zmq
 
-from chunk_helpers import MemoryChunks, root_box, uniform_tree
+from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
 from dosppm_core.scene import builtin
 from dosppm_core.modes.sppm import RenderSettings
 from services import wire

@@ -11,7 +11,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from chunk_helpers import skewed_tree
+from tests.helpers.chunks import skewed_tree
 from dosppm_core.scene import builtin
 from dosppm_core.chunks.store import MANIFEST, ChunkStore, Portals, StoreError, open_or_subdivide, store_key
 from dosppm_core.chunks.portals import INSERT_MARGIN

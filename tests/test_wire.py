@@ -166,7 +166,7 @@ def test_encode_is_zero_copy_on_the_senders_arrays():
 
 
 def test_welcome_carries_a_real_scene_header_and_chunk_tree():
-    from chunk_helpers import uniform_tree
+    from tests.helpers.chunks import uniform_tree
     from dosppm_core.scene import builtin
     from dosppm_core.chunks.tree import ChunkTree
     from dosppm_core.scene.model import SceneHeader

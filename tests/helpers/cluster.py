@@ -6,8 +6,9 @@ import functools
 
 import numpy as np
 
-from dosppm_core.scene import builtin
-from dosppm_core.modes.sppm import Renderer, RenderSettings
+from dosppm_core.modes.sppm import Renderer
+from dosppm_core.settings import RenderSettings
+from tests.helpers.scenes import small_scene
 
 ITERATIONS = 6
 SIZE = 64
@@ -24,9 +25,7 @@ def tiles(img, n=8):
 
 
 def caustic_scene():
-    scene = builtin.make("cornell-caustic")
-    scene.camera.width = scene.camera.height = SIZE
-    return scene
+    return small_scene("cornell-caustic", SIZE)
 
 
 @functools.lru_cache(maxsize=1)

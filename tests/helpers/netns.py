@@ -17,7 +17,8 @@ import sys
 
 import pytest
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from tests.helpers.cli import run_dosppm
+from tests.helpers.paths import REPO
 
 
 def ip(*args, check=True):
@@ -181,11 +182,10 @@ def warm_kernel_cache(folder) -> None:
     which would eat the render and leave no photons, no portal traffic.
     `--iterations` (not `--time`) so the photon kernels surely run."""
     folder.mkdir()
-    cmd = [sys.executable, "-m", "services.cli", "render", "cornell-box", "--tracers", "2", "--chunks", "4",
-           "--width", "16", "--height", "16", "--iterations", "2", "--min-photon-jobs", "64", "--http", "off",
-           "--store-cache", str(folder / "store-cache"), "--out", str(folder / "warm.exr"), "--quiet"]
     try:
-        r = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=180)
+        r = run_dosppm("render", "cornell-box", "--tracers", "2", "--chunks", "4", "--width", "16", "--height",
+                       "16", "--iterations", "2", "--min-photon-jobs", "64", "--http", "off", "--store-cache",
+                       folder / "store-cache", "--out", folder / "warm.exr", "--quiet", timeout=180)
     except subprocess.TimeoutExpired as e:
         pytest.fail(f"warming the kernel cache took over {e.timeout} s: {(e.stderr or '')[-3000:]}")
     assert r.returncode == 0, f"warm-up render failed ({r.returncode}): {r.stderr[-3000:]}"
