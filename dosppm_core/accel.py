@@ -20,6 +20,8 @@ import glob
 import os
 import threading
 
+import embreex
+import llvmlite.binding
 import numba
 import numpy as np
 from numba import njit, prange, types
@@ -44,7 +46,6 @@ _TFAR, _MASK, _FLAGS, _U, _V, _PRIM, _GEOM, _INST = 8, 9, 11, 15, 16, 17, 18, 19
 
 # -- the library -----------------------------------------------------------------
 def _library_path() -> str:
-    import embreex
     here = os.path.dirname(os.path.abspath(embreex.__file__))
     # Linux wheels keep it in embreex.libs/, macOS ones in embreex/.dylibs/.
     patterns = [os.path.join(here, "..", "embreex.libs", "libembree4*"),
@@ -60,7 +61,6 @@ def _library_path() -> str:
 def _load_library() -> ctypes.CDLL:
     path = _library_path()
     lib = ctypes.CDLL(path, mode=ctypes.RTLD_GLOBAL)
-    import llvmlite.binding
     llvmlite.binding.load_library_permanently(path)   # numba links rtcIntersect1 by name
     vp, u, sz = ctypes.c_void_p, ctypes.c_uint, ctypes.c_size_t
     for name, res, args in (

@@ -19,6 +19,7 @@ import struct
 import zlib
 
 import numpy as np
+import OpenEXR
 
 _EXR_MAGIC = b"\x76\x2f\x31\x01"
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -37,7 +38,6 @@ class FilmError(OSError):
 def write_exr(path: str, rgb, layers: dict | None = None) -> None:
     """Write linear RGB (H, W, 3) and optional single-channel layers
     {name: (H, W)} as float32 EXR channels with ZIP compression."""
-    import OpenEXR
     path = os.fspath(path)
     channels = {"RGB": _rgb_float32(rgb, path)}
     height, width = channels["RGB"].shape[:2]
@@ -101,7 +101,6 @@ def _png_chunk(kind: bytes, data: bytes) -> bytes:
 def read_exr(path: str) -> tuple[np.ndarray, dict]:
     """Read an EXR: (rgb float32 (H, W, 3), {layer name: float32 (H, W)}).
     RGBA files lose alpha; other channels become layers."""
-    import OpenEXR
     path = os.fspath(path)
     _check_exr_magic(path)
     try:

@@ -16,6 +16,8 @@ import math
 
 import numpy as np
 
+from dosppm_core.film import write_png_rgb8
+
 # Rec.709 / sRGB primaries, linear light.
 REC709_LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
@@ -126,7 +128,6 @@ def difference_png(path: str, a, b, scale: float | None = None, eps: float = 1e-
     blue where a is darker, white where equal, red where brighter, saturating
     at +-`scale` (default: the 99th percentile of |difference|). Returns the
     scale used so a caption can state it."""
-    from dosppm_core.film import write_png_rgb8
     diff = relative_difference(a, b, eps)
     if scale is None:
         scale = float(np.percentile(np.abs(diff), 99))
@@ -140,7 +141,7 @@ def _diverging_colours(t: np.ndarray) -> np.ndarray:
     """t in [-1, 1] -> uint8 RGB through matplotlib's 'bwr' if installed,
     else the same blue-white-red ramp built here."""
     try:
-        from matplotlib import colormaps
+        from matplotlib import colormaps     # optional (the [bench] extra), and 0.3 s to import
         rgba = colormaps["bwr"](0.5 * (t + 1.0))
         return np.round(rgba[..., :3] * 255).astype(np.uint8)
     except ImportError:

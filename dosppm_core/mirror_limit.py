@@ -33,7 +33,10 @@ import math
 
 import numpy as np
 
+from dosppm_core.accel import Accelerator
+from dosppm_core.reference import SAFE_VARIANT, cached_reference
 from dosppm_core.scene.model import DIFFUSE, MIRROR, Camera, Scene
+from dosppm_core.trace import eye_ray_job
 
 # The top-down camera stands this far above the floor, so the mirror ring
 # (a wall seen edge-on) hides a strip of floor far narrower than a texel.
@@ -274,12 +277,11 @@ class MirrorLimit:
 
 
 def mirror_limit(scene: Scene, cache_dir: str, pixels: np.ndarray | None = None,
-                 settings: LimitSettings = LimitSettings()) -> MirrorLimit:
+                 settings: LimitSettings = LimitSettings(), variant: str = SAFE_VARIANT) -> MirrorLimit:
     """The limit image over `pixels` ((H, W) bool, None for all): each
     pixel the mean over its jittered eye rays of the mirror reflectances
-    met times the floor radiance where the ray lands."""
-    from dosppm_core.accel import Accelerator
-    from dosppm_core.reference import cached_reference
+    met times the floor radiance where the ray lands. `variant` is the
+    Mitsuba variant of the floor image (see `reference`)."""
     floor_material, floor_y = floor_height(scene)
     accel = Accelerator(scene.vertices, scene.triangles)
     try:
@@ -290,7 +292,7 @@ def mirror_limit(scene: Scene, cache_dir: str, pixels: np.ndarray | None = None,
         camera = top_down_camera(ends.point[on_floor], floor_y, s.floor_resolution)
         top = dataclasses.replace(scene, camera=camera, name=f"{scene.name}-floor")
         floor_image = cached_reference(top, s.floor_spp, cache_dir, max_depth=s.max_depth - 1,
-                                       integrator="ptracer", seed=s.floor_seed)
+                                       integrator="ptracer", seed=s.floor_seed, variant=variant)
         lift = 1e-4 * scene.diagonal()
         clean = clean_texels(accel, camera, floor_y, lift)
         radiance = np.zeros((len(pixel), 3))
@@ -310,8 +312,7 @@ def mirror_limit(scene: Scene, cache_dir: str, pixels: np.ndarray | None = None,
 
 def _eye_rays(scene: Scene, pixels, rays_per_pixel: int, seed: int):
     """(pixel, origin, direction) of the jittered eye rays of `pixels`: our
-    renderer's ray generation and box filter (`tracing.eye_ray_job`)."""
-    from dosppm_core.trace import eye_ray_job
+    renderer's ray generation and box filter (`trace.eye_ray_job`)."""
     w, h = int(scene.camera.width), int(scene.camera.height)
     chosen = np.ones(w * h, bool) if pixels is None else np.asarray(pixels, bool).ravel()
     parts = []

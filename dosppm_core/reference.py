@@ -37,26 +37,25 @@ render with at most `max_depth` photon bounces (deposits) estimates; with
 specular chains in front of the camera SPPM may add eye bounces on top,
 a difference far below the noise at the default depth of 10.
 
-Variant: `llvm_ad_rgb` (vectorised, about 3x faster) when it works here,
-else `scalar_rgb`. An unsupported libLLVM aborts the whole process while
-compiling a kernel (it cannot be caught), so llvm is first tried in a
-child process, once per process.
+Variant: the caller's choice, `scalar_rgb` (`SAFE_VARIANT`) by default.
+`llvm_ad_rgb` is about 3x faster, but an unsupported libLLVM aborts the
+whole process while compiling a kernel (it cannot be caught), so whether it
+works here is found by trying it in a child process, which a library must
+not start: `services.evaluation.mitsuba_probe.best_variant()` does that,
+and its answer is passed in as `variant`.
 """
 from __future__ import annotations
 
-import functools
 import hashlib
 import json
 import math
 import os
 import re
-import subprocess
-import sys
 from dataclasses import asdict
 
 import numpy as np
 
-from dosppm_core.film import one_line
+from dosppm_core.film import FilmError, one_line, read_exr, write_exr
 from dosppm_core.scene.model import DIFFUSE, GLASS, GLOSSY, LIGHT_POINT, LIGHT_SPOT, LIGHT_TRIANGLE, MIRROR, Scene, SceneError
 
 DEFAULT_MAX_DEPTH = 10
@@ -64,7 +63,6 @@ INTEGRATORS = ("path", "ptracer")
 FAST_VARIANT, SAFE_VARIANT = "llvm_ad_rgb", "scalar_rgb"
 # Bump when the translation changes, so cached references are re-rendered.
 MAPPING_VERSION = 1
-_PROBE_TIMEOUT_S = 300
 
 
 class ReferenceRenderError(RuntimeError):
@@ -74,16 +72,21 @@ class ReferenceRenderError(RuntimeError):
 # -- Mitsuba loading and variant choice -------------------------------------
 def _import_mitsuba():
     try:
-        import mitsuba
+        import mitsuba      # optional (the [reference] extra), and 0.2 s to import
     except ImportError:
         raise ReferenceRenderError("Mitsuba 3 is not installed: pip install 'dosppm[reference]'") from None
     return mitsuba
 
 
-def _mitsuba(variant: str | None = None):
-    """The mitsuba module with `variant` (default: the best one here) set."""
+def available_variants() -> list[str]:
+    """The variants this Mitsuba build has (not all of them may work here:
+    see the module doc)."""
+    return list(_import_mitsuba().variants())
+
+
+def _mitsuba(variant: str):
+    """The mitsuba module with `variant` set."""
     mi = _import_mitsuba()
-    variant = variant or best_variant()
     if mi.variant() != variant:
         try:
             mi.set_variant(variant)
@@ -91,46 +94,6 @@ def _mitsuba(variant: str | None = None):
             raise ReferenceRenderError(f"Mitsuba variant {variant!r} is unavailable: "
                                  f"{one_line(exc)}") from None
     return mi
-
-
-@functools.lru_cache(maxsize=1)
-def best_variant() -> str:
-    """`llvm_ad_rgb` if a child process can render with it, else `scalar_rgb`."""
-    mi = _import_mitsuba()
-    if FAST_VARIANT not in mi.variants() or not _llvm_probe_passes():
-        return SAFE_VARIANT
-    return FAST_VARIANT
-
-
-# Renders every plugin kind the translation uses, so a libLLVM that
-# miscompiles one of them is caught here rather than killing the caller.
-_PROBE = """
-import mitsuba as mi
-mi.set_variant('llvm_ad_rgb')
-d = mi.cornell_box()
-d['sensor']['film'].update(width=8, height=8)
-d['glass'] = {'type': 'sphere', 'center': [-0.4, -0.6, 0], 'radius': 0.2,
-              'bsdf': {'type': 'dielectric', 'int_ior': 1.5}}
-d['metal'] = {'type': 'sphere', 'center': [0.4, -0.6, 0], 'radius': 0.2,
-              'bsdf': {'type': 'twosided', 'bsdf': {'type': 'roughconductor',
-                       'material': 'none', 'alpha': 0.2}}}
-d['point'] = {'type': 'point', 'position': [0, 0.5, 0]}
-d['spot'] = {'type': 'spot', 'cutoff_angle': 30, 'to_world':
-             mi.ScalarTransform4f().look_at([0, 0.5, 1], [0, 0, 0], [0, 1, 0])}
-for name in ('path', 'ptracer'):
-    d['integrator'] = {'type': name, 'max_depth': 4}
-    mi.render(mi.load_dict(d), spp=2).numpy()
-print('ok')
-"""
-
-
-def _llvm_probe_passes() -> bool:
-    try:
-        done = subprocess.run([sys.executable, "-c", _PROBE], capture_output=True,
-                              text=True, timeout=_PROBE_TIMEOUT_S)
-    except (OSError, subprocess.TimeoutExpired):
-        return False
-    return done.returncode == 0 and done.stdout.strip().endswith("ok")
 
 
 # -- Scene translation ------------------------------------------------------
@@ -141,9 +104,9 @@ def mitsuba_max_depth(max_depth: int) -> int:
 
 def scene_to_mitsuba_dict(scene: Scene, spp: int, max_depth: int = DEFAULT_MAX_DEPTH,
                           integrator: str = "path", seed: int = 0,
-                          variant: str | None = None) -> dict:
+                          variant: str = SAFE_VARIANT) -> dict:
     """A Mitsuba 3 scene dict for `scene`; meshes are `mi.Mesh` objects of
-    `variant` (default: `best_variant()`), which is set as a side effect."""
+    `variant`, which is set as a side effect."""
     if integrator not in INTEGRATORS:
         raise ValueError(f"unknown integrator {integrator!r} (known: {', '.join(INTEGRATORS)})")
     if int(spp) < 1:
@@ -269,9 +232,9 @@ def _safe_name(name: str) -> str:
 # -- Rendering -------------------------------------------------------------
 def render_reference(scene: Scene, spp: int, max_depth: int = DEFAULT_MAX_DEPTH,
                      integrator: str = "path", seed: int = 0,
-                     variant: str | None = None) -> np.ndarray:
+                     variant: str = SAFE_VARIANT) -> np.ndarray:
     """Render `scene` with Mitsuba 3: float32 (H, W, 3) linear RGB, row 0 on
-    top. `variant` None picks `best_variant()`."""
+    top."""
     mi = _mitsuba(variant)
     scene_dict = scene_to_mitsuba_dict(scene, spp, max_depth, integrator, seed, mi.variant())
     try:
@@ -306,11 +269,10 @@ def _jsonable(x):
 
 def cached_reference(scene: Scene, spp: int, cache_dir: str,
                      max_depth: int = DEFAULT_MAX_DEPTH, integrator: str = "path",
-                     seed: int = 0, variant: str | None = None) -> np.ndarray:
+                     seed: int = 0, variant: str = SAFE_VARIANT) -> np.ndarray:
     """`render_reference`, stored as `cache_dir/ref-<name>-<key>.exr` and read
     back on the next call with the same inputs. An unreadable cache file is
     rendered again."""
-    from dosppm_core.film import FilmError, read_exr, write_exr
     key = reference_key(scene, spp, max_depth, integrator, seed)
     path = os.path.join(cache_dir, f"ref-{_safe_name(scene.name)}-{key[:24]}.exr")
     if os.path.exists(path):

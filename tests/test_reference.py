@@ -8,7 +8,11 @@ import numpy as np
 import pytest
 
 from dosppm_core import reference
-from dosppm_core.scene.model import Camera, Material, SceneBuilder
+from dosppm_core.film import read_exr
+from dosppm_core.scene import loaders
+from dosppm_core.scene.model import Camera, Material, SceneBuilder, SceneError
+from services.cli import tools as cli_tools
+from services.evaluation.mitsuba_probe import best_variant
 
 pytest.importorskip("mitsuba")
 pytestmark = pytest.mark.reference
@@ -169,12 +173,15 @@ def test_missing_mitsuba_gives_install_hint(monkeypatch):
 
 
 def test_best_variant_is_a_working_variant():
-    assert reference.best_variant() in (reference.FAST_VARIANT, reference.SAFE_VARIANT)
+    """The probe (a child process, outside the library) answers a variant
+    that renders here."""
+    variant = best_variant()
+    assert variant in (reference.FAST_VARIANT, reference.SAFE_VARIANT)
+    assert reference.render_reference(_emitter_scene(False), 1, max_depth=0, variant=variant).shape == (3, 4, 3)
 
 
 # -- dosppm reference ---------------------------------------------------------
 def _run_reference(argv):
-    from services.cli import tools as cli_tools
     parser = argparse.ArgumentParser(prog="dosppm")
     cli_tools.add_reference_parser(parser.add_subparsers(dest="command"))
     args = parser.parse_args(["reference", *argv])
@@ -182,8 +189,6 @@ def _run_reference(argv):
 
 
 def test_reference_command_writes_exr(tmp_path, monkeypatch, capsys):
-    from dosppm_core.scene import loaders
-    from dosppm_core.film import read_exr
     seen = {}
 
     def fake_load(spec, **overrides):
@@ -203,8 +208,6 @@ def test_reference_command_writes_exr(tmp_path, monkeypatch, capsys):
 
 
 def test_reference_command_bad_scene_exits_2(tmp_path, monkeypatch, capsys):
-    from dosppm_core.scene import loaders
-    from dosppm_core.scene.model import SceneError
 
     def broken(spec, **overrides):
         raise SceneError(f"{spec}: no such file, and not a built-in scene")
