@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from dosppm_core.scene import builtin, loaders
+import dosppm_core.scene as scene_package
+from dosppm_core.scene import builtin, loaders, model
 from dosppm_core.scene.model import LIGHT_POINT, LIGHT_TRIANGLE, SceneError
 
 CBOX = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "scenes", "cornell_box", "mitsuba")
@@ -59,6 +60,15 @@ def test_registry():
                                    "glass-small-light", "cardioid"}
     with pytest.raises(SceneError, match="cornell-box.*furnace-sphere"):
         builtin.make("cornell-dragon")
+
+
+def test_package_exports_the_model_and_the_loaders():
+    """`from dosppm_core.scene import Scene, load_scene` works, and the
+    names are the model's and the loaders' own."""
+    assert scene_package.Scene is model.Scene and scene_package.SceneError is model.SceneError
+    assert scene_package.load_scene is loaders.load_scene
+    assert all(hasattr(scene_package, name) for name in scene_package.__all__)
+    assert isinstance(scene_package.load_scene("cornell-box"), scene_package.Scene)
 
 
 def test_loader_dispatches_built_in_names():
