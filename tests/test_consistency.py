@@ -19,11 +19,11 @@ from dosppm_core.metrics import mean_luminance_bias, relmse  # noqa: E402
 from dosppm_core.reference import cached_reference, mitsuba_max_depth  # noqa: E402
 from dosppm_core.modes.sppm import Renderer  # noqa: E402
 from dosppm_core.settings import RenderSettings
+from tests.helpers.paths import REPO, SHARED_SCENES, needs_shared_scenes  # noqa: E402
 
-pytestmark = pytest.mark.reference
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-CACHE = os.path.join(ROOT, ".cache", "reference")
-SHARED = os.path.join(ROOT, "..", "shared", "scenes", "cornell_box", "mitsuba")
+pytestmark = [pytest.mark.reference, pytest.mark.slow]
+CACHE = os.path.join(REPO, ".cache", "reference")
+SHARED = os.path.join(SHARED_SCENES, "cornell_box", "mitsuba")
 RES, REF_SPP, MAX_DEPTH = 64, 4096, 10
 # Measured on this machine (64x64, seed 1): relMSE 0.033 -> 0.011 -> 0.0035
 # at 0.4M, 1.6M, 6.4M photons on both scenes, mean-luminance bias -1.25%
@@ -73,9 +73,9 @@ def _mitsuba_file_reference(path: str) -> np.ndarray:
     return img
 
 
-@pytest.mark.skipif(not os.path.isdir(SHARED), reason="../shared/scenes not present")
+@needs_shared_scenes
 def test_mitsuba_cbox_file_matches_mitsuba():
-    from dosppm_core.scene.mitsuba_xml import load_mitsuba_xml
+    from dosppm_core.scene.mitsuba import load_mitsuba_xml
     path = os.path.join(SHARED, "cbox-rgb.xml")   # box filter, RGB: nothing to convert
     ref = _mitsuba_file_reference(path)
     scene = load_mitsuba_xml(path, res=RES)
