@@ -12,9 +12,9 @@ import trimesh
 import dosppm_core.scene as scene_package
 from dosppm_core.scene import builtin, loaders, model
 from dosppm_core.scene.model import LIGHT_POINT, LIGHT_TRIANGLE, SceneError
+from tests.helpers.paths import SHARED_SCENES, needs_shared_scenes
 
-CBOX = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "scenes", "cornell_box", "mitsuba")
-needs_cbox = pytest.mark.skipif(not os.path.isdir(CBOX), reason="../shared Cornell box data absent")
+CBOX = os.path.join(SHARED_SCENES, "cornell_box", "mitsuba")
 PARTS = ("floor", "ceiling", "back", "greenwall", "redwall", "smallbox", "largebox", "luminaire")
 
 
@@ -77,7 +77,7 @@ def test_loader_dispatches_built_in_names():
     assert (scene.camera.width, scene.camera.height) == (64, 48)
 
 
-@needs_cbox
+@needs_shared_scenes
 def test_cornell_box_triangles_equal_mitsubas_meshes():
     expected = []
     for part in PARTS:
@@ -90,7 +90,7 @@ def test_cornell_box_triangles_equal_mitsubas_meshes():
     assert _triangle_keys(scene.vertices, scene.triangles) == sorted(expected)
 
 
-@needs_cbox
+@needs_shared_scenes
 def test_cornell_materials_equal_mitsubas_rgb_fragment():
     root = ET.parse(os.path.join(CBOX, "fragments", "bsdfs-rgb.xml")).getroot()
     scene = builtin.make("cornell-box")

@@ -6,24 +6,23 @@ the status page answers while it runs."""
 from __future__ import annotations
 
 import json
-import os
 import subprocess
-import sys
 import time
 import urllib.request
 
 import pytest
 
+from tests.helpers.cli import free_port, run_dosppm, start_dosppm
 from tests.helpers.cluster import assert_same_within_noise, caustic_reference
 from dosppm_core.film import read_exr
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+pytestmark = pytest.mark.slow   # clusters of processes, a minute or more each
 PHOTONS = 240_000
 
 
 def _render(tmp_path, chunks: int, tracers: int, extra=(), timeout=240):
     out = tmp_path / "img.exr"
-    cmd = [sys.executable, "-m", "services.cli", "render", "cornell-caustic", "--width", "64",
+    cmd = ["render", "cornell-caustic", "--width", "64",
            "--height", "64", "--chunks", str(chunks), "--tracers", str(tracers), "--photons",
            str(PHOTONS), "--photons-per-iteration", "40000", "--seed", "5", "--threads", "2",
            # A shallow pipeline, so 240k photons span about SPPM's six eye
@@ -33,7 +32,7 @@ def _render(tmp_path, chunks: int, tracers: int, extra=(), timeout=240):
            # start-up bias, not an error of the service).
            "--min-photon-jobs", "16",
            "--out", str(out), "--store-cache", str(tmp_path / "stores"), *extra]
-    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=timeout)
+    proc = run_dosppm(*cmd, timeout=timeout)
     assert proc.returncode == 0, proc.stderr[-3000:]
     with open(tmp_path / "img.json", encoding="utf-8") as f:
         return read_exr(str(out))[0], json.load(f), proc.stderr
@@ -59,12 +58,12 @@ def test_local_cluster_renders_the_single_process_image(tmp_path, chunks, tracer
 def test_status_page_answers_while_rendering(tmp_path):
     """Poll /status of a running render: JSON with the tracers and growing
     photon counts; the preview PNG is served."""
-    port = _free_port()
+    port = free_port()
     out = tmp_path / "img.exr"
-    cmd = [sys.executable, "-m", "services.cli", "render", "cornell-box", "--width", "32", "--height", "32",
+    cmd = ["render", "cornell-box", "--width", "32", "--height", "32",
            "--tracers", "2", "--time", "6", "--out", str(out), "--http", f"127.0.0.1:{port}",
            "--store-cache", str(tmp_path / "stores"), "--quiet"]
-    proc = subprocess.Popen(cmd, cwd=ROOT, stderr=subprocess.PIPE, text=True)
+    proc = start_dosppm(*cmd, stderr=subprocess.PIPE, text=True)
     seen, png = [], None
     try:
         deadline = time.monotonic() + 120
@@ -90,22 +89,15 @@ def test_status_page_answers_while_rendering(tmp_path):
     assert png is not None and png.startswith(b"\x89PNG")
 
 
-def _free_port() -> int:
-    import socket
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def test_sigint_stops_the_render_and_writes_the_image(tmp_path):
     """SIGINT mid-render: emission stops, jobs in flight drain, the image
     so far is written, and the exit status says it was interrupted."""
     import signal
     out = tmp_path / "img.exr"
-    cmd = [sys.executable, "-m", "services.cli", "render", "cornell-box", "--width", "32", "--height", "32",
+    cmd = ["render", "cornell-box", "--width", "32", "--height", "32",
            "--tracers", "2", "--time", "600", "--out", str(out), "--http", "off",
            "--store-cache", str(tmp_path / "stores")]
-    proc = subprocess.Popen(cmd, cwd=ROOT, stderr=subprocess.PIPE, text=True)
+    proc = start_dosppm(*cmd, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 120
         while not (tmp_path / "img.json").exists() and proc.poll() is None and time.monotonic() < deadline:

@@ -13,13 +13,13 @@ import pytest
 
 mi = pytest.importorskip("mitsuba")
 
-from dosppm_core.scene import builtin  # noqa: E402
 from dosppm_core.film import read_exr, write_exr  # noqa: E402
 from dosppm_core.metrics import mean_luminance_bias, relmse  # noqa: E402
 from dosppm_core.reference import cached_reference, mitsuba_max_depth  # noqa: E402
 from dosppm_core.modes.sppm import Renderer  # noqa: E402
 from dosppm_core.settings import RenderSettings
 from tests.helpers.paths import REPO, SHARED_SCENES, needs_shared_scenes  # noqa: E402
+from tests.helpers.scenes import small_scene  # noqa: E402
 
 pytestmark = [pytest.mark.reference, pytest.mark.slow]
 CACHE = os.path.join(REPO, ".cache", "reference")
@@ -52,8 +52,7 @@ def check(errors, bias):
 
 
 def test_builtin_cornell_box_matches_mitsuba():
-    scene = builtin.make("cornell-box")
-    scene.camera.width = scene.camera.height = RES
+    scene = small_scene("cornell-box", RES)
     ref = cached_reference(scene, REF_SPP, CACHE, max_depth=MAX_DEPTH)
     check(*progressive_errors(scene, ref))
 

@@ -7,42 +7,35 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import socket
 import subprocess
-import sys
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-PY = [sys.executable, "-m", "services.cli"]
+import pytest
 
+from tests.helpers.cli import free_port, run_dosppm, start_dosppm
 
-def _port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+pytestmark = pytest.mark.slow   # a server and four tracer processes
 
 
 def test_only_listed_tracers_join_a_curve_server(tmp_path):
     keys, allowed = tmp_path / "keys", tmp_path / "allowed"
-    made = subprocess.run(PY + ["keys", "server", "t1", "t2", "intruder", "--out", str(keys)], cwd=ROOT,
-                          capture_output=True, text=True, timeout=60)
+    made = run_dosppm("keys", "server", "t1", "t2", "intruder", "--out", keys, timeout=60)
     assert made.returncode == 0, made.stderr
     assert oct(os.stat(keys / "t1.key_secret").st_mode & 0o777) == "0o600"
     allowed.mkdir()
     for name in ("t1", "t2"):
         shutil.copy(keys / f"{name}.key", allowed / f"{name}.key")
-    port = _port()
-    server = subprocess.Popen(
-        PY + ["server", "cornell-box", "--width", "32", "--height", "32", "--chunks", "2",
-              "--bind", f"tcp://127.0.0.1:{port}", "--http", "off", "--min-tracers", "2", "--photons", "1e6",
-              "--out", str(tmp_path / "img.exr"), "--store-cache", str(tmp_path / "stores"), "--quiet",
-              "--curve-secret", str(keys / "server.key_secret"), "--curve-clients", str(allowed)],
-        cwd=ROOT, stderr=subprocess.PIPE, text=True)
+    port = free_port()
+    server = start_dosppm(
+        "server", "cornell-box", "--width", "32", "--height", "32", "--chunks", "2",
+        "--bind", f"tcp://127.0.0.1:{port}", "--http", "off", "--min-tracers", "2", "--photons", "1e6",
+        "--out", str(tmp_path / "img.exr"), "--store-cache", str(tmp_path / "stores"), "--quiet",
+        "--curve-secret", str(keys / "server.key_secret"), "--curve-clients", str(allowed),
+        stderr=subprocess.PIPE, text=True)
 
     def worker(name, *curve, retry="60"):
-        return subprocess.Popen(
-            PY + ["worker", "--server", f"tcp://127.0.0.1:{port}", "--threads", "1", "--id", name,
-                  "--cache-dir", str(tmp_path / name), "--retry", retry, *curve],
-            cwd=ROOT, stderr=subprocess.PIPE, text=True)
+        return start_dosppm(
+            "worker", "--server", f"tcp://127.0.0.1:{port}", "--threads", "1", "--id", name,
+            "--cache-dir", str(tmp_path / name), "--retry", retry, *curve, stderr=subprocess.PIPE, text=True)
 
     def curve(name):
         return ("--curve-secret", str(keys / f"{name}.key_secret"), "--curve-server-key",

@@ -11,7 +11,7 @@ import pytest
 from services.evaluation import evaluate
 from services.cli.render import main
 
-pytest.importorskip("mitsuba")
+pytestmark = pytest.mark.reference   # the references are Mitsuba's
 
 
 @pytest.fixture(scope="module")

@@ -7,52 +7,43 @@ accounting), its image agreeing within noise with failure-free renders."""
 from __future__ import annotations
 
 import json
-import os
 import signal
-import socket
 import subprocess
-import sys
 import time
 import urllib.request
 
 import pytest
 
+from tests.helpers.cli import free_port, run_dosppm, start_dosppm
 from tests.helpers.cluster import assert_same_within_noise
 from dosppm_core.film import read_exr
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+pytestmark = pytest.mark.slow   # a server and three tracer processes per render
 PHOTONS = 1_500_000
 TIMEOUT_S = 3.0
-
-
-def _port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class Cluster:
     """`dosppm server` and three `dosppm worker` processes."""
 
     def __init__(self, tmp, seed: int, workers: int = 3):
-        self.tmp, self.port, self.http, self.seed = tmp, _port(), _port(), seed
+        self.tmp, self.port, self.http, self.seed = tmp, free_port(), free_port(), seed
         self.n = workers
-        py = [sys.executable, "-m", "services.cli"]
         self.server = self.start_server()
-        self.workers = [subprocess.Popen(
-            py + ["worker", "--server", f"tcp://127.0.0.1:{self.port}", "--threads", "1", "--id", f"w{i}",
-                  "--cache-dir", str(tmp / f"cache{i}"), "--quiet"],
-            cwd=ROOT, stderr=open(tmp / f"worker{i}.log", "w")) for i in range(workers)]
+        self.workers = [start_dosppm(
+            "worker", "--server", f"tcp://127.0.0.1:{self.port}", "--threads", "1", "--id", f"w{i}",
+            "--cache-dir", str(tmp / f"cache{i}"), "--quiet",
+            stderr=open(tmp / f"worker{i}.log", "w")) for i in range(workers)]
 
     def start_server(self, *extra: str, log: str = "server.log"):
-        cmd = [sys.executable, "-m", "services.cli", "server", "cornell-caustic", "--width", "64",
+        cmd = ["server", "cornell-caustic", "--width", "64",
                "--height", "64", "--chunks", "4", "--bind", f"tcp://127.0.0.1:{self.port}",
                "--http", f"127.0.0.1:{self.http}", "--min-tracers", str(self.n), "--photons", str(PHOTONS),
                "--photons-per-iteration", "40000", "--min-photon-jobs", "64", "--seed", str(self.seed),
                "--tracer-timeout", str(TIMEOUT_S), "--threads", "1", "--out", str(self.tmp / "img.exr"),
                "--store-cache", str(self.tmp / "stores"), "--checkpoint", str(self.tmp / "ckpt"),
                "--checkpoint-interval", "1", "--quiet", *extra]
-        return subprocess.Popen(cmd, cwd=ROOT, stderr=open(self.tmp / log, "w"))
+        return start_dosppm(*cmd, stderr=open(self.tmp / log, "w"))
 
     def status(self) -> dict:
         try:
@@ -181,20 +172,17 @@ def test_the_server_killed_and_resumed_from_its_checkpoint(tmp_path, failure_fre
      ["'format'", "not a dosppm checkpoint"]),
 ])
 def test_a_corrupt_or_foreign_checkpoint_is_refused(tmp_path, damage, words):
-    run = [sys.executable, "-m", "services.cli", "render", "cornell-box", "--width", "16", "--height", "16",
+    run = ["render", "cornell-box", "--width", "16", "--height", "16",
            "--tracers", "1", "--time", "1", "--http", "off", "--store-cache", str(tmp_path / "stores"),
            "--quiet"]
-    first = subprocess.run(run + ["--out", str(tmp_path / "a.exr"), "--checkpoint", str(tmp_path / "ck")],
-                           cwd=ROOT, capture_output=True, text=True, timeout=300)
+    first = run_dosppm(*run, "--out", tmp_path / "a.exr", "--checkpoint", tmp_path / "ck")
     assert first.returncode == 0, first.stderr
     # Another scene (another store key) is refused by name.
-    other = subprocess.run([*run[:4], "cornell-caustic", *run[5:], "--out", str(tmp_path / "b.exr"),
-                            "--resume", str(tmp_path / "ck")], cwd=ROOT, capture_output=True, text=True,
-                           timeout=300)
+    other = run_dosppm(run[0], "cornell-caustic", *run[2:], "--out", tmp_path / "b.exr",
+                       "--resume", tmp_path / "ck")
     assert other.returncode == 2 and "another scene" in other.stderr
     damage(tmp_path / "ck" / "checkpoint.msgpack")
-    bad = subprocess.run(run + ["--out", str(tmp_path / "c.exr"), "--resume", str(tmp_path / "ck")],
-                         cwd=ROOT, capture_output=True, text=True, timeout=300)
+    bad = run_dosppm(*run, "--out", tmp_path / "c.exr", "--resume", tmp_path / "ck")
     lines = bad.stderr.strip().splitlines()
     assert bad.returncode == 2 and len(lines) == 1, bad.stderr
     assert all(w in lines[0] for w in words), lines[0]
@@ -206,10 +194,9 @@ def test_a_tracer_added_mid_render_gets_work(tmp_path, failure_free):
     chunks by the new round-robin table and traces; nothing is lost."""
     def join(c: Cluster):
         c.wait_for(lambda st: st.get("photons_committed", 0) > 0)
-        c.workers.append(subprocess.Popen(
-            [sys.executable, "-m", "services.cli", "worker", "--server", f"tcp://127.0.0.1:{c.port}",
-             "--threads", "1", "--id", "late", "--cache-dir", str(c.tmp / "late"), "--quiet"],
-            cwd=ROOT, stderr=open(c.tmp / "late.log", "w")))
+        c.workers.append(start_dosppm(
+            "worker", "--server", f"tcp://127.0.0.1:{c.port}", "--threads", "1", "--id", "late",
+            "--cache-dir", str(c.tmp / "late"), "--quiet", stderr=open(c.tmp / "late.log", "w")))
         c.wait_for(lambda st: any(t["id"] == "late" and t["chunks"] and t["results"] > 0
                                   for t in st["tracers"]), 60)
     c_workers = 2

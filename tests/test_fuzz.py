@@ -15,7 +15,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
-from dosppm_core.scene import builtin
+from tests.helpers.scenes import small_scene
 from dosppm_core.modes.sppm import RenderSettings
 from services import wire
 from services.server.state import ServerState
@@ -27,8 +27,7 @@ FRAMES = 100_000
 
 @pytest.fixture(scope="module")
 def roles():
-    scene = builtin.make("cornell-box")
-    scene.camera.width = scene.camera.height = 16
+    scene = small_scene("cornell-box", 16)
     provider = MemoryChunks(scene, uniform_tree(root_box(scene), (2, 1, 1)))
     server = ServerState(provider.header, provider.tree, RenderSettings(photons_per_job=64, tile_pixels=64),
                          "k", min_photon_jobs=8)
@@ -89,6 +88,7 @@ def _feed(server, tracer, msg) -> None:
     assert isinstance(outs, list)
 
 
+@pytest.mark.slow   # about 30 s
 def test_100k_mutated_frames(roles):
     server, tracer = roles
     rng = np.random.default_rng(2026)

@@ -1,10 +1,6 @@
 """The generated building: counts as asked, deterministic, closed and
 correctly wound, rooms connected through their doors, renderable, and
 written in bounded memory whatever its size."""
-import os
-import subprocess
-import sys
-
 import numpy as np
 import pytest
 
@@ -13,8 +9,7 @@ from dosppm_core.accel import MISS, Accelerator
 from dosppm_core.scene.generate import BuildingSpec, building_scene, generate_building, plan_building
 from dosppm_core.scene.model import GLASS, LIGHT_TRIANGLE, SceneError
 from dosppm_core.scene.soupfile import open_soup
-
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from tests.helpers.cli import run_dosppm, run_python
 
 
 def _normals(corners):
@@ -231,17 +226,11 @@ print(json.dumps({"growth_kib": after - before, "bytes": report.bytes, "triangle
 """
 
 
-def _run(args, **kw):
-    env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    return subprocess.run([sys.executable, *args], cwd=REPO, env=env, capture_output=True,
-                          text=True, timeout=120, **kw)
-
-
 def test_generation_streams_in_bounded_memory(tmp_path):
     """Peak RSS grows by a small fraction of the soup: blocks, not the scene
     (measured: about 19 MB for a 120 MB soup of 3M triangles)."""
     import json
-    out = _run(["-c", _RSS_SCRIPT, str(tmp_path / "b")])
+    out = run_python("-c", _RSS_SCRIPT, tmp_path / "b", timeout=120)
     assert out.returncode == 0, out.stderr
     result = json.loads(out.stdout)
     assert result["triangles"] >= 2_700_000
@@ -249,14 +238,14 @@ def test_generation_streams_in_bounded_memory(tmp_path):
 
 
 def test_cli_generates_and_rejects_bad_counts(tmp_path):
-    out = _run(["-m", "services.cli", "scenes", "generate", "building", "--triangles", "100k",
-                "--lights", "12", "--out", str(tmp_path / "b")])
+    out = run_dosppm("scenes", "generate", "building", "--triangles", "100k", "--lights", "12",
+                     "--out", tmp_path / "b", timeout=120)
     assert out.returncode == 0, out.stderr
     assert "triangles" in out.stdout and "12 lights" in out.stdout and "bytes" in out.stdout
     assert open_soup(str(tmp_path / "b")).count == pytest.approx(100_000, rel=0.1)
-    bad = _run(["-m", "services.cli", "scenes", "generate", "building", "--triangles", "lots",
-                "--out", str(tmp_path / "c")])
+    bad = run_dosppm("scenes", "generate", "building", "--triangles", "lots", "--out", tmp_path / "c",
+                     timeout=120)
     assert bad.returncode == 2
     assert bad.stderr.strip().count("\n") == 0 and "--triangles" in bad.stderr
-    listing = _run(["-m", "services.cli", "scenes"])
+    listing = run_dosppm("scenes", timeout=120)
     assert listing.returncode == 0 and "cornell-box" in listing.stdout

@@ -223,6 +223,7 @@ class TextById(HTMLParser):
             self.texts[element_id] += data + " "
 
 
+@pytest.mark.browser
 def test_page_in_headless_chromium(server, tmp_path):
     chromium = shutil.which("chromium")
     if chromium is None:

@@ -17,7 +17,7 @@ from __future__ import annotations
 import ast
 import os
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import pytest
 
@@ -40,7 +40,7 @@ class Module:
     name: str          # dotted: "dosppm_core.chunks.store"; a package is its __init__
     path: str          # relative to the repository: "dosppm_core/chunks/store.py"
     is_package: bool
-    text: str
+    text: str = field(repr=False)
 
 
 @dataclass(frozen=True)

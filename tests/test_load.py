@@ -6,15 +6,15 @@ instead of letting their outboxes grow without bound."""
 from __future__ import annotations
 
 import json
-import os
 import signal
-import socket
-import subprocess
-import sys
 import time
 import urllib.request
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+import pytest
+
+from tests.helpers.cli import free_port, start_dosppm
+
+pytestmark = pytest.mark.slow   # a server and sixteen tracer processes
 TRACERS = 16
 # The stated bound on the server's peak RSS with 16 tracers and 1k jobs in
 # flight: about 150 MiB idle (Python, numba, the kernels) plus a few copies
@@ -25,12 +25,6 @@ SERVER_RSS_LIMIT = 900 << 20
 # Rays one tracer may hold for its peers: credit (262,144 rays) plus what
 # was in flight to it when credit ran out, with margin.
 OUTBOX_RAYS_LIMIT = 2_000_000
-
-
-def _port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _rss(pid: int) -> int:
@@ -45,17 +39,15 @@ def _rss(pid: int) -> int:
 
 
 def test_sixteen_tracers_keep_the_server_bounded(tmp_path):
-    port, http = _port(), _port()
-    py = [sys.executable, "-m", "services.cli"]
-    server = subprocess.Popen(
-        py + ["server", "cornell-box", "--width", "64", "--height", "64", "--chunks", "16",
-              "--bind", f"tcp://127.0.0.1:{port}", "--http", f"127.0.0.1:{http}", "--min-tracers", str(TRACERS),
-              "--photons", "3e6", "--tracer-timeout", "60", "--threads", "1", "--out", str(tmp_path / "img.exr"),
-              "--store-cache", str(tmp_path / "stores"), "--quiet"],
-        cwd=ROOT, stderr=open(tmp_path / "server.log", "w"))
-    workers = [subprocess.Popen(py + ["worker", "--server", f"tcp://127.0.0.1:{port}", "--threads", "1",
-                                      "--id", f"w{i}", "--cache-dir", str(tmp_path / f"c{i}"), "--quiet"],
-                                cwd=ROOT, stderr=open(tmp_path / f"w{i}.log", "w")) for i in range(TRACERS)]
+    port, http = free_port(), free_port()
+    server = start_dosppm(
+        "server", "cornell-box", "--width", "64", "--height", "64", "--chunks", "16",
+        "--bind", f"tcp://127.0.0.1:{port}", "--http", f"127.0.0.1:{http}", "--min-tracers", str(TRACERS),
+        "--photons", "3e6", "--tracer-timeout", "60", "--threads", "1", "--out", str(tmp_path / "img.exr"),
+        "--store-cache", str(tmp_path / "stores"), "--quiet", stderr=open(tmp_path / "server.log", "w"))
+    workers = [start_dosppm("worker", "--server", f"tcp://127.0.0.1:{port}", "--threads", "1",
+                            "--id", f"w{i}", "--cache-dir", str(tmp_path / f"c{i}"), "--quiet",
+                            stderr=open(tmp_path / f"w{i}.log", "w")) for i in range(TRACERS)]
     peak, statuses, stopped = 0, [], False
     try:
         deadline = time.monotonic() + 400

@@ -23,8 +23,6 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
-import sys
 import time
 
 import numpy as np
@@ -33,8 +31,9 @@ import pytest
 from dosppm_core.scene.generate import generate_building
 from dosppm_core.scene.soupfile import open_soup
 from dosppm_core.chunks.subdivide import subdivide
+from tests.helpers.cli import run_python
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+pytestmark = pytest.mark.slow   # a 2M-triangle building, subdivided, rendered four times
 MiB = 2 ** 20
 
 TRIANGLES = 2_000_000       # ~300 MiB of chunk memory (BVHs included) once subdivided
@@ -133,14 +132,12 @@ def stores(tmp_path_factory):
 
 
 def _run_child(store: str, warm: str, memory, image: str) -> dict:
-    env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""),
-               # Spinning OpenMP workers only slow a loaded 2-core machine down.
-               OMP_WAIT_POLICY="PASSIVE")
+    # Spinning OpenMP workers only slow a loaded 2-core machine down.
+    env = {"OMP_WAIT_POLICY": "PASSIVE"}
     args = [store, warm, "all" if memory is None else str(int(memory)), image,
             str(SIZE), str(ITERATIONS), str(PHOTONS)]
     t = time.perf_counter()
-    out = subprocess.run([sys.executable, "-c", CHILD, *args], capture_output=True, text=True,
-                         env=env, cwd=os.path.dirname(image), timeout=600)
+    out = run_python("-c", CHILD, *args, env=env, cwd=os.path.dirname(image), timeout=600)
     assert out.returncode == 0, out.stderr[-3000:]
     result = json.loads(out.stdout.strip().splitlines()[-1])
     result["child_s"] = time.perf_counter() - t

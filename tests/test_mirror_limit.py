@@ -5,12 +5,9 @@ the floor rendered from above by Mitsuba's light tracer. These tests show
 the limit is right where an independent method does converge, and that
 SPPM approaches it; each would fail if the mirror's reflectance were
 ignored or the floor looked up in the wrong place."""
-import importlib.util
-
 import numpy as np
 import pytest
 
-from dosppm_core.scene import builtin
 from services.evaluation import evaluate
 from dosppm_core import metrics
 from dosppm_core import mirror_limit as ml
@@ -19,11 +16,10 @@ from dosppm_core.reference import render_reference
 from dosppm_core.modes.sppm import Renderer, RenderSettings
 from dosppm_core.scene.model import Camera, Material, SceneBuilder
 from dosppm_core.scene.suite import rectangle_mesh
+from tests.helpers.scenes import small_scene
 
 MIRROR_RHO = np.array([0.5, 0.6, 0.7])
 MIRROR_RHO_CARDIOID = np.array([0.9, 0.85, 0.6])      # suite.cardioid's "mirror"
-needs_mitsuba = pytest.mark.skipif(importlib.util.find_spec("mitsuba") is None,
-                                   reason="the limit's floor image needs Mitsuba 3")
 
 
 def _corridor():
@@ -88,12 +84,10 @@ def test_top_down_lookup_lands_on_the_texel_the_floor_point_lies_in():
 
 
 def _cardioid(size):
-    scene = builtin.make("cardioid")
-    scene.camera.width = scene.camera.height = size
-    return scene
+    return small_scene("cardioid", size)
 
 
-@needs_mitsuba
+@pytest.mark.reference   # the limit's floor image is Mitsuba's
 def test_floor_seen_directly_agrees_with_mitsuba_light_tracing(tmp_path):
     """Rays that meet the floor first take the floor image's value where
     they land: averaged per pixel, they must reproduce Mitsuba's own
@@ -113,7 +107,7 @@ def test_floor_seen_directly_agrees_with_mitsuba_light_tracing(tmp_path):
     assert error < 5e-3 and metrics.relmse(upside_down[floor], light[floor]) > 20 * error, error
 
 
-@needs_mitsuba
+@pytest.mark.reference   # the limit's floor image is Mitsuba's
 def test_mirror_pixels_agree_with_path_tracing_where_it_converges(tmp_path):
     """With light paths of at most 2 bounces (floor, then one mirror) the
     floor is lit directly only, which a path tracer renders well: Mitsuba
@@ -131,7 +125,8 @@ def test_mirror_pixels_agree_with_path_tracing_where_it_converges(tmp_path):
     assert metrics.mean_luminance_bias(path[mirror], untinted[mirror]) < -0.08
 
 
-@needs_mitsuba
+@pytest.mark.reference   # the limit's floor image is Mitsuba's
+@pytest.mark.slow   # a convergence run, about 40 s
 def test_sppm_converges_to_the_mirror_limit(tmp_path):
     """SPPM renders the caustic seen in the mirror: with an initial radius
     small against the floor the mirror shows (a few mm at the wall's foot),

@@ -10,19 +10,10 @@ import pytest
 from dosppm_core.scene.mitsuba import load_mitsuba_xml
 from dosppm_core.scene.mitsuba.bsdfs import IORS
 from dosppm_core.scene.model import LIGHT_POINT, LIGHT_SPOT, LIGHT_TRIANGLE, SceneError
+from tests.helpers.paths import SHARED_SCENES, needs_shared_scenes
 
-SCENES = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared", "scenes")
-CBOX = os.path.join(SCENES, "cornell_box", "mitsuba")
-NORI = os.path.join(SCENES, "cbox_glass_mirror_spheres_nori", "cbox-pmap.xml")
-needs_cbox = pytest.mark.skipif(not os.path.isdir(CBOX), reason="../shared/scenes absent")
-needs_nori = pytest.mark.skipif(not os.path.isfile(NORI), reason="../shared/scenes absent")
-
-
-@pytest.fixture(scope="module")
-def mi():
-    mitsuba = pytest.importorskip("mitsuba")
-    mitsuba.set_variant("scalar_rgb")
-    return mitsuba
+CBOX = os.path.join(SHARED_SCENES, "cornell_box", "mitsuba")
+NORI = os.path.join(SHARED_SCENES, "cbox_glass_mirror_spheres_nori", "cbox-pmap.xml")
 
 
 def write(tmp_path, text, name="scene.xml"):
@@ -47,7 +38,7 @@ def normals(tris):
 
 # -- the measured Cornell box ------------------------------------------------
 
-@needs_cbox
+@needs_shared_scenes
 def test_cbox_geometry_and_light():
     scene = load_mitsuba_xml(os.path.join(CBOX, "cbox.xml"))
     assert scene.triangle_count == 38                 # 8 OBJ parts, SOURCE.md
@@ -61,7 +52,7 @@ def test_cbox_geometry_and_light():
     assert np.all(scene.materials.emission[emissive[0]] > 1)
 
 
-@needs_cbox
+@needs_shared_scenes
 def test_cbox_camera_materials_and_settings():
     scene = load_mitsuba_xml(os.path.join(CBOX, "cbox.xml"))
     cam = scene.camera
@@ -91,7 +82,7 @@ def mitsuba_colours(mi, path):
 
 
 @pytest.mark.reference
-@needs_cbox
+@needs_shared_scenes
 @pytest.mark.parametrize("name", ["cbox.xml", "cbox-rgb.xml"])
 def test_cbox_colours_match_mitsuba(mi, name):
     path = os.path.join(CBOX, name)
@@ -105,7 +96,7 @@ def test_cbox_colours_match_mitsuba(mi, name):
         np.testing.assert_allclose(scene.materials.emission[by_bsdf[bsdf_id]], rgb, rtol=1e-5)
 
 
-@needs_cbox
+@needs_shared_scenes
 def test_cbox_rgb_includes_and_overrides():
     scene = load_mitsuba_xml(os.path.join(CBOX, "cbox-rgb.xml"), res=64, spp=8)
     assert (scene.camera.width, scene.camera.height) == (64, 64)
@@ -116,9 +107,9 @@ def test_cbox_rgb_includes_and_overrides():
                                (18.387, 10.9873, 2.75357), rtol=1e-6)
 
 
-@needs_cbox
+@needs_shared_scenes
 def test_ply_with_transform(tmp_path):
-    ply = os.path.join(SCENES, "cornell_box", "cbox_merged.ply")
+    ply = os.path.join(SHARED_SCENES, "cornell_box", "cbox_merged.ply")
     path = write(tmp_path, TEMPLATE.format(snippet=f"""
         <shape type="ply">
             <string name="filename" value="{ply}"/><boolean name="face_normals" value="true"/>
@@ -352,7 +343,7 @@ def test_named_iors_match_mitsuba(mi, tmp_path):
 
 # -- Nori's format ---------------------------------------------------------------
 
-@needs_nori
+@needs_shared_scenes
 def test_nori_scene():
     scene = load_mitsuba_xml(NORI)
     assert scene.triangle_count == 2188

@@ -31,6 +31,7 @@ import pytest
 from tests.helpers import netns
 from tests.helpers.netns import POLLER, Procs
 
+pytestmark = [pytest.mark.netns, pytest.mark.slow]
 RENDER_S = 8
 SERVER_TIMEOUT_S = 90     # start-up (subdivision, numba cache), render, drain, output
 WORKER_TIMEOUT_S = 20     # after the server has exited

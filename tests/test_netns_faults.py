@@ -42,6 +42,7 @@ import pytest
 from tests.helpers import netns
 from tests.helpers.netns import Procs
 
+pytestmark = [pytest.mark.netns, pytest.mark.slow]
 PHOTONS = 1_500_000
 PHOTONS_REJOIN = 4_000_000   # still rendering when the cable is back
 SEED = 11

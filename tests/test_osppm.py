@@ -5,13 +5,13 @@ import numpy as np
 import pytest
 
 from tests.helpers.chunks import MemoryChunks, lattice_tree, root_box, skewed_tree, uniform_tree
-from dosppm_core.scene import builtin
+from tests.helpers.cli import run_dosppm
+from tests.helpers.scenes import small_scene
 from dosppm_core.modes.osppm import OutOfCoreRenderer
 from dosppm_core.modes.sppm import Renderer
 from dosppm_core.settings import RenderSettings
 
 ITERATIONS = 3
-ROOT = __import__("os").path.dirname(__import__("os").path.dirname(__import__("os").path.abspath(__file__)))
 
 
 def _settings(**kw):
@@ -26,8 +26,7 @@ def _tiles(img, n=8):
 @pytest.fixture(scope="module")
 def caustic():
     """The glass and mirror spheres, 64x64; reference: the unchunked render."""
-    scene = builtin.make("cornell-caustic")
-    scene.camera.width = scene.camera.height = 64
+    scene = small_scene("cornell-caustic", 64)
     r = Renderer(scene, _settings())
     for _ in range(ITERATIONS):
         r.run_iteration()
@@ -114,15 +113,11 @@ def test_memory_below_one_chunk_is_refused(caustic):
         OutOfCoreRenderer(provider, _settings(), memory_bytes=provider.chunk_memory.max() / 2)
 
 
-def test_store_with_exact_insertion_renders_the_unchunked_image(caustic, tmp_path):
+def test_store_with_exact_insertion_renders_the_unchunked_image(caustic, chunk_store):
     """The real pipeline: subdivide (exact triangle-box insertion) into
     8 chunks, open the store, render OSPPM from it."""
-    from dosppm_core.chunks.store import ChunkStore
-    from dosppm_core.scene.soup import SceneSource
-    from dosppm_core.chunks.subdivide import subdivide
     scene, ref, _ = caustic
-    subdivide(SceneSource(scene), str(tmp_path / "store"), chunks=8)
-    store = ChunkStore.open(str(tmp_path / "store"))
+    store = chunk_store(scene, chunks=8)
     assert store.chunk_count == 8
     assert store.chunk_triangles.sum() > scene.triangle_count   # straddlers duplicated
     o = OutOfCoreRenderer(store, _settings(), pipelined=False)
@@ -136,17 +131,11 @@ def test_store_with_exact_insertion_renders_the_unchunked_image(caustic, tmp_pat
 
 
 def test_cli_renders_chunked_and_reuses_the_store(tmp_path):
-    import subprocess
-    import sys
-
     from dosppm_core.film import read_exr
 
     def run(*extra):
-        cmd = [sys.executable, "-m", "services.cli", "render", "cornell-box", "--iterations", "2",
-               "--width", "32", "--height", "32", "--store-cache", str(tmp_path / "cache"), "--quiet",
-               *extra]
-        return subprocess.run(cmd, capture_output=True, text=True, timeout=600, cwd=tmp_path,
-                              env={**__import__("os").environ, "PYTHONPATH": ROOT})
+        return run_dosppm("render", "cornell-box", "--iterations", "2", "--width", "32", "--height", "32",
+                          "--store-cache", tmp_path / "cache", "--quiet", *extra, cwd=tmp_path, timeout=600)
     a = run("--mode", "osppm", "--chunks", "4", "--schedule", "drained", "--out", str(tmp_path / "a.exr"))
     assert a.returncode == 0, a.stderr
     b = run("--mode", "sppm", "--out", str(tmp_path / "b.exr"))

@@ -223,15 +223,11 @@ def test_hit_on_a_triangle_lying_in_a_portal_is_found_once():
 
 
 @pytest.mark.parametrize("chunks", [8, 27])
-def test_million_rays_through_a_real_store_match_unchunked(glass_scene, tmp_path, chunks):
+def test_million_rays_through_a_real_store_match_unchunked(glass_scene, chunk_store, chunks):
     """The same check on the subdivider's own output: kd-tree splits at
     bin boundaries and exact triangle-box insertion."""
-    from dosppm_core.chunks.store import ChunkStore
-    from dosppm_core.scene.soup import SceneSource
-    from dosppm_core.chunks.subdivide import subdivide
     scene, accel = glass_scene
-    subdivide(SceneSource(scene), str(tmp_path / "s"), chunks=chunks)
-    store = ChunkStore.open(str(tmp_path / "s"))
+    store = chunk_store(scene, chunks=chunks)
     views = [ChunkView(k, store.load(k), store.header, store.tree) for k in range(store.chunk_count)]
     box = store.tree.root_box
     rng = np.random.default_rng(chunks)

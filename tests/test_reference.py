@@ -14,8 +14,7 @@ from dosppm_core.scene.model import Camera, Material, SceneBuilder, SceneError
 from services.cli import tools as cli_tools
 from services.evaluation.mitsuba_probe import best_variant
 
-pytest.importorskip("mitsuba")
-pytestmark = pytest.mark.reference
+pytestmark = pytest.mark.reference   # skipped without Mitsuba (tests/conftest.py)
 
 # Tests force scalar_rgb: it always works and needs no kernel compilation.
 VARIANT = "scalar_rgb"

@@ -10,6 +10,7 @@ from dosppm_core.scene import builtin
 from dosppm_core.modes.sppm import Renderer, render
 from dosppm_core.settings import RenderSettings
 from dosppm_core.scene.model import Camera, Material, SceneBuilder
+from tests.helpers.scenes import small_scene
 
 
 def furnace_expected(albedo: float, intensity: float, depth: int) -> float:
@@ -49,8 +50,7 @@ def test_error_falls_as_photons_grow():
 
 
 def test_same_seed_same_image_and_other_seed_differs():
-    scene = builtin.make("cornell-box")
-    scene.camera.width = scene.camera.height = 48
+    scene = small_scene("cornell-box", 48)
     settings = dict(photons_per_iteration=30_000)
     a = render(scene, RenderSettings(seed=7, **settings), iterations=2)
     b = render(scene, RenderSettings(seed=7, **settings), iterations=2)

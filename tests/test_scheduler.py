@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
-from dosppm_core.scene import builtin
+from tests.helpers.scenes import small_scene
 from dosppm_core.jobs import PhotonDeposits
 from dosppm_core.settings import RenderSettings
 from services import wire
@@ -24,8 +24,7 @@ def _register(state, tid, now=0.0):
 
 @pytest.fixture()
 def state():
-    scene = builtin.make("cornell-box")
-    scene.camera.width = scene.camera.height = 32
+    scene = small_scene("cornell-box", 32)
     provider = MemoryChunks(scene, uniform_tree(root_box(scene), (2, 2, 1)))
     s = ServerState(provider.header, provider.tree,
                     RenderSettings(photons_per_job=512, tile_pixels=256, photons_per_iteration=10_000),

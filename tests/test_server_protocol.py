@@ -12,7 +12,8 @@ import pytest
 import zmq
 
 from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
-from dosppm_core.scene import builtin
+from tests.helpers.paths import REPO
+from tests.helpers.scenes import small_scene
 from dosppm_core.modes.sppm import RenderSettings
 from services import wire
 from services.server.node import Limits, ServerProcess
@@ -20,8 +21,7 @@ from services.server.node import Limits, ServerProcess
 
 @pytest.fixture()
 def server():
-    scene = builtin.make("cornell-box")
-    scene.camera.width = scene.camera.height = 16
+    scene = small_scene("cornell-box", 16)
     store = MemoryChunks(scene, uniform_tree(root_box(scene), (1, 1, 1)))
     store.key, store.manifest, store.path, store.chunk_count = "k", None, "", 1
     s = ServerProcess(store, RenderSettings(threads=1), bind="tcp://127.0.0.1:*", http=None, out="",
@@ -106,7 +106,7 @@ def test_nothing_executes_data():
     """No pickle, eval, exec or shell anywhere in the product."""
     import os
     import re
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    root = REPO
     bad = re.compile(r"\bimport pickle\b|\bpickle\.\w+\(|\beval\(|\bexec\(|shell=True|os\.system\(|os\.popen\(")
     hits = []
     for package in ("dosppm_core", "services"):

@@ -11,6 +11,7 @@ from dosppm_core.jobs import HitPoints, PhotonDeposits
 from dosppm_core.modes.sppm import Renderer
 from dosppm_core.settings import RenderSettings
 from dosppm_core.sppm.statistics import PixelStatistics
+from tests.helpers.scenes import small_scene
 
 ALPHA = 0.7
 
@@ -97,8 +98,7 @@ def test_furnace_energy_never_exceeds_its_closed_form_limit(albedo):
                                   "glass-small-light", "cardioid", "cornell-caustic"])
 @pytest.mark.parametrize("gather", ["grid", "hash"])
 def test_no_nan_or_inf_reaches_a_pixel_or_a_statistic(name, gather):
-    scene = builtin.make(name)
-    scene.camera.width = scene.camera.height = 24
+    scene = small_scene(name, 24)
     r = Renderer(scene, RenderSettings(photons_per_iteration=30_000, gather=gather))
     try:
         for _ in range(3):

@@ -3,8 +3,6 @@ budgets, portals, store validation, reuse, the CLI and streaming."""
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
 from fractions import Fraction
 
 import msgpack
@@ -12,6 +10,7 @@ import numpy as np
 import pytest
 
 from tests.helpers.chunks import skewed_tree
+from tests.helpers.cli import run_dosppm
 from dosppm_core.scene import builtin
 from dosppm_core.chunks.store import MANIFEST, ChunkStore, Portals, StoreError, open_or_subdivide, store_key
 from dosppm_core.chunks.portals import INSERT_MARGIN
@@ -19,8 +18,6 @@ from dosppm_core.scene.model import SceneError
 from dosppm_core.scene.soup import SceneSource
 from dosppm_core.scene.soupfile import SoupWriter, open_soup
 from dosppm_core.chunks.subdivide import chunk_memory_bytes, dedup_geometry, overlap_matrix, source_records, subdivide, triangle_box_overlap
-
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 # -- a brute-force reference: clip the triangle by the box, in exact rationals --
@@ -396,20 +393,14 @@ def test_open_or_subdivide_reuses_only_a_matching_store(glass, tmp_path):
 
 
 # -- the command line ------------------------------------------------------------
-def _cli(*args):
-    env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    return subprocess.run([sys.executable, "-m", "services.cli", *args], cwd=REPO, env=env,
-                          capture_output=True, text=True, timeout=300)
-
-
 def test_cli_subdivide(tmp_path):
     out = tmp_path / "chunks"
-    r = _cli("subdivide", "cornell-glass", "--chunks", "8", "--out", str(out))
+    r = run_dosppm("subdivide", "cornell-glass", "--chunks", "8", "--out", str(out))
     assert r.returncode == 0, r.stderr
     assert "8 chunks" in r.stdout and "median" in r.stdout and "duplicated" in r.stdout
     assert "insertion" in r.stdout
     assert ChunkStore.open(str(out)).chunk_count == 8
-    bad = _cli("subdivide", "cornell-glass", "--budget", "12 parsecs", "--out", str(tmp_path / "x"))
+    bad = run_dosppm("subdivide", "cornell-glass", "--budget", "12 parsecs", "--out", str(tmp_path / "x"))
     assert bad.returncode == 2 and "--budget" in bad.stderr
     assert len(bad.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "x").exists()

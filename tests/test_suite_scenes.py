@@ -2,10 +2,6 @@
 each is listed and loadable by name, holds the structure that makes it a
 test, and renders. The renders also measure what they are there to show:
 the leak through the thin wall, and far-from-origin against cornell-box."""
-import os
-import subprocess
-import sys
-
 import numpy as np
 import pytest
 import trimesh
@@ -15,9 +11,9 @@ from dosppm_core.accel import MISS, Accelerator
 from dosppm_core.modes.sppm import Renderer, RenderSettings
 from dosppm_core.scene.model import GLASS, GLOSSY, LIGHT_TRIANGLE
 from dosppm_core.trace import NO_CULL, SurfaceData, emit_photon_job, trace_photon_jobs
+from tests.helpers.cli import run_dosppm
 
 SUITE = ("thin-wall", "far-from-origin", "many-lights", "glossy-floor", "glass-small-light", "cardioid")
-ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 
@@ -69,8 +65,9 @@ def test_suite_scene_loads_by_name(name):
 
 
 def test_dosppm_scenes_lists_the_suite():
-    out = subprocess.run([sys.executable, "-m", "services.cli", "scenes"], cwd=ROOT,
-                         capture_output=True, text=True, timeout=60, check=True).stdout
+    listing = run_dosppm("scenes", timeout=60)
+    assert listing.returncode == 0, listing.stderr
+    out = listing.stdout
     listed = {line.split()[0] for line in out.splitlines() if line.strip()}
     assert set(SUITE) <= listed
     assert builtin.DEFAULT == "cornell-glass" and "(default)" in out
