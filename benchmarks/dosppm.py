@@ -35,11 +35,14 @@ import time
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-from dosppm_core.scene import builtin  # noqa: E402
 from dosppm_core.chunks.store import open_or_subdivide  # noqa: E402
 from dosppm_core.modes.osppm import OutOfCoreRenderer  # noqa: E402
-from dosppm_core.modes.sppm import Renderer, RenderSettings  # noqa: E402
+from dosppm_core.modes.sppm import Renderer  # noqa: E402
+from dosppm_core.scene import builtin  # noqa: E402
+from dosppm_core.scene.generate import generate_building  # noqa: E402
 from dosppm_core.scene.soup import SceneSource  # noqa: E402
+from dosppm_core.scene.soupfile import open_soup  # noqa: E402
+from dosppm_core.settings import RenderSettings  # noqa: E402
 
 DRAGON = os.path.join(ROOT, "..", "shared", "scenes", "stanford_dragon", "dragon_100k.ply")
 PAPER = {  # Günther & Grosch, photons per machine-second (Table 3, best: GPU cluster)
@@ -145,8 +148,6 @@ def run(args) -> dict:
 def _building(args, work, rep) -> dict:
     """The generated building: OSPPM with every chunk resident (c = 1 is
     the whole scene in one process) beside DOSPPM at c = n = 1, 2, 4."""
-    from dosppm_core.scene.generate import generate_building
-    from dosppm_core.scene.soupfile import open_soup
     path = os.path.join(work, "building")
     generate_building(path, triangles=int(args.building_triangles), lights=600, seed=1)
     source = open_soup(path)

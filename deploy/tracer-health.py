@@ -2,13 +2,13 @@
 """Health probe of a tracer container: healthy while a `dosppm worker`
 process runs and holds an established TCP connection to the server's port
 (the tracer's ZeroMQ DEALER to the server). The server's endpoint is read
-from DOSPPM_SERVER (default tcp://127.0.0.1:5555), as the worker reads it.
+from DOSPPM_SERVER (default tcp://127.0.0.1:5555), as the tracer reads it.
 Exit 0 healthy, 1 not (with one line saying why)."""
 import os
 import sys
 
 
-def worker_running() -> bool:
+def tracer_running() -> bool:
     me = str(os.getpid())
     for pid in os.listdir("/proc"):
         if not pid.isdigit() or pid == me:
@@ -41,13 +41,13 @@ def connected(port: int) -> bool:
 def main() -> int:
     server = os.environ.get("DOSPPM_SERVER", "tcp://127.0.0.1:5555")
     port = server.rsplit(":", 1)[-1]
-    if not worker_running():
+    if not tracer_running():
         print("no dosppm worker process")
         return 1
     if not port.isdigit() or not connected(int(port)):
-        print(f"worker not connected to {server}")
+        print(f"tracer not connected to {server}")
         return 1
-    print(f"worker connected to {server}")
+    print(f"tracer connected to {server}")
     return 0
 
 

@@ -1,14 +1,24 @@
-"""Settings of the `server` and `worker` roles: one table of options, read
-from flags, then the environment (DOSPPM_<NAME>), then a TOML file
-(`--config`, table [server] or [worker]), then the defaults. Unknown keys
-in the file are errors naming the file and key."""
+"""Settings of a render and of the service's roles: one table of options
+with their defaults, read by the `render` flags and by the `server` and
+`worker` (a tracer) commands.
+
+The server and a tracer read each option from a flag, then the environment
+(DOSPPM_<NAME>), then a TOML file (`--config`, table [server] or
+[tracer]), then the default. Unknown keys in the file are errors naming the
+file and key.
+
+The render settings' defaults are the library's (`RenderSettings`), but for
+the job sizes, which the service cuts finer (`SERVICE_JOB_SIZES`)."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
-import sys
+import re
 import tomllib
 from dataclasses import dataclass
+
+from dosppm_core.settings import RenderSettings
 
 
 @dataclass(frozen=True)
@@ -17,57 +27,93 @@ class Option:
     type: type
     default: object
     help: str
+    choices: tuple | None = None
 
 
-def _opt(name, type_, default, help_):
-    return Option(name, type_, default, help_)
+class ConfigError(ValueError):
+    pass
 
 
-RENDER = (
-    _opt("time", float, None, "stop after S seconds of rendering (default 30 if no other limit)"),
+_LIBRARY = RenderSettings()
+_SETTINGS_FIELDS = tuple(f.name for f in dataclasses.fields(RenderSettings))
+
+# One process runs few large jobs (RenderSettings' 8192 photons a job, 16384
+# pixels an eye tile: fewer kernel calls). The service cuts them finer, so
+# that the ~1000 jobs it keeps in flight spread over every tracer and each
+# result message stays small; its figures (benchmarks/dosppm.py) are
+# measured with these.
+SERVICE_JOB_SIZES = {"photons_per_job": 1_024, "tile_pixels": 4_096}
+# The command line traces on every core (the library's default, 2, suits
+# tests and callers that share the machine).
+THREADS = os.cpu_count() or 1
+SECONDS = 30.0                  # a render's length when no limit is given
+BUDGET_BYTES = 512 * 2 ** 20    # memory per chunk when a scene is subdivided on the fly
+
+
+def _default_store_cache() -> str:
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "dosppm", "chunks")
+
+
+def _opt(name, type_, default, help_, choices=None):
+    return Option(name, type_, default, help_, choices)
+
+
+# When a render stops: one of these (the `render` command takes only one).
+LIMITS = (
+    _opt("time", float, None, f"stop after S seconds of rendering (default {SECONDS:g} if no other limit)"),
     _opt("photons", float, None, "stop once N photons are emitted"),
     _opt("iterations", int, None, "stop after K eye iterations"),
+)
+RENDER = (
     _opt("out", str, "out.exr", "output EXR (a PNG preview beside it)"),
-    _opt("seed", int, 0, "random seed"),
-    _opt("gather", str, "grid", "statistics gather: grid or hash"),
-    _opt("alpha", float, 0.7, "radius reduction (eqs. 1-2)"),
-    _opt("radius", float, None, "initial radius (default: from scene and pixel size)"),
-    _opt("max_depth", int, 10, "surfaces a path may hit"),
-    _opt("photons_per_iteration", int, 100_000, "photons between eye iterations"),
-    _opt("photons_per_job", int, 1024, "photons per photon job"),
-    _opt("photon_batch", int, 1_000_000, "deposits per statistics update (server batching)"),
+    _opt("seed", int, _LIBRARY.seed, "random seed"),
+    _opt("gather", str, _LIBRARY.gather, "statistics gather", ("grid", "hash")),
+    _opt("alpha", float, _LIBRARY.alpha, "radius reduction (eqs. 1-2)"),
+    _opt("radius", float, _LIBRARY.radius, "initial radius in scene units (default: from scene and pixel size)"),
+    _opt("max_depth", int, _LIBRARY.max_depth, "surfaces a path may hit"),
+    _opt("photons_per_iteration", int, _LIBRARY.photons_per_iteration, "photons between eye iterations"),
+    _opt("photons_per_job", int, SERVICE_JOB_SIZES["photons_per_job"], "photons per photon job"),
+    _opt("photon_batch", int, _LIBRARY.photon_batch, "deposits per statistics update (server batching)"),
     _opt("width", int, None, "image width override"),
     _opt("height", int, None, "image height override"),
-    _opt("threads", int, os.cpu_count() or 1, "threads for the statistics update"),
-    _opt("budget", str, None, "chunk memory budget when subdividing (default 512MiB)"),
-    _opt("chunks", int, None, "force this many chunks"),
-    _opt("store_cache", str, None, "where chunk stores made on the fly are kept"),
+    _opt("threads", int, THREADS, "threads for tracing and the statistics update"),
     _opt("exposure", float, 0.0, "PNG preview exposure in stops"),
     _opt("log", str, None, "append JSON-lines progress records here"),
 )
+# How a scene that is not a chunk store yet is cut into one.
+CHUNKING = (
+    _opt("budget", str, None, "memory per chunk, BVH included, when subdividing, e.g. 512MiB "
+         f"(default {BUDGET_BYTES // 2 ** 20}MiB unless --chunks)"),
+    _opt("chunks", int, None, "force this many chunks"),
+    _opt("store_cache", str, _default_store_cache(), "where chunk stores made on the fly are kept"),
+)
 # The paper's optimisations, each of which can be switched off (Figure 15).
 OPTIMISATIONS = (
-    _opt("cull", bool, True, "cull photons against the hit-point box (§4.3)"),
+    _opt("cull", bool, _LIBRARY.cull, "cull photons against the hit-point box (§4.3)"),
     _opt("concurrent", bool, True, "trace photons and eye rays at the same time (§3.3); "
          "--no-concurrent alternates them"),
     _opt("client_batching", bool, True, "tracers coalesce packages per chunk (§4.3)"),
 )
-SERVER = RENDER + OPTIMISATIONS + (
-    _opt("bind", str, "tcp://127.0.0.1:5555", "ZeroMQ endpoint tracers connect to"),
+# The server's running of a render (`render` starts a server too).
+SERVICE = (
     _opt("http", str, "127.0.0.1:8080", "status page HOST:PORT, or 'off'"),
-    _opt("min_tracers", int, 1, "tracers to wait for before rendering"),
     _opt("min_photon_jobs", int, 1000, "photon jobs kept in flight (the paper's 1k)"),
     _opt("snapshot_interval", float, 60.0, "write the image every S seconds"),
-    _opt("drain_timeout", float, 60.0, "at the end, wait this long for jobs in flight"),
     _opt("checkpoint", str, None, "checkpoint directory (default: OUT's name + '.checkpoint')"),
-    _opt("checkpoint_interval", float, 60.0, "seconds between checkpoints; 0: none"),
+    _opt("checkpoint_interval", float, 60.0, "seconds between checkpoints of the pixel statistics; 0: none"),
     _opt("resume", str, None, "continue the render saved in this checkpoint directory"),
-    _opt("curve_secret", str, None, "this server's CURVE key file (dosppm keys): encrypt and authenticate"),
-    _opt("curve_clients", str, None, "directory of the public key files of the tracers to admit"),
     _opt("tracer_timeout", float, 10.0, "drop a tracer silent this long (its jobs are re-emitted); "
          "raise it for chunks that take longer than this to load"),
 )
-WORKER = (
+SERVER = LIMITS + RENDER + CHUNKING + OPTIMISATIONS + SERVICE + (
+    _opt("bind", str, "tcp://127.0.0.1:5555", "ZeroMQ endpoint tracers connect to"),
+    _opt("min_tracers", int, 1, "tracers to wait for before rendering"),
+    _opt("drain_timeout", float, 60.0, "at the end, wait this long for jobs in flight"),
+    _opt("curve_secret", str, None, "this server's CURVE key file (dosppm keys): encrypt and authenticate"),
+    _opt("curve_clients", str, None, "directory of the public key files of the tracers to admit"),
+)
+TRACER = (
     _opt("server", str, "tcp://127.0.0.1:5555", "the server's endpoint"),
     _opt("bind", str, "tcp://127.0.0.1:*", "endpoint for portal packages from other tracers"),
     _opt("advertise", str, None, "address other tracers reach this one at when binding 0.0.0.0; 'auto': "
@@ -75,7 +121,7 @@ WORKER = (
     _opt("store", str, None, "a local copy of the chunk store (else chunks are fetched)"),
     _opt("cache_dir", str, None, "where fetched chunks are kept"),
     _opt("memory", str, None, "resident chunk memory, e.g. 4GiB (default: all its chunks)"),
-    _opt("threads", int, os.cpu_count() or 1, "tracing threads"),
+    _opt("threads", int, THREADS, "tracing threads"),
     _opt("id", str, None, "tracer id (default host-pid-random)"),
     _opt("retry", float, 60.0, "keep trying to reach the server this long, in seconds"),
     _opt("curve_secret", str, None, "this tracer's CURVE key file (dosppm keys)"),
@@ -84,19 +130,27 @@ WORKER = (
 )
 
 
-class ConfigError(ValueError):
-    pass
+def option(name: str, options=SERVER) -> Option:
+    return next(o for o in options if o.name == name)
 
 
-def _add(p: argparse.ArgumentParser, options) -> None:
+def add_options(parser, options, defaults: bool = True) -> None:
+    """A flag per option; with `defaults=False` every flag defaults to None,
+    so that `resolve` can tell a flag given from one left out."""
     for o in options:
         flag = "--" + o.name.replace("_", "-")
+        default = o.default if defaults else None
         if o.type is bool:
-            p.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, help=o.help)
+            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=default, help=o.help)
         else:
-            p.add_argument(flag, type=o.type, default=None, help=o.help)
-    p.add_argument("--config", help="TOML file with these settings")
-    p.add_argument("--quiet", action="store_true")
+            parser.add_argument(flag, type=o.type, default=default, choices=o.choices, help=o.help)
+
+
+def add_role_options(parser: argparse.ArgumentParser, options) -> None:
+    """The flags of a role (server or tracer): its options, `--config` and `--quiet`."""
+    add_options(parser, options, defaults=False)
+    parser.add_argument("--config", help="TOML file with these settings")
+    parser.add_argument("--quiet", action="store_true")
 
 
 def resolve(args, role: str, options, environ=os.environ) -> dict:
@@ -124,9 +178,12 @@ def _convert(o: Option, value, where: str):
             return value if isinstance(value, bool) else text in ("1", "true", "yes", "on")
         raise ConfigError(f"{where}: expected true or false, got {value!r}")
     try:
-        return o.type(value)
+        converted = o.type(value)
     except (TypeError, ValueError):
         raise ConfigError(f"{where}: expected {o.type.__name__}, got {value!r}") from None
+    if o.choices and converted not in o.choices:
+        raise ConfigError(f"{where}: expected one of {', '.join(o.choices)}, got {value!r}")
+    return converted
 
 
 def _read_table(path: str, role: str, known: set) -> dict:
@@ -137,6 +194,8 @@ def _read_table(path: str, role: str, known: set) -> dict:
         raise ConfigError(f"{path}: cannot read: {e.strerror}") from None
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{path}: not valid TOML: {e}") from None
+    if role == "tracer" and "worker" in doc:
+        raise ConfigError(f"{path}: [worker] is now [tracer]: rename the table")
     table = doc.get(role, {})
     if not isinstance(table, dict):
         raise ConfigError(f"{path}: [{role}] must be a table")
@@ -146,54 +205,70 @@ def _read_table(path: str, role: str, known: set) -> dict:
     return table
 
 
-def add_server_parser(sub) -> None:
-    from dosppm_core.scene import builtin
-    p = sub.add_parser("server", help="run the render server (tracers join with `dosppm worker`)")
-    p.add_argument("scene", nargs="?", default=builtin.DEFAULT,
-                   help="built-in scene, scene file or chunk store")
-    _add(p, SERVER)
-    p.set_defaults(func=cmd_server)
+def render_settings(values: dict, service: bool = False) -> RenderSettings:
+    """RenderSettings from option values (validated): those given (not
+    None) replace the defaults of one process, or of the service."""
+    base = RenderSettings(**SERVICE_JOB_SIZES) if service else RenderSettings()
+    given = {k: values[k] for k in _SETTINGS_FIELDS if values.get(k) is not None}
+    settings = dataclasses.replace(base, **given)
+    settings.validate()
+    return settings
 
 
-def add_worker_parser(sub) -> None:
-    p = sub.add_parser("worker", help="run a tracer that joins a render server")
-    _add(p, WORKER)
-    p.set_defaults(func=cmd_worker)
+def chunking(values: dict) -> tuple[int | None, int | None]:
+    """(budget_bytes, chunks) to subdivide a scene with: as given, or
+    `BUDGET_BYTES` when neither is."""
+    budget = parse_bytes(values["budget"], "--budget")
+    if budget is None and values["chunks"] is None:
+        budget = BUDGET_BYTES
+    return budget, values["chunks"]
 
 
-def _resolve_or_say(args, role: str, options) -> dict | None:
-    try:
-        return resolve(args, role, options)
-    except ConfigError as e:
-        print(f"dosppm: error: {e}", file=sys.stderr)
+def stop_limit(seconds: float | None, photons: float | None, iterations: int | None) -> tuple[str, float]:
+    """The limit a progress line counts down to, (kind, value): photons,
+    else iterations, else seconds (`SECONDS` when no limit is given)."""
+    if photons is not None:
+        return ("photons", photons)
+    if iterations is not None:
+        return ("iterations", iterations)
+    return ("seconds", seconds if seconds is not None else SECONDS)
+
+
+_UNITS = {"": 1, "b": 1, "k": 1024, "kib": 1024, "m": 1024 ** 2, "mib": 1024 ** 2,
+          "g": 1024 ** 3, "gib": 1024 ** 3}
+
+
+def parse_bytes(text: str | None, flag: str) -> int | None:
+    """'512MiB', '1.5GiB', '64KiB', '1000000' -> bytes (binary units; K, M, G
+    are read as KiB, MiB, GiB); None stays None. A bad size is a ValueError
+    naming `flag`."""
+    if text is None:
         return None
+    m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:[eE][0-9]+)?)\s*([A-Za-z]*)\s*", text)
+    unit = m.group(2).lower() if m else None
+    if not m or unit not in _UNITS:
+        raise ValueError(f"{flag}: bad size {text!r}: expected a number with an optional KiB, MiB or GiB suffix")
+    value = int(float(m.group(1)) * _UNITS[unit])
+    if value <= 0:
+        raise ValueError(f"{flag}: bad size {text!r}: must be positive")
+    return value
 
 
-def cmd_server(args) -> int:
-    from services.local import serve
-    values = _resolve_or_say(args, "server", SERVER)
-    return 2 if values is None else serve(args.scene, values, quiet=args.quiet)
+def parse_int(text, flag: str, least: int) -> int:
+    """An integer (underscores allowed) of at least `least`; else a
+    ValueError naming `flag`."""
+    try:
+        value = int(str(text).replace("_", ""))
+    except ValueError:
+        raise ValueError(f"{flag}: expected an integer, got {text!r}") from None
+    if value < least:
+        raise ValueError(f"{flag}: must be >= {least}, got {value}")
+    return value
 
 
-def cmd_worker(args) -> int:
-    from services.local import work
-    values = _resolve_or_say(args, "worker", WORKER)
-    return 2 if values is None else work(values, quiet=args.quiet)
-
-
-def add_keys_parser(sub) -> None:
-    p = sub.add_parser("keys", help="make CURVE key pairs for the server and tracers")
-    p.add_argument("names", nargs="+", help="one key pair per name, e.g. server tracer1 tracer2")
-    p.add_argument("--out", default="keys", help="directory for NAME.key (public) and NAME.key_secret")
-    p.set_defaults(func=cmd_keys)
-
-
-def cmd_keys(args) -> int:
-    from services import wire
-    for name in args.names:
-        public, secret = wire.make_keys(args.out, name)
-        print(f"{name}: public {public}, secret {secret}")
-    print("server: --curve-secret keys/server.key_secret --curve-clients DIR-with-the-tracers'-NAME.key; "
-          "tracer: --curve-secret keys/NAME.key_secret --curve-server-key keys/server.key "
-          "--curve-clients the same DIR")
-    return 0
+def positive_int(text: str) -> int:
+    """argparse type of a count that must be >= 1."""
+    try:
+        return parse_int(text, "value", 1)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}") from None

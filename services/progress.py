@@ -2,10 +2,15 @@
 machine-readable JSON-lines log."""
 from __future__ import annotations
 
+import glob
 import json
 import os
 import sys
 import time
+
+from dosppm_core.kernels import paths
+
+COMPILING = "compiling kernels (first run on this machine; cached afterwards, about a minute)..."
 
 
 def human(n: float) -> str:
@@ -15,9 +20,16 @@ def human(n: float) -> str:
     return f"{n:.0f}"
 
 
+def stderr_lines(quiet: bool):
+    """A function printing its arguments as a line on stderr (nothing when `quiet`)."""
+    if quiet:
+        return lambda *parts: None
+    return lambda *parts: print(*parts, file=sys.stderr)
+
+
 class ProgressReporter:
-    """Feeds on `render.Progress` records. `limit` is (kind, value) with kind
-    one of 'seconds', 'photons', 'iterations', for the ETA."""
+    """Feeds on `Progress` records (dosppm_core.settings). `limit` is (kind,
+    value) with kind one of 'seconds', 'photons', 'iterations', for the ETA."""
 
     def __init__(self, limit: tuple[str, float], log_path: str | None = None,
                  stream=None, quiet: bool = False):
@@ -69,9 +81,7 @@ class ProgressReporter:
 def kernels_cached() -> bool:
     """Whether numba's on-disk cache already holds the main kernel, so the
     first render of a fresh install can say it is compiling."""
-    import glob
     try:
-        from dosppm_core.kernels import paths
         folder = paths.scatter_photons._cache._cache_path   # in-tree or numba's user-wide cache
     except Exception:  # private numba API: never let it break a render
         return True

@@ -34,6 +34,7 @@ import msgpack
 import numpy as np
 
 from dosppm_core.chunks.tree import ChunkTree
+from dosppm_core.scene.loaders import load_source
 from dosppm_core.scene.model import SceneError, SceneHeader
 
 FORMAT, FORMAT_VERSION = "dosppm-chunks", 1
@@ -414,3 +415,21 @@ def open_or_subdivide(source, cache_dir: str, budget=None, grid: int | None = No
     os.makedirs(cache_dir, exist_ok=True)
     subdivide(source, path, budget_bytes=budget, grid=grid, chunks=chunks)
     return ChunkStore.open(path)
+
+
+def open_render_store(scene: str, cache_dir: str, budget_bytes: int | None, chunks: int | None,
+                      width: int | None = None, height: int | None = None) -> ChunkStore:
+    """The chunk store to render `scene` from: the store itself when `scene`
+    is one, otherwise the scene (built-in name, scene file or soup)
+    subdivided into `chunks`, or at `budget_bytes`, and kept under
+    `cache_dir` for the next render (`open_or_subdivide`). `width` and
+    `height` override its camera's."""
+    if is_store(scene):
+        store = ChunkStore.open(scene)
+    else:
+        store = open_or_subdivide(load_source(scene), cache_dir, budget=budget_bytes, chunks=chunks)
+    if width:
+        store.header.camera.width = int(width)
+    if height:
+        store.header.camera.height = int(height)
+    return store
