@@ -27,6 +27,7 @@ def _curve(ev, scene, method):
     return sorted((s.seconds, s) for s in ev.samples if s.scene == scene and s.method == method)
 
 
+@pytest.mark.slow   # `mini` renders every method of the suite: about a minute
 def test_every_method_stops_at_every_budget_with_finite_pixels(mini):
     ev, _ = mini
     assert not ev.failed and not ev.skipped
@@ -38,6 +39,7 @@ def test_every_method_stops_at_every_budget_with_finite_pixels(mini):
             assert all(math.isfinite(s.relmse) for _, s in curve)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scene", ["cornell-box", "cardioid"])
 @pytest.mark.parametrize("method", ["sppm-grid", "osppm-c4"])
 def test_error_falls_as_render_time_grows(mini, scene, method):
@@ -51,6 +53,7 @@ def test_error_falls_as_render_time_grows(mini, scene, method):
     assert last.blurred_relmse < first.blurred_relmse
 
 
+@pytest.mark.slow
 def test_sppm_renders_the_point_light_caustic_that_path_tracing_cannot(mini):
     """On the cardioid, a path tracer misses the caustic altogether: the
     error of its blurred image (noise averaged away, bias left) stops
@@ -64,6 +67,7 @@ def test_sppm_renders_the_point_light_caustic_that_path_tracing_cannot(mini):
     assert sppm[-1].blurred_relmse < 0.7 * path[-1].blurred_relmse
 
 
+@pytest.mark.slow
 def test_outputs_name_every_sample_and_the_claims(mini):
     ev, out = mini
     doc = json.loads((out / "results.json").read_text())
