@@ -28,7 +28,10 @@ import urllib.request
 import numpy as np
 import pytest
 
+from dosppm_core.chunks.store import ChunkStore, is_store
+from dosppm_core.film import read_exr
 from tests.helpers import netns
+from tests.helpers.cli import DOSPPM
 from tests.helpers.netns import POLLER, Procs
 
 pytestmark = [pytest.mark.netns, pytest.mark.slow]
@@ -65,15 +68,12 @@ def _reachable_from_root(ip: str, port: int) -> bool:
 
 
 def test_server_and_two_tracers_on_separate_hosts(lan, tmp_path):
-    from dosppm_core.chunks.store import ChunkStore, is_store
-    from dosppm_core.film import read_exr
-
     server_ns, server_ip = lan["server"]
     store_cache, out = tmp_path / "store-cache", tmp_path / "out.exr"
     status_file = tmp_path / "status.json"
     logs = tmp_path / "logs"
     logs.mkdir()
-    py = [sys.executable, "-m", "services.cli"]
+    py = DOSPPM
     env = {"DOSPPM_LOG_LEVEL": "info", "PYTHONUNBUFFERED": "1"}
     netns.warm_kernel_cache(tmp_path / "warm-up")
     procs = Procs(logs)

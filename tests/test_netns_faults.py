@@ -39,7 +39,9 @@ import time
 import numpy as np
 import pytest
 
+from dosppm_core.film import read_exr
 from tests.helpers import netns
+from tests.helpers.cli import DOSPPM
 from tests.helpers.netns import Procs
 
 pytestmark = [pytest.mark.netns, pytest.mark.slow]
@@ -109,7 +111,7 @@ class Render:
         self.out, self.history_file = folder / "out.exr", folder / "status.jsonl"
         self.procs = Procs(folder)
         server_ns, server_ip = hosts["server"]
-        py = [sys.executable, "-m", "services.cli"]
+        py = DOSPPM
         env = {"DOSPPM_LOG_LEVEL": "info", "PYTHONUNBUFFERED": "1"}
         self.t0 = time.monotonic()
         self.procs.start("server", server_ns, py + [
@@ -186,7 +188,6 @@ class Render:
             self.procs.kill_all()
         self.tails = self.procs.tails()
         assert rc == expect, f"exit statuses {rc}, expected {expect} (None: still running)\n{self.tails}"
-        from dosppm_core.film import read_exr
         summary = json.loads(self.out.with_suffix(".json").read_text())
         img, _ = read_exr(str(self.out))
         return {"summary": summary, "img": img, "history": self.history(), "tails": self.tails,
