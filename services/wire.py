@@ -1,7 +1,7 @@
 """The wire protocol of the distributed service (DOSPPM, Günther & Grosch
-§3.1 "Network", §3.3, §4.3): every message, the protocol version, encoding,
-validation and the thin ZeroMQ send/receive helpers. The only module of the
-project that imports zmq.
+§3.1 "Network", §3.3, §4.3): every message, the protocol version, encoding
+and validation. A codec only: `services.transport` moves the frames over
+ZeroMQ sockets (and is the only module that imports zmq).
 
 API
 ---
@@ -9,10 +9,8 @@ API
     decode(frames, accept=None) -> Message(type, fields, version); msg.job, msg.batch
     WireError(ValueError), VersionMismatch(WireError): .msg_type, .field, .prefix
     error_reply(e) -> frames of `error`, or `refused` for a register in another version
-    configure(socket); send(socket, frames, prefix=(), block=True)
-    recv(socket, accept=None) -> (prefix, Message); recv_or_reply(socket, accept=None)
     chunk_parts(chunk, sha256, data) -> [frames of each chunk_data part]
-    MESSAGES (name -> Spec), describe() -> the message table
+    MESSAGES (name -> Spec), JOB_MESSAGES, describe() -> the message table
 
 Framing
 -------
@@ -51,9 +49,9 @@ eye_iteration when they carry hits or emitted light; a photon portal_rays
 has a cull box and no eye_iteration, an eye one the reverse; chunk_data
 has part < parts and its bytes inside file_bytes. Nothing else escapes
 `decode`: callers answer a WireError with `error_reply` and a log line
-(`recv_or_reply` does both) and carry on. Semantic ranges the wire
-cannot know (pixel < width * height, chunk < chunk count, material index)
-are checked by the role that knows them.
+(`transport.Socket.recv_or_reply` does both) and carry on. Semantic
+ranges the wire cannot know (pixel < width * height, chunk < chunk count,
+material index) are checked by the role that knows them.
 
 Only `error` and `refused` decode whatever the version, as long as it is an
 int: their fields are frozen, so a peer speaking another version can still
@@ -119,53 +117,20 @@ No timeout is involved: each path ends exactly once, so the sum cannot
 reach N_j while a path of j is queued, traced or in a portal package.
 `culled` counts photon *deposits* dropped by the cull box (§4.3), not
 paths; `queued` is the rays waiting at the tracer after the step (the
-server's back-pressure reads it). Client batching (§4.3) coalesces all
-packages of one kind for one chunk, whatever their jobs: the job column
-splits the counts afterwards. Coalesced photon packages use the union of
-their cull boxes ("widened when merged").
-
-Sockets, envelopes and back-pressure
-------------------------------------
-The server binds a ROUTER; each tracer connects a DEALER to it, with its
-tracer_id as ZMQ routing id (a reconnect keeps its identity). Each tracer
-also binds a ROUTER at its `endpoint` for peer traffic, and connects one
-DEALER per peer. Envelope convention: DEALERs send no empty delimiter, so a
-ROUTER receives exactly one identity frame before the message (`recv`
-returns it as the prefix; send it back in front of a reply).
-
-Nothing is dropped silently:
-- every ROUTER sets ROUTER_MANDATORY, so sending to an unknown or
-  disconnected identity raises zmq.ZMQError(EHOSTUNREACH) instead of
-  vanishing, and a full queue raises zmq.Again (non-blocking send) instead
-  of dropping;
-- high-water marks are HWM_MESSAGES messages, not the default 1000: a
-  message can be a ray batch of tens of MB (56 B per ray), and a pipe
-  queues up to HWM_MESSAGES at each end, so a slow tracer can pin at most
-  about 2 * HWM_MESSAGES * MAX_BATCH_ROWS rays per pipe;
-- memory stays bounded by credit, not by queue: the server keeps at most
-  JOB_CREDITS per tracer of jobs in flight and holds the rest in its own
-  scheduler (where they can go to another tracer serving the chunk), so a
-  slow tracer slows its own share instead of growing buffers;
-- peers send portal packages non-blocking and keep what does not fit in
-  an outbox while they keep receiving: two tracers blocked sending to each
-  other would deadlock. A tracer whose outbox passes its memory budget
-  stops accepting jobs (the server's credits then stop too);
-- a bad message is answered with `error` (or `refused`, for a register in
-  another version) and logged; an `error` or `refused` is never answered,
-  so two confused peers cannot ping-pong.
-Frames given to `send` must not be modified until sent: with copy=False,
-zmq reads the caller's arrays asynchronously.
+server's ray credit reads it: see `services.transport`, back-pressure).
+Client batching (§4.3) coalesces all packages of one kind for one chunk,
+whatever their jobs: the job column splits the counts afterwards.
+Coalesced photon packages use the union of their cull boxes ("widened
+when merged").
 """
 from __future__ import annotations
 
-import logging
 import re
 from dataclasses import dataclass, field
 from functools import cached_property
 
 import msgpack
 import numpy as np
-import zmq
 
 from dosppm_core.jobs import CONTINUES, END_NAMES, HitPoints, PhotonDeposits, RayBatch
 
@@ -173,16 +138,8 @@ PROTOCOL_VERSION = 1
 
 # -- policy ---------------------------------------------------------------------
 MAX_ELEMENTS = 1 << 28           # per array: sanity cap on a declared size
-MAX_FRAME_BYTES = MAX_ELEMENTS * 8
-MAX_BATCH_ROWS = 1 << 20         # rays per job or package the roles aim for
-HWM_MESSAGES = 16                # SNDHWM and RCVHWM, per socket and peer
-JOB_CREDITS = 8                  # jobs in flight per tracer, kept by the server
+MAX_FRAME_BYTES = MAX_ELEMENTS * 8   # the largest frame a socket takes (transport's MAXMSGSIZE)
 CHUNK_PART_BYTES = 16 << 20      # chunk_data splits chunk files into parts this big
-LINGER_MS = 2000                 # a closing socket still delivers its last results
-ZMQ_HEARTBEAT_IVL_MS = 1000      # transport heartbeats find dead TCP peers,
-ZMQ_HEARTBEAT_TIMEOUT_MS = 10_000  # not hung processes (the server's own do that)
-
-log = logging.getLogger("dosppm.wire")
 
 
 class WireError(ValueError):
@@ -722,60 +679,6 @@ def error_reply(e: WireError) -> list:
     return encode("error", reason=str(e), about=e.msg_type)
 
 
-# -- sockets --------------------------------------------------------------------
-def configure(socket: zmq.Socket) -> zmq.Socket:
-    """Apply the back-pressure policy above; call before bind/connect."""
-    socket.setsockopt(zmq.SNDHWM, HWM_MESSAGES)
-    socket.setsockopt(zmq.RCVHWM, HWM_MESSAGES)
-    socket.setsockopt(zmq.LINGER, LINGER_MS)
-    socket.setsockopt(zmq.MAXMSGSIZE, MAX_FRAME_BYTES)
-    socket.setsockopt(zmq.HEARTBEAT_IVL, ZMQ_HEARTBEAT_IVL_MS)
-    socket.setsockopt(zmq.HEARTBEAT_TIMEOUT, ZMQ_HEARTBEAT_TIMEOUT_MS)
-    if socket.type == zmq.ROUTER:
-        socket.setsockopt(zmq.ROUTER_MANDATORY, 1)
-    return socket
-
-
-def send(socket: zmq.Socket, frames: list, prefix=(), block: bool = True) -> None:
-    """Send one message zero-copy; `prefix` is the ROUTER envelope (the
-    peer's identity). Raises zmq.ZMQError: EHOSTUNREACH for an unknown
-    identity on a ROUTER, zmq.Again when not blocking and the queue is full."""
-    socket.send_multipart([*prefix, *frames], copy=False, flags=0 if block else zmq.NOBLOCK)
-
-
-def _split_envelope(socket: zmq.Socket, parts: list) -> tuple[list, list]:
-    if socket.type != zmq.ROUTER:
-        return [], parts
-    return [parts[0].bytes], parts[1:]   # one identity frame: DEALERs send no delimiter
-
-
-def recv(socket: zmq.Socket, accept=None, flags: int = 0) -> tuple[list, Message]:
-    """(envelope, message) from a ROUTER or DEALER socket. A bad message
-    raises WireError with `.prefix` set, so the caller can reply."""
-    prefix, frames = _split_envelope(socket, socket.recv_multipart(copy=False, flags=flags))
-    try:
-        return prefix, decode(frames, accept)
-    except WireError as e:
-        e.prefix = prefix
-        raise
-
-
-def recv_or_reply(socket: zmq.Socket, accept=None, flags: int = 0) -> tuple[list, Message] | None:
-    """`recv`, except that a bad message is logged, answered (never an
-    error with an error) and returns None."""
-    try:
-        return recv(socket, accept, flags)
-    except WireError as e:
-        who = e.prefix[0] if e.prefix else b"peer"
-        log.warning("bad message from %r: %s", who, e)
-        if e.msg_type not in ("error", "refused"):
-            try:
-                send(socket, error_reply(e), e.prefix, block=False)
-            except zmq.ZMQError as z:   # the sender is gone or flooded: the log line stands
-                log.warning("could not answer %r: %s", who, z)
-        return None
-
-
 def chunk_parts(chunk: int, sha256: str, data) -> list[list]:
     """A chunk file as `chunk_data` messages of at most CHUNK_PART_BYTES,
     each a view of `data` (no copy)."""
@@ -786,58 +689,3 @@ def chunk_parts(chunk: int, sha256: str, data) -> list[list]:
                    offset=p * CHUNK_PART_BYTES, file_bytes=size,
                    data=buf[p * CHUNK_PART_BYTES:(p + 1) * CHUNK_PART_BYTES])
             for p in range(parts)]
-
-
-# -- CURVE (encryption and authentication on a LAN) -------------------------------
-def make_keys(directory: str, name: str) -> tuple[str, str]:
-    """A CURVE key pair as ZeroMQ certificate files: NAME.key_secret (keep
-    it on that host only, mode 0600) and NAME.key (public, to hand out)."""
-    import os
-
-    import zmq.auth
-    os.makedirs(directory, exist_ok=True)
-    public, secret = zmq.auth.create_certificates(directory, name)
-    os.chmod(secret, 0o600)
-    return public, secret
-
-
-def load_keys(path: str) -> tuple[bytes, bytes | None]:
-    """(public, secret) from a certificate file; secret None for a public one."""
-    import zmq.auth
-    try:
-        return zmq.auth.load_certificate(path)
-    except (OSError, ValueError) as e:
-        raise WireError(f"{path}: not a CURVE certificate: {e}") from None
-
-
-def curve_server(socket: zmq.Socket, secret_file: str) -> bytes:
-    """Make `socket` a CURVE server with the key pair in `secret_file`
-    (before bind); only clients the authenticator admits get through."""
-    public, secret = load_keys(secret_file)
-    if secret is None:
-        raise WireError(f"{secret_file}: holds no secret key")
-    socket.curve_secretkey, socket.curve_publickey, socket.curve_server = secret, public, True
-    return public
-
-
-def curve_client(socket: zmq.Socket, secret_file: str, server_public: bytes) -> None:
-    """Make `socket` a CURVE client of the server whose public key is given
-    (before connect)."""
-    public, secret = load_keys(secret_file)
-    if secret is None:
-        raise WireError(f"{secret_file}: holds no secret key")
-    socket.curve_secretkey, socket.curve_publickey, socket.curve_serverkey = secret, public, server_public
-
-
-def start_authenticator(context: zmq.Context, clients_dir: str):
-    """Admit only CURVE clients whose public key files are in `clients_dir`
-    (ZeroMQ's ZAP handler on a thread); returns it, to `stop()`."""
-    import os
-
-    from zmq.auth.thread import ThreadAuthenticator
-    if not os.path.isdir(clients_dir):
-        raise WireError(f"{clients_dir}: no such directory of public keys")
-    auth = ThreadAuthenticator(context)
-    auth.start()
-    auth.configure_curve(domain="*", location=clients_dir)
-    return auth

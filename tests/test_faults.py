@@ -17,6 +17,7 @@ import pytest
 from tests.helpers.cli import free_port, run_dosppm, start_dosppm
 from tests.helpers.cluster import assert_same_within_noise
 from dosppm_core.film import read_exr
+from services.server import checkpoint
 
 pytestmark = pytest.mark.slow   # a server and three tracer processes per render
 PHOTONS = 1_500_000
@@ -146,7 +147,6 @@ def test_the_server_killed_and_resumed_from_its_checkpoint(tmp_path, failure_fre
     """SIGKILL the server mid-render and start it again with --resume: the
     tracers find it again by themselves, and the render goes on from the
     checkpoint to the same total photon count."""
-    from services.server import checkpoint
     saved = {}
 
     def crash(c: Cluster):

@@ -1,21 +1,22 @@
-"""The server process on its socket, driven by a raw ZeroMQ peer: a tracer
+"""The server process on its socket, driven by a bare transport peer: a tracer
 speaking another protocol version is refused with a reason, garbage gets an
 error reply and the server keeps serving, and heartbeats flow both ways."""
 from __future__ import annotations
 
+import os
+import re
 import threading
 import time
 
 import msgpack
 import numpy as np
 import pytest
-import zmq
 
 from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
 from tests.helpers.paths import REPO
 from tests.helpers.scenes import small_scene
 from dosppm_core.modes.sppm import RenderSettings
-from services import wire
+from services import transport, wire
 from services.server.node import Limits, ServerProcess
 
 
@@ -35,9 +36,7 @@ def server():
 
 
 def _dealer(server, ident=b"probe"):
-    d = zmq.Context.instance().socket(zmq.DEALER)
-    d.setsockopt(zmq.IDENTITY, ident)
-    d.setsockopt(zmq.LINGER, 0)
+    d = transport.dealer(ident)
     d.connect(server.endpoint)
     return d
 
@@ -46,7 +45,7 @@ def _reply(d, timeout_ms=5000, want=None):
     deadline = time.monotonic() + timeout_ms / 1000
     while time.monotonic() < deadline:
         if d.poll(200):
-            msg = wire.decode(d.recv_multipart())
+            _, msg = d.recv()
             if want is None or msg.type in want:
                 return msg
     raise AssertionError("no reply")
@@ -58,54 +57,51 @@ def test_a_tracer_of_another_protocol_version_is_refused_with_a_reason(server):
                          endpoint="tcp://127.0.0.1:1", has_store=False)
     header = msgpack.unpackb(bytes(frames[0]))
     header["v"] = wire.PROTOCOL_VERSION + 1
-    d.send_multipart([msgpack.packb(header), *frames[1:]])
+    d.send([msgpack.packb(header), *frames[1:]])
     msg = _reply(d)
     assert msg.type == "refused"
     assert f"tracer speaks {wire.PROTOCOL_VERSION + 1}, server speaks {wire.PROTOCOL_VERSION}" in msg.reason
     assert "same dosppm release" in msg.reason
     assert server.state.tracers == {}
-    d.close()
+    d.close(linger_ms=0)
 
 
 def test_garbage_gets_an_error_and_the_server_keeps_serving(server):
     d = _dealer(server)
-    d.send_multipart([b"\xc1not msgpack"])
+    d.send([b"\xc1not msgpack"])
     assert _reply(d).type == "error"
-    d.send_multipart(wire.encode("results", chunk=0, ends=np.zeros(5, np.int64),
+    d.send(wire.encode("results", chunk=0, ends=np.zeros(5, np.int64),
                                  job_ids=np.zeros(0, np.int64), job_fed=np.zeros(0, np.int64),
                                  job_left=np.zeros(0, np.int64)))
     msg = _reply(d)
     assert msg.type == "error" and "not registered" in msg.reason
     # Still serving: a proper registration is welcomed, then heartbeats come.
-    d.send_multipart(wire.encode("register", tracer_id="probe", capacity={"cores": 1, "memory_bytes": 0},
+    d.send(wire.encode("register", tracer_id="probe", capacity={"cores": 1, "memory_bytes": 0},
                                  endpoint="tcp://127.0.0.1:1", has_store=True, store_key="k"))
     assert _reply(d, want={"welcome"}).chunks == [0]
     assert _reply(d, 3000, want={"heartbeat"}).type == "heartbeat"
-    d.send_multipart(wire.encode("heartbeat", status={"queue": 0}))
+    d.send(wire.encode("heartbeat", status={"queue": 0}))
     time.sleep(0.5)
     assert server.state.tracers["probe"].status == {"queue": 0}
-    d.close()
+    d.close(linger_ms=0)
 
 
 def test_chunks_are_requested_by_id_only(server):
     """A chunk request names an index; anything out of range is an error,
     and there is no field through which a path could be asked for."""
-    from services.wire import MESSAGES
-    assert set(MESSAGES["chunk_request"].fields) == {"chunk"}
+    assert set(wire.MESSAGES["chunk_request"].fields) == {"chunk"}
     d = _dealer(server, b"reader")
-    d.send_multipart(wire.encode("register", tracer_id="reader", capacity={"cores": 1, "memory_bytes": 0},
+    d.send(wire.encode("register", tracer_id="reader", capacity={"cores": 1, "memory_bytes": 0},
                                  endpoint="tcp://127.0.0.1:1", has_store=True, store_key="k"))
     _reply(d, want={"welcome"})
-    d.send_multipart(wire.encode("chunk_request", chunk=7))
+    d.send(wire.encode("chunk_request", chunk=7))
     msg = _reply(d, want={"error"})
     assert "no chunk 7" in msg.reason and msg.about == "chunk_request"
-    d.close()
+    d.close(linger_ms=0)
 
 
 def test_nothing_executes_data():
     """No pickle, eval, exec or shell anywhere in the product."""
-    import os
-    import re
     root = REPO
     bad = re.compile(r"\bimport pickle\b|\bpickle\.\w+\(|\beval\(|\bexec\(|shell=True|os\.system\(|os\.popen\(")
     hits = []

@@ -25,17 +25,15 @@ import time
 from collections import deque
 from dataclasses import dataclass
 
-import zmq
-
 from dosppm_core.film import encode_png, tonemap_srgb8, write_exr, write_png
 from dosppm_core.jobs import PhotonDeposits
 from dosppm_core.modes.sppm import Progress, RenderSettings
 
+from services import transport, wire
 from services.server import checkpoint
-from services import wire
+from services.server.http import StatusServer
 from services.server.state import ServerState, Update
 from services.server.statistics import ServerStatistics
-from services.server.http import StatusServer
 
 log = logging.getLogger("dosppm.server")
 ACCEPT = {"register", "heartbeat", "results", "chunk_request", "error"}
@@ -62,7 +60,7 @@ class ServerProcess:
                  limits: Limits | None = None, snapshot_interval_s: float = 60.0,
                  min_photon_jobs: int = 1000, min_tracers: int = 1,
                  queue_target_rays: int = 262_144, threads: int = 2, exposure: float = 0.0,
-                 drain_timeout_s: float = 60.0, reporter=None, context: zmq.Context | None = None,
+                 drain_timeout_s: float = 60.0, reporter=None, context: transport.Context | None = None,
                  concurrent: bool = True, client_batching: bool = True, tracer_timeout_s: float = 10.0,
                  checkpoint_dir: str | None = None, checkpoint_interval_s: float = 60.0,
                  resume: dict | None = None, curve_secret: str | None = None,
@@ -80,16 +78,14 @@ class ServerProcess:
         if resume is not None:
             checkpoint.restore(self.statistics.stats, resume)
             self.state.resume(resume)
-        self.ctx = context or zmq.Context.instance()
-        self.router = wire.configure(self.ctx.socket(zmq.ROUTER))
+        self.router = transport.router(context)
         self.auth = None
         if curve_secret:   # CURVE: encrypted, and only listed tracers get in
             if not curve_clients:
-                raise wire.WireError("--curve-secret needs --curve-clients (the tracers' public keys)")
-            self.auth = wire.start_authenticator(self.ctx, curve_clients)
-            wire.curve_server(self.router, curve_secret)
-        self.router.bind(bind)
-        self.endpoint = self.router.getsockopt(zmq.LAST_ENDPOINT).decode()
+                raise ValueError("--curve-secret needs --curve-clients (the tracers' public keys)")
+            self.auth = transport.start_authenticator(curve_clients, context)
+            transport.curve_server(self.router, curve_secret)
+        self.endpoint = self.router.bind(bind)
         self.http = StatusServer(self._status_snapshot, self._preview_png, *http) if http else None
         self._outbox: dict[str, deque] = {}
         self._lost: list[str] = []
@@ -132,7 +128,7 @@ class ServerProcess:
             restore()
             if self.http:
                 self.http.close()
-            self.router.close(linger=wire.LINGER_MS)
+            self.router.close()
             if self.auth is not None:
                 self.auth.stop()
         return self.summary()
@@ -206,14 +202,8 @@ class ServerProcess:
     def _receive(self, now: float) -> None:
         if not self.router.poll(5):
             return
-        for _ in range(1000):           # bounded, so ticks and status keep their pace
-            try:
-                got = wire.recv_or_reply(self.router, accept=ACCEPT, flags=zmq.NOBLOCK)
-            except zmq.Again:
-                return
-            if got is None:
-                continue
-            prefix, msg = got
+        # Bounded, so ticks and status keep their pace.
+        for prefix, msg in self.router.drain(accept=ACCEPT, limit=1000):
             tid = prefix[0].decode("utf-8", "replace")
             if msg.type == "register":
                 self._send(self.state.on_register(tid, msg, now))
@@ -254,12 +244,10 @@ class ServerProcess:
         box = self._outbox[tid]
         while box:
             try:
-                wire.send(self.router, box[0], [tid.encode()], block=False)
-            except zmq.Again:
+                self.router.send(box[0], [tid.encode()], block=False)
+            except transport.WouldBlock:
                 return
-            except zmq.ZMQError as e:
-                if e.errno != zmq.EHOSTUNREACH:
-                    raise
+            except transport.Unreachable:
                 self.undeliverable += len(box)
                 log.warning("tracer %s unreachable: %d messages not delivered", tid, len(box))
                 box.clear()

@@ -12,15 +12,15 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 import socket as pysocket
+import threading
 import time
 import uuid
 
-import zmq
-
 from dosppm_core.chunks.store import ChunkStore, StoreError
 
-from services import wire
+from services import transport, wire
 from services.tracer.fetch import FetchedStore
 from services.tracer.state import SERVER, STEP_RAYS, TracerState
 
@@ -50,7 +50,7 @@ def default_tracer_id() -> str:
 class TracerProcess:
     def __init__(self, server: str, bind: str = "tcp://127.0.0.1:*", advertise: str | None = None,
                  store: str | None = None, cache_dir: str | None = None, memory_bytes: float | None = None,
-                 threads: int = 1, tracer_id: str | None = None, context: zmq.Context | None = None,
+                 threads: int = 1, tracer_id: str | None = None, context: transport.Context | None = None,
                  connect_timeout_s: float = SERVER_TIMEOUT_S, curve_secret: str | None = None,
                  curve_server_key: str | None = None, curve_clients: str | None = None):
         self.server_url, self.bind, self.advertise = server, bind, advertise
@@ -64,9 +64,9 @@ class TracerProcess:
         self.peer_keys: dict[str, str] = {}
         self.public_key: str | None = None
         self.auth = None
-        self.ctx = context or zmq.Context.instance()
+        self.ctx = context             # None: the process's shared one
         self.state: TracerState | None = None
-        self.peers: dict[str, zmq.Socket] = {}
+        self.peers: dict[str, transport.Socket] = {}
         self.outbox: list = []        # (endpoint, frames) waiting for a full peer pipe
         self.stopped: str | None = None
         self.session = None            # the registration the server last welcomed
@@ -76,32 +76,36 @@ class TracerProcess:
         self._last_register = 0.0
         self.bytes_to_server = self.bytes_to_peers = 0
         self._outbox_rays = 0
-        self._poller: zmq.Poller | None = None
+        self._poller: transport.Poller | None = None
 
     # -- sockets -------------------------------------------------------------------
     def _open(self) -> None:
+        try:
+            self._open_sockets()
+        except transport.CurveError as e:   # a key file or folder the user named: one line
+            raise TracerError(str(e)) from None
+
+    def _open_sockets(self) -> None:
         self.dealer = self._connect_server()
-        self.router = wire.configure(self.ctx.socket(zmq.ROUTER))
+        self.router = transport.router(self.ctx)
         if self.curve:
             # To peers as a CURVE server that admits only the listed
             # tracers' keys (to the server as a client: _connect_server).
             secret, _server_key, clients = self.curve
-            self.auth = wire.start_authenticator(self.ctx, clients)
-            self.public_key = wire.curve_server(self.router, secret).decode()
-        self.router.bind(self.bind)
-        bound = self.router.getsockopt(zmq.LAST_ENDPOINT).decode()
+            self.auth = transport.start_authenticator(clients, self.ctx)
+            self.public_key = transport.curve_server(self.router, secret).decode()
+        bound = self.router.bind(self.bind)
         if self.advertise:   # bound to 0.0.0.0: peers need a reachable address
             host = reachable_address(self.server_url) if self.advertise == "auto" else self.advertise
             bound = f"tcp://{host}:{bound.rsplit(':', 1)[1]}"
         self.endpoint = bound
 
-    def _connect_server(self) -> zmq.Socket:
+    def _connect_server(self) -> transport.Socket:
         """A DEALER to the server under this tracer's identity."""
-        dealer = wire.configure(self.ctx.socket(zmq.DEALER))
-        dealer.setsockopt(zmq.IDENTITY, self.tracer_id.encode())
+        dealer = transport.dealer(self.tracer_id, self.ctx)
         if self.curve:
             secret, server_key, _clients = self.curve
-            wire.curve_client(dealer, secret, wire.load_keys(server_key)[0])
+            transport.curve_client(dealer, secret, transport.load_keys(server_key)[0])
         dealer.connect(self.server_url)
         return dealer
 
@@ -115,25 +119,24 @@ class TracerProcess:
         old, self.dealer = self.dealer, self._connect_server()
         if self._poller is not None:
             self._poller.unregister(old)
-            self._poller.register(self.dealer, zmq.POLLIN)
+            self._poller.register(self.dealer)
         old.close(linger=0)
 
-    def _peer(self, endpoint: str) -> zmq.Socket:
+    def _peer(self, endpoint: str) -> transport.Socket:
         s = self.peers.get(endpoint)
         if s is None:
-            s = wire.configure(self.ctx.socket(zmq.DEALER))
-            s.setsockopt(zmq.IDENTITY, self.tracer_id.encode())
+            s = transport.dealer(self.tracer_id, self.ctx)
             if self.curve:
                 if endpoint not in self.peer_keys:
                     raise TracerError(f"no CURVE key for peer {endpoint} in the server's table")
-                wire.curve_client(s, self.curve[0], self.peer_keys[endpoint].encode())
+                transport.curve_client(s, self.curve[0], self.peer_keys[endpoint].encode())
             s.connect(endpoint)
             self.peers[endpoint] = s
         return s
 
     # -- registration ----------------------------------------------------------------
     def _register(self):
-        wire.send(self.dealer, self._register_frames(self._local_store_key()))
+        self.dealer.send(self._register_frames(self._local_store_key()))
         # The DEALER queues the register until the server is up (libzmq
         # reconnects with its own backoff), so waiting is all it takes.
         timeout_s = self.connect_timeout_s
@@ -157,7 +160,7 @@ class TracerProcess:
         answered and skipped by `recv_or_reply`)."""
         while time.monotonic() < deadline:
             if self.dealer.poll(200):
-                got = wire.recv_or_reply(self.dealer)
+                got = self.dealer.recv_or_reply()
                 if got is not None:
                     yield got[1]
 
@@ -184,7 +187,7 @@ class TracerProcess:
     def _request_chunk(self, chunk: int, timeout_s: float = 600.0) -> list:
         """Ask the server for chunk `chunk` by id and wait for its parts;
         other messages arriving meanwhile are handled as usual."""
-        wire.send(self.dealer, wire.encode("chunk_request", chunk=chunk))
+        self.dealer.send(wire.encode("chunk_request", chunk=chunk))
         parts = []
         for msg in self._server_messages(time.monotonic() + timeout_s):
             if msg.type == "chunk_data" and msg.chunk == chunk:
@@ -208,8 +211,6 @@ class TracerProcess:
             restore()
 
     def _stop_on_signals(self):
-        import signal
-        import threading
         if threading.current_thread() is not threading.main_thread():
             return lambda: None
 
@@ -237,13 +238,11 @@ class TracerProcess:
         return self.stopped or ""
 
     def _loop(self) -> None:
-        self._poller = poller = zmq.Poller()
-        poller.register(self.dealer, zmq.POLLIN)
-        poller.register(self.router, zmq.POLLIN)
+        self._poller = poller = transport.Poller(self.dealer, self.router)
         last_beat = last_heard = time.monotonic()
         while self.stopped is None:
             busy = self.state.has_work() or bool(self.outbox)
-            events = dict(poller.poll(0 if busy else 50))
+            events = poller.poll(0 if busy else 50)
             now = time.monotonic()
             if self.dealer in events or self._pending_server:
                 last_heard = now
@@ -275,13 +274,8 @@ class TracerProcess:
 
     def _drain_server(self, ready: bool) -> None:
         msgs, self._pending_server = self._pending_server, []
-        while ready:
-            try:
-                got = wire.recv_or_reply(self.dealer, flags=zmq.NOBLOCK)
-            except zmq.Again:
-                break
-            if got is not None:
-                msgs.append(got[1])
+        if ready:
+            msgs.extend(msg for _prefix, msg in self.dealer.drain())
         for msg in msgs:
             if msg.type == "shutdown":
                 self.stopped = msg.reason or "shutdown"
@@ -335,21 +329,15 @@ class TracerProcess:
         self._to_server(self._register_frames(self.state.provider_key), disposable=True)
 
     def _drain_peers(self) -> None:
-        while True:
+        for prefix, msg in self.router.drain(accept={"portal_rays"}):
             try:
-                got = wire.recv_or_reply(self.router, accept={"portal_rays"}, flags=zmq.NOBLOCK)
-            except zmq.Again:
-                return
-            if got is None:
-                continue
-            try:
-                self._send(self.state.handle(got[1]))
+                self._send(self.state.handle(msg))
             except ValueError as e:      # a range only this tracer can check (chunk id)
-                log.warning("bad package from %r: %s", got[0][0], e)
+                log.warning("bad package from %r: %s", prefix[0], e)
                 try:
-                    wire.send(self.router, wire.encode("error", reason=f"portal_rays: {e}",
-                                                       about="portal_rays"), got[0], block=False)
-                except zmq.ZMQError:     # the sender is gone or not reading: the log line stands
+                    self.router.send(wire.encode("error", reason=f"portal_rays: {e}", about="portal_rays"),
+                                     prefix, block=False)
+                except transport.TransportError:   # the sender is gone or not reading: the log line stands
                     pass
 
     def _send(self, outs) -> None:
@@ -374,16 +362,16 @@ class TracerProcess:
         long as the server may take to come back (`connect_timeout_s`)."""
         if disposable:
             try:
-                wire.send(self.dealer, frames, block=False)
-            except zmq.Again:
+                self.dealer.send(frames, block=False)
+            except transport.WouldBlock:
                 pass
             return
         deadline = time.monotonic() + self.connect_timeout_s
         while True:
             try:
-                wire.send(self.dealer, frames, block=False)
+                self.dealer.send(frames, block=False)
                 return
-            except zmq.Again:
+            except transport.WouldBlock:
                 if time.monotonic() > deadline or self.stopped is not None:
                     raise TracerError(f"server {self.server_url} took no results for "
                                       f"{self.connect_timeout_s:.0f} s") from None
@@ -395,8 +383,8 @@ class TracerProcess:
         waiting = []
         for dest, frames, rays in self.outbox:
             try:
-                wire.send(self._peer(dest), frames, block=False)
-            except zmq.Again:
+                self._peer(dest).send(frames, block=False)
+            except transport.WouldBlock:
                 waiting.append((dest, frames, rays))
                 continue
             self._outbox_rays -= rays
@@ -407,6 +395,6 @@ class TracerProcess:
         if self.state is not None:
             self.state.close()
         for s in (*self.peers.values(), self.dealer, self.router):
-            s.close(linger=wire.LINGER_MS)
+            s.close()
         if self.auth is not None:
             self.auth.stop()

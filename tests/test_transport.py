@@ -1,0 +1,187 @@
+"""The transport (services/transport.py) over real ZeroMQ sockets: a 1M-ray
+batch travels zero-copy, an unroutable message raises Unreachable instead
+of vanishing, a full or empty non-blocking socket raises WouldBlock, a bad
+message gets an error reply and a log line, `drain` takes what waits and
+no more, and CURVE admits only the listed clients."""
+from __future__ import annotations
+
+import logging
+import os
+
+import msgpack
+import numpy as np
+import pytest
+
+from services import transport
+from services.wire import PROTOCOL_VERSION, encode
+from tests.test_wire import (_register_from_the_future, _valid, assert_same_message, frame_views,
+                             sample_fields)
+
+WAIT_MS = 10_000    # a lost message fails the test instead of hanging it
+
+
+@pytest.fixture
+def ctx():
+    context = transport.Context()
+    yield context
+    context.destroy(linger=0)
+
+
+def _pair(ctx, endpoint, identity=b"tracer-1"):
+    server = transport.router(ctx)
+    endpoint = server.bind(endpoint)
+    tracer = transport.dealer(identity, ctx)
+    tracer.connect(endpoint)
+    return server, tracer
+
+
+def _recv(socket, accept=None):
+    assert socket.poll(WAIT_MS), "nothing arrived"
+    return socket.recv(accept)
+
+
+@pytest.mark.parametrize("endpoint", ["inproc://wire-test", "tcp://127.0.0.1:*"])
+def test_router_dealer_round_trip_of_a_million_rays(ctx, endpoint):
+    server, tracer = _pair(ctx, endpoint)
+    tracer.send(encode("register", **sample_fields("register", 0, np.random.default_rng(0))))
+    prefix, hello = _recv(server, accept={"register"})
+    assert prefix == [b"tracer-1"] and hello.tracer_id == "t-1"
+
+    sent = sample_fields("photon_job", 1_000_000, np.random.default_rng(4))
+    frames = encode("photon_job", **sent)
+    assert all(np.shares_memory(v, a) for v, a in zip(frame_views(frames)[1:], sent["batch"].arrays().values()))
+    server.send(frames, prefix)
+    envelope, job = _recv(tracer)
+    assert envelope == [] and job.type == "photon_job"
+    assert_same_message(sent, job)
+    if endpoint.startswith("inproc"):
+        # inproc hands over the sender's buffers: zero copies end to end.
+        assert np.shares_memory(job.batch.origin, sent["batch"].origin)
+    assert all(a.flags.aligned for a in job.batch.arrays().values())
+
+    # Small frames can arrive at odd offsets of libzmq's receive buffer
+    # (tcp); decode copies those, since numba wants aligned arrays.
+    small = sample_fields("eye_job", 3, np.random.default_rng(5))
+    server.send(encode("eye_job", **small), prefix)
+    _, job = _recv(tracer)
+    assert_same_message(small, job)
+    assert all(a.flags.aligned for a in job.batch.arrays().values())
+
+
+def test_router_mandatory_raises_for_an_unknown_peer(ctx):
+    server, _tracer = _pair(ctx, "inproc://wire-mandatory")
+    with pytest.raises(transport.Unreachable):
+        server.send(encode("shutdown", reason="bye"), [b"nobody"])
+
+
+def test_non_blocking_calls_raise_would_block(ctx):
+    server, tracer = _pair(ctx, "inproc://wire-would-block")
+    with pytest.raises(transport.WouldBlock):
+        server.recv(block=False)
+    # A peer that reads nothing: its pipe takes about HWM_MESSAGES at each
+    # end, then a non-blocking send refuses instead of dropping.
+    frames = encode("heartbeat", status={})
+    with pytest.raises(transport.WouldBlock):
+        for _ in range(100 * transport.HWM_MESSAGES):
+            tracer.send(frames, block=False)
+
+
+def test_a_bad_message_gets_an_error_reply_and_a_log_line(ctx, caplog):
+    server, tracer = _pair(ctx, "inproc://wire-bad")
+    tracer.send([b"\xc1 not msgpack"])
+    assert server.poll(WAIT_MS)
+    with caplog.at_level(logging.WARNING, logger="dosppm.transport"):
+        assert server.recv_or_reply() is None
+    assert "tracer-1" in caplog.text and "malformed msgpack" in caplog.text
+    _, reply = _recv(tracer)
+    assert reply.type == "error" and "malformed msgpack" in reply.reason
+
+    # A register in another version is refused, naming both versions.
+    tracer.send(_register_from_the_future(7))
+    assert server.poll(WAIT_MS)
+    assert server.recv_or_reply(accept={"register"}) is None
+    _, reply = _recv(tracer)
+    assert reply.type == "refused" and "7" in reply.reason and str(PROTOCOL_VERSION) in reply.reason
+
+    # A bad error is logged but never answered: no ping-pong.
+    header, frames = _valid("error")
+    tracer.send([msgpack.packb(header | {"reason": 5})])
+    assert server.poll(WAIT_MS)
+    assert server.recv_or_reply() is None
+    assert not tracer.poll(200)
+
+    # The socket still works afterwards.
+    tracer.send(encode("heartbeat", status={}))
+    assert _recv(server)[1].type == "heartbeat"
+
+
+def test_drain_takes_what_waits_skips_bad_messages_and_keeps_to_its_limit(ctx):
+    server, tracer = _pair(ctx, "inproc://wire-drain")
+    tracer.send(encode("heartbeat", status={"n": 0}))
+    tracer.send([b"\xc1 garbage"])
+    for n in (1, 2):
+        tracer.send(encode("heartbeat", status={"n": n}))
+    assert server.poll(WAIT_MS)
+    # The bad message counts towards the limit: two taken, one delivered.
+    assert [m.status["n"] for _, m in server.drain(limit=2)] == [0]
+    assert [m.status["n"] for _, m in server.drain()] == [1, 2]
+    assert list(server.drain()) == []
+    _, reply = _recv(tracer)
+    assert reply.type == "error"
+
+
+def test_poller_reports_the_sockets_with_messages(ctx):
+    server, tracer = _pair(ctx, "inproc://wire-poller")
+    other = transport.router(ctx)
+    other.bind("inproc://wire-poller-other")
+    poller = transport.Poller(server, other)
+    assert poller.poll(0) == set()
+    tracer.send(encode("heartbeat", status={}))
+    assert poller.poll(WAIT_MS) == {server}
+    poller.unregister(server)
+    assert poller.poll(0) == set()
+
+
+def test_bind_returns_the_endpoint_and_failures_are_transport_errors(ctx):
+    a = transport.router(ctx)
+    endpoint = a.bind("tcp://127.0.0.1:*")
+    assert endpoint.startswith("tcp://127.0.0.1:") and not endpoint.endswith("*")
+    with pytest.raises(transport.TransportError):
+        transport.router(ctx).bind(endpoint)          # address in use
+
+
+def test_curve_admits_listed_clients_only(ctx, tmp_path):
+    keys, allowed = str(tmp_path / "keys"), tmp_path / "allowed"
+    for name in ("server", "friend", "stranger"):
+        public, secret = transport.make_keys(keys, name)
+        assert oct(os.stat(secret).st_mode & 0o777) == "0o600"
+    allowed.mkdir()
+    os.replace(os.path.join(keys, "friend.key"), allowed / "friend.key")
+    auth = transport.start_authenticator(str(allowed), ctx)
+    try:
+        server = transport.router(ctx)
+        server_public = transport.curve_server(server, os.path.join(keys, "server.key_secret"))
+        endpoint = server.bind("tcp://127.0.0.1:*")
+        assert server_public == transport.load_keys(os.path.join(keys, "server.key"))[0]
+        clients = {}
+        for name in ("friend", "stranger"):
+            clients[name] = transport.dealer(name, ctx)
+            transport.curve_client(clients[name], os.path.join(keys, f"{name}.key_secret"), server_public)
+            clients[name].connect(endpoint)
+            clients[name].send(encode("heartbeat", status={"from": name}))
+        prefix, msg = _recv(server)
+        assert prefix == [b"friend"] and msg.status == {"from": "friend"}
+        assert not server.poll(500)                   # the stranger never gets through
+    finally:
+        auth.stop()
+
+
+def test_unusable_curve_keys_are_curve_errors(ctx, tmp_path):
+    (tmp_path / "junk.key").write_text("not a certificate")
+    with pytest.raises(transport.CurveError, match="not a CURVE certificate"):
+        transport.load_keys(str(tmp_path / "junk.key"))
+    public, _secret = transport.make_keys(str(tmp_path), "pub")
+    with pytest.raises(transport.CurveError, match="holds no secret key"):
+        transport.curve_server(transport.router(ctx), public)
+    with pytest.raises(transport.CurveError, match="no such directory"):
+        transport.start_authenticator(str(tmp_path / "missing"), ctx)
