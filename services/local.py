@@ -19,7 +19,7 @@ from dosppm_core.scene.model import SceneError
 from dosppm_core.scene.soup import SceneSource
 from dosppm_core.settings import RenderSettings
 
-from services import config
+from services import config, transport
 from services.cli.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, fail, warnings_as_lines
 from services.inproc import InProcessCluster
 from services.progress import COMPILING, ProgressReporter, kernels_cached, stderr_lines
@@ -170,7 +170,7 @@ def run_tracer(v: dict, quiet: bool = False) -> int:
                            tracer_id=v["id"], connect_timeout_s=v["retry"], curve_secret=v["curve_secret"],
                            curve_server_key=v["curve_server_key"], curve_clients=v["curve_clients"])
         reason = tp.run()
-    except (TracerError, WireError) as e:
+    except (TracerError, WireError, transport.TransportError) as e:   # a bind refused, say
         return fail(str(e), EXIT_FAILED)
     except KeyboardInterrupt:
         return EXIT_INTERRUPTED

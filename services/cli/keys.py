@@ -2,7 +2,7 @@
 deploy/README.md, "Authentication")."""
 from __future__ import annotations
 
-from services import wire
+from services import transport
 from services.cli.errors import EXIT_OK
 
 
@@ -15,7 +15,7 @@ def add_parser(sub) -> None:
 
 def run(args) -> int:
     for name in args.names:
-        public, secret = wire.make_keys(args.out, name)
+        public, secret = transport.make_keys(args.out, name)
         print(f"{name}: public {public}, secret {secret}")
     print("server: --curve-secret keys/server.key_secret --curve-clients DIR-with-the-tracers'-NAME.key; "
           "tracer: --curve-secret keys/NAME.key_secret --curve-server-key keys/server.key "
