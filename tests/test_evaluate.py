@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from services.evaluation import evaluate
-from services.cli.render import main
+from services.cli.main import main
 
 pytestmark = pytest.mark.reference   # the references are Mitsuba's
 

@@ -1,12 +1,11 @@
 """Error metrics on arrays with known answers, and `dosppm compare`."""
-import argparse
 import json
 import sys
 
 import numpy as np
 import pytest
 
-from services.cli import tools as cli_tools
+from services.cli.main import main as dosppm_main
 from dosppm_core import metrics
 from dosppm_core.film import write_exr
 
@@ -121,10 +120,7 @@ def test_diverging_ramp_is_blue_white_red(monkeypatch, with_matplotlib):
 
 # -- dosppm compare ---------------------------------------------------------
 def _run_compare(argv):
-    parser = argparse.ArgumentParser(prog="dosppm")
-    cli_tools.add_compare_parser(parser.add_subparsers(dest="command"))
-    args = parser.parse_args(["compare", *argv])
-    return args.func(args)
+    return dosppm_main(["compare", *argv])
 
 
 def test_compare_prints_metrics_and_json(tmp_path, capsys):

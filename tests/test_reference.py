@@ -1,6 +1,5 @@
 """Mitsuba 3 as the reference renderer: the scene translation must give
 closed-form radiance, the right orientation and the right one-sidedness."""
-import argparse
 import math
 import sys
 
@@ -11,7 +10,7 @@ from dosppm_core import reference
 from dosppm_core.film import read_exr
 from dosppm_core.scene import loaders
 from dosppm_core.scene.model import Camera, Material, SceneBuilder, SceneError
-from services.cli import tools as cli_tools
+from services.cli.main import main as dosppm_main
 from services.evaluation.mitsuba_probe import best_variant
 
 pytestmark = pytest.mark.reference   # skipped without Mitsuba (tests/conftest.py)
@@ -181,10 +180,7 @@ def test_best_variant_is_a_working_variant():
 
 # -- dosppm reference ---------------------------------------------------------
 def _run_reference(argv):
-    parser = argparse.ArgumentParser(prog="dosppm")
-    cli_tools.add_reference_parser(parser.add_subparsers(dest="command"))
-    args = parser.parse_args(["reference", *argv])
-    return args.func(args)
+    return dosppm_main(["reference", *argv])
 
 
 def test_reference_command_writes_exr(tmp_path, monkeypatch, capsys):

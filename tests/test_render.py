@@ -90,11 +90,11 @@ def test_thin_wall_does_not_leak_light():
 
 
 def test_cli_render_writes_exr_png_and_log(tmp_path):
-    from services.cli.render import main
+    from services.cli.main import main
     from dosppm_core.film import read_exr
     out = tmp_path / "img.exr"
     log = tmp_path / "progress.jsonl"
-    code = main(["render", "cornell-box", "--iterations", "2", "--width", "24", "--height", "16",
+    code = main(["render", "cornell-box", "--mode", "sppm", "--iterations", "2", "--width", "24", "--height", "16",
                  "--photons-per-iteration", "20000", "--out", str(out), "--log", str(log), "--quiet"])
     assert code == 0
     rgb, layers = read_exr(str(out))
@@ -107,7 +107,7 @@ def test_cli_render_writes_exr_png_and_log(tmp_path):
 
 
 def test_cli_bad_scene_is_one_line_error(tmp_path, capsys):
-    from services.cli.render import main
-    assert main(["render", str(tmp_path / "missing.toml"), "--quiet"]) == 2
+    from services.cli.main import main
+    assert main(["render", str(tmp_path / "missing.toml"), "--mode", "sppm", "--quiet"]) == 2
     err = capsys.readouterr().err.strip()
     assert "missing.toml" in err and "\n" not in err
