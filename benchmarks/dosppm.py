@@ -35,7 +35,7 @@ import time
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-from dosppm_core.chunks.store import open_or_subdivide  # noqa: E402
+from dosppm_core.chunks.subdivide import open_or_subdivide  # noqa: E402
 from dosppm_core.modes.osppm import OutOfCoreRenderer  # noqa: E402
 from dosppm_core.modes.sppm import Renderer  # noqa: E402
 from dosppm_core.scene import builtin  # noqa: E402

@@ -12,7 +12,8 @@ import sys
 import tempfile
 import time
 
-from dosppm_core.chunks.store import ChunkStore, open_render_store
+from dosppm_core.chunks.store import ChunkStore
+from dosppm_core.chunks.subdivide import open_render_store
 from dosppm_core.chunks.subdivide import subdivide
 from dosppm_core.scene import builtin
 from dosppm_core.scene.model import SceneError

@@ -12,7 +12,8 @@ import pytest
 from tests.helpers.chunks import skewed_tree
 from tests.helpers.cli import run_dosppm
 from dosppm_core.scene import builtin
-from dosppm_core.chunks.store import MANIFEST, ChunkStore, Portals, StoreError, open_or_subdivide, store_key
+from dosppm_core.chunks.store import MANIFEST, ChunkStore, Portals, StoreError, store_key
+from dosppm_core.chunks.subdivide import open_or_subdivide
 from dosppm_core.chunks.portals import INSERT_MARGIN
 from dosppm_core.scene.model import SceneError
 from dosppm_core.scene.soup import SceneSource

@@ -34,7 +34,6 @@ import msgpack
 import numpy as np
 
 from dosppm_core.chunks.tree import ChunkTree
-from dosppm_core.scene.loaders import load_source
 from dosppm_core.scene.model import SceneError, SceneHeader
 
 FORMAT, FORMAT_VERSION = "dosppm-chunks", 1
@@ -392,44 +391,3 @@ def store_key(source_hash: str, budget, grid: int, chunks) -> str:
     same chunks, so a cache hit can never be stale."""
     text = f"{FORMAT}/{FORMAT_VERSION}/{source_hash}/{budget}/{grid}/{chunks}"
     return hashlib.sha256(text.encode()).hexdigest()[:24]
-
-
-def open_or_subdivide(source, cache_dir: str, budget=None, grid: int | None = None,
-                      chunks: int | None = None) -> ChunkStore:
-    """The store for (source, budget, grid, chunks) under `cache_dir`:
-    reused when one with the same key is there and opens cleanly, made
-    (replacing a stale or damaged one) otherwise."""
-    from dosppm_core.chunks.subdivide import DEFAULT_GRID, subdivide
-    grid = DEFAULT_GRID if grid is None else int(grid)
-    budget = None if budget is None else int(budget)
-    key = store_key(source.content_hash(), budget, grid, chunks)
-    path = os.path.join(cache_dir, key)
-    try:
-        store = ChunkStore.open(path)
-        if store.key == key:
-            return store
-    except StoreError:
-        pass
-    if os.path.isdir(path):
-        shutil.rmtree(path)   # ours by construction: the name is the key
-    os.makedirs(cache_dir, exist_ok=True)
-    subdivide(source, path, budget_bytes=budget, grid=grid, chunks=chunks)
-    return ChunkStore.open(path)
-
-
-def open_render_store(scene: str, cache_dir: str, budget_bytes: int | None, chunks: int | None,
-                      width: int | None = None, height: int | None = None) -> ChunkStore:
-    """The chunk store to render `scene` from: the store itself when `scene`
-    is one, otherwise the scene (built-in name, scene file or soup)
-    subdivided into `chunks`, or at `budget_bytes`, and kept under
-    `cache_dir` for the next render (`open_or_subdivide`). `width` and
-    `height` override its camera's."""
-    if is_store(scene):
-        store = ChunkStore.open(scene)
-    else:
-        store = open_or_subdivide(load_source(scene), cache_dir, budget=budget_bytes, chunks=chunks)
-    if width:
-        store.header.camera.width = int(width)
-    if height:
-        store.header.camera.height = int(height)
-    return store

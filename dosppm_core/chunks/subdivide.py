@@ -33,6 +33,7 @@ from dosppm_core.chunks import store as chunkstore
 from dosppm_core.chunks.store import ChunkGeometry
 from dosppm_core.chunks.tree import LEAF, ChunkTree
 from dosppm_core.chunks.portals import INSERT_MARGIN
+from dosppm_core.scene.loaders import load_source
 from dosppm_core.scene.model import SceneError
 from dosppm_core.scene.soup import BLOCK
 
@@ -613,3 +614,44 @@ def _manifest(source, digest, key, tree, portals, entries, budget_bytes, bins, g
             "memory_model": {"embree_bytes_per_triangle": EMBREE_BYTES_PER_TRIANGLE,
                              "embree_bytes_per_vertex": EMBREE_BYTES_PER_VERTEX},
             "chunks": entries}
+
+
+# -- the store a render uses ------------------------------------------------------
+def open_or_subdivide(source, cache_dir: str, budget=None, grid: int | None = None,
+                      chunks: int | None = None) -> chunkstore.ChunkStore:
+    """The store for (source, budget, grid, chunks) under `cache_dir`:
+    reused when one with the same key is there and opens cleanly, made
+    (replacing a stale or damaged one) otherwise."""
+    grid = DEFAULT_GRID if grid is None else int(grid)
+    budget = None if budget is None else int(budget)
+    key = chunkstore.store_key(source.content_hash(), budget, grid, chunks)
+    path = os.path.join(cache_dir, key)
+    try:
+        store = chunkstore.ChunkStore.open(path)
+        if store.key == key:
+            return store
+    except chunkstore.StoreError:
+        pass
+    if os.path.isdir(path):
+        shutil.rmtree(path)   # ours by construction: the name is the key
+    os.makedirs(cache_dir, exist_ok=True)
+    subdivide(source, path, budget_bytes=budget, grid=grid, chunks=chunks)
+    return chunkstore.ChunkStore.open(path)
+
+
+def open_render_store(scene: str, cache_dir: str, budget_bytes: int | None, chunks: int | None,
+                      width: int | None = None, height: int | None = None) -> chunkstore.ChunkStore:
+    """The chunk store to render `scene` from: the store itself when `scene`
+    is one, otherwise the scene (built-in name, scene file or soup)
+    subdivided into `chunks`, or at `budget_bytes`, and kept under
+    `cache_dir` for the next render (`open_or_subdivide`). `width` and
+    `height` override its camera's."""
+    if chunkstore.is_store(scene):
+        store = chunkstore.ChunkStore.open(scene)
+    else:
+        store = open_or_subdivide(load_source(scene), cache_dir, budget=budget_bytes, chunks=chunks)
+    if width:
+        store.header.camera.width = int(width)
+    if height:
+        store.header.camera.height = int(height)
+    return store

@@ -56,7 +56,7 @@ class OutOfCoreRenderer:
         self.settings = settings or RenderSettings()
         self.settings.validate()
         self.pipelined = pipelined
-        s, cam = self.settings, self.header.camera
+        s = self.settings
         cost = np.asarray(provider.chunk_memory, np.float64)
         if memory_bytes is None:
             memory_bytes = float(cost.sum())

@@ -14,7 +14,8 @@ import argparse
 import dataclasses
 import os
 
-from dosppm_core.chunks.store import is_store, open_render_store
+from dosppm_core.chunks.store import is_store
+from dosppm_core.chunks.subdivide import open_render_store
 from dosppm_core.film import write_exr, write_png
 from dosppm_core.modes.osppm import OutOfCoreRenderer
 from dosppm_core.modes.sppm import Renderer

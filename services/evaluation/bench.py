@@ -19,7 +19,6 @@ import time
 
 import numpy as np
 
-from dosppm_core.jobs import PhotonDeposits
 from dosppm_core.modes.sppm import Renderer
 from dosppm_core.settings import RenderSettings
 from dosppm_core.trace import NO_CULL, emit_photon_job, trace_photon_jobs

@@ -482,7 +482,7 @@ class ServerState:
         or hit points count; photon jobs are re-emitted with the same random
         streams (the same photons, a new job id) and an eye iteration in
         flight starts over. Late results of discarded jobs are stale."""
-        t = self.tracers.pop(tid)
+        self.tracers.pop(tid)
         self.evicted.append({"id": tid, "reason": reason})
         self.counters["tracers_evicted"] += 1
         self._reassign()
