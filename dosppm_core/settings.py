@@ -40,6 +40,14 @@ class RenderSettings:
             raise ValueError(f"radius must be > 0, got {self.radius}")
 
 
+# One process runs few large jobs (RenderSettings' 8192 photons a job, 16384
+# pixels an eye tile: fewer kernel calls). The DOSPPM service cuts them
+# finer, so that the ~1000 jobs it keeps in flight spread over every tracer
+# and each result message stays small; its figures (benchmarks/dosppm.py)
+# are measured with these.
+SERVICE_JOB_SIZES = {"photons_per_job": 1_024, "tile_pixels": 4_096}
+
+
 @dataclass
 class Progress:
     """Where a render stands after an iteration (what the progress line,

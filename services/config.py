@@ -18,7 +18,7 @@ import re
 import tomllib
 from dataclasses import dataclass
 
-from dosppm_core.settings import RenderSettings
+from dosppm_core.settings import SERVICE_JOB_SIZES, RenderSettings
 
 
 @dataclass(frozen=True)
@@ -37,12 +37,6 @@ class ConfigError(ValueError):
 _LIBRARY = RenderSettings()
 _SETTINGS_FIELDS = tuple(f.name for f in dataclasses.fields(RenderSettings))
 
-# One process runs few large jobs (RenderSettings' 8192 photons a job, 16384
-# pixels an eye tile: fewer kernel calls). The service cuts them finer, so
-# that the ~1000 jobs it keeps in flight spread over every tracer and each
-# result message stays small; its figures (benchmarks/dosppm.py) are
-# measured with these.
-SERVICE_JOB_SIZES = {"photons_per_job": 1_024, "tile_pixels": 4_096}
 # The command line traces on every core (the library's default, 2, suits
 # tests and callers that share the machine).
 THREADS = os.cpu_count() or 1

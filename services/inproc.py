@@ -7,12 +7,13 @@ from __future__ import annotations
 
 from collections import deque
 
-from dosppm_core.modes.sppm import RenderSettings
+from dosppm_core.settings import RenderSettings
 
 from services import wire
+from services.wire import Out
 from services.server.state import ServerState
 from services.server.statistics import ServerStatistics
-from services.tracer.state import SERVER, Out, TracerState
+from services.tracer.state import SERVER, TracerState
 
 
 def _over_the_wire(msg_type: str, fields: dict):
@@ -86,7 +87,7 @@ class InProcessCluster:
         while self.server.updates:
             box = self.statistics.apply(self.server.updates.popleft())
             if box is not None:
-                self.server.gather_box = box
+                self.server.cull_box = box
 
     def round(self) -> None:
         """One tick of the server (10 ms of cluster time), then one step of

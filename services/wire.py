@@ -435,6 +435,16 @@ class Message:
         raise AttributeError(f"{self.__dict__.get('type', 'message')!s} has no field {name!r}")
 
 
+@dataclass
+class Out:
+    """A message to send, as the server's and the tracer's state machines
+    return it: `dest` is a tracer id, a peer endpoint or the server; the
+    I/O shell encodes `type` and `fields` with `encode`."""
+    dest: str
+    type: str
+    fields: dict
+
+
 # -- encode ---------------------------------------------------------------------
 _MISSING = object()
 

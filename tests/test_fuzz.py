@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 
 from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
 from tests.helpers.scenes import small_scene
-from dosppm_core.modes.sppm import RenderSettings
+from dosppm_core.settings import RenderSettings
 from services import wire
 from services.server.state import ServerState
 from services.tracer.state import TracerState

@@ -9,6 +9,7 @@ from dosppm_core.accel import MISS, Accelerator
 from dosppm_core.scene.generate import BuildingSpec, building_scene, generate_building, plan_building
 from dosppm_core.scene.model import GLASS, LIGHT_TRIANGLE, SceneError
 from dosppm_core.scene.soupfile import open_soup
+from services.cli import scenes as scenes_cli
 from tests.helpers.cli import run_dosppm, run_python
 
 
@@ -186,7 +187,8 @@ def test_every_interior_wall_has_an_open_door():
 
 
 def test_small_building_renders():
-    from dosppm_core.modes.sppm import Renderer, RenderSettings
+    from dosppm_core.modes.sppm import Renderer
+    from dosppm_core.settings import RenderSettings
     scene = building_scene(triangles=200_000, lights=24)
     assert abs(scene.triangle_count - 200_000) <= 20_000 and len(scene.lights.kind) == 48
     renderer = Renderer(scene, RenderSettings(photons_per_iteration=20_000))
@@ -204,15 +206,15 @@ def test_too_few_triangles_and_bad_parameters_are_scene_errors():
         plan_building(BuildingSpec(triangles=1_000, lights=8, rooms=(2, 2), floors=1))
     with pytest.raises(SceneError, match="lights"):
         plan_building(BuildingSpec(triangles=100_000, lights=0))
-    assert generate.parse_count("20M") == 20_000_000
-    assert generate.parse_count("100k") == 100_000 and generate.parse_count("1.5M") == 1_500_000
-    assert generate.parse_count("250_000") == 250_000
+    assert scenes_cli.parse_count("20M") == 20_000_000
+    assert scenes_cli.parse_count("100k") == 100_000 and scenes_cli.parse_count("1.5M") == 1_500_000
+    assert scenes_cli.parse_count("250_000") == 250_000
     for bad in ("", "x", "12x", "-5", "0", "0.5", "1e400", "nan"):
         with pytest.raises(SceneError, match="--triangles"):
-            generate.parse_count(bad)
-    assert generate.parse_rooms("8x6") == (8, 6)
+            scenes_cli.parse_count(bad)
+    assert scenes_cli.parse_rooms("8x6") == (8, 6)
     with pytest.raises(SceneError, match="--rooms"):
-        generate.parse_rooms("8by6")
+        scenes_cli.parse_rooms("8by6")
 
 
 _RSS_SCRIPT = """

@@ -13,7 +13,8 @@ from dosppm_core import metrics
 from dosppm_core import mirror_limit as ml
 from dosppm_core.accel import Accelerator
 from dosppm_core.reference import render_reference
-from dosppm_core.modes.sppm import Renderer, RenderSettings
+from dosppm_core.modes.sppm import Renderer
+from dosppm_core.settings import RenderSettings
 from dosppm_core.scene.model import Camera, Material, SceneBuilder
 from dosppm_core.scene.suite import rectangle_mesh
 from tests.helpers.scenes import small_scene

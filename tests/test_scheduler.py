@@ -75,7 +75,7 @@ def _results(job_ids, job_ended, deposits_job=()):
 
 def test_a_job_counts_once_when_all_its_paths_have_ended(state):
     _register(state, "a")
-    state.gather_box = np.array([[-1e9] * 3, [1e9] * 3])
+    state.cull_box = np.array([[-1e9] * 3, [1e9] * 3])
     state.eye_completed = 1                       # hit points exist
     state.tick(0.0)
     j = next(j for j, job in state.jobs.items() if job.kind == "photon")
@@ -97,7 +97,7 @@ def test_a_job_counts_once_when_all_its_paths_have_ended(state):
 
 def test_deposits_of_unfinished_jobs_wait_for_their_job(state):
     _register(state, "a")
-    state.gather_box = np.array([[-1e9] * 3, [1e9] * 3])
+    state.cull_box = np.array([[-1e9] * 3, [1e9] * 3])
     state.eye_completed = 1
     state.settings.photon_batch = state._next_batch_at = 3
     state.tick(0.0)
@@ -110,7 +110,7 @@ def test_deposits_of_unfinished_jobs_wait_for_their_job(state):
 
 def test_a_tracer_that_does_not_report_gets_no_more_than_its_credit(state):
     _register(state, "a")
-    state.gather_box = np.array([[-1e9] * 3, [1e9] * 3])
+    state.cull_box = np.array([[-1e9] * 3, [1e9] * 3])
     state.eye_completed = 1
     sent = {"photon_job": 0, "eye_job": 0}
     for i in range(20):
@@ -135,7 +135,7 @@ def test_no_photons_before_the_first_hit_points(state):
 def test_eviction_re_emits_the_same_photons_under_new_job_ids(state):
     _register(state, "a")
     _register(state, "b")
-    state.gather_box = np.array([[-1e9] * 3, [1e9] * 3])
+    state.cull_box = np.array([[-1e9] * 3, [1e9] * 3])
     state.eye_completed = 1
     first = {}
     for o in state.tick(0.0):
@@ -176,7 +176,7 @@ def test_job_messages_an_idle_tracer_never_got_are_re_emitted_at_once(state):
     left alone."""
     from services.server.state import JOB_MESSAGE_LOST_S
     _register(state, "a")
-    state.gather_box = np.array([[-1e9] * 3, [1e9] * 3])
+    state.cull_box = np.array([[-1e9] * 3, [1e9] * 3])
     state.eye_completed = 1
     sent = sum(o.type in ("photon_job", "eye_job") for o in state.tick(0.0))
     t = state.tracers["a"]
@@ -212,7 +212,7 @@ def test_jobs_untouched_while_every_tracer_is_idle_are_re_emitted_after_the_stal
     from services.server.state import STALL_S
     _register(state, "a")
     _register(state, "b")
-    state.gather_box = np.array([[-1e9] * 3, [1e9] * 3])
+    state.cull_box = np.array([[-1e9] * 3, [1e9] * 3])
     state.eye_completed = 1
     state.tick(0.0)
     sent = {j for j, job in state.jobs.items() if job.sent}

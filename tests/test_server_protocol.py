@@ -15,7 +15,7 @@ import pytest
 from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
 from tests.helpers.paths import REPO
 from tests.helpers.scenes import small_scene
-from dosppm_core.modes.sppm import RenderSettings
+from dosppm_core.settings import RenderSettings
 from services import transport, wire
 from services.server.node import Limits, ServerProcess
 

@@ -8,11 +8,44 @@ a one-line error (exit status 2).
 """
 from __future__ import annotations
 
+import math
+
 from dosppm_core.scene import builtin, generate
 from dosppm_core.scene.generate import BuildingSpec
+from dosppm_core.scene.model import SceneError
 
 from services.cli.errors import EXIT_OK, fail
 from services.config import parse_int
+
+
+_SUFFIX = {"k": 1_000, "K": 1_000, "M": 1_000_000}
+
+
+def parse_count(text: str, what: str = "--triangles") -> int:
+    """'20M', '100k', '1.5M', '250000' or '250_000' as a positive integer."""
+    s = str(text).strip().replace("_", "")
+    mult = _SUFFIX.get(s[-1:], 1)
+    if mult != 1:
+        s = s[:-1]
+    try:
+        value = float(s) * mult
+    except ValueError:
+        raise SceneError(f"{what}: expected a count such as 250000, 100k or 20M, got {text!r}") from None
+    if not (math.isfinite(value) and value >= 1 and value == int(value)):
+        raise SceneError(f"{what}: expected a positive whole count, got {text!r}")
+    return int(value)
+
+
+def parse_rooms(text: str) -> tuple[int, int]:
+    """'8x6' as (rows, cols)."""
+    parts = str(text).lower().split("x")
+    try:
+        rows, cols = (int(p) for p in parts)
+    except ValueError:
+        raise SceneError(f"--rooms: expected ROWSxCOLS such as 8x8, got {text!r}") from None
+    if rows < 1 or cols < 1:
+        raise SceneError(f"--rooms: rows and columns must be >= 1, got {text!r}")
+    return rows, cols
 
 
 def add_parser(sub) -> None:
@@ -64,9 +97,9 @@ def run_generate(args) -> int:
 
 # How each flag of `generate building` is read (a bad value: ValueError naming the flag).
 _BUILDING_FLAGS = {
-    "triangles": generate.parse_count,
-    "lights": lambda text: generate.parse_count(text, "--lights"),
-    "rooms": generate.parse_rooms,
+    "triangles": parse_count,
+    "lights": lambda text: parse_count(text, "--lights"),
+    "rooms": parse_rooms,
     "floors": lambda text: parse_int(text, "--floors", 1),
     "seed": lambda text: parse_int(text, "--seed", 0),
     "width": lambda text: parse_int(text, "--width", 1),

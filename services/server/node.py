@@ -27,9 +27,9 @@ from dataclasses import dataclass
 
 from dosppm_core.film import encode_png, tonemap_srgb8, write_exr, write_png
 from dosppm_core.jobs import PhotonDeposits
-from dosppm_core.modes.sppm import Progress, RenderSettings
+from dosppm_core.settings import Progress, RenderSettings
 
-from services import transport, wire
+from services import config, transport, wire
 from services.server import checkpoint
 from services.server.http import StatusServer
 from services.server.state import ServerState, Update
@@ -67,7 +67,7 @@ class ServerProcess:
                  curve_clients: str | None = None):
         self.store, self.settings = store, settings
         self.out, self.exposure, self.reporter = out, exposure, reporter
-        self.limits = limits or Limits(seconds=30.0)
+        self.limits = limits or Limits(seconds=config.SECONDS)
         self.snapshot_interval_s, self.drain_timeout_s = snapshot_interval_s, drain_timeout_s
         self.state = ServerState(store.header, store.tree, settings, store.key, store.manifest,
                                  min_photon_jobs=min_photon_jobs, queue_target_rays=queue_target_rays,
@@ -271,7 +271,7 @@ class ServerProcess:
             except queue.Empty:
                 break
             if box is not None:
-                self.state.gather_box = box
+                self.state.cull_box = box
         # Server batching's back-pressure (§5.7, the server as bottleneck):
         # stop emitting photons while updates queue, instead of holding ever
         # more deposits.

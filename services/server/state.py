@@ -43,7 +43,7 @@ from dosppm_core.settings import RenderSettings
 from dosppm_core.sppm.iteration import EyePass
 from dosppm_core.trace import emit_photon_job, eye_ray_job
 
-from services.wire import JOB_MESSAGES, PROTOCOL_VERSION
+from services.wire import JOB_MESSAGES, PROTOCOL_VERSION, Out
 
 MESSAGE_RAYS = 32_768         # rays per job message the server aims for
 TOTAL_CREDIT_RAYS = 1 << 20   # rays queued at all tracers together, at most (see `credit`)
@@ -58,13 +58,6 @@ STALL_S = 4.0
 # Tracer heartbeat fields the server passes on in its status.
 STATUS_KEYS = ("load", "resident", "busy_s", "steps", "rays_traced", "portal_rays_out", "portal_rays_in",
                "forwarded_rays", "cpu_s", "bytes_to_server", "bytes_to_peers", "outbox", "outbox_rays")
-
-
-@dataclass
-class Out:
-    dest: str                 # tracer id
-    type: str
-    fields: dict
 
 
 @dataclass
@@ -164,7 +157,7 @@ class ServerState:
         self.emitting = True
         self.paused = False              # set by the shell while statistics updates queue up
         self.started = False
-        self.gather_box: np.ndarray | None = None
+        self.cull_box: np.ndarray | None = None
         self.jobs: dict[int, Job] = {}
         self.next_job = 0                          # job ids are never reused
         self._status = np.zeros(1024, np.int8)     # per photon job id: UNKNOWN, IN_FLIGHT, ...
@@ -421,7 +414,7 @@ class ServerState:
         if not self.concurrent:
             return out + self._alternate()
         out += self._maybe_start_eye_iteration()
-        if self.gather_box is not None and not self.paused:
+        if self.cull_box is not None and not self.paused:
             while self.photon_jobs_in_flight < self.min_photon_jobs:
                 self._photon_pending.append(self._new_job("photon", self.settings.photons_per_job))
             out += self._send_photon_jobs()
@@ -436,7 +429,7 @@ class ServerState:
         if not self.eye_started or self.counters["photons_emitted"] - self._photons_at_eye_start \
                 >= self.settings.photons_per_iteration:
             return self._maybe_start_eye_iteration()
-        if self.gather_box is None or self.paused:
+        if self.cull_box is None or self.paused:
             return []
         left = self.settings.photons_per_iteration
         while left > 0:
@@ -587,7 +580,7 @@ class ServerState:
 
     def _send_photon_jobs(self) -> list[Out]:
         s, out, parts = self.settings, [], {}
-        box = self.gather_box      # NO_CULL when culling is off (`SPPMIteration.cull_box`)
+        box = self.cull_box      # NO_CULL when culling is off (`SPPMIteration.cull_box`)
         # Photon jobs start where the lights are: the tracers that got the
         # last job's photons gate the next one, so a slow one is never
         # sent more than one job past its credit.

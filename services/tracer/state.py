@@ -27,17 +27,11 @@ from dosppm_core.chunks.cache import ChunkCache, next_with_work
 from dosppm_core.chunks.view import trace_eye_in_chunk, trace_photons_in_chunk
 from dosppm_core.jobs import RayBatch, paths_per_job
 
+from services.wire import Out
+
 SERVER = "server"           # Out.dest of messages for the server
 STEP_RAYS = 65_536          # rays coalesced into one traced batch
 DWELL_STEPS = 32            # steps on one chunk before moving on when not all fit
-
-
-@dataclass
-class Out:
-    """A message to send: `dest` is SERVER or a peer endpoint."""
-    dest: str
-    type: str
-    fields: dict
 
 
 @dataclass
