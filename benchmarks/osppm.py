@@ -32,7 +32,7 @@ from dosppm_core.scene import builtin  # noqa: E402
 from dosppm_core.chunks.view import ChunkView  # noqa: E402
 from dosppm_core.chunks.store import ChunkStore  # noqa: E402
 from dosppm_core.modes.osppm import OutOfCoreRenderer  # noqa: E402
-from dosppm_core.modes.sppm import RenderSettings  # noqa: E402
+from dosppm_core.settings import RenderSettings  # noqa: E402
 from dosppm_core.scene.soup import SceneSource  # noqa: E402
 from dosppm_core.chunks.subdivide import subdivide  # noqa: E402
 
