@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import statistics
 import sys
 import tempfile
@@ -28,13 +29,15 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-from dosppm_core.scene import builtin  # noqa: E402
-from dosppm_core.chunks.view import ChunkView  # noqa: E402
 from dosppm_core.chunks.store import ChunkStore  # noqa: E402
-from dosppm_core.modes.osppm import OutOfCoreRenderer  # noqa: E402
-from dosppm_core.settings import RenderSettings  # noqa: E402
-from dosppm_core.scene.soup import SceneSource  # noqa: E402
 from dosppm_core.chunks.subdivide import subdivide  # noqa: E402
+from dosppm_core.chunks.view import ChunkView  # noqa: E402
+from dosppm_core.modes.osppm import OutOfCoreRenderer  # noqa: E402
+from dosppm_core.scene import builtin  # noqa: E402
+from dosppm_core.scene.generate import generate_building  # noqa: E402
+from dosppm_core.scene.soup import SceneSource  # noqa: E402
+from dosppm_core.scene.soupfile import open_soup  # noqa: E402
+from dosppm_core.settings import RenderSettings  # noqa: E402
 
 CHUNKS = (1, 2, 4, 8, 16)
 DRAGON = os.path.join(ROOT, "..", "shared", "scenes", "stanford_dragon", "dragon_100k.ply")
@@ -47,8 +50,6 @@ def _sources(args, work: str):
     else:
         out.append(("cornell-glass", SceneSource(builtin.make("cornell-glass"))))
     if args.building_triangles:
-        from dosppm_core.scene.generate import generate_building
-        from dosppm_core.scene.soupfile import open_soup
         path = os.path.join(work, "building")
         t0 = time.perf_counter()
         generate_building(path, triangles=args.building_triangles, lights=args.lights, seed=1)
@@ -121,7 +122,6 @@ def main() -> int:
                     row[label] = _throughput(store, settings, memory, args.iterations)
                 print(json.dumps(row), file=sys.stderr)
                 results.append(row)
-                import shutil
                 shutil.rmtree(path)
     _report(results)
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)

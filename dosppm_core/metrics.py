@@ -141,7 +141,7 @@ def _diverging_colours(t: np.ndarray) -> np.ndarray:
     """t in [-1, 1] -> uint8 RGB through matplotlib's 'bwr' if installed,
     else the same blue-white-red ramp built here."""
     try:
-        from matplotlib import colormaps     # optional (the [bench] extra), and 0.3 s to import
+        from matplotlib import colormaps  # optional (the [bench] extra), and 0.3 s to import
         rgba = colormaps["bwr"](0.5 * (t + 1.0))
         return np.round(rgba[..., :3] * 255).astype(np.uint8)
     except ImportError:

@@ -56,7 +56,17 @@ from dataclasses import asdict
 import numpy as np
 
 from dosppm_core.film import FilmError, one_line, read_exr, write_exr
-from dosppm_core.scene.model import DIFFUSE, GLASS, GLOSSY, LIGHT_POINT, LIGHT_SPOT, LIGHT_TRIANGLE, MIRROR, Scene, SceneError
+from dosppm_core.scene.model import (
+    DIFFUSE,
+    GLASS,
+    GLOSSY,
+    LIGHT_POINT,
+    LIGHT_SPOT,
+    LIGHT_TRIANGLE,
+    MIRROR,
+    Scene,
+    SceneError,
+)
 
 DEFAULT_MAX_DEPTH = 10
 INTEGRATORS = ("path", "ptracer")
@@ -72,7 +82,7 @@ class ReferenceRenderError(RuntimeError):
 # -- Mitsuba loading and variant choice -------------------------------------
 def _import_mitsuba():
     try:
-        import mitsuba      # optional (the [reference] extra), and 0.2 s to import
+        import mitsuba  # optional (the [reference] extra), and 0.2 s to import
     except ImportError:
         raise ReferenceRenderError("Mitsuba 3 is not installed: pip install 'dosppm[reference]'") from None
     return mitsuba

@@ -8,12 +8,11 @@ from __future__ import annotations
 from collections import deque
 
 from dosppm_core.settings import RenderSettings
-
 from services import wire
-from services.wire import Out
 from services.server.state import ServerState
 from services.server.statistics import ServerStatistics
 from services.tracer.state import SERVER, TracerState
+from services.wire import Out
 
 
 def _over_the_wire(msg_type: str, fields: dict):

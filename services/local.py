@@ -13,13 +13,11 @@ import tempfile
 import time
 
 from dosppm_core.chunks.store import ChunkStore
-from dosppm_core.chunks.subdivide import open_render_store
-from dosppm_core.chunks.subdivide import subdivide
+from dosppm_core.chunks.subdivide import open_render_store, subdivide
 from dosppm_core.scene import builtin
 from dosppm_core.scene.model import SceneError
 from dosppm_core.scene.soup import SceneSource
 from dosppm_core.settings import RenderSettings
-
 from services import config, transport
 from services.cli.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, fail, warnings_as_lines
 from services.inproc import InProcessCluster

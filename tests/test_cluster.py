@@ -13,11 +13,16 @@ from __future__ import annotations
 
 import pytest
 
-from tests.helpers.chunks import MemoryChunks, lattice_tree, root_box, uniform_tree
-from tests.helpers.cluster import (ITERATIONS, assert_same_within_noise, caustic_reference,
-                             caustic_scene, settings)
 from dosppm_core.modes.sppm import Renderer
 from services.inproc import InProcessCluster
+from tests.helpers.chunks import MemoryChunks, lattice_tree, root_box, uniform_tree
+from tests.helpers.cluster import (
+    ITERATIONS,
+    assert_same_within_noise,
+    caustic_reference,
+    caustic_scene,
+    settings,
+)
 
 PHOTONS = 240_000
 _assert_same_within_noise = assert_same_within_noise

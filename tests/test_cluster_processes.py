@@ -12,9 +12,9 @@ import urllib.request
 
 import pytest
 
+from dosppm_core.film import read_exr
 from tests.helpers.cli import free_port, run_dosppm, start_dosppm
 from tests.helpers.cluster import assert_same_within_noise, caustic_reference
-from dosppm_core.film import read_exr
 
 pytestmark = pytest.mark.slow   # clusters of processes, a minute or more each
 PHOTONS = 240_000

@@ -6,8 +6,8 @@ from __future__ import annotations
 import pytest
 
 from dosppm_core.settings import RenderSettings
-from services.cli import main as cli
 from services import config
+from services.cli import main as cli
 
 
 def _args(argv):

@@ -8,8 +8,8 @@ import os
 import numpy as np
 import pytest
 
-from services.evaluation import evaluate
 from services.cli.main import main
+from services.evaluation import evaluate
 
 pytestmark = pytest.mark.reference   # the references are Mitsuba's
 

@@ -14,10 +14,10 @@ import urllib.request
 
 import pytest
 
-from tests.helpers.cli import free_port, run_dosppm, start_dosppm
-from tests.helpers.cluster import assert_same_within_noise
 from dosppm_core.film import read_exr
 from services.server import checkpoint
+from tests.helpers.cli import free_port, run_dosppm, start_dosppm
+from tests.helpers.cluster import assert_same_within_noise
 
 pytestmark = pytest.mark.slow   # a server and three tracer processes per render
 PHOTONS = 1_500_000

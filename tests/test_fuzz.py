@@ -14,12 +14,12 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
-from tests.helpers.scenes import small_scene
 from dosppm_core.settings import RenderSettings
 from services import wire
 from services.server.state import ServerState
 from services.tracer.state import TracerState
+from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
+from tests.helpers.scenes import small_scene
 from tests.test_wire import sample_fields
 
 FRAMES = 100_000

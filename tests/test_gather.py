@@ -8,11 +8,11 @@ import numba
 import numpy as np
 import pytest
 
-from dosppm_core.sppm.grid import NORMAL_COS, gather_grid, grid_layout
-from dosppm_core.sppm.hash import build_photon_hash, gather_hash, hash_layout, hash_statistics
 from dosppm_core.jobs import HitPoints, PhotonDeposits
 from dosppm_core.kernels.bsdf import eval_bsdf
 from dosppm_core.scene.model import Material, MaterialTable
+from dosppm_core.sppm.grid import NORMAL_COS, gather_grid, grid_layout
+from dosppm_core.sppm.hash import build_photon_hash, gather_hash, hash_layout, hash_statistics
 from dosppm_core.sppm.statistics import PixelStatistics
 
 MATERIALS = MaterialTable.from_materials([

@@ -4,8 +4,8 @@ written in bounded memory whatever its size."""
 import numpy as np
 import pytest
 
-from dosppm_core.scene import generate
 from dosppm_core.accel import MISS, Accelerator
+from dosppm_core.scene import generate
 from dosppm_core.scene.generate import BuildingSpec, building_scene, generate_building, plan_building
 from dosppm_core.scene.model import GLASS, LIGHT_TRIANGLE, SceneError
 from dosppm_core.scene.soupfile import open_soup

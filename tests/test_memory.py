@@ -28,9 +28,9 @@ import time
 import numpy as np
 import pytest
 
+from dosppm_core.chunks.subdivide import subdivide
 from dosppm_core.scene.generate import generate_building
 from dosppm_core.scene.soupfile import open_soup
-from dosppm_core.chunks.subdivide import subdivide
 from tests.helpers.cli import run_python
 
 pytestmark = pytest.mark.slow   # a 2M-triangle building, subdivided, rendered four times

@@ -5,9 +5,9 @@ import sys
 import numpy as np
 import pytest
 
-from services.cli.main import main as dosppm_main
 from dosppm_core import metrics
 from dosppm_core.film import write_exr
+from services.cli.main import main as dosppm_main
 
 RNG = np.random.default_rng(7)
 

@@ -4,12 +4,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.helpers.chunks import MemoryChunks, lattice_tree, root_box, skewed_tree, uniform_tree
-from tests.helpers.cli import run_dosppm
-from tests.helpers.scenes import small_scene
 from dosppm_core.modes.osppm import OutOfCoreRenderer
 from dosppm_core.modes.sppm import Renderer
 from dosppm_core.settings import RenderSettings
+from tests.helpers.chunks import MemoryChunks, lattice_tree, root_box, skewed_tree, uniform_tree
+from tests.helpers.cli import run_dosppm
+from tests.helpers.scenes import small_scene
 
 ITERATIONS = 3
 

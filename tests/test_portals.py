@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.helpers.chunks import bbox_chunks, root_box, skewed_tree, uniform_tree
-from dosppm_core.scene import builtin
 from dosppm_core.accel import Accelerator
-from dosppm_core.chunks.view import ChunkView
-from dosppm_core.chunks.tree import ChunkTree
-from dosppm_core.jobs import RayBatch
 from dosppm_core.chunks.portals import enter, exit_chunk
+from dosppm_core.chunks.tree import ChunkTree
+from dosppm_core.chunks.view import ChunkView
+from dosppm_core.jobs import RayBatch
+from dosppm_core.scene import builtin
+from tests.helpers.chunks import bbox_chunks, root_box, skewed_tree, uniform_tree
 
 
 def _unit(v):

@@ -6,10 +6,10 @@ import math
 import numpy as np
 import pytest
 
-from dosppm_core.scene import builtin
 from dosppm_core.modes.sppm import Renderer, render
-from dosppm_core.settings import RenderSettings
+from dosppm_core.scene import builtin
 from dosppm_core.scene.model import Camera, Material, SceneBuilder
+from dosppm_core.settings import RenderSettings
 from tests.helpers.scenes import small_scene
 
 
@@ -90,8 +90,8 @@ def test_thin_wall_does_not_leak_light():
 
 
 def test_cli_render_writes_exr_png_and_log(tmp_path):
-    from services.cli.main import main
     from dosppm_core.film import read_exr
+    from services.cli.main import main
     out = tmp_path / "img.exr"
     log = tmp_path / "progress.jsonl"
     code = main(["render", "cornell-box", "--mode", "sppm", "--iterations", "2", "--width", "24", "--height", "16",

@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
-from tests.helpers.scenes import small_scene
 from dosppm_core.jobs import PhotonDeposits
 from dosppm_core.settings import RenderSettings
 from services import wire
 from services.server.state import ServerState, assign_chunks
+from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
+from tests.helpers.scenes import small_scene
 
 
 def _msg(msg_type, **fields):

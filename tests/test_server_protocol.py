@@ -12,12 +12,12 @@ import msgpack
 import numpy as np
 import pytest
 
-from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
-from tests.helpers.paths import REPO
-from tests.helpers.scenes import small_scene
 from dosppm_core.settings import RenderSettings
 from services import transport, wire
 from services.server.node import Limits, ServerProcess
+from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
+from tests.helpers.paths import REPO
+from tests.helpers.scenes import small_scene
 
 
 @pytest.fixture()

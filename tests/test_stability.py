@@ -6,9 +6,9 @@ import math
 import numpy as np
 import pytest
 
-from dosppm_core.scene import builtin
 from dosppm_core.jobs import HitPoints, PhotonDeposits
 from dosppm_core.modes.sppm import Renderer
+from dosppm_core.scene import builtin
 from dosppm_core.settings import RenderSettings
 from dosppm_core.sppm.statistics import PixelStatistics
 from tests.helpers.scenes import small_scene

@@ -9,16 +9,23 @@ import msgpack
 import numpy as np
 import pytest
 
-from tests.helpers.chunks import skewed_tree
-from tests.helpers.cli import run_dosppm
-from dosppm_core.scene import builtin
-from dosppm_core.chunks.store import MANIFEST, ChunkStore, Portals, StoreError, store_key
-from dosppm_core.chunks.subdivide import open_or_subdivide
 from dosppm_core.chunks.portals import INSERT_MARGIN
+from dosppm_core.chunks.store import MANIFEST, ChunkStore, Portals, StoreError, store_key
+from dosppm_core.chunks.subdivide import (
+    chunk_memory_bytes,
+    dedup_geometry,
+    open_or_subdivide,
+    overlap_matrix,
+    source_records,
+    subdivide,
+    triangle_box_overlap,
+)
+from dosppm_core.scene import builtin
 from dosppm_core.scene.model import SceneError
 from dosppm_core.scene.soup import SceneSource
 from dosppm_core.scene.soupfile import SoupWriter, open_soup
-from dosppm_core.chunks.subdivide import chunk_memory_bytes, dedup_geometry, overlap_matrix, source_records, subdivide, triangle_box_overlap
+from tests.helpers.chunks import skewed_tree
+from tests.helpers.cli import run_dosppm
 
 
 # -- a brute-force reference: clip the triangle by the box, in exact rationals --

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import trimesh
 
-from dosppm_core.scene import builtin, cornell, loaders, suite
 from dosppm_core.accel import MISS, Accelerator
 from dosppm_core.modes.sppm import Renderer
-from dosppm_core.settings import RenderSettings
+from dosppm_core.scene import builtin, cornell, loaders, suite
 from dosppm_core.scene.model import GLASS, GLOSSY, LIGHT_TRIANGLE
+from dosppm_core.settings import RenderSettings
 from dosppm_core.trace import NO_CULL, SurfaceData, emit_photon_job, trace_photon_jobs
 from tests.helpers.cli import run_dosppm
 

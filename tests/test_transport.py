@@ -14,8 +14,7 @@ import pytest
 
 from services import transport
 from services.wire import PROTOCOL_VERSION, encode
-from tests.test_wire import (_register_from_the_future, _valid, assert_same_message, frame_views,
-                             sample_fields)
+from tests.test_wire import _register_from_the_future, _valid, assert_same_message, frame_views, sample_fields
 
 WAIT_MS = 10_000    # a lost message fails the test instead of hanging it
 

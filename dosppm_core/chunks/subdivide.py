@@ -30,9 +30,9 @@ import numba
 import numpy as np
 
 from dosppm_core.chunks import store as chunkstore
+from dosppm_core.chunks.portals import INSERT_MARGIN
 from dosppm_core.chunks.store import ChunkGeometry
 from dosppm_core.chunks.tree import LEAF, ChunkTree
-from dosppm_core.chunks.portals import INSERT_MARGIN
 from dosppm_core.scene.loaders import load_source
 from dosppm_core.scene.model import SceneError
 from dosppm_core.scene.soup import BLOCK

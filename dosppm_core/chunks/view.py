@@ -14,12 +14,12 @@ from __future__ import annotations
 import numpy as np
 
 from dosppm_core.accel import Accelerator
+from dosppm_core.chunks.portals import PORTAL_EPS, enter, intersect_in_chunk
 from dosppm_core.chunks.store import ChunkGeometry
 from dosppm_core.chunks.tree import ChunkTree
 from dosppm_core.jobs import ESCAPED, HitPoints, PhotonDeposits, RayBatch
-from dosppm_core.chunks.portals import PORTAL_EPS, enter, intersect_in_chunk
-from dosppm_core.scene.model import SceneHeader
 from dosppm_core.kernels.paths import ELSEWHERE
+from dosppm_core.scene.model import SceneHeader
 from dosppm_core.trace import END_KINDS, SurfaceData, advance_eye, scatter_photons
 
 

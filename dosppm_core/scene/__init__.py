@@ -30,11 +30,27 @@ generate        the procedural office building, streamed to a soup;
 The model imports no loader, so `model` can be used alone; this package
 exports the model's names and the two loaders.
 """
-from dosppm_core.scene.model import (DIFFUSE, GLASS, GLOSSY, LIGHT_POINT, LIGHT_SPOT, LIGHT_TRIANGLE,
-                                     MATERIAL_KINDS, MIRROR, SPAWN_EPSILON, Camera, LightTable, Material,
-                                     MaterialTable, Scene, SceneBuilder, SceneError, SceneHeader,
-                                     light_table)
 from dosppm_core.scene.loaders import load_scene, load_source
+from dosppm_core.scene.model import (
+                                     DIFFUSE,
+                                     GLASS,
+                                     GLOSSY,
+                                     LIGHT_POINT,
+                                     LIGHT_SPOT,
+                                     LIGHT_TRIANGLE,
+                                     MATERIAL_KINDS,
+                                     MIRROR,
+                                     SPAWN_EPSILON,
+                                     Camera,
+                                     LightTable,
+                                     Material,
+                                     MaterialTable,
+                                     Scene,
+                                     SceneBuilder,
+                                     SceneError,
+                                     SceneHeader,
+                                     light_table,
+)
 
 __all__ = [
     "Scene", "SceneBuilder", "SceneHeader", "SceneError", "Camera", "Material", "MaterialTable",

@@ -46,7 +46,16 @@ import numpy as np
 
 from dosppm_core.scene import shapes
 from dosppm_core.scene.building_geometry import KNOT_TUBE, flat, knot_slices, rects, tessellated_box
-from dosppm_core.scene.model import Camera, Material, MaterialTable, Scene, SceneBuilder, SceneError, SceneHeader, light_table
+from dosppm_core.scene.model import (
+    Camera,
+    Material,
+    MaterialTable,
+    Scene,
+    SceneBuilder,
+    SceneError,
+    SceneHeader,
+    light_table,
+)
 from dosppm_core.scene.soupfile import CORNERS, MANIFEST, MATERIAL, SoupWriter
 
 # -- dimensions (metres) -------------------------------------------------------

@@ -21,8 +21,14 @@ from __future__ import annotations
 import numpy as np
 
 from dosppm_core.scene import shapes
-from dosppm_core.scene.cornell import (CORNELL_BLOCKS, CORNELL_LIGHT_RADIANCE, CORNELL_REFLECTANCE,
-                                      CORNELL_SHELL, cornell_builder, cornell_part)
+from dosppm_core.scene.cornell import (
+    CORNELL_BLOCKS,
+    CORNELL_LIGHT_RADIANCE,
+    CORNELL_REFLECTANCE,
+    CORNELL_SHELL,
+    cornell_builder,
+    cornell_part,
+)
 from dosppm_core.scene.model import Camera, Material, Scene, SceneBuilder
 
 # Cornell's measured luminaire (130 x 105 mm): the power every lit scene

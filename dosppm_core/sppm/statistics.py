@@ -22,6 +22,8 @@ import numpy as np
 
 from dosppm_core.jobs import HitPoints, PhotonDeposits
 from dosppm_core.scene.model import Scene
+from dosppm_core.sppm.grid import build_hit_point_grid, gather_grid
+from dosppm_core.sppm.hash import gather_hash
 
 GATHERS = ("grid", "hash")
 # One helper thread for the part of an update that overlaps the photon sort.
@@ -174,8 +176,6 @@ class PixelStatistics:
             return
         if gather not in GATHERS:
             raise ValueError(f"unknown gather {gather!r} (known: {', '.join(GATHERS)})")
-        from dosppm_core.sppm.grid import build_hit_point_grid, gather_grid
-        from dosppm_core.sppm.hash import gather_hash
         radius = self.radius[hp.pixel]
         # Registering the hit points in the grid and sorting the photons are
         # both mostly serial: do them at once, on two cores.

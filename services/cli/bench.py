@@ -7,7 +7,6 @@ import sys
 from dosppm_core.scene import builtin
 from dosppm_core.scene.loaders import load_scene
 from dosppm_core.scene.model import SceneError
-
 from services import config
 from services.cli.errors import EXIT_OK, fail
 from services.evaluation import bench

@@ -13,7 +13,6 @@ import numpy as np
 
 from dosppm_core import metrics
 from dosppm_core.film import FilmError, read_exr
-
 from services.cli.errors import EXIT_OK, fail
 
 

@@ -15,7 +15,6 @@ from dosppm_core import reference
 from dosppm_core.film import FilmError, write_exr
 from dosppm_core.scene import loaders
 from dosppm_core.scene.model import SceneError
-
 from services.cli.errors import EXIT_FAILED, EXIT_OK, fail
 from services.config import positive_int
 

@@ -24,7 +24,6 @@ from dosppm_core.scene.loaders import load_scene
 from dosppm_core.scene.model import SceneError
 from dosppm_core.scene.soupfile import is_soup
 from dosppm_core.settings import SERVICE_JOB_SIZES, RenderSettings
-
 from services import config
 from services.cli.errors import EXIT_INTERRUPTED, EXIT_OK, fail, warnings_as_lines
 from services.local import run_server

@@ -13,10 +13,8 @@ import math
 from dosppm_core.scene import builtin, generate
 from dosppm_core.scene.generate import BuildingSpec
 from dosppm_core.scene.model import SceneError
-
 from services.cli.errors import EXIT_OK, fail
 from services.config import parse_int
-
 
 _SUFFIX = {"k": 1_000, "K": 1_000, "M": 1_000_000}
 

@@ -8,7 +8,6 @@ Settings come from flags, then DOSPPM_<FLAG>, then table [server] of the
 from __future__ import annotations
 
 from dosppm_core.scene import builtin
-
 from services import config
 from services.local import run_server
 

@@ -16,7 +16,6 @@ from dosppm_core.chunks.store import ChunkStore
 from dosppm_core.chunks.subdivide import DEFAULT_GRID, format_bytes, subdivide
 from dosppm_core.scene.loaders import load_source
 from dosppm_core.scene.model import SceneError
-
 from services.cli.errors import EXIT_OK, fail
 from services.config import parse_bytes, positive_int
 

@@ -13,6 +13,7 @@ Reported per scene (medians of `repeats` runs):
 from __future__ import annotations
 
 import json
+import os
 import platform
 import statistics
 import time
@@ -117,7 +118,6 @@ def report(results: list[dict]) -> str:
 
 
 def machine() -> dict:
-    import os
     return {"cpu_count": os.cpu_count(), "platform": platform.platform(),
             "processor": platform.processor() or platform.machine()}
 

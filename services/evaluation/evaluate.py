@@ -38,12 +38,21 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from dosppm_core.scene import builtin
 from dosppm_core import metrics
-from dosppm_core.film import one_line
+from dosppm_core.accel import Accelerator
+from dosppm_core.chunks.store import ChunkStore
+from dosppm_core.chunks.subdivide import subdivide
+from dosppm_core.film import one_line, read_exr
+from dosppm_core.kernels.bsdf import is_specular
+from dosppm_core.mirror_limit import LimitSettings, mirror_limit
+from dosppm_core.modes.osppm import OutOfCoreRenderer
 from dosppm_core.modes.sppm import Renderer
-from dosppm_core.settings import RenderSettings
+from dosppm_core.reference import cached_reference, render_reference
+from dosppm_core.scene import builtin
 from dosppm_core.scene.model import Scene
+from dosppm_core.scene.soup import SceneSource
+from dosppm_core.settings import RenderSettings
+from dosppm_core.trace import eye_ray_job
 
 BLUR_SIGMA_PX = 2.0
 BUDGET_FRACTIONS = (0.125, 0.25, 0.5, 1.0)
@@ -161,7 +170,6 @@ def reference_image(scene: Scene, case: Case, spp: int, cache_dir: str):
     Mitsuba reference (cached): `path`, `ptracer`, or the two blended by
     the share of each pixel's eye rays whose first surface is a mirror or
     glass (path there, light tracing elsewhere)."""
-    from dosppm_core.reference import cached_reference
     share = None
     if case.reference in ("path", "ptracer"):
         image = cached_reference(scene, spp, cache_dir, integrator=case.reference)
@@ -182,9 +190,6 @@ def reference_image(scene: Scene, case: Case, spp: int, cache_dir: str):
 def specular_first_hit_share(scene: Scene, rays_per_pixel: int = 64) -> np.ndarray:
     """(H, W): the fraction of a pixel's jittered eye rays whose first
     surface is a mirror or glass (geometry only: no radiance of ours)."""
-    from dosppm_core.accel import Accelerator
-    from dosppm_core.kernels.bsdf import is_specular
-    from dosppm_core.trace import eye_ray_job
     w, h = int(scene.camera.width), int(scene.camera.height)
     accel = Accelerator(scene.vertices, scene.triangles)
     try:
@@ -204,7 +209,6 @@ def mirror_reference(scene: Scene, reference: np.ndarray, scored, cache_dir: str
     """(reference with the mirror limit in the pixels where the camera sees
     a mirror, those pixels (H, W) bool, a description): the mirror pixels
     are the ones the blended reference leaves unscored."""
-    from dosppm_core.mirror_limit import LimitSettings, mirror_limit
     pixels = ~scored if scored is not None else specular_first_hit_share(scene) > 0
     limit = mirror_limit(scene, cache_dir, pixels)
     image = np.where(pixels[..., None], limit.image, reference).astype(np.float32)
@@ -221,7 +225,7 @@ def method_available(method: Method) -> str | None:
     """None, or why the method is skipped on this machine."""
     if method.kind == "mitsuba":
         try:
-            import mitsuba  # noqa: F401
+            import mitsuba  # noqa: F401 - optional (the [reference] extra)
         except ImportError:
             return "mitsuba is not installed (pip install .[reference])"
     return None
@@ -249,10 +253,6 @@ def _settings(method: Method, seed: int) -> RenderSettings:
 
 
 def _osppm(method: Method, scene: Scene, seed: int, work: str):
-    from dosppm_core.chunks.store import ChunkStore
-    from dosppm_core.modes.osppm import OutOfCoreRenderer
-    from dosppm_core.scene.soup import SceneSource
-    from dosppm_core.chunks.subdivide import subdivide
     path = tempfile.mkdtemp(prefix="store-", dir=work)
     os.rmdir(path)
     subdivide(SceneSource(scene), path, chunks=int(method.options["chunks"]))
@@ -289,7 +289,6 @@ def _progressive(make, budgets):
 def _mitsuba(scene: Scene, integrator: str, budgets, seed: int):
     """Mitsuba at 1, 2, 4, ... spp, each timed alone, up to the last budget;
     each render is filed under the smallest budget it fits."""
-    from dosppm_core.reference import render_reference
     render_reference(scene, 1, integrator=integrator, seed=seed)   # load and warm up
     out, spp = [], 1
     while True:
@@ -308,7 +307,6 @@ def _mitsuba(scene: Scene, integrator: str, budgets, seed: int):
 def _dosppm(scene: Scene, budgets, seed: int, work: str):
     """`dosppm render --mode dosppm` per budget, on the scene's built-in
     name; the clock is the server's render time from OUT.json."""
-    from dosppm_core.film import read_exr
     out = []
     for budget in budgets:
         target = os.path.join(work, f"dosppm-{scene.name}-{budget:g}.exr")
@@ -507,7 +505,7 @@ def write_results(ev: Evaluation, out_dir: str) -> list[str]:
         writer.writerows(rows)
     with open(paths[2], "w", encoding="utf-8") as f:
         f.write(summary_markdown(ev))
-    try:
+    try:   # the charts need matplotlib, an optional dependency (the [bench] extra)
         from services.evaluation import charts as evaluate_charts
     except ImportError as exc:
         print(f"charts skipped: {exc}", file=sys.stderr)

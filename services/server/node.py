@@ -28,7 +28,6 @@ from dataclasses import dataclass
 from dosppm_core.film import encode_png, tonemap_srgb8, write_exr, write_png
 from dosppm_core.jobs import PhotonDeposits
 from dosppm_core.settings import Progress, RenderSettings
-
 from services import config, transport, wire
 from services.server import checkpoint
 from services.server.http import StatusServer

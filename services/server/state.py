@@ -42,7 +42,6 @@ from dosppm_core.jobs import END_NAMES, HitPoints, PhotonDeposits, RayBatch
 from dosppm_core.settings import RenderSettings
 from dosppm_core.sppm.iteration import EyePass
 from dosppm_core.trace import emit_photon_job, eye_ray_job
-
 from services.wire import JOB_MESSAGES, PROTOCOL_VERSION, Out
 
 MESSAGE_RAYS = 32_768         # rays per job message the server aims for

@@ -12,7 +12,6 @@ import numpy as np
 
 from dosppm_core.settings import RenderSettings
 from dosppm_core.sppm.iteration import SPPMIteration
-
 from services.server import checkpoint
 
 

@@ -19,7 +19,6 @@ import time
 import uuid
 
 from dosppm_core.chunks.store import ChunkStore, StoreError
-
 from services import transport, wire
 from services.tracer.fetch import FetchedStore
 from services.tracer.state import SERVER, STEP_RAYS, TracerState

@@ -26,7 +26,6 @@ import numpy as np
 from dosppm_core.chunks.cache import ChunkCache, next_with_work
 from dosppm_core.chunks.view import trace_eye_in_chunk, trace_photons_in_chunk
 from dosppm_core.jobs import RayBatch, paths_per_job
-
 from services.wire import Out
 
 SERVER = "server"           # Out.dest of messages for the server

@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from dosppm_core.chunks.portals import INSERT_MARGIN
 from dosppm_core.chunks.store import ChunkGeometry
 from dosppm_core.chunks.tree import LEAF, ChunkTree
-from dosppm_core.chunks.portals import INSERT_MARGIN
 
 
 def uniform_tree(box, cells) -> ChunkTree:

@@ -8,8 +8,17 @@ import os
 
 from dosppm_core.scene.mitsuba.bsdfs import bsdf_material
 from dosppm_core.scene.mitsuba.emitters import read_emitter
-from dosppm_core.scene.mitsuba.nori import dialect as file_dialect, nori_to_mitsuba
-from dosppm_core.scene.mitsuba.objects import NORI_PLUGINS, PLUGINS, Expander, Obj, Ref, upgrade_names, version
+from dosppm_core.scene.mitsuba.nori import dialect as file_dialect
+from dosppm_core.scene.mitsuba.nori import nori_to_mitsuba
+from dosppm_core.scene.mitsuba.objects import (
+    NORI_PLUGINS,
+    PLUGINS,
+    Expander,
+    Obj,
+    Ref,
+    upgrade_names,
+    version,
+)
 from dosppm_core.scene.mitsuba.params import finish
 from dosppm_core.scene.mitsuba.sensors import read_integrator, read_sensor
 from dosppm_core.scene.mitsuba.shapes import read_shape

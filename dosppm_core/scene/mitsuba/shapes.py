@@ -16,7 +16,15 @@ import numpy as np
 
 from dosppm_core.scene.mitsuba.bsdfs import material_id
 from dosppm_core.scene.mitsuba.objects import Obj
-from dosppm_core.scene.mitsuba.params import finish, get_bool, get_float, get_matrix, get_point, get_str, required
+from dosppm_core.scene.mitsuba.params import (
+    finish,
+    get_bool,
+    get_float,
+    get_matrix,
+    get_point,
+    get_str,
+    required,
+)
 from dosppm_core.scene.mitsuba.state import ReaderState
 from dosppm_core.scene.mitsuba.xmltree import Node, resolve
 from dosppm_core.scene.tomlfile import read_mesh_file
@@ -109,7 +117,7 @@ def _cube():
 def _unit_sphere():
     """Mitsuba's sphere is analytic; 20,480 flat triangles (subdivision 5 of
     an icosahedron) keep the chord error under 0.03% of the radius."""
-    import trimesh                       # heavy (0.15 s): only scenes with a sphere pay it
+    import trimesh  # heavy (0.15 s): only scenes with a sphere pay it
     mesh = trimesh.creation.icosphere(subdivisions=5, radius=1.0)
     vertices = np.asarray(mesh.vertices, np.float64)
     return vertices, _orient_outward(vertices, np.asarray(mesh.faces, np.int64))
