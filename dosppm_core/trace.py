@@ -3,40 +3,17 @@ aggregate. Chunked and distributed modes call the same steps; only what
 happens to the continuing rays between steps differs."""
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from dosppm_core.accel import Accelerator
-from dosppm_core.jobs import CONTINUES, STORED, HitPoints, PhotonDeposits, RayBatch
+from dosppm_core.jobs import HitPoints, PhotonDeposits, RayBatch
 from dosppm_core.kernels import emit, paths
+from dosppm_core.kernels.paths import SurfaceData
 from dosppm_core.scene.model import Scene
 
 NO_CULL = np.array([[-np.inf] * 3, [np.inf] * 3])
 EPS_REL = 2e-5   # spawn offset relative to |p|: ~300 float32 ulps
 END_KINDS = 5
-
-
-@dataclass
-class SurfaceData:
-    """The arrays the bounce kernels read: geometry and materials."""
-    vertices: np.ndarray
-    triangles: np.ndarray
-    tri_material: np.ndarray
-    kind: np.ndarray
-    reflectance: np.ndarray
-    emission: np.ndarray
-    ior: np.ndarray
-    roughness: np.ndarray
-    two_sided: np.ndarray
-    eps_abs: float
-
-    @classmethod
-    def from_scene(cls, scene: Scene) -> "SurfaceData":
-        m = scene.materials
-        return cls(scene.vertices, scene.triangles, scene.tri_material, m.kind,
-                   m.reflectance, m.emission, m.ior, m.roughness, m.two_sided,
-                   scene.spawn_epsilon())
 
 
 def emit_photon_job(scene: Scene, seed: int, job: int, count: int, eps_abs: float) -> RayBatch:
@@ -69,11 +46,11 @@ def scatter_photons(surf: SurfaceData, batch: RayBatch, prim, u, v,
                     cull_box: np.ndarray, max_depth: int):
     """The photon bounce at known hits (`prim` -1: escaped), for any
     aggregate: the whole scene or one chunk (`surf` indexes like `prim`)."""
+    # float64: one compiled kernel whatever the caller's box (exact for float32)
+    box = np.asarray(cull_box, np.float64)
     ends, culled, dep, nxt = paths.scatter_photons(
-        batch.origin, batch.direction, batch.weight, batch.depth, batch.rng, batch.job,
-        batch.pixel, prim, u, v, surf.vertices, surf.triangles, surf.tri_material, surf.kind,
-        surf.reflectance, surf.ior, surf.roughness, surf.two_sided, cull_box[0], cull_box[1],
-        max_depth, EPS_REL, surf.eps_abs)
+        (batch.direction, batch.weight, batch.depth, batch.rng, batch.job, batch.pixel),
+        (prim, u, v), surf, box, max_depth, EPS_REL)
     no, nd, nf, st, depth, job, pixel = nxt
     return (PhotonDeposits(*dep), RayBatch(no, nd, nf, pixel, depth, st, job=job),
             ends, culled)
@@ -89,10 +66,8 @@ def eye_step(accel: Accelerator, surf: SurfaceData, batch: RayBatch, max_depth: 
 def advance_eye(surf: SurfaceData, batch: RayBatch, prim, u, v, max_depth: int):
     """The eye-path bounce at known hits, for any aggregate."""
     ends, (lit, rgb), (h, hpos, hn), (g, no, nd, nw, st) = paths.advance_eye_paths(
-        batch.direction, batch.weight, batch.depth, batch.rng, prim, u, v,
-        surf.vertices, surf.triangles, surf.tri_material, surf.kind, surf.reflectance,
-        surf.emission, surf.ior, surf.roughness, surf.two_sided, max_depth,
-        EPS_REL, surf.eps_abs)
+        (batch.direction, batch.weight, batch.depth, batch.rng), (prim, u, v), surf,
+        max_depth, EPS_REL)
     hits = HitPoints(hpos, hn, -batch.direction[h], batch.weight[h],
                      surf.tri_material[prim[h]], batch.pixel[h])
     nxt = RayBatch(no, nd, nw, batch.pixel[g], batch.depth[g] + 1, st, job=batch.job[g])

@@ -8,6 +8,8 @@ import pytest
 import trimesh
 
 from dosppm_core.accel import MISS, Accelerator
+from dosppm_core.chunks.subdivide import EMBREE_BYTES_PER_TRIANGLE
+from services.evaluation.embree_memory import measure_embree_bytes_per_triangle
 
 
 def _sphere_rays(n, seed=1):
@@ -25,6 +27,8 @@ def sphere():
 
 @pytest.mark.parametrize("threads", [1, 2])
 def test_closest_hit_equals_embreex(sphere, threads):
+    # embreex's wrapper is the reference, imported here only: accel.py stays
+    # the one module of the library that drives Embree.
     from embreex import rtcore_scene as rtcs
     from embreex.mesh_construction import TriangleMesh
     vertices, triangles = sphere
@@ -84,7 +88,5 @@ def test_empty_batch_and_degenerate_triangle():
 def test_memory_model_covers_a_bvh_build():
     """The subdivider's bytes per triangle must not underestimate what a
     BVH build really takes at its peak (worst case: random triangles)."""
-    from dosppm_core.chunks.subdivide import EMBREE_BYTES_PER_TRIANGLE
-    from services.evaluation.embree_memory import measure_embree_bytes_per_triangle
     measured = measure_embree_bytes_per_triangle(1_000_000)
     assert 40 < measured <= EMBREE_BYTES_PER_TRIANGLE

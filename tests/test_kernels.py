@@ -25,6 +25,7 @@ from dosppm_core.accel import Accelerator
 from dosppm_core.jobs import ESCAPED, MAX_DEPTH
 from dosppm_core.kernels import bsdf, emit, rng
 from dosppm_core.kernels.emit import EMIT_EPS_REL
+from dosppm_core.kernels.paths import ELSEWHERE
 from dosppm_core.scene.model import DIFFUSE, GLASS, GLOSSY, MIRROR, Camera, Material, SceneBuilder
 
 ALPHA = 1e-4
@@ -1024,7 +1025,6 @@ def test_rows_whose_hit_is_elsewhere_are_skipped_as_if_absent(kind):
     """A ray that left its chunk through a portal keeps its row with prim
     ELSEWHERE: the bounce must give exactly what the batch without those
     rows gives, and count no end for them."""
-    from dosppm_core.kernels.paths import ELSEWHERE
     scene = _furnace((0.7, 0.5, 0.3), ball="glass")
     surf = tracing.SurfaceData.from_scene(scene)
     accel = Accelerator(scene.vertices, scene.triangles)

@@ -4,10 +4,10 @@ import math
 import numba as nb
 import numpy as np
 
-from dosppm_core.scene.model import LIGHT_POINT, LIGHT_TRIANGLE
 from dosppm_core.kernels.bsdf import cosine_hemisphere, to_world
 from dosppm_core.kernels.paths import offset_origin
 from dosppm_core.kernels.rng import EYE_STREAM, next_float, path_state
+from dosppm_core.scene.model import LIGHT_POINT, LIGHT_TRIANGLE
 
 EMIT_EPS_REL = 2e-5   # the bounces' spawn offset relative to |p| (tracing.EPS_REL)
 

@@ -4,8 +4,18 @@ Each kernel reads the closest hits of a batch and writes, per ray, what
 happened: a deposit or a hit point, the continuing ray, and why the path
 ended (codes in `dosppm_core.jobs`). Compaction is left to the caller so
 that the same step serves a whole scene or one chunk.
+
+Both kernels take the scene as one `SurfaceData` tuple and share the hit
+setup: `hit_setup` (position, normal, material, side of arrival),
+`sample_scatter`, `write_facing` (a two-sided surface's flipped normal)
+and `write_spawn` (the spawn offset). The per-ray helpers are inlined
+(inline='always') so the loops hold no calls, and each kernel hands
+blocks of rows to a serial function that unpacks the tuples once per
+block; `benchmarks/kernels.py` times both kernels against the code
+before this split.
 """
 import math
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
@@ -21,16 +31,39 @@ ELSEWHERE = -2
 SKIPPED = -1    # its end code: counted nowhere, output nowhere
 
 
+class SurfaceData(NamedTuple):
+    """The arrays the bounce kernels read: geometry and materials. A named
+    tuple, so a kernel takes the whole scene as one argument."""
+    vertices: np.ndarray        # float32 (V, 3)
+    triangles: np.ndarray       # (T, 3) vertex rows
+    tri_material: np.ndarray    # (T,) material of each triangle
+    kind: np.ndarray            # per material: DIFFUSE, MIRROR, GLASS, GLOSSY
+    reflectance: np.ndarray     # (M, 3)
+    emission: np.ndarray        # (M, 3)
+    ior: np.ndarray
+    roughness: np.ndarray       # GGX alpha
+    two_sided: np.ndarray
+    eps_abs: float              # absolute part of the spawn offset (Scene.spawn_epsilon)
+
+    @classmethod
+    def from_scene(cls, scene) -> "SurfaceData":
+        m = scene.materials
+        return cls(scene.vertices, scene.triangles, scene.tri_material, m.kind,
+                   m.reflectance, m.emission, m.ior, m.roughness, m.two_sided,
+                   scene.spawn_epsilon())
+
+
 @nb.njit(cache=True, error_model="numpy")
-def surface(v0, v1, v2, u, v):
+def surface(x0, y0, z0, x1, y1, z1, x2, y2, z2, u, v):
     """Hit position (from barycentrics, float64: more exact than o + t d)
-    and the unit CCW geometric normal, from the triangle's vertex rows."""
+    and the unit CCW geometric normal, from the triangle's vertices
+    (scalars: a call taking arrays would reference-count them per ray)."""
     w = 1.0 - u - v
-    p0 = w * np.float64(v0[0]) + u * np.float64(v1[0]) + v * np.float64(v2[0])
-    p1 = w * np.float64(v0[1]) + u * np.float64(v1[1]) + v * np.float64(v2[1])
-    p2 = w * np.float64(v0[2]) + u * np.float64(v1[2]) + v * np.float64(v2[2])
-    a0, a1, a2 = np.float64(v1[0]) - v0[0], np.float64(v1[1]) - v0[1], np.float64(v1[2]) - v0[2]
-    b0, b1, b2 = np.float64(v2[0]) - v0[0], np.float64(v2[1]) - v0[1], np.float64(v2[2]) - v0[2]
+    p0 = w * np.float64(x0) + u * np.float64(x1) + v * np.float64(x2)
+    p1 = w * np.float64(y0) + u * np.float64(y1) + v * np.float64(y2)
+    p2 = w * np.float64(z0) + u * np.float64(z1) + v * np.float64(z2)
+    a0, a1, a2 = np.float64(x1) - x0, np.float64(y1) - y0, np.float64(z1) - z0
+    b0, b1, b2 = np.float64(x2) - x0, np.float64(y2) - y0, np.float64(z2) - z0
     nx = a1 * b2 - a2 * b1
     ny = a2 * b0 - a0 * b2
     nz = a0 * b1 - a1 * b0
@@ -49,6 +82,73 @@ def offset_origin(p0, p1, p2, n0, n1, n2, w0, w1, w2, eps_rel, eps_abs):
     return p0 + eps * n0, p1 + eps * n1, p2 + eps * n2
 
 
+# -- the hit setup both bounces share (inlined: called once per ray) -----------
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def hit_setup(verts, tris, tri_material, kinds, tri, u, v, d0, d1, d2):
+    """Everything about the hit of a ray of direction d on triangle `tri`
+    at barycentrics (u, v): position p, unit geometric normal n, the
+    direction back along the ray w = -d, the material and its kind, and
+    whether the ray arrived on the front (the CCW side)."""
+    t0, t1, t2 = tris[tri, 0], tris[tri, 1], tris[tri, 2]
+    p0, p1, p2, n0, n1, n2 = surface(
+        verts[t0, 0], verts[t0, 1], verts[t0, 2], verts[t1, 0], verts[t1, 1], verts[t1, 2],
+        verts[t2, 0], verts[t2, 1], verts[t2, 2], np.float64(u), np.float64(v))
+    w0, w1, w2 = -d0, -d1, -d2
+    m = tri_material[tri]
+    front = n0 * w0 + n1 * w1 + n2 * w2 > 0.0
+    return p0, p1, p2, n0, n1, n2, w0, w1, w2, m, kinds[m], front
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def sample_scatter(two_sided, ior, rough, m, kind, n0, n1, n2, w0, w1, w2, u1, u2, u3, radiance):
+    """`sample_bsdf` with material m's parameters."""
+    return sample_bsdf(kind, two_sided[m], np.float64(ior[m]),
+                       np.float64(rough[m]), n0, n1, n2, w0, w1, w2,
+                       u1, u2, u3, radiance)
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def write_facing(pos, nrm, row, p0, p1, p2, n0, n1, n2, front):
+    """Store a point of a non-specular surface and its normal turned
+    towards the arriving ray (a two-sided surface hit from behind)."""
+    s = 1.0 if front else -1.0
+    pos[row, 0], pos[row, 1], pos[row, 2] = p0, p1, p2
+    nrm[row, 0], nrm[row, 1], nrm[row, 2] = s * n0, s * n1, s * n2
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def write_spawn(org, dirn, row, p0, p1, p2, n0, n1, n2, d0, d1, d2, eps_rel, eps_abs):
+    """Store the continuing ray: its origin off the surface on the side of
+    the sampled direction d, and d normalised."""
+    dl = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    dirn[row, 0], dirn[row, 1], dirn[row, 2] = d0 / dl, d1 / dl, d2 / dl
+    org[row, 0], org[row, 1], org[row, 2] = offset_origin(
+        p0, p1, p2, n0, n1, n2, d0, d1, d2, eps_rel, eps_abs)
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def outside(box, p0, p1, p2):
+    return (p0 < box[0, 0] or p0 > box[1, 0] or p1 < box[0, 1] or p1 > box[1, 1]
+            or p2 < box[0, 2] or p2 > box[1, 2])
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def roulette(flux, i, refl, m, scale, ur):
+    """Russian roulette on the scattered flux: a photon survives with the
+    ratio of its new to old largest component, and is reweighted by its
+    inverse. Returns (survives, the new flux)."""
+    old_max = max(flux[i, 0], flux[i, 1], flux[i, 2])
+    nf0 = flux[i, 0] * refl[m, 0] * scale
+    nf1 = flux[i, 1] * refl[m, 1] * scale
+    nf2 = flux[i, 2] * refl[m, 2] * scale
+    q = max(0.0, 1.0 - max(nf0, nf1, nf2) / old_max) if old_max > 0 else 1.0
+    if ur < q:
+        return False, 0.0, 0.0, 0.0
+    keep = 1.0 / (1.0 - q)
+    return True, nf0 * keep, nf1 * keep, nf2 * keep
+
+
+# -- batch plumbing ------------------------------------------------------------
 @nb.njit(cache=True, error_model="numpy")
 def _indices(mask):
     """Positions where mask is true (sequential: cheap next to the bounce)."""
@@ -89,119 +189,119 @@ def _block_starts(counts, col):
     return out
 
 
+@nb.njit(cache=True, error_model="numpy")
+def _deposit_rows(n):
+    """position, incoming, normal, flux, job"""
+    return (np.empty((n, 3), np.float32), np.empty((n, 3), np.float32),
+            np.empty((n, 3), np.float32), np.empty((n, 3), np.float32), np.empty(n, np.int64))
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _path_rows(n):
+    """origin, direction, flux, rng state, depth, job, pixel"""
+    return (np.empty((n, 3), np.float32), np.empty((n, 3), np.float32),
+            np.empty((n, 3), np.float32), np.empty(n, np.uint64), np.empty(n, np.int32),
+            np.empty(n, np.int64), np.empty(n, np.int32))
+
+
+# -- the photon bounce -----------------------------------------------------------
 @nb.njit(cache=True, parallel=True, error_model="numpy")
-def scatter_photons(origin, direction, flux, depth, states, job, pixel, prim, u, v,
-                    vertices, triangles, tri_material, mat_kind, mat_refl, mat_ior,
-                    mat_rough, mat_two_sided, cull_lo, cull_hi, max_depth,
-                    eps_rel, eps_abs):
-    """Deposit photons at non-specular hits (if inside the cull box) and
-    scatter them with Russian roulette. Returns (end counts, culled count,
-    deposits (position, incoming, normal, flux, job), continuing paths
-    (origin, direction, flux, rng state, depth, job, pixel)).
+def scatter_photons(rays, hits, surf, cull_box, max_depth, eps_rel):
+    """Deposit photons at non-specular hits (if inside `cull_box`, rows lo
+    and hi) and scatter them with Russian roulette. `rays` is
+    (direction, flux, depth, rng state, job, pixel), `hits` (prim, u, v).
+    Returns (end counts, culled count, deposits (position, incoming,
+    normal, flux, job), continuing paths (origin, direction, flux, rng
+    state, depth, job, pixel)).
 
     Compaction is done here, in blocks: each block of rows writes its
     deposits and survivors densely from its own start, then one parallel
     pass packs the blocks. A mask-then-gather compaction (or numpy's
     boolean indexing) cost as much as the bounce itself."""
-    n = origin.shape[0]
+    n = hits[0].shape[0]
     nblk = max(1, min(64, n // 2048))   # enough blocks to balance threads
     end = np.empty(n, np.int8)
     culled = np.zeros(n, np.bool_)
-    dep_pos = np.empty((n, 3), np.float32)
-    dep_in = np.empty((n, 3), np.float32)
-    dep_n = np.empty((n, 3), np.float32)
-    dep_f = np.empty((n, 3), np.float32)
-    dep_job = np.empty(n, np.int64)
-    new_o = np.empty((n, 3), np.float32)
-    new_d = np.empty((n, 3), np.float32)
-    new_f = np.empty((n, 3), np.float32)
-    new_st = np.empty(n, np.uint64)
-    new_depth = np.empty(n, np.int32)
-    new_job = np.empty(n, np.int64)
-    new_pix = np.empty(n, np.int32)
+    dep = _deposit_rows(n)
+    nxt = _path_rows(n)
     counts = np.zeros((nblk, 2), np.int64)
     for b in nb.prange(nblk):
         a = b * n // nblk
-        e = (b + 1) * n // nblk
-        dc = a
-        gc = a
-        for i in range(a, e):
-            tri = prim[i]
-            if tri < 0:
-                end[i] = ESCAPED if tri != ELSEWHERE else SKIPPED
-                continue
-            t0, t1, t2 = triangles[tri, 0], triangles[tri, 1], triangles[tri, 2]
-            p0, p1, p2, n0, n1, n2 = surface(vertices[t0], vertices[t1], vertices[t2],
-                                             np.float64(u[i]), np.float64(v[i]))
-            w0, w1, w2 = -direction[i, 0], -direction[i, 1], -direction[i, 2]
-            m = tri_material[tri]
-            kind = mat_kind[m]
-            front = n0 * w0 + n1 * w1 + n2 * w2 > 0.0
-            if not is_specular(kind):
-                if not front and not mat_two_sided[m]:
-                    end[i] = ABSORBED
-                    continue
-                if (p0 < cull_lo[0] or p0 > cull_hi[0] or p1 < cull_lo[1] or p1 > cull_hi[1]
-                        or p2 < cull_lo[2] or p2 > cull_hi[2]):
-                    culled[i] = True
-                else:
-                    s = 1.0 if front else -1.0
-                    dep_pos[dc, 0], dep_pos[dc, 1], dep_pos[dc, 2] = p0, p1, p2
-                    dep_in[dc, 0], dep_in[dc, 1], dep_in[dc, 2] = w0, w1, w2
-                    dep_n[dc, 0], dep_n[dc, 1], dep_n[dc, 2] = s * n0, s * n1, s * n2
-                    dep_f[dc, 0], dep_f[dc, 1], dep_f[dc, 2] = flux[i, 0], flux[i, 1], flux[i, 2]
-                    dep_job[dc] = job[i]
-                    dc += 1
-            if depth[i] + 1 >= max_depth:
-                end[i] = MAX_DEPTH
-                continue
-            st = states[i]
-            st, u1 = next_float(st)
-            st, u2 = next_float(st)
-            st, u3 = next_float(st)
-            st, ur = next_float(st)
-            ok, d0, d1, d2, scale, spec = sample_bsdf(kind, mat_two_sided[m], np.float64(mat_ior[m]),
-                                                      np.float64(mat_rough[m]), n0, n1, n2, w0, w1, w2,
-                                                      u1, u2, u3, False)
-            if not ok:
-                end[i] = ABSORBED
-                continue
-            old_max = max(flux[i, 0], flux[i, 1], flux[i, 2])
-            nf0 = flux[i, 0] * mat_refl[m, 0] * scale
-            nf1 = flux[i, 1] * mat_refl[m, 1] * scale
-            nf2 = flux[i, 2] * mat_refl[m, 2] * scale
-            q = max(0.0, 1.0 - max(nf0, nf1, nf2) / old_max) if old_max > 0 else 1.0
-            if ur < q:
-                end[i] = ABSORBED
-                continue
-            keep = 1.0 / (1.0 - q)
-            new_f[gc, 0], new_f[gc, 1], new_f[gc, 2] = nf0 * keep, nf1 * keep, nf2 * keep
-            dl = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-            new_d[gc, 0], new_d[gc, 1], new_d[gc, 2] = d0 / dl, d1 / dl, d2 / dl
-            new_o[gc, 0], new_o[gc, 1], new_o[gc, 2] = offset_origin(
-                p0, p1, p2, n0, n1, n2, d0, d1, d2, eps_rel, eps_abs)
-            new_st[gc] = st
-            new_depth[gc] = depth[i] + 1
-            new_job[gc] = job[i]
-            new_pix[gc] = pixel[i]
-            gc += 1
-            end[i] = CONTINUES
+        dc, gc = _scatter_block(a, (b + 1) * n // nblk, rays, hits, surf, cull_box, max_depth,
+                                eps_rel, end, culled, dep, nxt)
         counts[b, 0] = dc - a
         counts[b, 1] = gc - a
+    out_dep, out_nxt = _pack_blocks(counts, n, dep, nxt)
+    return _ends(end), int(culled.sum()), out_dep, out_nxt
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, eps_rel, end, culled, dep, nxt):
+    """The photon bounce of rows [a, e): deposits and continuing paths are
+    written densely from row a. Returns where each ended (dc, gc)."""
+    # The tuples are unpacked here, once per block, not per ray in the helpers.
+    direction, flux, depth, states, job, pixel = rays
+    verts, tris, tri_mat, kinds, refl, _emit, ior, rough, two_sided, eps_abs = surf
+    prim, u, v = hits
+    dep_pos, dep_in, dep_n, dep_f, dep_job = dep
+    new_o, new_d, new_f, new_st, new_depth, new_job, new_pix = nxt
+    dc, gc = a, a
+    for i in range(a, e):
+        tri = prim[i]
+        if tri < 0:
+            end[i] = ESCAPED if tri != ELSEWHERE else SKIPPED
+            continue
+        p0, p1, p2, n0, n1, n2, w0, w1, w2, m, kind, front = hit_setup(
+            verts, tris, tri_mat, kinds, tri, u[i], v[i], direction[i, 0], direction[i, 1], direction[i, 2])
+        if not is_specular(kind):
+            if not front and not two_sided[m]:
+                end[i] = ABSORBED
+                continue
+            if outside(cull_box, p0, p1, p2):
+                culled[i] = True
+            else:
+                write_facing(dep_pos, dep_n, dc, p0, p1, p2, n0, n1, n2, front)
+                dep_in[dc, 0], dep_in[dc, 1], dep_in[dc, 2] = w0, w1, w2
+                dep_f[dc, 0], dep_f[dc, 1], dep_f[dc, 2] = flux[i, 0], flux[i, 1], flux[i, 2]
+                dep_job[dc] = job[i]
+                dc += 1
+        if depth[i] + 1 >= max_depth:
+            end[i] = MAX_DEPTH
+            continue
+        st, u1 = next_float(states[i])
+        st, u2 = next_float(st)
+        st, u3 = next_float(st)
+        st, ur = next_float(st)
+        ok, d0, d1, d2, scale, _spec = sample_scatter(two_sided, ior, rough, m, kind,
+                                                      n0, n1, n2, w0, w1, w2, u1, u2, u3, False)
+        if not ok:
+            end[i] = ABSORBED
+            continue
+        ok, f0, f1, f2 = roulette(flux, i, refl, m, scale, ur)
+        if not ok:
+            end[i] = ABSORBED
+            continue
+        new_f[gc, 0], new_f[gc, 1], new_f[gc, 2] = f0, f1, f2
+        write_spawn(new_o, new_d, gc, p0, p1, p2, n0, n1, n2, d0, d1, d2, eps_rel, eps_abs)
+        new_st[gc], new_depth[gc], new_job[gc], new_pix[gc] = st, depth[i] + 1, job[i], pixel[i]
+        gc += 1
+        end[i] = CONTINUES
+    return dc, gc
+
+
+@nb.njit(cache=True, parallel=True, error_model="numpy")
+def _pack_blocks(counts, n, dep, nxt):
+    """Pack the deposits and continuing paths that `scatter_photons`
+    wrote per block (block b's from its first row) into dense arrays."""
+    nblk = counts.shape[0]
     ds = _block_starts(counts, 0)
     gs = _block_starts(counts, 1)
-    o_pos = np.empty((ds[nblk], 3), np.float32)
-    o_in = np.empty((ds[nblk], 3), np.float32)
-    o_n = np.empty((ds[nblk], 3), np.float32)
-    o_f = np.empty((ds[nblk], 3), np.float32)
-    o_job = np.empty(ds[nblk], np.int64)
-    c_o = np.empty((gs[nblk], 3), np.float32)
-    c_d = np.empty((gs[nblk], 3), np.float32)
-    c_f = np.empty((gs[nblk], 3), np.float32)
-    c_st = np.empty(gs[nblk], np.uint64)
-    c_depth = np.empty(gs[nblk], np.int32)
-    c_job = np.empty(gs[nblk], np.int64)
-    c_pix = np.empty(gs[nblk], np.int32)
+    dep_pos, dep_in, dep_n, dep_f, dep_job = dep
+    new_o, new_d, new_f, new_st, new_depth, new_job, new_pix = nxt
+    out_dep = _deposit_rows(ds[nblk])
+    out_nxt = _path_rows(gs[nblk])
+    o_pos, o_in, o_n, o_f, o_job = out_dep
+    c_o, c_d, c_f, c_st, c_depth, c_job, c_pix = out_nxt
     for b in nb.prange(nblk):
         a = b * n // nblk
         for j in range(counts[b, 0]):
@@ -222,74 +322,73 @@ def scatter_photons(origin, direction, flux, depth, states, job, pixel, prim, u,
             c_depth[o] = new_depth[a + j]
             c_job[o] = new_job[a + j]
             c_pix[o] = new_pix[a + j]
-    return (_ends(end), int(culled.sum()), (o_pos, o_in, o_n, o_f, o_job),
-            (c_o, c_d, c_f, c_st, c_depth, c_job, c_pix))
+    return out_dep, out_nxt
 
 
+# -- the eye bounce --------------------------------------------------------------
 @nb.njit(cache=True, parallel=True, error_model="numpy")
-def advance_eye_paths(direction, weight, depth, states, prim, u, v,
-                      vertices, triangles, tri_material, mat_kind, mat_refl, mat_emit,
-                      mat_ior, mat_rough, mat_two_sided, max_depth, eps_rel, eps_abs):
+def advance_eye_paths(rays, hits, surf, max_depth, eps_rel):
     """Record emission seen along eye paths, store a hit point at the first
-    non-specular surface, and continue through mirrors and glass. Returns
+    non-specular surface, and continue through mirrors and glass. `rays`
+    is (direction, weight, depth, rng state), `hits` (prim, u, v). Returns
     (end counts, emission (index into the batch, rgb), hit points (index,
     position, normal), continuing paths (index, origin, direction, weight,
     rng state)); a hit point's outgoing direction is -direction and its
     material tri_material[prim]."""
-    n = direction.shape[0]
+    n = hits[0].shape[0]
+    nblk = max(1, min(64, n // 2048))   # enough blocks to balance threads
     end = np.empty(n, np.int8)
     emitted = np.zeros((n, 3), np.float32)
-    hp_pos = np.empty((n, 3), np.float32)
-    hp_n = np.empty((n, 3), np.float32)
-    new_o = np.empty((n, 3), np.float32)
-    new_d = np.empty((n, 3), np.float32)
-    new_w = np.empty((n, 3), np.float32)
-    out_states = states.copy()
-    for i in nb.prange(n):
+    hp = (np.empty((n, 3), np.float32), np.empty((n, 3), np.float32))
+    nxt = (np.empty((n, 3), np.float32), np.empty((n, 3), np.float32),
+           np.empty((n, 3), np.float32), rays[3].copy())
+    for b in nb.prange(nblk):
+        _advance_block(b * n // nblk, (b + 1) * n // nblk, rays, hits, surf, max_depth, eps_rel,
+                       end, emitted, hp, nxt)
+    lit = _indices(emitted.sum(axis=1) > 0.0)
+    h = _indices(end == STORED)
+    g = _indices(end == CONTINUES)
+    return (_ends(end), (lit, _rows(emitted, lit)), (h, _rows(hp[0], h), _rows(hp[1], h)),
+            (g, _rows(nxt[0], g), _rows(nxt[1], g), _rows(nxt[2], g), nxt[3][g]))
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp, nxt):
+    """The eye bounce of rows [a, e), each written to its own row."""
+    # The tuples are unpacked here, once per block, not per ray in the helpers.
+    direction, weight, depth, states = rays
+    verts, tris, tri_mat, kinds, refl, emit, ior, rough, two_sided, eps_abs = surf
+    prim, u, v = hits
+    hp_pos, hp_n = hp
+    new_o, new_d, new_w, new_st = nxt
+    for i in range(a, e):
         tri = prim[i]
         if tri < 0:
             end[i] = ESCAPED if tri != ELSEWHERE else SKIPPED
             continue
-        t0, t1, t2 = triangles[tri, 0], triangles[tri, 1], triangles[tri, 2]
-        p0, p1, p2, n0, n1, n2 = surface(vertices[t0], vertices[t1], vertices[t2],
-                                         np.float64(u[i]), np.float64(v[i]))
-        w0, w1, w2 = -direction[i, 0], -direction[i, 1], -direction[i, 2]
-        m = tri_material[tri]
-        kind = mat_kind[m]
-        front = n0 * w0 + n1 * w1 + n2 * w2 > 0.0
+        p0, p1, p2, n0, n1, n2, w0, w1, w2, m, kind, front = hit_setup(
+            verts, tris, tri_mat, kinds, tri, u[i], v[i], direction[i, 0], direction[i, 1], direction[i, 2])
         if front:  # one-sided emitters, as in Mitsuba
             for k in range(3):
-                emitted[i, k] = weight[i, k] * mat_emit[m, k]
+                emitted[i, k] = weight[i, k] * emit[m, k]
         if not is_specular(kind):
-            if not front and not mat_two_sided[m]:
+            if not front and not two_sided[m]:
                 end[i] = ABSORBED
                 continue
-            s = 1.0 if front else -1.0
-            hp_pos[i, 0], hp_pos[i, 1], hp_pos[i, 2] = p0, p1, p2
-            hp_n[i, 0], hp_n[i, 1], hp_n[i, 2] = s * n0, s * n1, s * n2
+            write_facing(hp_pos, hp_n, i, p0, p1, p2, n0, n1, n2, front)
             end[i] = STORED
             continue
         if depth[i] + 1 >= max_depth:
             end[i] = MAX_DEPTH
             continue
-        st = states[i]
-        st, u1 = next_float(st)
-        out_states[i] = st
-        ok, d0, d1, d2, scale, spec = sample_bsdf(kind, mat_two_sided[m], np.float64(mat_ior[m]),
-                                                  np.float64(mat_rough[m]), n0, n1, n2, w0, w1, w2,
-                                                  u1, 0.5, 0.5, True)
+        st, u1 = next_float(states[i])
+        new_st[i] = st
+        ok, d0, d1, d2, scale, _spec = sample_scatter(two_sided, ior, rough, m, kind,
+                                                      n0, n1, n2, w0, w1, w2, u1, 0.5, 0.5, True)
         if not ok:
             end[i] = ABSORBED
             continue
         for k in range(3):
-            new_w[i, k] = weight[i, k] * mat_refl[m, k] * scale
-        dl = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-        new_d[i, 0], new_d[i, 1], new_d[i, 2] = d0 / dl, d1 / dl, d2 / dl
-        new_o[i, 0], new_o[i, 1], new_o[i, 2] = offset_origin(
-            p0, p1, p2, n0, n1, n2, d0, d1, d2, eps_rel, eps_abs)
+            new_w[i, k] = weight[i, k] * refl[m, k] * scale
+        write_spawn(new_o, new_d, i, p0, p1, p2, n0, n1, n2, d0, d1, d2, eps_rel, eps_abs)
         end[i] = CONTINUES
-    lit = _indices(emitted.sum(axis=1) > 0.0)
-    h = _indices(end == STORED)
-    g = _indices(end == CONTINUES)
-    return (_ends(end), (lit, _rows(emitted, lit)), (h, _rows(hp_pos, h), _rows(hp_n, h)),
-            (g, _rows(new_o, g), _rows(new_d, g), _rows(new_w, g), out_states[g]))

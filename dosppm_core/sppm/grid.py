@@ -200,7 +200,7 @@ def build_hit_point_grid(hp, hp_radius, materials) -> HitPointGrid:
 def gather_grid(ph, hp, hp_radius, materials, threads: int, grid: HitPointGrid | None = None):
     """Exact gather of photon deposits `ph` at hit points `hp` (through
     `grid` if the caller built it already). Returns (M, Phi) per hit point."""
-    if len(hp) == 0 or len(ph) == 0:
+    if len(hp) == 0 or len(ph.position) == 0:   # len(ph) of a GatherPhotons tuple is 4
         return np.zeros(len(hp)), np.zeros((len(hp), 3))
     g = grid if grid is not None else build_hit_point_grid(hp, hp_radius, materials)
     return gather_photons(ph.position, ph.incoming, ph.normal, ph.flux, g.start, g.entry_hp,

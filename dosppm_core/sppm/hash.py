@@ -51,9 +51,9 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from dosppm_core.sppm.grid import NORMAL_COS
 from dosppm_core.kernels.bsdf import eval_bsdf
 from dosppm_core.kernels.rng import mix64
+from dosppm_core.sppm.grid import NORMAL_COS
 
 RESOLUTION = (512, 128, 512)    # the paper's Table 1
 MAX_TABLE_SIZE = 1 << 24        # default cap on slots
@@ -257,16 +257,9 @@ def _run_bounds(keys, n_valid, threads):
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
-def _select_photons(keys, cell_prio, n_valid, bitmap, first, d2, pos, inc, nrm, flux, threads):
-    """Keep one photon per slot: the one of smallest priority (a tie, at
-    odds of 2**-32 per pair, keeps the first by index). Returns per slot
-    (entry, in slot order) its photon count and whether several cells
-    share it, and per occupied cell (in cell order, found by its rank in
-    the bitmap) its kept photon, photon count, shared entry (-1: none) and
-    a copy of the photon, (4, cells, 3): position, incoming, normal, flux.
-    A cell belongs to one slot, so no two threads write one cell."""
-    words = (d2 + 63) // 64
-    bounds = _run_bounds(keys, n_valid, threads)
+def _run_starts(keys, bounds, threads):
+    """Entry index at which each thread's range of sorted keys starts (its
+    slots' runs are counted in parallel); the last is the entry count."""
     runs = np.zeros(threads + 1, np.int64)
     for t in nb.prange(threads):
         c = 0
@@ -276,6 +269,53 @@ def _select_photons(keys, cell_prio, n_valid, bitmap, first, d2, pos, inc, nrm, 
         runs[t + 1] = c
     for t in range(threads):
         runs[t + 1] += runs[t]
+    return runs
+
+
+@nb.njit(cache=True, nogil=True)
+def _slot_run(keys, cell_prio, i, end):
+    """The run of sorted keys of one slot from row i: where it ends, the
+    photon of smallest priority (a tie, at odds of 2**-32 per pair, keeps
+    the first by index) and whether photons of several cells share it."""
+    s = keys[i] >> _S32
+    best = np.int64(keys[i] & _LOW32)
+    first_cell = cell_prio[best] >> _S32
+    best_prio = cell_prio[best] & _LOW32
+    multi = False
+    j = i + 1
+    while j < end and (keys[j] >> _S32) == s:
+        p = np.int64(keys[j] & _LOW32)
+        cp = cell_prio[p]
+        multi = multi or (cp >> _S32) != first_cell
+        if (cp & _LOW32) < best_prio:
+            best, best_prio = p, cp & _LOW32
+        j += 1
+    return j, best, multi
+
+
+@nb.njit(cache=True, nogil=True)
+def _cell_rank(c, bitmap, first, words, d2):
+    """Index of occupied cell c's record: its rank among the set bits."""
+    col = c // d2
+    i2 = c - col * d2
+    word = col * words + (i2 >> 6)
+    below = bitmap[word] & ~(_ALL << np.uint64(i2 & 63))
+    return first[word] + _popcount(below)
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _select_photons(keys, cell_prio, n_valid, bitmap, first, d2, photons, threads):
+    """Keep one photon per slot: the one of smallest priority. `photons` is
+    (position, incoming, normal, flux). Returns per slot (entry, in slot
+    order) its photon count and whether several cells share it, and per
+    occupied cell (in cell order, found by its rank in the bitmap) its kept
+    photon, photon count, shared entry (-1: none) and a copy of the photon,
+    (4, cells, 3): position, incoming, normal, flux.
+    A cell belongs to one slot, so no two threads write one cell."""
+    pos, inc, nrm, flux = photons
+    words = (d2 + 63) // 64
+    bounds = _run_bounds(keys, n_valid, threads)
+    runs = _run_starts(keys, bounds, threads)
     e_count = np.empty(runs[threads], np.float64)
     e_multi = np.empty(runs[threads], np.bool_)
     cells = first[first.shape[0] - 1]
@@ -287,28 +327,12 @@ def _select_photons(keys, cell_prio, n_valid, bitmap, first, d2, pos, inc, nrm, 
     for t in nb.prange(threads):
         e, i, end = runs[t], bounds[t], bounds[t + 1]
         while i < end:
-            s = keys[i] >> _S32
-            best = np.int64(keys[i] & _LOW32)
-            first_cell = cell_prio[best] >> _S32
-            best_prio = cell_prio[best] & _LOW32
-            multi = False
-            j = i + 1
-            while j < end and (keys[j] >> _S32) == s:
-                p = np.int64(keys[j] & _LOW32)
-                cp = cell_prio[p]
-                multi = multi or (cp >> _S32) != first_cell
-                if (cp & _LOW32) < best_prio:
-                    best, best_prio = p, cp & _LOW32
-                j += 1
+            j, best, multi = _slot_run(keys, cell_prio, i, end)
             e_count[e], e_multi[e] = j - i, multi
             # The records of the slot's cells (all its photons' cells if shared).
             for k in range(i, j if multi else i + 1):
                 c = np.int64(cell_prio[np.int64(keys[k] & _LOW32)] >> _S32)
-                col = c // d2
-                i2 = c - col * d2
-                word = col * words + (i2 >> 6)
-                below = bitmap[word] & ~(_ALL << np.uint64(i2 & 63))
-                rank = first[word] + _popcount(below)
+                rank = _cell_rank(c, bitmap, first, words, d2)
                 c_kept[rank], c_count[rank] = best, j - i
                 c_shared[rank] = e if multi else -1
                 for a in range(3):
@@ -323,82 +347,99 @@ def _select_photons(keys, cell_prio, n_valid, bitmap, first, d2, pos, inc, nrm, 
 
 # -- the gather --------------------------------------------------------------------
 @nb.njit(cache=True, nogil=True, parallel=True)
-def _gather(hp_pos, hp_n, hp_out, hp_weight, hp_mat, hp_radius, lo, cell, dims, axes, slack,
-            bitmap, first, c_pos, c_in, c_n, c_flux, c_count, c_shared, entries,
-            mat_kind, mat_refl, mat_rough, threads):
-    """M and Phi per hit point. Hit points are split in `threads` ranges;
-    each thread writes only its own hit points. Occupied cells are found
-    in the bitmap and their records by rank, in cell order. `stamp`
-    remembers, per thread, the last hit point that took each entry whose
-    slot several cells share: only those can be reached twice."""
-    nhp = hp_pos.shape[0]
+def _gather(hp, hp_radius, grid, cells, entries, materials, threads):
+    """M and Phi per hit point. `hp` is (position, normal, outgoing, eye
+    weight, material), `grid` (lo, cell, dims, axes, slack, bitmap, first)
+    in internal axis order, `cells` the occupied cells' records (position,
+    incoming, normal, flux, count, shared entry), `materials` (kind,
+    reflectance, roughness). Hit points are split in `threads` ranges; each
+    thread writes only its own hit points. `stamp` remembers, per thread,
+    the last hit point that took each entry whose slot several cells
+    share: only those can be reached twice."""
+    nhp = hp[0].shape[0]
     m = np.zeros(nhp)
     phi = np.zeros((nhp, 3))
     stamp = np.zeros((threads, entries), np.int64)
-    words = (dims[2] + 63) // 64
     for t in nb.prange(threads):
-        for h in range(nhp * t // threads, nhp * (t + 1) // threads):
-            x = np.float64(hp_pos[h, axes[0]])
-            y = np.float64(hp_pos[h, axes[1]])
-            z = np.float64(hp_pos[h, axes[2]])
-            r = hp_radius[h]
-            reach = r * (1.0 + _RADIUS_SLACK) + slack
-            n0, n1, n2 = hp_n[h, 0], hp_n[h, 1], hp_n[h, 2]
-            mat = hp_mat[h]
-            kind, rough = mat_kind[mat], np.float64(mat_rough[mat])
-            refl0, refl1, refl2 = mat_refl[mat, 0], mat_refl[mat, 1], mat_refl[mat, 2]
-            acc_m, acc0, acc1, acc2 = 0.0, 0.0, 0.0, 0.0
-            a0, b0 = _cell_span(x, reach, lo[0], cell[0], dims[0])
-            a1, b1 = _cell_span(y, reach, lo[1], cell[1], dims[1])
-            for i0 in range(a0, b0 + 1):
-                g0 = _gap(x, i0, lo[0], cell[0], dims[0])
-                rest0 = reach * reach - g0 * g0
-                if rest0 < 0.0:
-                    continue
-                for i1 in range(a1, b1 + 1):
-                    g1 = _gap(y, i1, lo[1], cell[1], dims[1])
-                    rest = rest0 - g1 * g1
-                    if rest < 0.0:
-                        continue
-                    a2, b2 = _cell_span(z, math.sqrt(rest), lo[2], cell[2], dims[2])
-                    col = (i0 * dims[1] + i1) * words
-                    for w in range(a2 >> 6, (b2 >> 6) + 1):
-                        word = bitmap[col + w]
-                        bits = word & _word_mask(w, a2, b2)
-                        if bits == 0:
-                            continue
-                        # Rank of the first cell in range = bits set before it.
-                        start = np.uint64(max(a2 - w * 64, 0))
-                        k = first[col + w] + _popcount(word & ~(_ALL << start)) - 1
-                        while bits != 0:
-                            bits &= bits - _ONE
-                            k += 1
-                            # The hot loop stays free of calls taking arrays: numba
-                            # would reference-count every array argument.
-                            e = c_shared[k]
-                            if e >= 0:
-                                if stamp[t, e] == h + 1:
-                                    continue
-                                stamp[t, e] = h + 1
-                            d0 = c_pos[k, 0] - hp_pos[h, 0]
-                            d1 = c_pos[k, 1] - hp_pos[h, 1]
-                            d2 = c_pos[k, 2] - hp_pos[h, 2]
-                            if d0 * d0 + d1 * d1 + d2 * d2 > r * r:
-                                continue
-                            if n0 * c_n[k, 0] + n1 * c_n[k, 1] + n2 * c_n[k, 2] < NORMAL_COS:
-                                continue
-                            f = eval_bsdf(kind, rough, n0, n1, n2,
-                                          hp_out[h, 0], hp_out[h, 1], hp_out[h, 2],
-                                          c_in[k, 0], c_in[k, 1], c_in[k, 2])
-                            cnt = c_count[k]
-                            acc_m += cnt
-                            if f > 0.0:
-                                acc0 += cnt * (f * refl0 * hp_weight[h, 0] * c_flux[k, 0])
-                                acc1 += cnt * (f * refl1 * hp_weight[h, 1] * c_flux[k, 1])
-                                acc2 += cnt * (f * refl2 * hp_weight[h, 2] * c_flux[k, 2])
-            m[h] = acc_m
-            phi[h, 0], phi[h, 1], phi[h, 2] = acc0, acc1, acc2
+        _gather_range(nhp * t // threads, nhp * (t + 1) // threads, hp, hp_radius, grid, cells,
+                      materials, stamp[t], m, phi)
     return m, phi
+
+
+@nb.njit(cache=True, nogil=True)
+def _gather_range(first_hp, end_hp, hp, hp_radius, grid, cells, materials, stamp, m, phi):
+    """M and Phi of hit points [first_hp, end_hp), one thread's range."""
+    hp_n, hp_mat = hp[1], hp[4]
+    mat_kind, mat_refl, mat_rough = materials
+    for h in range(first_hp, end_hp):
+        mat = hp_mat[h]
+        shading = (hp_n[h, 0], hp_n[h, 1], hp_n[h, 2], mat_kind[mat], np.float64(mat_rough[mat]),
+                   mat_refl[mat, 0], mat_refl[mat, 1], mat_refl[mat, 2])
+        m[h], phi[h, 0], phi[h, 1], phi[h, 2] = _gather_hit_point(
+            h, hp_radius[h], hp, shading, grid, cells, stamp)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _gather_hit_point(h, r, hp, shading, grid, cells, stamp):
+    """(M, Phi) of hit point h of radius r: the columns of cells its sphere
+    overlaps, in each the occupied cells (found in the bitmap, their records
+    by rank), and their kept photons' distance, normal and BRDF tests. The
+    loops stay in one function: a call taking arrays, per word or photon,
+    would reference-count each of them (numba), at twice the gather's time."""
+    hp_pos, _hp_n, hp_out, hp_weight, _hp_mat = hp
+    lo, cell, dims, axes, slack, bitmap, first = grid
+    c_pos, c_in, c_n, c_flux, c_count, c_shared = cells
+    n0, n1, n2, kind, rough, refl0, refl1, refl2 = shading
+    words = (dims[2] + 63) // 64
+    x, y, z = np.float64(hp_pos[h, axes[0]]), np.float64(hp_pos[h, axes[1]]), np.float64(hp_pos[h, axes[2]])
+    reach = r * (1.0 + _RADIUS_SLACK) + slack
+    acc_m, acc0, acc1, acc2 = 0.0, 0.0, 0.0, 0.0
+    a0, b0 = _cell_span(x, reach, lo[0], cell[0], dims[0])
+    a1, b1 = _cell_span(y, reach, lo[1], cell[1], dims[1])
+    for i0 in range(a0, b0 + 1):
+        g0 = _gap(x, i0, lo[0], cell[0], dims[0])
+        rest0 = reach * reach - g0 * g0
+        if rest0 < 0.0:
+            continue
+        for i1 in range(a1, b1 + 1):
+            g1 = _gap(y, i1, lo[1], cell[1], dims[1])
+            rest = rest0 - g1 * g1
+            if rest < 0.0:
+                continue
+            a2, b2 = _cell_span(z, math.sqrt(rest), lo[2], cell[2], dims[2])
+            col = (i0 * dims[1] + i1) * words
+            for w in range(a2 >> 6, (b2 >> 6) + 1):
+                word = bitmap[col + w]
+                bits = word & _word_mask(w, a2, b2)
+                if bits == 0:
+                    continue
+                # Rank of the first cell in range = bits set before it.
+                start = np.uint64(max(a2 - w * 64, 0))
+                k = first[col + w] + _popcount(word & ~(_ALL << start)) - 1
+                while bits != 0:
+                    bits &= bits - _ONE
+                    k += 1
+                    e = c_shared[k]
+                    if e >= 0:
+                        if stamp[e] == h + 1:
+                            continue
+                        stamp[e] = h + 1
+                    d0 = c_pos[k, 0] - hp_pos[h, 0]
+                    d1 = c_pos[k, 1] - hp_pos[h, 1]
+                    d2 = c_pos[k, 2] - hp_pos[h, 2]
+                    if (d0 * d0 + d1 * d1 + d2 * d2 > r * r
+                            or n0 * c_n[k, 0] + n1 * c_n[k, 1] + n2 * c_n[k, 2] < NORMAL_COS):
+                        continue
+                    f = eval_bsdf(kind, rough, n0, n1, n2,
+                                  hp_out[h, 0], hp_out[h, 1], hp_out[h, 2],
+                                  c_in[k, 0], c_in[k, 1], c_in[k, 2])
+                    cnt = c_count[k]
+                    acc_m += cnt
+                    if f > 0.0:
+                        acc0 += cnt * (f * refl0 * hp_weight[h, 0] * c_flux[k, 0])
+                        acc1 += cnt * (f * refl1 * hp_weight[h, 1] * c_flux[k, 1])
+                        acc2 += cnt * (f * refl2 * hp_weight[h, 2] * c_flux[k, 2])
+    return acc_m, acc0, acc1, acc2
 
 
 @nb.njit(cache=True, nogil=True)
@@ -466,12 +507,13 @@ class PhotonHash:
         """(M, Phi) per hit point: M the expected photon count, Phi the
         expected BRDF-weighted flux times the eye path weight."""
         L = self.layout
-        return _gather(hp.position, hp.normal, hp.outgoing, hp.weight, hp.material,
-                       np.asarray(hp_radius, np.float64), L.lo, L.cell, L.dims, L.axes,
-                       L.slack, self.bitmap, self.first, self.position, self.incoming,
-                       self.normal, self.flux, self.cell_count, self.cell_shared,
-                       len(self.count), materials.kind, materials.reflectance,
-                       materials.roughness, int(threads))
+        return _gather((hp.position, hp.normal, hp.outgoing, hp.weight, hp.material),
+                       np.asarray(hp_radius, np.float64),
+                       (L.lo, L.cell, L.dims, L.axes, L.slack, self.bitmap, self.first),
+                       (self.position, self.incoming, self.normal, self.flux, self.cell_count,
+                        self.cell_shared),
+                       len(self.count), (materials.kind, materials.reflectance,
+                                         materials.roughness), int(threads))
 
     def cells_covered(self, hp_pos: np.ndarray, hp_radius: np.ndarray):
         """(cells overlapped, occupied cells overlapped) per hit point."""
@@ -487,7 +529,7 @@ def build_photon_hash(ph, hp_pos: np.ndarray, hp_radius: np.ndarray, threads: in
     keep one photon per slot."""
     if threads < 1:
         raise ValueError(f"threads must be >= 1, got {threads}")
-    if len(ph) >= (1 << 32):
+    if len(ph.position) >= (1 << 32):
         raise ValueError("at most 2**32 - 1 photons per batch")
     L = hash_layout(hp_pos, np.asarray(hp_radius, np.float64), resolution, table_size)
     threads = int(threads)
@@ -501,14 +543,14 @@ def build_photon_hash(ph, hp_pos: np.ndarray, hp_radius: np.ndarray, threads: in
     bitmap, first = _occupancy(cell_prio, int(L.dims[0] * L.dims[1]), int(L.dims[2]))
     keys.sort()
     n_valid = int(np.searchsorted(keys, _EMPTY))
+    photons = (pos, inc, np.ascontiguousarray(ph.normal, np.float32),
+               np.ascontiguousarray(ph.flux, np.float32))
     count, multi, c_kept, c_count, c_shared, rows = _select_photons(
-        keys, cell_prio, n_valid, bitmap, first, int(L.dims[2]), pos, inc,
-        np.ascontiguousarray(ph.normal, np.float32), np.ascontiguousarray(ph.flux, np.float32),
-        threads)
+        keys, cell_prio, n_valid, bitmap, first, int(L.dims[2]), photons, threads)
     return PhotonHash(layout=L, bitmap=bitmap, first=first, count=count, multi=multi,
                       cell_photon=c_kept, cell_count=c_count, cell_shared=c_shared,
                       position=rows[0], incoming=rows[1], normal=rows[2], flux=rows[3],
-                      photons=len(ph), photons_binned=n_valid)
+                      photons=len(pos), photons_binned=n_valid)
 
 
 def gather_hash(ph, hp, hp_radius, materials, threads: int, resolution=RESOLUTION,
@@ -522,7 +564,7 @@ def gather_hash(ph, hp, hp_radius, materials, threads: int, resolution=RESOLUTIO
     axis. table_size: hash slots (default min(cells, 2**24)); at or above
     the cell count each cell gets its own slot. seed: drives which photon a
     slot keeps; a fixed seed is fine across batches (see the module notes)."""
-    if len(hp) == 0 or len(ph) == 0:
+    if len(hp) == 0 or len(ph.position) == 0:   # len(ph) of a GatherPhotons tuple is 4
         return np.zeros(len(hp)), np.zeros((len(hp), 3))
     table = build_photon_hash(ph, hp.position, hp_radius, threads, resolution, table_size, seed)
     return table.gather(hp, hp_radius, materials, threads)
