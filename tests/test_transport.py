@@ -2,17 +2,20 @@
 batch travels zero-copy, an unroutable message raises Unreachable instead
 of vanishing, a full or empty non-blocking socket raises WouldBlock, a bad
 message gets an error reply and a log line, `drain` takes what waits and
-no more, and CURVE admits only the listed clients."""
+no more, CURVE admits only the listed clients, and a tracer can swap its
+server connection for a new one."""
 from __future__ import annotations
 
 import logging
 import os
+import time
 
 import msgpack
 import numpy as np
 import pytest
 
 from services import transport
+from services.tracer.node import TracerProcess
 from services.wire import PROTOCOL_VERSION, encode
 from tests.test_wire import _register_from_the_future, _valid, assert_same_message, frame_views, sample_fields
 
@@ -184,3 +187,40 @@ def test_unusable_curve_keys_are_curve_errors(ctx, tmp_path):
         transport.curve_server(transport.router(ctx), public)
     with pytest.raises(transport.CurveError, match="no such directory"):
         transport.start_authenticator(str(tmp_path / "missing"), ctx)
+
+
+def _send_until_received(dealer, server, frames, timeout_s=15.0):
+    """Send again until the server has it: a ROUTER still holding the
+    identity of a closed connection turns a new one away (the message with
+    it) until it notices the close, and a tracer sends again, so does this."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        dealer.send(frames, block=False)
+        if server.poll(200):
+            return server.recv()
+    raise AssertionError("nothing arrived")
+
+
+@pytest.mark.slow   # libzmq lets the same identity in again only after about 14 s
+def test_a_tracer_replaces_its_server_connection(ctx):
+    """What a tracer does when the server has been silent too long: a new
+    DEALER under the same identity takes the old one's place in the poller,
+    and the old one is closed without lingering."""
+    server = transport.router(ctx)
+    endpoint = server.bind("tcp://127.0.0.1:*")
+    tracer = TracerProcess(endpoint, bind="tcp://127.0.0.1:*", tracer_id="swap", context=ctx)
+    tracer._open()
+    try:
+        tracer._poller = transport.Poller(tracer.dealer, tracer.router)
+        old = tracer.dealer
+        assert _send_until_received(old, server, encode("heartbeat", status={"n": 0}))[0] == [b"swap"]
+        tracer._replace_connection()
+        assert tracer.dealer is not old
+        with pytest.raises(transport.TransportError):
+            old.send(encode("heartbeat", status={}))      # closed
+        prefix, msg = _send_until_received(tracer.dealer, server, encode("heartbeat", status={"n": 1}))
+        assert prefix == [b"swap"] and msg.status == {"n": 1}
+        server.send(encode("shutdown", reason="bye"), prefix)
+        assert tracer._poller.poll(WAIT_MS) == {tracer.dealer}
+    finally:
+        tracer._close()

@@ -119,7 +119,7 @@ class TracerProcess:
         if self._poller is not None:
             self._poller.unregister(old)
             self._poller.register(self.dealer)
-        old.close(linger=0)
+        old.close(linger_ms=0)
 
     def _peer(self, endpoint: str) -> transport.Socket:
         s = self.peers.get(endpoint)
