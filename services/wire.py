@@ -10,6 +10,7 @@ API
     WireError(ValueError), VersionMismatch(WireError): .msg_type, .field, .prefix
     error_reply(e) -> frames of `error`, or `refused` for a register in another version
     chunk_parts(chunk, sha256, data) -> [frames of each chunk_data part]
+    Out(dest, type, fields): a message to send, as the roles' state machines return it
     MESSAGES (name -> Spec), JOB_MESSAGES, describe() -> the message table
 
 Framing

@@ -106,7 +106,7 @@ def test_a_bad_message_gets_an_error_reply_and_a_log_line(ctx, caplog):
     assert reply.type == "refused" and "7" in reply.reason and str(PROTOCOL_VERSION) in reply.reason
 
     # A bad error is logged but never answered: no ping-pong.
-    header, frames = _valid("error")
+    header, _frames = _valid("error")
     tracer.send([msgpack.packb(header | {"reason": 5})])
     assert server.poll(WAIT_MS)
     assert server.recv_or_reply() is None
@@ -155,7 +155,7 @@ def test_bind_returns_the_endpoint_and_failures_are_transport_errors(ctx):
 def test_curve_admits_listed_clients_only(ctx, tmp_path):
     keys, allowed = str(tmp_path / "keys"), tmp_path / "allowed"
     for name in ("server", "friend", "stranger"):
-        public, secret = transport.make_keys(keys, name)
+        _public, secret = transport.make_keys(keys, name)
         assert oct(os.stat(secret).st_mode & 0o777) == "0o600"
     allowed.mkdir()
     os.replace(os.path.join(keys, "friend.key"), allowed / "friend.key")
