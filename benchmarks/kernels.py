@@ -16,14 +16,24 @@ Every input is a pure function of the scene and the seed, so two trees run
 the same inputs (the checksums printed show it).
 
     python benchmarks/kernels.py [--label new] [--threads 2] [--fresh]
+    python benchmarks/kernels.py --against /tmp/kernels-old
 
-To compare two commits, copy this file into a worktree of the other and
-run both copies alternately with the same --json: each run appends its
-samples and medians, with the commit it ran, to benchmarks/results/kernels.json.
+Each run appends its samples and medians, with the commit it ran, to
+benchmarks/results/kernels.json. Two commits can be compared by running
+a copy of this file in a worktree of each, alternately; on a loaded
+machine, where one run's medians differ from the next by 2x, `--against
+TREE` is the steadier comparison: it loads that checkout's bounce kernels,
+tracing steps and hash beside this one's, checks that both give the same
+arrays, and times them call by call alternately (old, new, new, old, ...),
+reporting the median of the per-pair ratios (with glibc's allocation
+thresholds fixed, see `_steady_malloc`). `--against` this same tree is an
+A/A run: it shows the noise floor.
 """
 from __future__ import annotations
 
 import argparse
+import ctypes
+import importlib.util
 import json
 import os
 import statistics
@@ -41,9 +51,9 @@ sys.path.insert(0, ROOT)
 import dosppm_core
 from dosppm_core import trace
 from dosppm_core.accel import Accelerator
-from dosppm_core.jobs import HitPoints, PhotonDeposits, RayBatch
+from dosppm_core.jobs import HitPoints, RayBatch
 from dosppm_core.scene import builtin
-from dosppm_core.sppm.hash import build_photon_hash
+from dosppm_core.sppm import hash as hash_gather
 from dosppm_core.sppm.statistics import initial_radius, reorder_deposits, spatial_order
 
 # isort: split
@@ -55,9 +65,13 @@ MAX_DEPTH = 10
 PHOTONS_PER_JOB = 8192
 
 
-def _git(*args: str) -> str:
-    out = subprocess.run(["git", "-C", ROOT, *args], capture_output=True, text=True, check=False)
+def _git_at(tree: str, *args: str) -> str:
+    out = subprocess.run(["git", "-C", tree, *args], capture_output=True, text=True, check=False)
     return out.stdout.strip()
+
+
+def _git(*args: str) -> str:
+    return _git_at(ROOT, *args)
 
 
 def _timed(fn, repeats: int, warmup: int = 2) -> list[float]:
@@ -108,86 +122,138 @@ def _eye_bounces(scene, accel, surf, iterations: int):
     return (batch, prim, u, v), first_hits
 
 
+def _flat(x) -> list:
+    """The arrays in a result: nested tuples and records (of a record, its
+    arrays only: PhotonHash.photons was 4 for a GatherPhotons before 88a0134)."""
+    if isinstance(x, np.ndarray):
+        return [x]
+    if isinstance(x, (tuple, list)):
+        return [a for y in x for a in _flat(y)]
+    if hasattr(x, "__dict__"):
+        return _flat([v for v in vars(x).values() if isinstance(v, (np.ndarray, tuple))])
+    return [np.asarray(x)]
+
+
 def _checksum(*arrays) -> float:
     return float(sum(np.asarray(a, np.float64).sum() for a in arrays))
 
 
-def _record(name, samples, results, note=""):
-    med = statistics.median(samples)
-    results[name] = {"median_s": med, "samples_s": samples}
-    print(f"{name:24s} median {med * 1e3:9.2f} ms  (n={len(samples)}, min "
-          f"{min(samples) * 1e3:.2f}, max {max(samples) * 1e3:.2f}) {note}", flush=True)
+def _load_against(tree: str):
+    """The tracing steps and hash of the checkout `tree`, loaded under other
+    names beside this one's (their other imports resolve to this tree); its
+    tracing steps call its own bounce kernels."""
+    mods = {}
+    for name, rel in (("paths", "kernels/paths.py"), ("trace", "trace.py"), ("hash", "sppm/hash.py")):
+        spec = importlib.util.spec_from_file_location(
+            f"against_{name}", os.path.join(tree, "dosppm_core", rel))
+        mod = importlib.util.module_from_spec(spec)
+        sys.modules[spec.name] = mod    # dataclasses look their module up
+        spec.loader.exec_module(mod)
+        mods[name] = mod
+    mods["trace"].paths = mods["paths"]
+    return mods["trace"], mods["hash"]
+
+
+def _record_inputs(scene, accel, surf, args, parts) -> dict:
+    inputs = {}
+    if "bounce" in parts:
+        inputs["photon"] = _photon_bounce(scene, accel, surf, args.bounce_rows)
+        inputs["eye"] = _eye_bounces(scene, accel, surf, args.eye_iterations)[0]
+        print(f"photon bounce: {len(inputs['photon'][0]):,} rays; eye bounce: "
+              f"{len(inputs['eye'][0]):,} rays")
+    if "hash" in parts:
+        deposits = trace.trace_photon_jobs(accel, surf, _jobs(scene, surf.eps_abs, args.photons),
+                                           trace.NO_CULL, MAX_DEPTH)[0]
+        hits = _eye_bounces(scene, accel, surf, 1)[1]
+        hits = hits.take(spatial_order(hits.position))
+        radius = np.full(len(hits), initial_radius(scene, hits))
+        box = np.stack([hits.position.min(0) - radius[0],
+                        hits.position.max(0) + radius[0]]).astype(np.float64)
+        inputs["hash"] = (hits, radius, reorder_deposits(deposits, box))
+        print(f"hash: {len(hits):,} hit points, {len(deposits):,} photons")
+    return inputs
+
+
+def _cases(scene, accel, surf, inputs, args, T, H) -> dict:
+    """name -> (call, repeats) with tracing steps T and hash module H."""
+    cases = {}
+    if "photon" in inputs:
+        pb, prim, u, v = inputs["photon"]
+        eb, ep, eu, ev = inputs["eye"]
+        cases["scatter_photons"] = (lambda: T.scatter_photons(surf, pb, prim, u, v, T.NO_CULL,
+                                                              MAX_DEPTH), args.repeats)
+        cases["advance_eye_paths"] = (lambda: T.advance_eye(surf, eb, ep, eu, ev, MAX_DEPTH),
+                                      args.repeats)
+    if "pass" in args.only.split(","):
+        cases["photon_pass"] = (lambda: T.trace_photon_jobs(
+            accel, surf, _jobs(scene, surf.eps_abs, args.photons), T.NO_CULL, MAX_DEPTH),
+            args.pass_repeats)
+    if "hash" in inputs:
+        hits, radius, ph = inputs["hash"]
+        table = H.build_photon_hash(ph, hits.position, radius, args.threads)
+        cases["hash_build"] = (lambda: H.build_photon_hash(ph, hits.position, radius,
+                                                           args.threads), args.repeats)
+        cases["hash_gather"] = (lambda: table.gather(hits, radius, surf, args.threads),
+                                args.repeats)
+    return cases
+
+
+def _steady_malloc() -> None:
+    """Fixed glibc thresholds: by default each free of a large array moves
+    the mmap threshold, so whether the next call's arrays page-fault
+    depends on which call ran before it (an A/A pair of identical kernels
+    differed by 15%). Arrays under 32 MiB now come from a heap kept whole."""
+    libc = ctypes.CDLL("libc.so.6")
+    libc.mallopt(-1, 1 << 30)     # M_TRIM_THRESHOLD
+    libc.mallopt(-3, 32 << 20)    # M_MMAP_THRESHOLD (fixed: no dynamic moves)
+
+
+def _paired(new, old, repeats: int):
+    """Samples of `new` and `old`, called alternately (old first in odd
+    pairs), after one warm-up call each."""
+    new(), old()
+    a, b = [], []
+    for r in range(repeats):
+        for fn, out in ((old, b), (new, a)) if r % 2 else ((new, a), (old, b)):
+            t0 = time.perf_counter()
+            fn()
+            out.append(time.perf_counter() - t0)
+    return a, b
 
 
 def run(args) -> dict:
+    if args.against:
+        _steady_malloc()
     numba.set_num_threads(args.threads)
     scene = builtin.make(SCENE)
     scene.camera.width = scene.camera.height = args.eye_side
     accel = Accelerator(scene.vertices, scene.triangles, threads=args.threads)
     surf = trace.SurfaceData.from_scene(scene)
-    results: dict = {}
-
     parts = set(args.only.split(","))
-    if "bounce" in parts:
-        _bounces(scene, accel, surf, args, results)
-    if "pass" in parts or "hash" in parts:
-        deposits = _photon_pass(scene, accel, surf, args, results, "pass" in parts)
-    if "hash" in parts:
-        _e, hits = _eye_bounces(scene, accel, surf, 1)
-        _hash_gather(scene, surf, hits, deposits, args, results)
+    inputs = _record_inputs(scene, accel, surf, args, parts)
+    cases = _cases(scene, accel, surf, inputs, args, trace, hash_gather)
+    old = _cases(scene, accel, surf, inputs, args, *_load_against(args.against)) \
+        if args.against else {}
+    results: dict = {}
+    for name, (call, repeats) in cases.items():
+        out = _flat(call())
+        note = f"checksum {_checksum(*out):.6e}"
+        if name in old:
+            same = all(np.array_equal(x, y) for x, y in zip(out, _flat(old[name][0]())))
+            new_s, old_s = _paired(call, old[name][0], repeats)
+            ratio = statistics.median(n / o for n, o in zip(new_s, old_s))
+            results[name] = {"median_s": statistics.median(new_s), "samples_s": new_s,
+                             "against": {"median_s": statistics.median(old_s), "samples_s": old_s},
+                             "median_pair_ratio": ratio, "identical": same}
+            note += (f"  against: median {statistics.median(old_s) * 1e3:.2f} ms, pair ratio "
+                     f"{ratio:.3f}, {'identical' if same else 'DIFFERENT'}")
+        else:
+            new_s = _timed(call, repeats, warmup=1)
+            results[name] = {"median_s": statistics.median(new_s), "samples_s": new_s}
+        print(f"{name:18s} median {results[name]['median_s'] * 1e3:9.2f} ms (n={len(new_s)}) "
+              f"{note}", flush=True)
     accel.close()
     return results
-
-
-def _bounces(scene, accel, surf, args, results) -> None:
-    pb, prim, u, v = _photon_bounce(scene, accel, surf, args.bounce_rows)
-    dep, nxt, _ends, _c = trace.scatter_photons(surf, pb, prim, u, v, trace.NO_CULL, MAX_DEPTH)
-    print(f"photon bounce: {len(pb):,} rays, {len(dep):,} deposits, {len(nxt):,} continue, "
-          f"checksum {_checksum(dep.position, nxt.origin, nxt.weight):.6e}")
-    _record("scatter_photons", _timed(lambda: trace.scatter_photons(
-        surf, pb, prim, u, v, trace.NO_CULL, MAX_DEPTH), args.repeats), results)
-
-    (eb, eprim, eu, ev), _hits = _eye_bounces(scene, accel, surf, args.eye_iterations)
-    h, (_lit, rgb), enxt, _e = trace.advance_eye(surf, eb, eprim, eu, ev, MAX_DEPTH)
-    print(f"eye bounce: {len(eb):,} rays, {len(h):,} hit points, {len(enxt):,} continue, "
-          f"checksum {_checksum(h.position, enxt.origin, rgb):.6e}")
-    _record("advance_eye_paths", _timed(lambda: trace.advance_eye(
-        surf, eb, eprim, eu, ev, MAX_DEPTH), args.repeats), results)
-
-
-def _photon_pass(scene, accel, surf, args, results, timed: bool) -> PhotonDeposits:
-    """Times the whole photon pass (if `timed`); returns its deposits."""
-    out = []
-
-    def photon_pass():
-        out.append(trace.trace_photon_jobs(accel, surf, _jobs(scene, surf.eps_abs, args.photons),
-                                           trace.NO_CULL, MAX_DEPTH)[0])
-    if timed:
-        _record("photon_pass", _timed(photon_pass, args.pass_repeats, warmup=1), results,
-                f"({args.photons:,} photons)")
-    else:
-        photon_pass()
-    deposits = out[-1]
-    print(f"photon pass: {len(deposits):,} deposits, checksum {_checksum(deposits.position):.6e}")
-    return deposits
-
-
-def _hash_gather(scene, surf, hits, deposits: PhotonDeposits, args, results) -> None:
-    """The hash build and gather of one statistics update, inputs ordered
-    as `PixelStatistics.apply_photons` orders them."""
-    hits = hits.take(spatial_order(hits.position))
-    radius = np.full(len(hits), initial_radius(scene, hits))
-    box = np.stack([hits.position.min(0) - radius[0],
-                    hits.position.max(0) + radius[0]]).astype(np.float64)
-    ph = reorder_deposits(deposits, box)
-    table = build_photon_hash(ph, hits.position, radius, args.threads)
-    m, phi = table.gather(hits, radius, surf, args.threads)
-    print(f"hash: {len(hits):,} hit points, {len(ph.position):,} photons, "
-          f"{len(table.count):,} kept, checksum {_checksum(m, phi):.6e}")
-    _record("hash_build", _timed(lambda: build_photon_hash(ph, hits.position, radius,
-                                                           args.threads), args.repeats), results)
-    _record("hash_gather", _timed(lambda: table.gather(hits, radius, surf, args.threads),
-                                  args.repeats), results)
 
 
 def main() -> None:
@@ -205,17 +271,20 @@ def main() -> None:
     ap.add_argument("--eye-iterations", type=int, default=4)
     ap.add_argument("--json", default=os.path.join(ROOT, "benchmarks", "results", "kernels.json"))
     ap.add_argument("--fresh", action="store_true", help="replace the JSON file's earlier runs")
+    ap.add_argument("--against", default="", help="another checkout to time call by call against")
     args = ap.parse_args()
 
     commit = _git("rev-parse", "HEAD")
     dirty = bool(_git("status", "--porcelain", "--", "dosppm_core"))
     print(f"commit {commit}{' (dosppm_core modified)' if dirty else ''}  tree {ROOT}  "
-          f"label {args.label or '-'}  threads {args.threads}", flush=True)
+          f"label {args.label or '-'}  threads {args.threads}"
+          f"{'  against ' + args.against if args.against else ''}", flush=True)
     if os.path.dirname(os.path.abspath(dosppm_core.__file__)) != os.path.join(ROOT, "dosppm_core"):
         sys.exit(f"dosppm_core imported from {dosppm_core.__file__}, not from {ROOT}")
     results = run(args)
+    against = _git_at(args.against, "rev-parse", "HEAD") if args.against else ""
     run_record = {"commit": commit, "dosppm_core_modified": dirty, "label": args.label,
-                  "tree": ROOT, "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
+                  "against_commit": against, "tree": ROOT, "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
                   "settings": {k: v for k, v in vars(args).items() if k not in ("json", "fresh")},
                   "results": results}
     runs = []

@@ -13,7 +13,7 @@ from dosppm_core.kernels.bsdf import eval_bsdf
 from dosppm_core.scene.model import Material, MaterialTable
 from dosppm_core.sppm.grid import NORMAL_COS, gather_grid, grid_layout
 from dosppm_core.sppm.hash import build_photon_hash, gather_hash, hash_layout, hash_statistics
-from dosppm_core.sppm.statistics import PixelStatistics
+from dosppm_core.sppm.statistics import PixelStatistics, reorder_deposits
 
 MATERIALS = MaterialTable.from_materials([
     Material("matte", reflectance=(0.8, 0.5, 0.3)),
@@ -355,6 +355,20 @@ def test_hash_statistics_count_discarded_photons(case):
     assert s["slots_used"] <= 61
     assert s["discarded_fraction"] == pytest.approx(1 - s["slots_used"] / s["photons_binned"])
     assert hash_statistics(ph, hp, r, **EXACT)["discarded_fraction"] == 0.0
+
+
+def test_gathers_take_the_reordered_columns_as_deposits(case):
+    """The statistics update passes its photons as Morton-ordered columns
+    (a GatherPhotons tuple, whose len() is 4): counts must come from the
+    photons, and both gathers must give what they give for the deposits."""
+    ph, hp, r, _, _, (m, phi) = case
+    cols = reorder_deposits(ph, None)
+    assert build_photon_hash(cols, hp.position, r, 2, **EXACT).photons == len(ph)
+    hm, _ = gather_hash(cols, hp, r, MATERIALS, 2, **EXACT)
+    np.testing.assert_array_equal(hm, m)
+    gm, gphi = gather_grid(cols, hp, r, MATERIALS, 2)
+    np.testing.assert_array_equal(gm, m)
+    np.testing.assert_allclose(gphi, phi, rtol=1e-9, atol=0)
 
 
 # -- through the pixel statistics ------------------------------------------------------

