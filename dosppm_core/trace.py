@@ -75,15 +75,8 @@ def advance_eye(surf: SurfaceData, batch: RayBatch, prim, u, v, max_depth: int):
 
 
 def trace_photons(accel, surf, batch, cull_box, max_depth):
-    """Follow a photon batch until every path ends (one aggregate)."""
-    deposits, ends, culled = [], np.zeros(END_KINDS, np.int64), 0
-    while len(batch):
-        dep, batch, e, c = photon_step(accel, surf, batch, cull_box, max_depth)
-        deposits.append(dep)
-        ends += e
-        culled += c
-    ends[0] = 0
-    return PhotonDeposits.concat(deposits), ends, culled
+    """Follow one photon batch until every path ends (one aggregate)."""
+    return trace_photon_jobs(accel, surf, [batch], cull_box, max_depth, min_batch=1)
 
 
 def trace_photon_jobs(accel, surf, jobs, cull_box, max_depth, min_batch: int = 32_768,
