@@ -10,6 +10,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 
+DIRECT_MODES = ("nee", "photons")
+
+
 @dataclass
 class RenderSettings:
     seed: int = 0
@@ -25,12 +28,18 @@ class RenderSettings:
     reorder: bool = True                 # Morton-sort photons before the gather
     cull: bool = True                    # drop photons outside the hit-point box (§4.3)
     hash_options: dict = field(default_factory=dict)
+    # Direct light at hit points: 'nee' (a shadow ray per hit point and
+    # iteration; photons deposit from their second surface on) or
+    # 'photons' (the paper's pure estimator: every photon deposits).
+    direct: str = "nee"
 
     def validate(self) -> None:
         if not 0 < self.alpha < 1:
             raise ValueError(f"alpha must lie in (0, 1), got {self.alpha}")
         if self.max_depth < 1:
             raise ValueError(f"max_depth must be >= 1, got {self.max_depth}")
+        if self.direct not in DIRECT_MODES:
+            raise ValueError(f"direct must be one of {', '.join(DIRECT_MODES)}, got {self.direct!r}")
         if self.gather not in ("grid", "hash"):
             raise ValueError(f"gather must be 'grid' or 'hash', got {self.gather!r}")
         for name in ("photons_per_iteration", "photons_per_job", "photon_batch", "tile_pixels"):

@@ -18,7 +18,7 @@ import re
 import tomllib
 from dataclasses import dataclass
 
-from dosppm_core.settings import SERVICE_JOB_SIZES, RenderSettings
+from dosppm_core.settings import DIRECT_MODES, SERVICE_JOB_SIZES, RenderSettings
 
 
 @dataclass(frozen=True)
@@ -66,6 +66,8 @@ RENDER = (
     _opt("alpha", float, _LIBRARY.alpha, "radius reduction (eqs. 1-2)"),
     _opt("radius", float, _LIBRARY.radius, "initial radius in scene units (default: from scene and pixel size)"),
     _opt("max_depth", int, _LIBRARY.max_depth, "surfaces a path may hit"),
+    _opt("direct", str, _LIBRARY.direct, "direct light at hit points: nee (a shadow ray each) or "
+         "photons (the paper's pure estimator)", DIRECT_MODES),
     _opt("photons_per_iteration", int, _LIBRARY.photons_per_iteration, "photons between eye iterations"),
     _opt("photons_per_job", int, SERVICE_JOB_SIZES["photons_per_job"], "photons per photon job"),
     _opt("photon_batch", int, _LIBRARY.photon_batch, "deposits per statistics update (server batching)"),
