@@ -146,3 +146,42 @@ def test_mirror_pixels_are_scored_apart_against_the_mirror_limit(monkeypatch, tm
     assert all(r["mirror_limit_bias"] is not None for r in doc["samples"])
     assert "mirror_limit_blurred_relmse" in (tmp_path / "results.csv").read_text().splitlines()[0]
     assert "Mirror pixels against the mirror limit" in (tmp_path / "summary.md").read_text()
+
+
+FLOOR_XML = """<scene version="3.0.0">
+    <sensor type="perspective"><float name="fov" value="60"/>
+        <transform name="to_world"><lookat origin="0, 1, 3" target="0, 0, 0" up="0, 1, 0"/></transform>
+        <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="12"/></film>
+    </sensor>
+    <shape type="rectangle"><bsdf type="diffuse"/>
+        <transform name="to_world"><rotate x="1" angle="-90"/></transform></shape>
+    <emitter type="point"><point name="position" x="0" y="1" z="0"/></emitter>
+</scene>
+"""
+
+
+def test_a_case_from_the_shared_folder_keeps_its_resolution_and_file_reference(monkeypatch, tmp_path):
+    """The scene is loaded by path at its own 16x12 (not the suite's 32x32),
+    scored against the EXR beside it; its pbrt file is handed to the methods."""
+    from dosppm_core.film import write_exr
+    (tmp_path / "case").mkdir()
+    (tmp_path / "case" / "floor.xml").write_text(FLOOR_XML)
+    write_exr(str(tmp_path / "case" / "ref.exr"), np.full((12, 16, 3), 0.5, np.float32))
+    (tmp_path / "case" / "floor.pbrt").write_text("WorldBegin\n")
+    seen = {}
+
+    def fake_run(method, scene, budgets, seed, work, pbrt_file=None):
+        seen.update(scene=scene, pbrt_file=pbrt_file)
+        return [(budgets[-1], 0.1, 0, np.full((12, 16, 3), 0.6, np.float32))]
+    monkeypatch.setattr(evaluate, "run_method", fake_run)
+    monkeypatch.setattr(evaluate, "_warm_kernels", lambda: None)
+    files = evaluate.SharedFiles("case/floor.xml", "case/ref.exr", "a made-up reference",
+                                 pbrt="case/floor.pbrt")
+    suite = evaluate.Suite("file-test", 32, 32, (evaluate.Case("floor", "a file case", "file",
+                                                                files=files),), ("sppm-grid",))
+    ev = evaluate.evaluate(suite, 0.3, log=lambda _l: None, shared=str(tmp_path))
+    assert not ev.failed and not ev.skipped
+    assert (seen["scene"].camera.width, seen["scene"].camera.height) == (16, 12)
+    assert seen["pbrt_file"] == str(tmp_path / "case" / "floor.pbrt")
+    assert ev.references["floor"] == "a made-up reference"
+    assert [round(s.bias, 3) for s in ev.samples] == [0.2]

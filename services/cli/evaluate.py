@@ -2,6 +2,10 @@
 scenes (the harness is `services.evaluation.evaluate`).
 
     dosppm evaluate SUITE [--budget-s S] [--out DIR] [--method M ...] [--scene NAME ...]
+                          [--shared DIR]
+
+Peers that are not installed (Mitsuba 3, pbrt-v4) and cases whose files
+are not in the shared folder are skipped, each with its reason.
 
 Exit codes: 0 success, 1 a method failed on a scene (recorded in the
 results), 2 bad input.
@@ -20,7 +24,8 @@ def add_parser(sub) -> None:
         "evaluate", help="speed against accuracy: every method on a suite of scenes",
         description="Render each scene of SUITE with each method, stopped at 1/8, 1/4, 1/2 "
                     "and all of the time budget, and score every stop against the scene's "
-                    "Mitsuba 3 reference (rendered once, then cached). Writes results.json, "
+                    "reference: Mitsuba 3's (rendered once, then cached), or an image in the "
+                    "shared folder (pbrt-v4's, for sponza-point). Writes results.json, "
                     "results.csv, summary.md and, with matplotlib, the charts.")
     p.add_argument("suite", choices=sorted(evaluate.SUITES), help="the suite of scenes")
     p.add_argument("--budget-s", type=float, default=20.0,
@@ -33,6 +38,10 @@ def add_parser(sub) -> None:
                                              "(default ~/.cache/dosppm/references)")
     p.add_argument("--reference-spp-scale", type=float, default=1.0,
                    help="scale the suite's reference sample counts (quick looks: 0.1)")
+    p.add_argument("--shared", metavar="DIR",
+                   help=f"the shared folder of scenes and references (default ${evaluate.SHARED_ENV}, "
+                        "else ../shared beside the repository); cases that need it are skipped "
+                        "without it")
     p.add_argument("--seed", type=int, default=1)
     p.set_defaults(func=run)
 
@@ -47,7 +56,8 @@ def run(args) -> int:
         return fail(f"scene {unknown[0]!r} is not in suite {suite.name!r} (known: {', '.join(sorted(known))})")
     suite = dataclasses.replace(suite, reference_spp_scale=args.reference_spp_scale)
     ev = evaluate.evaluate(suite, args.budget_s, args.method, args.scene, args.reference_cache,
-                           args.seed, log=lambda line: print(line, file=sys.stderr), out_dir=args.out)
+                           args.seed, log=lambda line: print(line, file=sys.stderr), out_dir=args.out,
+                           shared=args.shared)
     for path in evaluate.write_results(ev, args.out):
         print(path)
     print(evaluate.summary_markdown(ev))

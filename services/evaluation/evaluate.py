@@ -6,11 +6,14 @@ scene's reference image (relMSE, RMSE, mean-luminance bias, and the relMSE
 of blurred images, which averages noise away so that mostly bias is left).
 
 Time is render time: scene loading, BVH builds, compiled-kernel loading and
-process start are not counted for any method (Mitsuba's scene load neither).
-The in-process methods are progressive, so one run is stopped at each
-budget in turn; Mitsuba renders once per sample count (1, 2, 4, ... spp);
-DOSPPM runs `dosppm render --mode dosppm --time T` once per budget, as a
-user would, and its clock is the server's (`seconds` in OUT.json).
+process start are not counted for the in-process methods and Mitsuba
+(its scene load neither). The in-process methods are progressive, so one
+run is stopped at each budget in turn; Mitsuba renders once per sample
+count (1, 2, 4, ... spp); pbrt-v4 (`services.evaluation.pbrt`) once per
+sample count or SPPM iteration count, each run timed as a whole process
+(its start and scene load, about 0.3 s on Sponza, count); DOSPPM runs
+`dosppm render --mode dosppm --time T` once per budget, as a user would,
+and its clock is the server's (`seconds` in OUT.json).
 
 References come from Mitsuba 3 at high sample counts, cached on disk:
 `path`, or `ptracer` where a point light's caustic is seen directly (a
@@ -21,6 +24,11 @@ converges; those pixels are left out of the scores above and, where the
 case allows it, scored apart against the mirror's limit (`mirror_limit`:
 the reflectance times the floor radiance that light tracing renders from
 above).
+
+A case may instead take its scene and reference image from the shared
+folder (`--shared DIR`, else $DOSPPM_SHARED, else ../shared beside the
+repository): `sponza-point`'s reference is pbrt-v4's. Without the folder
+such a case is skipped with its reason, as a missing peer renderer is.
 """
 from __future__ import annotations
 
@@ -34,7 +42,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
@@ -49,21 +57,38 @@ from dosppm_core.modes.osppm import OutOfCoreRenderer
 from dosppm_core.modes.sppm import Renderer
 from dosppm_core.reference import cached_reference, render_reference
 from dosppm_core.scene import builtin
+from dosppm_core.scene.loaders import load_scene
 from dosppm_core.scene.model import Scene
 from dosppm_core.scene.soup import SceneSource
-from dosppm_core.settings import RenderSettings
+from dosppm_core.settings import DIRECT_MODES, RenderSettings
 from dosppm_core.trace import eye_ray_job
+from services.evaluation import pbrt
 
 BLUR_SIGMA_PX = 2.0
 BUDGET_FRACTIONS = (0.125, 0.25, 0.5, 1.0)
+SHARED_ENV = "DOSPPM_SHARED"
+REPOSITORY = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+
+class CaseSkipped(Exception):
+    """A case cannot run on this machine (its shared files are absent); one line."""
+
+
+@dataclass(frozen=True)
+class SharedFiles:
+    """A case's files, relative to the shared folder."""
+    scene: str                    # for dosppm and Mitsuba: Mitsuba XML or TOML
+    reference: str                # EXR at the scene's own resolution
+    about: str                    # how the reference was made
+    pbrt: str = ""                # the same scene for pbrt-v4 (else it is exported)
 
 
 @dataclass(frozen=True)
 class Case:
     """One scene of a suite: what it tests and how its reference is made."""
-    scene: str
+    scene: str                    # a built-in scene, or the case's name when `files` is set
     tests: str
-    reference: str = "path"       # 'path', 'ptracer' or 'ptracer+path'
+    reference: str = "path"       # 'path', 'ptracer', 'ptracer+path' or 'file'
     spp: int = 4096               # reference samples per pixel
     # Pixels scored: 'all', or 'no-specular-in-view' where what the camera
     # sees in a mirror or through glass is lit by caustics of a point light
@@ -74,6 +99,9 @@ class Case:
     # limit reference of `mirror_limit` (a flat Lambertian floor seen in
     # perfect mirrors).
     mirror_limit: bool = False
+    # Scene and reference image from the shared folder (`reference` 'file');
+    # the scene keeps its own resolution, which the reference has.
+    files: SharedFiles | None = None
 
 
 @dataclass(frozen=True)
@@ -89,13 +117,16 @@ class Suite:
 @dataclass(frozen=True)
 class Method:
     name: str
-    kind: str                     # 'sppm', 'osppm', 'dosppm' or 'mitsuba'
+    kind: str                     # 'sppm', 'osppm', 'dosppm', 'mitsuba' or 'pbrt'
     options: dict = field(default_factory=dict)
     about: str = ""
 
 
 METHODS = {m.name: m for m in (
-    Method("sppm-grid", "sppm", {"gather": "grid"}, "SPPM, exact grid gather"),
+    Method("sppm-grid", "sppm", {"gather": "grid"},
+           "SPPM, exact grid gather, the default estimator (direct light by shadow rays)"),
+    Method("sppm-photons", "sppm", {"gather": "grid", "direct": "photons"},
+           "SPPM, exact grid gather, the paper's pure estimator (direct light from photons)"),
     Method("sppm-hash-512x128x512", "sppm", {"gather": "hash", "resolution": (512, 128, 512)},
            "SPPM, stochastic hash at the paper's table size"),
     Method("sppm-hash-128x32x128", "sppm", {"gather": "hash", "resolution": (128, 32, 128)},
@@ -107,6 +138,10 @@ METHODS = {m.name: m for m in (
     Method("dosppm", "dosppm", {}, "DOSPPM: server and 2 tracer processes on this machine"),
     Method("mitsuba-path", "mitsuba", {"integrator": "path"}, "Mitsuba 3 path tracer"),
     Method("mitsuba-ptracer", "mitsuba", {"integrator": "ptracer"}, "Mitsuba 3 light tracer"),
+    Method("pbrt-sppm", "pbrt", {"integrator": "sppm", "max_depth": 10},
+           "pbrt-v4 SPPM, 100k photons per iteration, radius 3 pixel footprints, depth 10"),
+    Method("pbrt-path", "pbrt", {"integrator": "path", "max_depth": 10},
+           "pbrt-v4 path tracer, depth 10"),
 )}
 
 CAUSTIC_SCENES = ("cardioid", "cornell-caustic", "glass-small-light")
@@ -132,6 +167,15 @@ SUITES = {s.name: s for s in (
         Case("cardioid", "point-light caustic", "ptracer+path", spp=1024,
              scored="no-specular-in-view"),
     ), ("sppm-grid", "sppm-hash-128x32x128", "osppm-c4", "mitsuba-path")),
+    # A real building against pbrt-v4 (issue 12), from the shared folder.
+    Suite("sponza", 320, 240, (
+        Case("sponza-point", "the Sponza atrium lit by one point light: sharp direct light, "
+             "long diffuse paths, a real mesh", "file", files=SharedFiles(
+                 "references/sponza-point/sponza_point.xml",
+                 "references/sponza-point/reference_pbrt_path_2048spp.exr",
+                 "pbrt-v4 path, 2048 spp, max depth 50 (references/sponza-point/SOURCE.md)",
+                 pbrt="references/sponza-point/sponza_point.pbrt")),
+    ), ("sppm-grid", "sppm-photons", "dosppm", "pbrt-sppm", "pbrt-path", "mitsuba-path")),
 )}
 
 
@@ -159,10 +203,46 @@ class Sample:
 
 # -- scenes and references ----------------------------------------------------
 
-def suite_scene(suite: Suite, case: Case) -> Scene:
+def shared_dir(given: str | None = None) -> str | None:
+    """The shared folder: `given`, else $DOSPPM_SHARED, else ../shared
+    beside the repository if it exists, else None."""
+    if given or os.environ.get(SHARED_ENV):
+        return given or os.environ[SHARED_ENV]
+    beside = os.path.join(os.path.dirname(REPOSITORY), "shared")
+    return beside if os.path.isdir(beside) else None
+
+
+def shared_file(shared: str | None, name: str) -> str:
+    """The path of `name` in the shared folder; CaseSkipped if it is absent."""
+    if shared is None:
+        raise CaseSkipped(f"no shared folder for {name} (give --shared DIR or set {SHARED_ENV})")
+    path = os.path.join(shared, name)
+    if not os.path.isfile(path):
+        raise CaseSkipped(f"{name} is not in the shared folder {shared} "
+                          f"(give --shared DIR or set {SHARED_ENV})")
+    return path
+
+
+def suite_scene(suite: Suite, case: Case, shared: str | None = None) -> Scene:
+    """The case's scene at the suite's resolution; a scene from the shared
+    folder keeps its own, which its reference image has."""
+    if case.files:
+        return load_scene(shared_file(shared, case.files.scene))
     scene = builtin.make(case.scene)
     scene.camera.width, scene.camera.height = suite.width, suite.height
     return scene
+
+
+def file_reference(scene: Scene, case: Case, shared: str | None) -> np.ndarray:
+    """A case's reference image from the shared folder, checked against the
+    scene's resolution."""
+    path = shared_file(shared, case.files.reference)
+    image = read_exr(path)[0]
+    want = (int(scene.camera.height), int(scene.camera.width), 3)
+    if image.shape != want:
+        raise ValueError(f"{path}: {image.shape[1]}x{image.shape[0]}, but the scene renders "
+                         f"{want[1]}x{want[0]}")
+    return image
 
 
 def reference_image(scene: Scene, case: Case, spp: int, cache_dir: str):
@@ -228,12 +308,15 @@ def method_available(method: Method) -> str | None:
             import mitsuba  # noqa: F401 - optional (the [reference] extra)
         except ImportError:
             return "mitsuba is not installed (pip install .[reference])"
+    if method.kind == "pbrt":
+        return pbrt.missing_reason()
     return None
 
 
 def run_method(method: Method, scene: Scene, budgets: list[float], seed: int,
-               work: str) -> list[tuple[float, float, int, np.ndarray]]:
-    """(budget, seconds, photons, image) at each budget."""
+               work: str, pbrt_file: str | None = None) -> list[tuple[float, float, int, np.ndarray]]:
+    """(budget, seconds, photons, image) at each budget; `pbrt_file` is the
+    scene for pbrt-v4 where a case gives one (else `scene` is exported)."""
     if method.kind == "sppm":
         return _progressive(lambda: Renderer(scene, _settings(method, seed)), budgets)
     if method.kind == "osppm":
@@ -242,11 +325,16 @@ def run_method(method: Method, scene: Scene, budgets: list[float], seed: int,
         return _dosppm(scene, budgets, seed, work)
     if method.kind == "mitsuba":
         return _mitsuba(scene, method.options["integrator"], budgets, seed)
+    if method.kind == "pbrt":
+        return _pbrt(method, scene, budgets, seed, work, pbrt_file)
     raise ValueError(f"unknown method kind {method.kind!r}")
 
 
 def _settings(method: Method, seed: int) -> RenderSettings:
     s = RenderSettings(seed=seed, gather=method.options.get("gather", "grid"))
+    for name in ("direct", "max_depth"):    # else RenderSettings' defaults
+        if name in method.options:
+            setattr(s, name, method.options[name])
     if "resolution" in method.options:
         s.hash_options = {"resolution": tuple(method.options["resolution"])}
     return s
@@ -304,13 +392,60 @@ def _mitsuba(scene: Scene, integrator: str, budgets, seed: int):
         spp *= 2
 
 
+def _pbrt(method: Method, scene: Scene, budgets, seed: int, work: str, pbrt_file: str | None):
+    """pbrt-v4 at 1, 2, 4, ... spp (`path`) or iterations (`sppm`), each run
+    timed alone as a whole process, up to the last budget; each run is
+    filed under the smallest budget it fits, as Mitsuba's are."""
+    world = pbrt_file or pbrt.write_scene(scene, tempfile.mkdtemp(prefix="pbrt-", dir=work))
+    with open(world, encoding="utf-8") as f:
+        text = f.read()
+    integrator = method.options["integrator"]
+    settings = pbrt.RenderSettings(integrator, 1, int(method.options["max_depth"]),
+                                   int(scene.camera.width), int(scene.camera.height),
+                                   radius=pbrt_sppm_radius(scene) if integrator == "sppm" else 1.0)
+    target, run_file = os.path.join(work, "pbrt.exr"), os.path.join(work, "pbrt-run.pbrt")
+    out = []
+    while True:
+        with open(run_file, "w", encoding="utf-8") as f:
+            f.write(pbrt.with_render_settings(text, pbrt.render_directives(settings, target),
+                                              os.path.dirname(os.path.abspath(world))))
+        seconds, image = pbrt.render(run_file, target, seed + settings.samples)
+        if seconds > budgets[-1] * 1.25 and out:
+            return out
+        photons = settings.samples * settings.photons_per_iteration if integrator == "sppm" else 0
+        out.append((next((b for b in budgets if seconds <= b), budgets[-1]), seconds, photons, image))
+        # The next run takes about twice as long: stop where it would overshoot.
+        if 2 * seconds > budgets[-1] * 1.25:
+            return out
+        settings = replace(settings, samples=2 * settings.samples)
+
+
+def pbrt_sppm_radius(scene: Scene, pixels_across: float = 3.0) -> float:
+    """pbrt-v4 SPPM's initial radius: `pixels_across` pixel footprints at the
+    median distance of the surfaces the camera sees (pbrt's default, 1, is
+    in world units whatever the scene's size)."""
+    w, h = int(scene.camera.width), int(scene.camera.height)
+    rays = eye_ray_job(scene, 12345, 0, 0, w * h)
+    accel = Accelerator(scene.vertices, scene.triangles)
+    try:
+        prim, t = accel.intersect(rays.origin, rays.direction)[:2]
+    finally:
+        accel.close()
+    hit = prim >= 0
+    if not hit.any():
+        return scene.diagonal() / 100.0
+    dist = float(np.median(t[hit] * np.linalg.norm(rays.direction[hit], axis=1)))
+    return pixels_across * 2.0 * float(scene.camera.frame()[4, 0]) * dist / w
+
+
 def _dosppm(scene: Scene, budgets, seed: int, work: str):
     """`dosppm render --mode dosppm` per budget, on the scene's built-in
-    name; the clock is the server's render time from OUT.json."""
+    name or file; the clock is the server's render time from OUT.json."""
     out = []
+    spec = scene.source if os.path.isfile(scene.source) else scene.name
     for budget in budgets:
         target = os.path.join(work, f"dosppm-{scene.name}-{budget:g}.exr")
-        cmd = [sys.executable, "-m", "services.cli", "render", scene.name, "--mode", "dosppm",
+        cmd = [sys.executable, "-m", "services.cli", "render", spec, "--mode", "dosppm",
                "--time", f"{budget:g}", "--seed", str(seed), "--width", str(scene.camera.width),
                "--height", str(scene.camera.height), "--out", target, "--quiet", "--http", "off"]
         done = subprocess.run(cmd, capture_output=True, text=True, timeout=budget * 4 + 120)
@@ -361,7 +496,7 @@ class Evaluation:
     suite: str
     budget_s: float
     samples: list = field(default_factory=list)
-    skipped: dict = field(default_factory=dict)      # method -> why
+    skipped: dict = field(default_factory=dict)      # method or scene -> why
     failed: dict = field(default_factory=dict)       # "scene/method" -> error
     references: dict = field(default_factory=dict)   # scene -> description
     images: dict = field(default_factory=dict)       # (scene, method) -> image at full budget
@@ -369,10 +504,11 @@ class Evaluation:
 
 def evaluate(suite: Suite, budget_s: float, methods: list[str] | None = None,
              scenes: list[str] | None = None, cache_dir: str | None = None, seed: int = 1,
-             log=print, out_dir: str | None = None) -> Evaluation:
-    """Run the suite; `methods` / `scenes` restrict it. With `out_dir`, the
-    results so far are written after every scene, so a run that is cut
-    short keeps what it measured."""
+             log=print, out_dir: str | None = None, shared: str | None = None) -> Evaluation:
+    """Run the suite; `methods` / `scenes` restrict it; `shared` is the
+    shared folder (default: `shared_dir()`). With `out_dir`, the results so
+    far are written after every scene, so a run that is cut short keeps
+    what it measured."""
     cache_dir = cache_dir or os.path.join(os.path.expanduser("~"), ".cache", "dosppm", "references")
     chosen = [METHODS[m] for m in (methods or suite.methods)]
     budgets = [budget_s * f for f in BUDGET_FRACTIONS]
@@ -386,41 +522,71 @@ def evaluate(suite: Suite, budget_s: float, methods: list[str] | None = None,
             ev.skipped[m.name] = why
             log(f"skipped {m.name}: {why}")
     _warm_kernels()
+    shared = shared_dir(shared)
     with tempfile.TemporaryDirectory(prefix="dosppm-evaluate-") as work:
         for case in suite.cases:
-            if scenes and case.scene not in scenes:
-                continue
-            scene = suite_scene(suite, case)
-            spp = max(16, int(case.spp * suite.reference_spp_scale))
-            log(f"{case.scene}: reference ({case.reference}, {spp} spp)")
-            try:
-                reference, scored = reference_image(scene, case, spp, cache_dir)
-            except Exception as exc:  # noqa: BLE001 - nothing to score against; the other scenes go on
-                _record_failure(ev, f"{case.scene}/reference", exc, log)
-                continue
-            ev.references[case.scene] = f"Mitsuba 3 {case.reference}, {spp} spp" + (
-                "" if scored is None else f"; {scored.mean():.0%} of pixels scored ({case.scored})")
-            ev.images[(case.scene, "reference")] = reference
-            limit = _mirror_limit(ev, case, scene, reference, scored, cache_dir, log)
-            for m in chosen:
-                if m.name in ev.skipped:
-                    continue
-                log(f"{case.scene}: {m.name}")
-                try:
-                    stops = run_method(m, scene, budgets, seed, work)
-                    for budget, seconds, photons, image in stops:
-                        s = score(case.scene, m.name, budget, seconds, photons, image,
-                                  reference, scored)
-                        ev.samples.append(s if limit is None else
-                                          score_mirror_limit(s, image, *limit))
-                except Exception as exc:  # noqa: BLE001 - one failing method must not end the suite
-                    _record_failure(ev, f"{case.scene}/{m.name}", exc, log)
-                    continue
-                if stops:
-                    ev.images[(case.scene, m.name)] = stops[-1][3]
-            if out_dir:
-                write_results(ev, out_dir)
+            if case.scene in running:
+                _run_case(ev, suite, case, chosen, budgets, seed, work, cache_dir, shared, log)
+                if out_dir:
+                    write_results(ev, out_dir)
     return ev
+
+
+def _run_case(ev: Evaluation, suite: Suite, case: Case, chosen: list, budgets: list, seed: int,
+              work: str, cache_dir: str, shared: str | None, log) -> None:
+    """Every chosen method on one case, scored; a case whose files are
+    absent is skipped, a failure recorded, and the suite goes on."""
+    try:
+        scene = suite_scene(suite, case, shared)
+        reference, scored, about = case_reference(scene, case, suite, cache_dir, shared, log)
+    except CaseSkipped as why:
+        ev.skipped[case.scene] = str(why)
+        log(f"skipped {case.scene}: {why}")
+        return
+    except Exception as exc:  # noqa: BLE001 - nothing to score against; the other scenes go on
+        _record_failure(ev, f"{case.scene}/reference", exc, log)
+        return
+    ev.references[case.scene] = about
+    ev.images[(case.scene, "reference")] = reference
+    limit = _mirror_limit(ev, case, scene, reference, scored, cache_dir, log)
+    pbrt_file = _case_pbrt_file(case, shared)
+    for m in chosen:
+        if m.name in ev.skipped:
+            continue
+        log(f"{case.scene}: {m.name}")
+        try:
+            stops = run_method(m, scene, budgets, seed, work, pbrt_file)
+            for budget, seconds, photons, image in stops:
+                s = score(case.scene, m.name, budget, seconds, photons, image, reference, scored)
+                ev.samples.append(s if limit is None else score_mirror_limit(s, image, *limit))
+        except Exception as exc:  # noqa: BLE001 - one failing method must not end the suite
+            _record_failure(ev, f"{case.scene}/{m.name}", exc, log)
+            continue
+        if stops:
+            ev.images[(case.scene, m.name)] = stops[-1][3]
+
+
+def case_reference(scene: Scene, case: Case, suite: Suite, cache_dir: str, shared: str | None,
+                   log) -> tuple[np.ndarray, np.ndarray | None, str]:
+    """(image, scored pixels or None for all, a description): the shared
+    folder's image, or Mitsuba's (see `reference_image`)."""
+    if case.files:
+        log(f"{case.scene}: reference {case.files.reference}")
+        return file_reference(scene, case, shared), None, case.files.about
+    spp = max(16, int(case.spp * suite.reference_spp_scale))
+    log(f"{case.scene}: reference ({case.reference}, {spp} spp)")
+    reference, scored = reference_image(scene, case, spp, cache_dir)
+    return reference, scored, f"Mitsuba 3 {case.reference}, {spp} spp" + (
+        "" if scored is None else f"; {scored.mean():.0%} of pixels scored ({case.scored})")
+
+
+def _case_pbrt_file(case: Case, shared: str | None) -> str | None:
+    """The case's own pbrt-v4 scene, if it has one here (else pbrt renders
+    the exported scene)."""
+    try:
+        return shared_file(shared, case.files.pbrt) if case.files and case.files.pbrt else None
+    except CaseSkipped:
+        return None
 
 
 def _record_failure(ev: Evaluation, what: str, exc: BaseException, log) -> None:
@@ -467,19 +633,21 @@ def carry_over(ev: Evaluation, out_dir: str, running: set) -> None:
 
 
 def _warm_kernels() -> None:
-    """Compile (or load) the numba kernels, the chunked ones included,
-    before any clock starts."""
+    """Compile (or load) the numba kernels, the chunked ones included, for
+    either kind of direct light, before any clock starts."""
     scene = builtin.make("cornell-box")
     scene.camera.width = scene.camera.height = 8
     with tempfile.TemporaryDirectory(prefix="dosppm-warm-") as work:
-        for make in (lambda: Renderer(scene, RenderSettings(photons_per_iteration=2000)),
-                     lambda: _osppm(METHODS["osppm-c4"], scene, 0, work)):
-            r = make()
-            r.settings.photons_per_iteration = 2000
-            for gather in ("grid", "hash"):
-                r.settings.gather = gather
-                r.run_iteration()
-            r.close()
+        for direct in DIRECT_MODES:
+            method = Method("warm", "osppm", {"chunks": 4, "direct": direct})
+            for make in (lambda m=method: Renderer(scene, _settings(m, 0)),
+                         lambda m=method: _osppm(m, scene, 0, work)):
+                r = make()
+                r.settings.photons_per_iteration = 2000
+                for gather in ("grid", "hash"):
+                    r.settings.gather = gather
+                    r.run_iteration()
+                r.close()
 
 
 # -- output ---------------------------------------------------------------------
@@ -573,8 +741,25 @@ def mirror_limit_table(ev: Evaluation, last: dict, methods: list) -> list[str]:
 def claims(ev: Evaluation) -> list[str]:
     """The issue's two claims as measured: SPPM against Mitsuba `path` at
     equal time, on the caustic scenes and the others; where the reference
-    is black (a dark room behind a thin wall), the light each leaked."""
+    is black (a dark room behind a thin wall), the light each leaked. Then
+    SPPM against pbrt-v4's SPPM where both ran."""
     last = final_samples(ev)
+    return _mitsuba_claims(ev, last) + _pbrt_claims(ev, last)
+
+
+def _pbrt_claims(ev: Evaluation, last: dict) -> list[str]:
+    out = []
+    for scene in _scene_order(ev):
+        ours, peer = last.get((scene, "sppm-grid")), last.get((scene, "pbrt-sppm"))
+        if not (ours and peer and ours.finite and peer.finite and ours.relmse > 0):
+            continue
+        out.append(f"- {scene}: pbrt-v4 sppm relMSE / SPPM grid relMSE = "
+                   f"{peer.relmse / ours.relmse:.3g}; mean bias SPPM grid {ours.bias:+.1%}, "
+                   f"pbrt-v4 sppm {peer.bias:+.1%}")
+    return out
+
+
+def _mitsuba_claims(ev: Evaluation, last: dict) -> list[str]:
     out = []
     for scene in _scene_order(ev):
         ours, path = last.get((scene, "sppm-grid")), last.get((scene, "mitsuba-path"))
