@@ -168,6 +168,32 @@ class HitPoints(_Record):
               "material": (np.int32, ()), "pixel": (np.int32, ())}
 
 
+@dataclass
+class ShadowRays(_Record):
+    """Shadow rays from hit points to points sampled on lights (direct
+    light by next-event estimation). A ray that reaches `tmax` without
+    hitting anything adds `radiance` to its pixel. It continues its eye
+    path: same pixel, same job, and it ends that path (counted STORED,
+    like a hit point without one)."""
+    origin: np.ndarray      # float32 (n, 3), off the hit point's surface
+    direction: np.ndarray   # float32 (n, 3), unit, toward the light
+    radiance: np.ndarray    # float32 (n, 3): the contribution if unoccluded
+    tmax: np.ndarray        # float32 (n,): distance to the light point
+    pixel: np.ndarray       # int32 (n,)
+    tmin: np.ndarray = None  # float32 (n,): searched in earlier chunks (as RayBatch)
+    job: np.ndarray = None   # int64 (n,): the eye job
+
+    SCHEMA = {"origin": (np.float32, (3,)), "direction": (np.float32, (3,)),
+              "radiance": (np.float32, (3,)), "tmax": (np.float32, ()), "pixel": (np.int32, ()),
+              "tmin": (np.float32, ()), "job": (np.int64, ())}
+
+    def __post_init__(self):
+        if self.tmin is None:
+            self.tmin = np.zeros(self.origin.shape[0], np.float32)
+        if self.job is None:
+            self.job = np.zeros(self.origin.shape[0], np.int64)
+
+
 def paths_per_job(fed: list[np.ndarray], left: list[np.ndarray]):
     """(job ids, paths fed in, paths that left) of a tracing step, from the
     `job` columns of the batches in and of those leaving through portals.

@@ -33,6 +33,13 @@ class RenderSettings:
     # 'photons' (the paper's pure estimator: every photon deposits).
     direct: str = "nee"
 
+    @property
+    def deposit_from(self) -> int:
+        """The first surface (0-based) a photon deposits at: with shadow
+        rays carrying direct light, photons deposit only from their second
+        surface on, so no light is counted twice."""
+        return 1 if self.direct == "nee" else 0
+
     def validate(self) -> None:
         if not 0 < self.alpha < 1:
             raise ValueError(f"alpha must lie in (0, 1), got {self.alpha}")

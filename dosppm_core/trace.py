@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 
 from dosppm_core.accel import Accelerator
-from dosppm_core.jobs import HitPoints, PhotonDeposits, RayBatch
-from dosppm_core.kernels import emit, paths
+from dosppm_core.jobs import STORED, HitPoints, PhotonDeposits, RayBatch, ShadowRays
+from dosppm_core.kernels import direct, emit, paths
 from dosppm_core.kernels.paths import SurfaceData
-from dosppm_core.scene.model import Scene
+from dosppm_core.scene.model import LightTable, Scene
 
 NO_CULL = np.array([[-np.inf] * 3, [np.inf] * 3])
 EPS_REL = 2e-5   # spawn offset relative to |p|: ~300 float32 ulps
@@ -36,51 +36,90 @@ def eye_ray_job(scene: Scene, seed: int, iteration: int, pixel_start: int, count
 
 
 def photon_step(accel: Accelerator, surf: SurfaceData, batch: RayBatch,
-                cull_box: np.ndarray, max_depth: int):
+                cull_box: np.ndarray, max_depth: int, deposit_from: int = 0):
     """One bounce. Returns (deposits, continuing batch, end counts, culled)."""
     prim, _t, u, v = accel.intersect(batch.origin, batch.direction)
-    return scatter_photons(surf, batch, prim, u, v, cull_box, max_depth)
+    return scatter_photons(surf, batch, prim, u, v, cull_box, max_depth, deposit_from)
 
 
 def scatter_photons(surf: SurfaceData, batch: RayBatch, prim, u, v,
-                    cull_box: np.ndarray, max_depth: int):
+                    cull_box: np.ndarray, max_depth: int, deposit_from: int = 0):
     """The photon bounce at known hits (`prim` -1: escaped), for any
-    aggregate: the whole scene or one chunk (`surf` indexes like `prim`)."""
+    aggregate: the whole scene or one chunk (`surf` indexes like `prim`).
+    Photons deposit from their surface `deposit_from` on (0 or 1: see
+    `RenderSettings.deposit_from`)."""
     # float64: one compiled kernel whatever the caller's box (exact for float32)
     box = np.asarray(cull_box, np.float64)
     ends, culled, dep, nxt = paths.scatter_photons(
         (batch.direction, batch.weight, batch.depth, batch.rng, batch.job, batch.pixel),
-        (prim, u, v), surf, box, max_depth, EPS_REL)
+        (prim, u, v), surf, box, max_depth, int(deposit_from), EPS_REL)
     no, nd, nf, st, depth, job, pixel = nxt
     return (PhotonDeposits(*dep), RayBatch(no, nd, nf, pixel, depth, st, job=job),
             ends, culled)
 
 
-def eye_step(accel: Accelerator, surf: SurfaceData, batch: RayBatch, max_depth: int):
+def eye_step(accel: Accelerator, surf: SurfaceData, batch: RayBatch, max_depth: int,
+             lights: tuple | None = None):
     """One bounce of eye paths. Returns (hit points, emitted (pixel, rgb),
-    continuing batch, end counts)."""
+    continuing batch, end counts, shadow rays)."""
     prim, _t, u, v = accel.intersect(batch.origin, batch.direction)
-    return advance_eye(surf, batch, prim, u, v, max_depth)
+    return advance_eye(surf, batch, prim, u, v, max_depth, lights)
 
 
-def advance_eye(surf: SurfaceData, batch: RayBatch, prim, u, v, max_depth: int):
-    """The eye-path bounce at known hits, for any aggregate."""
+def advance_eye(surf: SurfaceData, batch: RayBatch, prim, u, v, max_depth: int,
+                lights: tuple | None = None):
+    """The eye-path bounce at known hits, for any aggregate. With `lights`
+    (`light_arrays`), each hit point also samples a light: its path goes
+    on as a shadow ray, and ends (STORED) when that ray does."""
     ends, (lit, rgb), (h, hpos, hn), (g, no, nd, nw, st) = paths.advance_eye_paths(
         (batch.direction, batch.weight, batch.depth, batch.rng), (prim, u, v), surf,
         max_depth, EPS_REL)
     hits = HitPoints(hpos, hn, -batch.direction[h], batch.weight[h],
                      surf.tri_material[prim[h]], batch.pixel[h])
     nxt = RayBatch(no, nd, nw, batch.pixel[g], batch.depth[g] + 1, st, job=batch.job[g])
-    return hits, (batch.pixel[lit], rgb), nxt, ends
+    shadows = ShadowRays.empty()
+    if lights is not None and len(hits):
+        shadows = shadow_rays(surf, lights, hits, batch.rng[h], batch.job[h])
+        ends[STORED] -= len(shadows)
+    return hits, (batch.pixel[lit], rgb), nxt, ends, shadows
 
 
-def trace_photons(accel, surf, batch, cull_box, max_depth):
+# -- direct light -----------------------------------------------------------------
+def light_arrays(lights: LightTable) -> tuple:
+    """The light table as the tuple the direct-light kernel reads."""
+    L = lights
+    return (L.kind, L.p0, L.p1, L.p2, L.value, L.cone, L.power, L.cdf)
+
+
+def shadow_rays(surf: SurfaceData, lights: tuple, hits: HitPoints, states, jobs) -> ShadowRays:
+    """A light sample and its shadow ray per hit point (`kernels.direct`);
+    hit points whose sample contributes nothing get none."""
+    rows, o, d, tmax, rgb = direct.sample_direct(
+        (hits.position, hits.normal, hits.outgoing, hits.weight, hits.material),
+        np.ascontiguousarray(states), surf, lights, EPS_REL)
+    return ShadowRays(o, d, rgb, tmax, hits.pixel[rows], job=np.asarray(jobs)[rows])
+
+
+def trace_shadows(accel: Accelerator, shadows: ShadowRays):
+    """Shadow rays against one aggregate holding the whole scene. Returns
+    ((pixel, rgb) of those that reached their light, end counts)."""
+    ends = np.zeros(END_KINDS, np.int64)
+    ends[STORED] = len(shadows)
+    if not len(shadows):
+        return (np.empty(0, np.int32), np.empty((0, 3), np.float32)), ends
+    prim, _t, _u, _v = accel.intersect(shadows.origin, shadows.direction, shadows.tmax)
+    lit = prim < 0
+    return (shadows.pixel[lit], shadows.radiance[lit]), ends
+
+
+def trace_photons(accel, surf, batch, cull_box, max_depth, deposit_from: int = 0):
     """Follow one photon batch until every path ends (one aggregate)."""
-    return trace_photon_jobs(accel, surf, [batch], cull_box, max_depth, min_batch=1)
+    return trace_photon_jobs(accel, surf, [batch], cull_box, max_depth, min_batch=1,
+                             deposit_from=deposit_from)
 
 
 def trace_photon_jobs(accel, surf, jobs, cull_box, max_depth, min_batch: int = 32_768,
-                      on_batch=None):
+                      on_batch=None, deposit_from: int = 0):
     """Trace an iterable of photon jobs (RayBatches) as one stream: new jobs
     join the continuing paths whenever fewer than `min_batch` are in flight
     (client batching, §4.3), so Russian roulette's thinning tail never
@@ -105,7 +144,7 @@ def trace_photon_jobs(accel, surf, jobs, cull_box, max_depth, min_batch: int = 3
             break
         if on_batch is not None:
             on_batch(active)
-        dep, active, e, c = photon_step(accel, surf, active, cull_box, max_depth)
+        dep, active, e, c = photon_step(accel, surf, active, cull_box, max_depth, deposit_from)
         deposits.append(dep)
         ends += e
         culled += c
@@ -113,14 +152,22 @@ def trace_photon_jobs(accel, surf, jobs, cull_box, max_depth, min_batch: int = 3
     return PhotonDeposits.concat(deposits), ends, culled
 
 
-def trace_eye(accel, surf, batch, max_depth):
-    """Follow eye paths until each stores a hit point or ends."""
-    hits, pix, rgb, ends = [], [], [], np.zeros(END_KINDS, np.int64)
+def trace_eye(accel, surf, batch, max_depth, lights: tuple | None = None):
+    """Follow eye paths until each stores a hit point or ends; with
+    `lights`, trace each hit point's shadow ray too. Returns (hit points,
+    (pixel, rgb) of light seen directly and, with `lights`, direct light
+    at hit points, end counts)."""
+    hits, pix, rgb, shadows, ends = [], [], [], [], np.zeros(END_KINDS, np.int64)
     while len(batch):
-        h, (p, e), batch, c = eye_step(accel, surf, batch, max_depth)
+        h, (p, e), batch, c, s = eye_step(accel, surf, batch, max_depth, lights)
         hits.append(h)
         pix.append(p)
         rgb.append(e)
+        shadows.append(s)
         ends += c
+    (p, e), c = trace_shadows(accel, ShadowRays.concat(shadows))
+    pix.append(p)
+    rgb.append(e)
+    ends += c
     ends[0] = 0
     return HitPoints.concat(hits), (np.concatenate(pix), np.concatenate(rgb)), ends

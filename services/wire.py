@@ -30,7 +30,7 @@ dtype (small frames over tcp sit at odd offsets in the receive buffer) is
 copied, because numba's kernels want aligned arrays. Decoded arrays may be
 read-only (a `bytes` frame); copy before writing in place. No pickle.
 
-Records (`RayBatch`, `PhotonDeposits`, `HitPoints`) travel as one array per
+Records (`RayBatch`, `PhotonDeposits`, `HitPoints`, `ShadowRays`) travel as one array per
 field, named "<field>.<column>" (e.g. "batch.origin"), with dtypes and
 trailing shapes taken from the record class's SCHEMA, so the wire follows
 the library. A decoded message rebuilds them: `msg.batch` is a `RayBatch`.
@@ -68,7 +68,8 @@ Messages
       results        chunk, culled, queued, eye_iteration|None, ends i64 (5,),
                      job_ids + job_fed + job_left i64 (k,); optional
                      deposits: PhotonDeposits, hits: HitPoints,
-                     emitted_pixels i32 (m,) + emitted_rgb f32 (m, 3)
+                     emitted_pixels i32 (m,) + emitted_rgb f32 (m, 3): light
+                     seen directly and direct light by shadow rays
       chunk_request  chunk
       error          reason, about|None                 (any direction)
     server -> tracer
@@ -83,8 +84,9 @@ Messages
       chunk_data     chunk, sha256, part, parts, offset, file_bytes, data u8
       heartbeat, shutdown (reason)
     tracer -> tracer
-      portal_rays    kind "photon"|"eye", chunk (the destination),
-                     eye_iteration (eye only), cull_box (photon only), batch
+      portal_rays    kind "photon"|"eye"|"shadow", chunk (the destination),
+                     eye_iteration (eye, shadow), cull_box (photon only),
+                     batch: RayBatch (photon, eye) or shadows: ShadowRays
 
 `MESSAGES` holds the specs; `describe()` prints this table from them.
 
@@ -110,6 +112,10 @@ segments: the paths it sent, plus every job_left, minus every job_fed.
 
     job j finished  <=>  open segments of j == 0
 
+An eye path that stores a hit point goes on as that hit point's shadow
+ray (a `portal_rays` package of kind "shadow" when it crosses a portal),
+with the eye job's id: it ends the path where it stops, blocked or at its
+light, so an eye job is finished only once its direct light is in.
 A segment is closed by the same `results` message that carries its
 deposits and hit points, so when a job is finished the server also holds
 everything it produced: no deposit of a finished job can still be on its
@@ -133,9 +139,9 @@ from functools import cached_property
 import msgpack
 import numpy as np
 
-from dosppm_core.jobs import CONTINUES, END_NAMES, HitPoints, PhotonDeposits, RayBatch
+from dosppm_core.jobs import CONTINUES, END_NAMES, HitPoints, PhotonDeposits, RayBatch, ShadowRays
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2   # 2: shadow rays (portal_rays kind 'shadow')
 
 # -- policy ---------------------------------------------------------------------
 MAX_ELEMENTS = 1 << 28           # per array: sanity cap on a declared size
@@ -343,11 +349,13 @@ def _check_results(f: dict) -> str | None:
 
 
 def _check_portal_rays(f: dict) -> str | None:
-    photon = f["kind"] == "photon"
+    photon, shadow = f["kind"] == "photon", f["kind"] == "shadow"
     if photon and (f.get("cull_box") is None or f["eye_iteration"] is not None):
         return "field 'cull_box' is required and 'eye_iteration' must be None for photons"
     if not photon and (f.get("cull_box") is not None or f["eye_iteration"] is None):
-        return "field 'eye_iteration' is required and 'cull_box' must be absent for eye rays"
+        return "field 'eye_iteration' is required and 'cull_box' must be absent for eye and shadow rays"
+    if (f.get("shadows") is not None) != shadow or (f.get("batch") is not None) == shadow:
+        return "kind 'shadow' carries 'shadows' (ShadowRays), kinds 'photon' and 'eye' a 'batch'"
     return None
 
 
@@ -390,9 +398,10 @@ _SPECS = (
                               "offset": INT, "file_bytes": INT},
          (plain("data", ("data", np.uint8, (), None)),), check=_check_chunk_data),
     Spec("shutdown", _S2T, {"reason": STR}, defaults={"reason": ""}),
-    Spec("portal_rays", _T2T, {"kind": _Choice("photon", "eye"), "chunk": INT,
+    Spec("portal_rays", _T2T, {"kind": _Choice("photon", "eye", "shadow"), "chunk": INT,
                                "eye_iteration": _Nullable(INT)},
-         (_cull_box(optional=True), record("batch", RayBatch)),
+         (_cull_box(optional=True), record("batch", RayBatch, optional=True),
+          record("shadows", ShadowRays, optional=True)),
          check=_check_portal_rays, defaults={"eye_iteration": None}),
 )
 MESSAGES: dict[str, Spec] = {s.name: s for s in _SPECS}

@@ -13,7 +13,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from dosppm_core.chunks.tree import ChunkTree
-from dosppm_core.jobs import HitPoints, PhotonDeposits, RayBatch
+from dosppm_core.jobs import HitPoints, PhotonDeposits, RayBatch, ShadowRays
 from dosppm_core.scene import builtin
 from dosppm_core.scene.model import SceneHeader
 from services import wire
@@ -39,7 +39,8 @@ def random_record(cls, n: int, rng: np.random.Generator):
 
 def sample_fields(msg_type: str, n: int, rng: np.random.Generator, variant: int = 0) -> dict:
     """Valid fields for `msg_type` with records of `n` rows; `variant`
-    picks which optional parts a results message carries."""
+    picks which optional parts a results message carries (and the kind
+    of a portal package: 0, 2 photon, 1 eye, 3 shadow)."""
     box = np.array([[-1.0, -2.0, -3.0], [4.0, 5.0, np.inf]])
     batch = random_record(RayBatch, n, rng)
     if msg_type == "register":
@@ -87,6 +88,8 @@ def sample_fields(msg_type: str, n: int, rng: np.random.Generator, variant: int 
     if msg_type == "shutdown":
         return dict(reason="time limit")
     if msg_type == "portal_rays":
+        if variant == 3:
+            return dict(kind="shadow", chunk=4, eye_iteration=2, shadows=random_record(ShadowRays, n, rng))
         if variant % 2:
             return dict(kind="eye", chunk=4, eye_iteration=2, batch=batch)
         return dict(kind="photon", chunk=4, cull_box=box, batch=batch)
@@ -233,9 +236,11 @@ CASES = {
     # (message type, variant, edit(header, frames)), words the error must contain
     "unknown type": (_header_edit(lambda h: h.update(type="teleport")), ["unknown message type", "teleport"]),
     "type not a str": (_header_edit(lambda h: h.update(type=3)), ["unknown message type"]),
-    "wrong version": (_header_edit(lambda h: h.update(v=2)), ["photon_job", "version 2", "version 1"]),
-    "missing version": (_header_edit(lambda h: h.pop("v")), ["photon_job", "None", "version 1"]),
-    "version not an int": (_header_edit(lambda h: h.update(v="1")), ["photon_job", "'1'", "version 1"]),
+    "wrong version": (_header_edit(lambda h: h.update(v=PROTOCOL_VERSION + 1)),
+                      ["photon_job", f"version {PROTOCOL_VERSION + 1}", f"version {PROTOCOL_VERSION}"]),
+    "missing version": (_header_edit(lambda h: h.pop("v")), ["photon_job", "None", f"version {PROTOCOL_VERSION}"]),
+    "version not an int": (_header_edit(lambda h: h.update(v="1")),
+                           ["photon_job", "'1'", f"version {PROTOCOL_VERSION}"]),
     "missing field": (_header_edit(lambda h: h.pop("chunk")), ["photon_job", "'chunk'", "missing"]),
     "extra field": (_header_edit(lambda h: h.update(colour="red")), ["photon_job", "'colour'"]),
     "str for int": (_header_edit(lambda h: h.update(chunk="7")), ["photon_job", "'chunk'", "int", "str"]),
@@ -303,7 +308,9 @@ CASES = {
     "photon package without box": (("portal_rays", 0, lambda h, f: _drop_array("cull_box")(h, f)),
                                    ["portal_rays", "'cull_box'"]),
     "eye package with box": (("portal_rays", 0, lambda h, f: h.update(kind="eye", eye_iteration=1)),
-                             ["portal_rays", "'cull_box'", "eye rays"]),
+                             ["portal_rays", "'cull_box'", "eye and shadow rays"]),
+    "shadow package with a ray batch": (("portal_rays", 1, lambda h, f: h.update(kind="shadow")),
+                                        ["portal_rays", "'shadows'", "ShadowRays"]),
     "part past parts": (_header_edit(lambda h: h.update(part=1), "chunk_data"), ["chunk_data", "'part'"]),
     "data past file": (_header_edit(lambda h: h.update(file_bytes=2), "chunk_data"),
                        ["chunk_data", "'data'", "file_bytes"]),
@@ -370,7 +377,10 @@ def test_encode_takes_numpy_scalars_and_missing_nullable_fields():
 
 
 # -- version mismatch ------------------------------------------------------------
-def _register_from_the_future(version=2):
+FUTURE = PROTOCOL_VERSION + 1
+
+
+def _register_from_the_future(version=FUTURE):
     header, frames = _valid("register")
     frames[0] = msgpack.packb(header | {"v": version})
     return frames
@@ -379,10 +389,10 @@ def _register_from_the_future(version=2):
 def test_version_mismatch_is_refused_with_a_reason_naming_both_versions():
     with pytest.raises(VersionMismatch) as info:
         decode(_register_from_the_future())
-    assert (info.value.theirs, info.value.ours, info.value.msg_type) == (2, PROTOCOL_VERSION, "register")
+    assert (info.value.theirs, info.value.ours, info.value.msg_type) == (FUTURE, PROTOCOL_VERSION, "register")
     reply = decode(as_bytes(wire.error_reply(info.value)))
     assert reply.type == "refused"
-    assert "2" in reply.reason and str(PROTOCOL_VERSION) in reply.reason and "version" in reply.reason
+    assert str(FUTURE) in reply.reason and str(PROTOCOL_VERSION) in reply.reason and "version" in reply.reason
 
 
 def test_refused_and_error_are_readable_across_versions():

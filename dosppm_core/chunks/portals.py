@@ -46,15 +46,19 @@ def exit_chunk(tree: ChunkTree, chunk: int, origin: np.ndarray, direction: np.nd
                  np.ascontiguousarray(origin, np.float32), np.ascontiguousarray(direction, np.float32))
 
 
-def intersect_in_chunk(accel, tree: ChunkTree, chunk: int, origin, direction, tmin, eps: float):
-    """Closest hits of rays within their interval in `chunk`.
+def intersect_in_chunk(accel, tree: ChunkTree, chunk: int, origin, direction, tmin, eps: float,
+                       tmax=None):
+    """Closest hits of rays within their interval in `chunk`, ending at
+    `tmax` where given (shadow rays: the light).
 
     Returns (prim, t, u, v, next chunk, t_exit): `prim` -1 where the ray found
     nothing in this chunk, in which case it continues in `next` (or escapes
     when `next` is -1) with tmin = t_exit."""
     t_exit, nxt = exit_chunk(tree, chunk, origin, direction)
-    tmax = (t_exit + eps).astype(np.float32)
-    prim, t, u, v = accel.intersect(origin, direction, tmax)
+    limit = t_exit + eps
+    if tmax is not None:
+        limit = np.minimum(limit, tmax)
+    prim, t, u, v = accel.intersect(origin, direction, limit.astype(np.float32))
     # From its own origin a ray gives bit-identical hits to the unchunked
     # trace. Only a hit before tmin (a triangle this chunk shares with one
     # already searched, hit outside this box) needs the search restarted
@@ -65,7 +69,7 @@ def intersect_in_chunk(accel, tree: ChunkTree, chunk: int, origin, direction, tm
         shift = tmin[early].astype(np.float64) - eps
         d = direction[early]
         o = (origin[early] + shift[:, None] * d).astype(np.float32)
-        p2, t2, u2, v2 = accel.intersect(o, d, np.maximum(t_exit[early] + eps - shift, 0.0))
+        p2, t2, u2, v2 = accel.intersect(o, d, np.maximum(limit[early] - shift, 0.0))
         prim[early], t[early], u[early], v[early] = p2, t2 + shift, u2, v2
     return prim, t, u, v, nxt, t_exit
 

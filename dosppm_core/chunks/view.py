@@ -17,7 +17,7 @@ from dosppm_core.accel import Accelerator
 from dosppm_core.chunks.portals import PORTAL_EPS, enter, intersect_in_chunk
 from dosppm_core.chunks.store import ChunkGeometry
 from dosppm_core.chunks.tree import ChunkTree
-from dosppm_core.jobs import ESCAPED, HitPoints, PhotonDeposits, RayBatch
+from dosppm_core.jobs import ESCAPED, STORED, HitPoints, PhotonDeposits, RayBatch, ShadowRays
 from dosppm_core.kernels.paths import ELSEWHERE
 from dosppm_core.scene.model import SceneHeader
 from dosppm_core.trace import END_KINDS, SurfaceData, advance_eye, scatter_photons
@@ -43,10 +43,10 @@ class ChunkView:
             tris = np.array([[0, 1, 2]], np.int32)
         self.accel = Accelerator(verts, tris, threads=threads)
 
-    def intersect(self, batch: RayBatch):
+    def intersect(self, batch, tmax=None):
         """(prim, t, u, v, next chunk, t_exit); see `portals.intersect_in_chunk`."""
         return intersect_in_chunk(self.accel, self.tree, self.index, batch.origin,
-                                  batch.direction, batch.tmin, self.eps)
+                                  batch.direction, batch.tmin, self.eps, tmax)
 
     def close(self) -> None:
         """Free the BVH and drop the arrays: a closed view still referenced
@@ -98,7 +98,8 @@ def _continue_here(view: ChunkView, nxt: RayBatch, outgoing: dict, counts: np.nd
     return here
 
 
-def trace_photons_in_chunk(view: ChunkView, batch: RayBatch, cull_box, max_depth: int):
+def trace_photons_in_chunk(view: ChunkView, batch: RayBatch, cull_box, max_depth: int,
+                           deposit_from: int = 0):
     """Follow photons in this chunk. Returns (deposits, end counts, culled,
     {chunk: [RayBatch]} of photons leaving through portals)."""
     deposits, outgoing = [], {}
@@ -106,7 +107,8 @@ def trace_photons_in_chunk(view: ChunkView, batch: RayBatch, cull_box, max_depth
     while len(batch):
         prim, u, v, out = _find_hits(view, batch)
         _merge(outgoing, out)
-        dep, nxt, ends, c = scatter_photons(view.surf, batch, prim, u, v, cull_box, max_depth)
+        dep, nxt, ends, c = scatter_photons(view.surf, batch, prim, u, v, cull_box, max_depth,
+                                            deposit_from)
         deposits.append(dep)
         counts += ends
         culled += c
@@ -115,21 +117,56 @@ def trace_photons_in_chunk(view: ChunkView, batch: RayBatch, cull_box, max_depth
     return PhotonDeposits.concat(deposits), counts, culled, outgoing
 
 
-def trace_eye_in_chunk(view: ChunkView, batch: RayBatch, max_depth: int):
-    """Follow eye paths in this chunk. Returns (hit points, (pixel, rgb)
-    of emission seen, end counts, {chunk: [RayBatch]} leaving)."""
-    hits, pix, rgb, outgoing = [], [], [], {}
+def trace_eye_in_chunk(view: ChunkView, batch: RayBatch, max_depth: int, lights: tuple | None = None):
+    """Follow eye paths in this chunk; with `lights` (`trace.light_arrays`),
+    each hit point's shadow ray too, as far as this chunk. Returns (hit
+    points, (pixel, rgb) of emission seen and direct light that arrived,
+    end counts, {chunk: [RayBatch]} of eye paths leaving, {chunk:
+    [ShadowRays]} of shadow rays leaving)."""
+    hits, pix, rgb, shadows, outgoing = [], [], [], [], {}
     counts = np.zeros(END_KINDS, np.int64)
     while len(batch):
         prim, u, v, out = _find_hits(view, batch)
         _merge(outgoing, out)
-        h, (p, e), nxt, ends = advance_eye(view.surf, batch, prim, u, v, max_depth)
+        h, (p, e), nxt, ends, s = advance_eye(view.surf, batch, prim, u, v, max_depth, lights)
         hits.append(h)
         pix.append(p)
         rgb.append(e)
+        shadows.append(s)
         counts += ends
         batch = _continue_here(view, nxt, outgoing, counts)
+    shadow_out = {}
+    if lights is not None:
+        routed, lost = start_chunks(view.tree, ShadowRays.concat(shadows))
+        counts[STORED] += lost    # (none: a hit point lies inside the scene)
+        for k, part in routed.items():
+            if k != view.index:
+                shadow_out.setdefault(k, []).append(part)
+        (p, e), ends, out = trace_shadows_in_chunk(view, routed.get(view.index, ShadowRays.empty()))
+        pix.append(p)
+        rgb.append(e)
+        counts += ends
+        _merge(shadow_out, out)
     counts[0] = 0
     emitted = (np.concatenate(pix) if pix else np.empty(0, np.int32),
                np.concatenate(rgb) if rgb else np.empty((0, 3), np.float32))
-    return HitPoints.concat(hits), emitted, counts, outgoing
+    return HitPoints.concat(hits), emitted, counts, outgoing, shadow_out
+
+
+def trace_shadows_in_chunk(view: ChunkView, shadows: ShadowRays):
+    """Shadow rays in this chunk: blocked here, leaving through a portal
+    before their light, or arrived. Returns ((pixel, rgb) of those that
+    arrived, end counts (STORED: each ended eye path), {chunk: ShadowRays}
+    leaving)."""
+    counts = np.zeros(END_KINDS, np.int64)
+    if not len(shadows):
+        return (np.empty(0, np.int32), np.empty((0, 3), np.float32)), counts, {}
+    prim, _t, _u, _v, nxt, t_exit = view.intersect(shadows, shadows.tmax)
+    leaving = (prim < 0) & (nxt >= 0) & (t_exit < shadows.tmax)
+    arrived = (prim < 0) & ~leaving
+    rows = np.flatnonzero(leaving)
+    out = {}
+    if len(rows):
+        out = shadows.partition(nxt[rows], rows=rows, replace={"tmin": t_exit.astype(np.float32)})
+    counts[STORED] = len(shadows) - len(rows)
+    return (shadows.pixel[arrived], shadows.radiance[arrived]), counts, out

@@ -69,7 +69,7 @@ def generate_eye_rays(frame, width, seed, iteration, pixel_start, count):
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _select_light(cdf, u):
+def select_light(cdf, u):
     lo, hi = 0, cdf.shape[0] - 1
     while lo < hi:
         mid = (lo + hi) // 2
@@ -101,7 +101,7 @@ def emit_photons(kind, p0, p1, p2, value, cone, power, cdf, seed, job, count, ep
         st, u2 = next_float(st)
         st, u3 = next_float(st)
         st, u4 = next_float(st)
-        li = _select_light(cdf, ul)
+        li = select_light(cdf, ul)
         p_sel = power[li] / total
         if kind[li] == LIGHT_TRIANGLE:
             o, d, scale = _emit_triangle(p0[li], p1[li], p2[li], u1, u2, u3, u4, eps)

@@ -207,9 +207,11 @@ def _path_rows(n):
 
 # -- the photon bounce -----------------------------------------------------------
 @nb.njit(cache=True, parallel=True, error_model="numpy")
-def scatter_photons(rays, hits, surf, cull_box, max_depth, eps_rel):
+def scatter_photons(rays, hits, surf, cull_box, max_depth, deposit_from, eps_rel):
     """Deposit photons at non-specular hits (if inside `cull_box`, rows lo
-    and hi) and scatter them with Russian roulette. `rays` is
+    and hi, and from surface `deposit_from` on: 1 when direct light comes
+    from shadow rays, 0 for the paper's pure estimator) and scatter them
+    with Russian roulette. `rays` is
     (direction, flux, depth, rng state, job, pixel), `hits` (prim, u, v).
     Returns (end counts, culled count, deposits (position, incoming,
     normal, flux, job), continuing paths (origin, direction, flux, rng
@@ -229,7 +231,7 @@ def scatter_photons(rays, hits, surf, cull_box, max_depth, eps_rel):
     for b in nb.prange(nblk):
         a = b * n // nblk
         dc, gc = _scatter_block(a, (b + 1) * n // nblk, rays, hits, surf, cull_box, max_depth,
-                                eps_rel, end, culled, dep, nxt)
+                                deposit_from, eps_rel, end, culled, dep, nxt)
         counts[b, 0] = dc - a
         counts[b, 1] = gc - a
     out_dep, out_nxt = _pack_blocks(counts, n, dep, nxt)
@@ -237,7 +239,8 @@ def scatter_photons(rays, hits, surf, cull_box, max_depth, eps_rel):
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
-def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, eps_rel, end, culled, dep, nxt):
+def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, eps_rel, end, culled,
+                   dep, nxt):
     """The photon bounce of rows [a, e): deposits and continuing paths are
     written densely from row a. Returns where each ended (dc, gc)."""
     # The tuples are unpacked here, once per block, not per ray in the helpers.
@@ -258,7 +261,9 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, eps_rel, end, cu
             if not front and not two_sided[m]:
                 end[i] = ABSORBED
                 continue
-            if outside(cull_box, p0, p1, p2):
+            if depth[i] < deposit_from:
+                pass    # direct light: the hit points' shadow rays carry it
+            elif outside(cull_box, p0, p1, p2):
                 culled[i] = True
             else:
                 write_facing(dep_pos, dep_n, dc, p0, p1, p2, n0, n1, n2, front)

@@ -21,11 +21,12 @@ import time
 import numpy as np
 
 from dosppm_core.chunks.cache import ChunkCache, next_with_work, release_freed_memory_to_the_os
-from dosppm_core.chunks.view import start_chunks, trace_eye_in_chunk, trace_photons_in_chunk
-from dosppm_core.jobs import ESCAPED, PhotonDeposits, RayBatch
+from dosppm_core.chunks.view import (start_chunks, trace_eye_in_chunk, trace_photons_in_chunk,
+                                     trace_shadows_in_chunk)
+from dosppm_core.jobs import ESCAPED, HitPoints, PhotonDeposits, RayBatch, ShadowRays
 from dosppm_core.settings import Progress, RenderSettings
 from dosppm_core.sppm.iteration import EyePass, SPPMIteration
-from dosppm_core.trace import NO_CULL, emit_photon_job, eye_ray_job
+from dosppm_core.trace import NO_CULL, emit_photon_job, eye_ray_job, light_arrays
 
 
 class OutOfCoreRenderer:
@@ -67,6 +68,7 @@ class OutOfCoreRenderer:
         self.cache = ChunkCache(provider, memory_bytes, threads=s.threads)
         self.sppm = SPPMIteration(self.header, s)
         self.eps_abs = self.header.spawn_epsilon()
+        self.lights = light_arrays(self.header.lights) if s.direct == "nee" else None
         self.iteration = 0
         self.eye_iterations = 0
         self.next_photon_job = 0
@@ -76,6 +78,7 @@ class OutOfCoreRenderer:
         c = self.tree.chunk_count
         self._eye_queues = [[] for _ in range(c)]
         self._photon_queues = [[] for _ in range(c)]
+        self._shadow_queues = [[] for _ in range(c)]   # of the eye iteration in flight
         self._eye: EyePass | None = None          # the eye iteration in flight
         self._deposits: list[PhotonDeposits] = []
         self._emitted_unapplied = 0
@@ -102,7 +105,7 @@ class OutOfCoreRenderer:
                 self._start_eye_iteration()
             self._emit_photons()
             self._sweep(until_empty=False)
-            if self._eye is not None and not any(self._eye_queues):
+            if self._eye is not None and not self._eye_paths_queued():
                 self._finish_eye_iteration()
         else:
             self._emit_photons()
@@ -124,7 +127,11 @@ class OutOfCoreRenderer:
 
     @property
     def rays_queued(self) -> int:
-        return sum(len(b) for q in (self._eye_queues, self._photon_queues) for part in q for b in part)
+        queues = (self._eye_queues, self._shadow_queues, self._photon_queues)
+        return sum(len(b) for q in queues for part in q for b in part)
+
+    def _eye_paths_queued(self) -> bool:
+        return any(self._eye_queues) or any(self._shadow_queues)
 
     def progress(self) -> Progress:
         return self.sppm.progress(self.iteration, self.seconds)
@@ -183,7 +190,7 @@ class OutOfCoreRenderer:
             queues[k].append(b)
 
     def _has_work(self, k: int) -> bool:
-        return bool(self._eye_queues[k] or self._photon_queues[k])
+        return bool(self._eye_queues[k] or self._shadow_queues[k] or self._photon_queues[k])
 
     def _next_chunk(self, after: int, stop: int | None = None) -> int | None:
         return next_with_work(self._has_work, after, self.tree.chunk_count, stop)
@@ -216,15 +223,26 @@ class OutOfCoreRenderer:
             t0 = time.perf_counter()
             batch = RayBatch.concat(self._eye_queues[k])
             self._eye_queues[k] = []
-            hits, (pixels, rgb), ends, out = trace_eye_in_chunk(view, batch, s.max_depth)
+            hits, (pixels, rgb), ends, out, shadows = trace_eye_in_chunk(view, batch, s.max_depth,
+                                                                         self.lights)
             self._eye.add(hits, pixels, rgb)
             self._account(ends, out, self._eye_queues)
+            self._account(np.zeros_like(ends), shadows, self._shadow_queues)
+            self.phase_seconds["eye"] += time.perf_counter() - t0
+        if self._shadow_queues[k]:
+            t0 = time.perf_counter()
+            shadows = ShadowRays.concat(self._shadow_queues[k])
+            self._shadow_queues[k] = []
+            (pixels, rgb), ends, out = trace_shadows_in_chunk(view, shadows)
+            self._eye.add(HitPoints.empty(), pixels, rgb)
+            self._account(ends, {j: [part] for j, part in out.items()}, self._shadow_queues)
             self.phase_seconds["eye"] += time.perf_counter() - t0
         if self._photon_queues[k]:
             t0 = time.perf_counter()
             batch = RayBatch.concat(self._photon_queues[k])
             self._photon_queues[k] = []
-            dep, ends, _culled, out = trace_photons_in_chunk(view, batch, self._cull, s.max_depth)
+            dep, ends, _culled, out = trace_photons_in_chunk(view, batch, self._cull, s.max_depth,
+                                                             s.deposit_from)
             self._deposits.append(dep)
             self._account(ends, out, self._photon_queues)
             self.phase_seconds["photon"] += time.perf_counter() - t0

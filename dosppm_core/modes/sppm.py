@@ -15,7 +15,8 @@ from dosppm_core.accel import Accelerator
 from dosppm_core.scene.model import Scene
 from dosppm_core.settings import Progress, RenderSettings
 from dosppm_core.sppm.iteration import EyePass, SPPMIteration
-from dosppm_core.trace import SurfaceData, emit_photon_job, eye_ray_job, trace_eye, trace_photon_jobs
+from dosppm_core.trace import (SurfaceData, emit_photon_job, eye_ray_job, light_arrays, trace_eye,
+                               trace_photon_jobs)
 
 
 class Renderer:
@@ -27,6 +28,7 @@ class Renderer:
         self.settings.validate()
         self.accel = Accelerator(scene.vertices, scene.triangles, threads=self.settings.threads)
         self.surf = SurfaceData.from_scene(scene)
+        self.lights = light_arrays(scene.lights) if self.settings.direct == "nee" else None
         self.sppm = SPPMIteration(scene, self.settings)
         self.iteration = 0
         self.next_photon_job = 0
@@ -59,7 +61,8 @@ class Renderer:
         for start in range(0, n_pix, s.tile_pixels):
             batch = eye_ray_job(self.scene, s.seed, self.iteration, start,
                                 min(s.tile_pixels, n_pix - start))
-            hits, (pixels, rgb), _ends = trace_eye(self.accel, self.surf, batch, s.max_depth)
+            hits, (pixels, rgb), _ends = trace_eye(self.accel, self.surf, batch, s.max_depth,
+                                                   self.lights)
             eye.add(hits, pixels, rgb)
         self.sppm.install_eye_pass(eye)
 
@@ -71,7 +74,8 @@ class Renderer:
             # Trace up to half a statistics batch of photons as one stream.
             count = min(left, max(s.photon_batch // 2, s.photons_per_job))
             deposits, ends, _culled = trace_photon_jobs(
-                self.accel, self.surf, self._jobs(count), cull, s.max_depth)
+                self.accel, self.surf, self._jobs(count), cull, s.max_depth,
+                deposit_from=s.deposit_from)
             self.sppm.count_path_ends(ends)
             self.sppm.add_photons(deposits, count)
             left -= count

@@ -188,7 +188,7 @@ class ServerState:
     # -- tracers -------------------------------------------------------------------
     def welcome_fields(self, t: TracerInfo) -> dict:
         s = self.settings
-        return dict(tracer_index=t.index, settings={"max_depth": s.max_depth, "seed": s.seed,
+        return dict(tracer_index=t.index, settings={"max_depth": s.max_depth, "seed": s.seed, "direct": s.direct,
                                                     "client_batching": self.client_batching,
                                                     "session": t.session},
                     scene=self.header.to_wire(), tree=self.tree.to_wire(), store_key=self.store_key,

@@ -228,7 +228,8 @@ class TracerProcess:
             self.session = welcome.settings.get("session")
             self.state = TracerState(self.endpoint, provider, welcome.settings["max_depth"],
                                      memory_bytes=self.memory_bytes, threads=self.threads,
-                                     step_rays=STEP_RAYS if batching else 0)
+                                     step_rays=STEP_RAYS if batching else 0,
+                                     direct=welcome.settings.get("direct", "nee"))
             log.info("tracer %s joined as %d at %s, chunks %s", self.tracer_id, welcome.tracer_index,
                      self.endpoint, welcome.chunks)
             self._loop()

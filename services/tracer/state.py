@@ -6,8 +6,10 @@ kind. A step activates one chunk (loading it under the memory budget, the
 next one prefetched), coalesces what waits for it into one batch (client
 batching: packages split at portals merge again here), traces it with the
 library's chunk kernels and returns the messages to send: `results` to the
-server (ended paths per job, deposits, hit points) and `portal_rays` for
-the chunks the rays enter next. Packages for a chunk this tracer does not
+server (ended paths per job, deposits, hit points, light reaching pixels)
+and `portal_rays` for the chunks the rays enter next. An eye path that
+stores a hit point goes on as its shadow ray (kind "shadow", same job),
+which crosses portals like any ray and ends the path where it stops. Packages for a chunk this tracer does not
 serve are passed on to a tracer that does.
 
 Nothing here opens a socket: `TracerState` takes decoded message fields
@@ -24,8 +26,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dosppm_core.chunks.cache import ChunkCache, next_with_work
-from dosppm_core.chunks.view import trace_eye_in_chunk, trace_photons_in_chunk
-from dosppm_core.jobs import RayBatch, paths_per_job
+from dosppm_core.chunks.view import trace_eye_in_chunk, trace_photons_in_chunk, trace_shadows_in_chunk
+from dosppm_core.jobs import HitPoints, RayBatch, ShadowRays, paths_per_job
+from dosppm_core.trace import light_arrays
 from services.wire import Out
 
 SERVER = "server"           # Out.dest of messages for the server
@@ -35,7 +38,7 @@ DWELL_STEPS = 32            # steps on one chunk before moving on when not all f
 
 @dataclass
 class Package:
-    batch: RayBatch
+    batch: RayBatch | ShadowRays
     cull_box: np.ndarray | None = None     # photons only
 
 
@@ -43,6 +46,7 @@ class Package:
 class ChunkQueue:
     photons: deque = field(default_factory=deque)
     eye: dict = field(default_factory=dict)          # eye_iteration -> deque of Package
+    shadows: dict = field(default_factory=dict)      # eye_iteration -> deque of Package
     rays: int = 0
 
     def __bool__(self) -> bool:
@@ -61,8 +65,12 @@ class TracerState:
     """Queues, chunk cache and routing of one tracer."""
 
     def __init__(self, endpoint: str, provider, max_depth: int, memory_bytes: float | None = None,
-                 threads: int = 1, step_rays: int = STEP_RAYS):
+                 threads: int = 1, step_rays: int = STEP_RAYS, direct: str = "nee"):
         self.endpoint, self.provider, self.max_depth = endpoint, provider, int(max_depth)
+        # Direct light by shadow rays ('nee'): photons deposit from their
+        # second surface on. 'photons': the paper's pure estimator.
+        self.lights = light_arrays(provider.header.lights) if direct == "nee" else None
+        self.deposit_from = 1 if direct == "nee" else 0
         self.step_rays = int(step_rays)
         cost = np.asarray(provider.chunk_memory, np.float64)
         self.cache = ChunkCache(provider, float(cost.sum()) if memory_bytes is None else memory_bytes,
@@ -104,11 +112,12 @@ class TracerState:
         q = self.queues.pop(k)
         out = [self._portal(k, "photon", p.batch, cull_box=p.cull_box) for p in q.photons]
         out += [self._portal(k, "eye", p.batch, eye_iteration=e) for e, ps in q.eye.items() for p in ps]
+        out += [self._portal(k, "shadow", p.batch, eye_iteration=e) for e, ps in q.shadows.items() for p in ps]
         self.counters["forwarded_rays"] += q.rays
         return [o for o in out if o is not None]
 
     # -- incoming packages -------------------------------------------------------
-    def receive(self, kind: str, chunk: int, batch: RayBatch, cull_box=None,
+    def receive(self, kind: str, chunk: int, batch: RayBatch | ShadowRays, cull_box=None,
                 eye_iteration: int | None = None) -> list[Out]:
         """Queue a package for `chunk` (an emission job or portal package),
         or pass it on when another tracer serves that chunk."""
@@ -124,7 +133,8 @@ class TracerState:
         if kind == "photon":
             q.photons.append(Package(batch, np.asarray(cull_box, np.float64)))
         else:
-            q.eye.setdefault(int(eye_iteration), deque()).append(Package(batch))
+            queues = q.shadows if kind == "shadow" else q.eye
+            queues.setdefault(int(eye_iteration), deque()).append(Package(batch))
         q.rays += len(batch)
         return []
 
@@ -147,8 +157,9 @@ class TracerState:
         if msg.type == "eye_job":
             return self.receive("eye", msg.chunk, msg.batch, eye_iteration=msg.eye_iteration)
         if msg.type == "portal_rays":
-            self.counters["portal_rays_in"] += len(msg.batch)
-            return self.receive(msg.kind, msg.chunk, msg.batch, cull_box=msg.cull_box,
+            rays = msg.shadows if msg.kind == "shadow" else msg.batch
+            self.counters["portal_rays_in"] += len(rays)
+            return self.receive(msg.kind, msg.chunk, rays, cull_box=msg.cull_box,
                                 eye_iteration=msg.eye_iteration)
         return []
 
@@ -161,15 +172,20 @@ class TracerState:
 
     # -- tracing -----------------------------------------------------------------
     def step(self) -> list[Out]:
-        """Trace one coalesced batch in one chunk; eye rays first (hit
-        points gate the server's next eye iteration)."""
+        """Trace one coalesced batch in one chunk; eye and shadow rays
+        first (they gate the server's next eye iteration)."""
         k = self._pick_chunk()
         if k is None:
             return []
         t0 = time.perf_counter()
         view = self.cache.activate(k, ahead=self._next_with_work(k))
         q = self.queues[k]
-        out = self._trace_eye(view, q) if q.eye else self._trace_photons(view, q)
+        if q.eye:
+            out = self._trace_eye(view, q)
+        elif q.shadows:
+            out = self._trace_shadows(view, q)
+        else:
+            out = self._trace_photons(view, q)
         del view   # an evicted chunk must not outlive its eviction
         if not q:
             del self.queues[k]
@@ -207,42 +223,60 @@ class TracerState:
         return taken
 
     def _trace_eye(self, view, q: ChunkQueue) -> list[Out]:
-        e = min(q.eye)
-        taken = self._take(q.eye[e])
-        if not q.eye[e]:
-            del q.eye[e]
-        batch = RayBatch.concat([p.batch for p in taken])
+        e, batch = self._take_iteration(q, q.eye, RayBatch)
+        hits, (pix, rgb), ends, outgoing, shadows = trace_eye_in_chunk(view, batch, self.max_depth,
+                                                                       self.lights)
+        fields = dict(chunk=view.index, eye_iteration=e, ends=ends, hits=hits, emitted_pixels=pix,
+                      emitted_rgb=rgb)
+        return self._after_trace(batch, fields, [("eye", outgoing), ("shadow", shadows)], eye_iteration=e)
+
+    def _trace_shadows(self, view, q: ChunkQueue) -> list[Out]:
+        e, batch = self._take_iteration(q, q.shadows, ShadowRays)
+        (pix, rgb), ends, outgoing = trace_shadows_in_chunk(view, batch)
+        fields = dict(chunk=view.index, eye_iteration=e, ends=ends, hits=HitPoints.empty(),
+                      emitted_pixels=pix, emitted_rgb=rgb)
+        outgoing = {k: [part] for k, part in outgoing.items()}
+        return self._after_trace(batch, fields, [("shadow", outgoing)], eye_iteration=e)
+
+    def _take_iteration(self, q: ChunkQueue, queues: dict, record):
+        """(eye iteration, coalesced batch) of the oldest eye iteration's
+        packages waiting in `queues`."""
+        e = min(queues)
+        taken = self._take(queues[e])
+        if not queues[e]:
+            del queues[e]
+        batch = record.concat([p.batch for p in taken])
         q.rays -= len(batch)
-        hits, (pix, rgb), ends, outgoing = trace_eye_in_chunk(view, batch, self.max_depth)
-        jobs, fed, left = paths_per_job([batch.job], [b.job for parts in outgoing.values() for b in parts])
-        fields = dict(chunk=view.index, eye_iteration=e, ends=ends, job_ids=jobs, job_fed=fed, job_left=left,
-                      hits=hits, emitted_pixels=pix, emitted_rgb=rgb)
-        return self._after_trace(batch, fields, outgoing, "eye", eye_iteration=e)
+        return e, batch
 
     def _trace_photons(self, view, q: ChunkQueue) -> list[Out]:
         taken = self._take(q.photons)
         batch = RayBatch.concat([p.batch for p in taken])
         q.rays -= len(batch)
         box = union_box([p.cull_box for p in taken])
-        deposits, ends, culled, outgoing = trace_photons_in_chunk(view, batch, box, self.max_depth)
-        jobs, fed, left = paths_per_job([batch.job], [b.job for parts in outgoing.values() for b in parts])
-        fields = dict(chunk=view.index, ends=ends, job_ids=jobs, job_fed=fed, job_left=left, culled=int(culled),
-                      deposits=deposits)
-        return self._after_trace(batch, fields, outgoing, "photon", cull_box=box)
+        deposits, ends, culled, outgoing = trace_photons_in_chunk(view, batch, box, self.max_depth,
+                                                                  self.deposit_from)
+        fields = dict(chunk=view.index, ends=ends, culled=int(culled), deposits=deposits)
+        return self._after_trace(batch, fields, [("photon", outgoing)], cull_box=box)
 
-    def _after_trace(self, batch, fields, outgoing, kind, **extra) -> list[Out]:
+    def _after_trace(self, batch, fields, outgoing, **extra) -> list[Out]:
         """Results go out before the portal packages they preceded, so the
-        server sees a path's deposits no later than (in practice) its end."""
+        server sees a path's deposits no later than (in practice) its end.
+        `outgoing` is [(kind, {chunk: [records]})]: the paths leaving, whose
+        job ids the results count as left (exact accounting)."""
         self.counters["rays_traced"] += len(batch)
+        fields["job_ids"], fields["job_fed"], fields["job_left"] = paths_per_job(
+            [batch.job], [b.job for _kind, out in outgoing for parts in out.values() for b in parts])
         portal = []
-        for chunk, parts in outgoing.items():
-            merged = RayBatch.concat(parts)
-            if self.serves(chunk):
-                portal += self.receive(kind, chunk, merged, **extra)
-            else:
-                self.counters["portal_rays_out"] += len(merged)
-                o = self._portal(chunk, kind, merged, **extra)
-                portal += [] if o is None else [o]
+        for kind, out in outgoing:
+            for chunk, parts in out.items():
+                merged = type(parts[0]).concat(parts)
+                if self.serves(chunk):
+                    portal += self.receive(kind, chunk, merged, **extra)
+                else:
+                    self.counters["portal_rays_out"] += len(merged)
+                    o = self._portal(chunk, kind, merged, **extra)
+                    portal += [] if o is None else [o]
         fields["queued"] = self.queued_rays
         return [Out(SERVER, "results", fields), *portal]
 
@@ -256,7 +290,7 @@ class TracerState:
             self.unroutable.append((kind, chunk, batch, cull_box, eye_iteration))
             return None
         dest = owners[next(self._next_owner[chunk]) % len(owners)]
-        fields = dict(kind=kind, chunk=chunk, batch=batch)
+        fields = dict(kind=kind, chunk=chunk, **{"shadows" if kind == "shadow" else "batch": batch})
         if kind == "photon":
             fields["cull_box"] = cull_box
         else:
