@@ -1,0 +1,120 @@
+"""Direct light by shadow rays (next-event estimation) against closed forms.
+
+A diffuse plane lit by one light, seen from between the plane and the
+light: every pixel's radiance is rho / pi * E(x) at the point x its eye
+ray meets, with E from the light in closed form. Photons add nothing here
+(with shadow rays they deposit only from their second surface, and the
+plane is the only surface), so the image is the shadow rays' alone, and
+with one light it is nearly noiseless.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from dosppm_core.modes.sppm import render
+from dosppm_core.scene.model import Camera, Material, SceneBuilder
+from dosppm_core.settings import RenderSettings
+
+RHO = 0.5
+SIZE = 24
+
+
+def _plane_scene(add_light) -> tuple:
+    b = SceneBuilder(name="plane")
+    b.add_material(Material("floor", "diffuse", (RHO, RHO, RHO), two_sided=False))
+    big = 20.0
+    b.add_mesh(np.array([[-big, -big, 0], [big, -big, 0], [big, big, 0], [-big, big, 0]], float),
+               [(0, 1, 2), (0, 2, 3)], "floor", "floor")          # CCW from above: faces +z
+    add_light(b)
+    b.camera = Camera((0, 0, 0.8), (0, 0, 0), (0, 1, 0), 70, SIZE, SIZE)
+    return b.build()
+
+
+def _pixel_points(scene, sub: int = 8) -> np.ndarray:
+    """Where eye rays through a sub x sub grid in each pixel meet the plane
+    z = 0, (H, W, sub * sub, 3): the renderer's box filter averages a
+    pixel's radiance over its footprint, and so does the expected value."""
+    f = scene.camera.frame()
+    pos, right, up, fwd, (tx, ty) = f[0], f[1], f[2], f[3], f[4, :2]
+    offs = (np.arange(sub) + 0.5) / sub
+    cols = (2.0 * (np.arange(SIZE)[:, None] + offs[None, :]) / SIZE - 1.0) * tx      # (W, sub)
+    rows = (1.0 - 2.0 * (np.arange(SIZE)[:, None] + offs[None, :]) / SIZE) * ty      # (H, sub)
+    sx = cols[None, :, None, :, None]
+    sy = rows[:, None, :, None, None]
+    d = fwd + sx * right + sy * up                                                    # (H, W, sub, sub, 3)
+    t = -pos[2] / d[..., 2]
+    return (pos + t[..., None] * d).reshape(SIZE, SIZE, sub * sub, 3)
+
+
+def _render(scene, iterations=64):
+    return render(scene, RenderSettings(photons_per_iteration=10_000), iterations=iterations)[..., 0]
+
+
+def test_point_light_above_a_plane():
+    light, intensity = np.array([0.3, -0.2, 1.0]), 2.0
+    scene = _plane_scene(lambda b: b.add_point_light(light, (intensity,) * 3, "lamp"))
+    x = _pixel_points(scene)
+    d = light - x
+    dist = np.linalg.norm(d, axis=-1)
+    expected = (RHO / math.pi * intensity * (d[..., 2] / dist) / dist ** 2).mean(-1)
+    got = _render(scene)
+    np.testing.assert_allclose(got, expected, rtol=0.01)
+
+
+def test_spot_light_cone_and_falloff():
+    light, intensity, cutoff, beam = np.array([0.0, 0.0, 1.0]), 3.0, 30.0, 20.0
+    scene = _plane_scene(lambda b: b.add_spot_light(light, (0, 0, 0), (intensity,) * 3, cutoff, beam, "spot"))
+    x = _pixel_points(scene)
+    d = light - x
+    dist = np.linalg.norm(d, axis=-1)
+    theta = np.degrees(np.arccos(d[..., 2] / dist))
+    fall = np.clip((cutoff - theta) / (cutoff - beam), 0.0, 1.0)
+    expected = (RHO / math.pi * intensity * fall * (d[..., 2] / dist) / dist ** 2).mean(-1)
+    got = _render(scene)
+    # Inside the beam every pixel matches; on the falloff ramp (a quarter
+    # of the intensity per pixel) a few dozen jittered samples per pixel
+    # leave ~1% noise, so the ramp is compared as a whole.
+    theta = theta.mean(-1)
+    pixel_deg = 70.0 / SIZE
+    beam_px = theta < beam - pixel_deg
+    np.testing.assert_allclose(got[beam_px], expected[beam_px], rtol=0.01)
+    ramp = (theta > beam + pixel_deg) & (theta < cutoff - pixel_deg)
+    assert got[ramp].sum() == pytest.approx(expected[ramp].sum(), rel=0.01)
+    assert got.mean() == pytest.approx(expected.mean(), rel=0.01)
+    assert got[theta > cutoff + pixel_deg].max() == 0.0
+    assert (got[theta < beam] > 0).all()
+
+
+def test_small_area_light_above_a_plane():
+    c, s, radiance = np.array([0.2, 0.1, 1.0]), 0.02, 500.0
+    quad = c + np.array([[-s, -s, 0], [-s, s, 0], [s, s, 0], [s, -s, 0]]) / 2
+
+    def lamp(b):
+        b.add_material(Material("lamp", "diffuse", (0, 0, 0), emission=(radiance,) * 3, two_sided=False))
+        b.add_mesh(quad, [(0, 1, 2), (0, 2, 3)], "lamp", "lamp")    # CCW from below: faces -z
+    scene = _plane_scene(lamp)
+    x = _pixel_points(scene)
+    d = c - x
+    dist = np.linalg.norm(d, axis=-1)
+    cos = d[..., 2] / dist            # at the plane and at the light alike (parallel)
+    expected = (RHO / math.pi * radiance * s * s * cos * cos / dist ** 2).mean(-1)
+    got = _render(scene)
+    # One sample per iteration on a light 1/50 of its distance wide: the
+    # point approximation and the noise are both well under 2%.
+    np.testing.assert_allclose(got, expected, rtol=0.03)
+    assert got.mean() == pytest.approx(expected.mean(), rel=0.01)
+
+
+def test_paper_estimator_blurs_the_same_light():
+    """--direct photons still renders the plane (by photon density), to the
+    same mean within its bias and noise."""
+    light = np.array([0.0, 0.0, 1.0])
+    scene = _plane_scene(lambda b: b.add_point_light(light, (1.0,) * 3, "lamp"))
+    nee = _render(scene, iterations=8)
+    photons = render(scene, RenderSettings(direct="photons", photons_per_iteration=100_000),
+                     iterations=8)[..., 0]
+    assert photons.mean() == pytest.approx(nee.mean(), rel=0.05)
+    assert np.abs(photons - nee).max() > 0.01 * nee.max()     # not the same estimator
