@@ -394,8 +394,8 @@ def _mitsuba(scene: Scene, integrator: str, budgets, seed: int):
 
 def _pbrt(method: Method, scene: Scene, budgets, seed: int, work: str, pbrt_file: str | None):
     """pbrt-v4 at 1, 2, 4, ... spp (`path`) or iterations (`sppm`), each run
-    timed alone as a whole process, up to the last budget; each run is
-    filed under the smallest budget it fits, as Mitsuba's are."""
+    timed alone as a whole process, then once sized to the last budget;
+    each run is filed under the smallest budget it fits, as Mitsuba's are."""
     world = pbrt_file or pbrt.write_scene(scene, tempfile.mkdtemp(prefix="pbrt-", dir=work))
     with open(world, encoding="utf-8") as f:
         text = f.read()
@@ -405,7 +405,7 @@ def _pbrt(method: Method, scene: Scene, budgets, seed: int, work: str, pbrt_file
                                    radius=pbrt_sppm_radius(scene) if integrator == "sppm" else 1.0)
     target, run_file = os.path.join(work, "pbrt.exr"), os.path.join(work, "pbrt-run.pbrt")
     out = []
-    while True:
+    while settings.samples:
         with open(run_file, "w", encoding="utf-8") as f:
             f.write(pbrt.with_render_settings(text, pbrt.render_directives(settings, target),
                                               os.path.dirname(os.path.abspath(world))))
@@ -414,10 +414,18 @@ def _pbrt(method: Method, scene: Scene, budgets, seed: int, work: str, pbrt_file
             return out
         photons = settings.samples * settings.photons_per_iteration if integrator == "sppm" else 0
         out.append((next((b for b in budgets if seconds <= b), budgets[-1]), seconds, photons, image))
-        # The next run takes about twice as long: stop where it would overshoot.
-        if 2 * seconds > budgets[-1] * 1.25:
-            return out
-        settings = replace(settings, samples=2 * settings.samples)
+        settings = replace(settings, samples=_next_samples(settings.samples, seconds, budgets[-1]))
+    return out
+
+
+def _next_samples(samples: int, seconds: float, budget: float) -> int:
+    """Double while the next run fits the budget, then once more sized to
+    fill it at this run's rate (doubling alone may end at half the budget,
+    where the progressive methods are scored at all of it); 0: done."""
+    if 2 * seconds <= budget:
+        return 2 * samples
+    fill = int(samples * 0.95 * budget / seconds)
+    return fill if seconds < 0.8 * budget and fill > samples else 0
 
 
 def pbrt_sppm_radius(scene: Scene, pixels_across: float = 3.0) -> float:
