@@ -34,8 +34,9 @@ included; 0 means only emitters seen directly, 1 direct lighting. Mitsuba's
 ``mitsuba max_depth = max_depth + 1`` (a negative value means unbounded, -1
 in Mitsuba). For a diffuse scene this is exactly the set of paths an SPPM
 render with at most `max_depth` photon bounces (deposits) estimates; with
-specular chains in front of the camera SPPM may add eye bounces on top,
-a difference far below the noise at the default depth of 10.
+specular chains in front of the camera SPPM may add eye bounces on top.
+References are unbounded by default (-1), as the renderer's default is
+(Russian roulette ends its paths; its depth limit is only a safety net).
 
 Variant: the caller's choice, `scalar_rgb` (`SAFE_VARIANT`) by default.
 `llvm_ad_rgb` is about 3x faster, but an unsupported libLLVM aborts the
@@ -68,7 +69,7 @@ from dosppm_core.scene.model import (
     SceneError,
 )
 
-DEFAULT_MAX_DEPTH = 10
+DEFAULT_MAX_DEPTH = -1    # unbounded: the converged image the renderer's default estimates
 INTEGRATORS = ("path", "ptracer")
 FAST_VARIANT, SAFE_VARIANT = "llvm_ad_rgb", "scalar_rgb"
 # Bump when the translation changes, so cached references are re-rendered.

@@ -18,7 +18,13 @@ class RenderSettings:
     seed: int = 0
     alpha: float = 0.7
     radius: float | None = None          # initial radius; None: from scene size and pixels
-    max_depth: int = 10                  # surfaces a path may hit (the paper's 10)
+    # Surfaces a path may hit. Russian roulette ends paths, unbiased; this
+    # is only a safety net for light trapped in glass by total internal
+    # reflection (roulette keeps it: glass absorbs nothing). At 256 the
+    # paths it cuts change no pixel by 1e-4 of the brightest
+    # (tests/test_render.py); at 64, 0.2% of the mean was lost in a glass
+    # scene. The paper's setting is 10.
+    max_depth: int = 256
     gather: str = "grid"                 # 'grid' (exact) or 'hash' (stochastic, HJ10)
     photons_per_iteration: int = 100_000
     photons_per_job: int = 8_192

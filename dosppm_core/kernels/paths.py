@@ -135,9 +135,9 @@ def outside(box, p0, p1, p2):
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
 def roulette(flux, i, refl, m, scale, ur):
-    """Russian roulette on the scattered flux: a photon survives with the
-    ratio of its new to old largest component, and is reweighted by its
-    inverse. Returns (survives, the new flux)."""
+    """Russian roulette on the scattered flux (or an eye path's weight): a
+    path survives with the ratio of its new to old largest component, and
+    is reweighted by its inverse. Returns (survives, the new flux)."""
     old_max = max(flux[i, 0], flux[i, 1], flux[i, 2])
     nf0 = flux[i, 0] * refl[m, 0] * scale
     nf1 = flux[i, 1] * refl[m, 1] * scale
@@ -389,13 +389,21 @@ def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp,
             end[i] = MAX_DEPTH
             continue
         st, u1 = next_float(states[i])
+        st, ur = next_float(st)
         new_st[i] = st
         ok, d0, d1, d2, scale, _spec = sample_scatter(two_sided, ior, rough, m, kind,
                                                       n0, n1, n2, w0, w1, w2, u1, 0.5, 0.5, True)
         if not ok:
             end[i] = ABSORBED
             continue
-        for k in range(3):
-            new_w[i, k] = weight[i, k] * refl[m, k] * scale
+        # Russian roulette on the path weight, as for photons: unbiased, and
+        # with it the depth limit is only a safety net. It decides on the
+        # reflectance alone, not the eta^2 of refraction (pbrt's etaScale):
+        # that factor leaving glass would kill 56% of the paths through it.
+        ok, f0, f1, f2 = roulette(weight, i, refl, m, 1.0, ur)
+        if not ok:
+            end[i] = ABSORBED
+            continue
+        new_w[i, 0], new_w[i, 1], new_w[i, 2] = f0 * scale, f1 * scale, f2 * scale
         write_spawn(new_o, new_d, i, p0, p1, p2, n0, n1, n2, d0, d1, d2, eps_rel, eps_abs)
         end[i] = CONTINUES
