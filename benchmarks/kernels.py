@@ -166,7 +166,7 @@ def _record_inputs(scene, accel, surf, args, parts) -> dict:
                                            trace.NO_CULL, MAX_DEPTH)[0]
         hits = _eye_bounces(scene, accel, surf, 1)[1]
         hits = hits.take(spatial_order(hits.position))
-        radius = np.full(len(hits), initial_radius(scene, hits))
+        radius = initial_radius(scene, hits).astype(np.float64)
         box = np.stack([hits.position.min(0) - radius[0],
                         hits.position.max(0) + radius[0]]).astype(np.float64)
         inputs["hash"] = (hits, radius, reorder_deposits(deposits, box))

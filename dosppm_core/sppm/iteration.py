@@ -7,8 +7,9 @@ results is the same, and lives here:
 - An eye pass's results (hit points, and emission its eye rays saw
   directly) arrive tile by tile, from any chunk or tracer and in any order;
   `EyePass` collects them, and `SPPMIteration.install_eye_pass` replaces
-  the hit points once the pass is complete. The first pass sets the
-  initial radius.
+  the hit points once the pass is complete, and starts the radius of each
+  pixel no photon has reached yet at its hit point's (`initial_radius`:
+  a few pixel footprints at its distance).
 - Photons are emitted against the current hit points: `cull_box` is their
   box grown by the largest radius (§4.3), or no box at all when culling is
   off (the DOSPPM server emits no photons before the first hit points).
@@ -82,8 +83,9 @@ class SPPMIteration:
         return len(hits)
 
     def install_hit_points(self, hits: HitPoints, emitted: tuple) -> None:
-        if not self.stats.has_radius:
-            self.stats.set_initial_radius(initial_radius(self.header, hits))
+        if self.settings.radius is None:      # else fixed by --radius for every pixel
+            self.stats.fit_radii(hits.pixel, initial_radius(self.header, hits),
+                                 fallback=self.header.diagonal() / 100.0)
         self.stats.replace_hit_points(hits, emitted)
         self.hit_point_total += len(hits)
 

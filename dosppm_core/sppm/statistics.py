@@ -106,17 +106,20 @@ def spatial_order(pos: np.ndarray, box: np.ndarray | None = None) -> np.ndarray:
     return (_morton_sorted(pos, box) & np.uint64(0xFFFFFFFF)).astype(np.int64)
 
 
-def initial_radius(scene: Scene, hits: HitPoints, pixels_across: float = 3.0) -> float:
-    """About `pixels_across` pixel footprints at the median distance from
-    the camera to the first iteration's hit points, kept within
-    [1e-5, 1/20] of the scene's size."""
+RADIUS_PIXELS = 3.0   # initial radius, in pixel footprints at the hit point's distance
+
+
+def initial_radius(scene: Scene, hits: HitPoints, pixels_across: float = RADIUS_PIXELS) -> np.ndarray:
+    """Each hit point's initial radius: `pixels_across` pixel footprints at
+    its distance from the camera, kept within [1e-5, 1/20] of the scene's
+    size. Near and far surfaces get radii of the same size on screen, so
+    the blur (the bias) is alike everywhere in the image, whatever the
+    scene's scale, instead of depending on one global guess."""
     frame = scene.camera.frame()
     diag = scene.diagonal()
-    if len(hits) == 0:
-        return diag / 100.0
-    dist = float(np.median(np.linalg.norm(hits.position - frame[0], axis=1)))
+    dist = np.linalg.norm(hits.position.astype(np.float64) - frame[0], axis=1)
     footprint = 2.0 * frame[4, 0] * dist / int(scene.camera.width)
-    return float(np.clip(pixels_across * footprint, 1e-5 * diag, diag / 20.0))
+    return np.clip(pixels_across * footprint, 1e-5 * diag, diag / 20.0)
 
 
 class PixelStatistics:
@@ -144,6 +147,16 @@ class PixelStatistics:
         if not radius > 0:
             raise ValueError(f"initial radius must be > 0, got {radius}")
         self.radius[:] = radius
+
+    def fit_radii(self, pixels: np.ndarray, radii: np.ndarray, fallback: float) -> None:
+        """Start each pixel's radius at its hit point's `radii`, for every
+        pixel no photon has reached yet (its radius has never shrunk and its
+        tau is zero, so this changes no estimate). Pixels that have had no
+        hit point keep the median (or `fallback`), so no radius is NaN."""
+        if not self.has_radius:
+            self.radius[:] = float(np.median(radii)) if len(radii) else fallback
+        fresh = self.photon_count[pixels] == 0
+        self.radius[pixels[fresh]] = radii[fresh]
 
     # -- eye iterations -----------------------------------------------------
     def replace_hit_points(self, hits: HitPoints, emitted: tuple) -> None:
