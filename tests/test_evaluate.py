@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from services.cli.main import main
-from services.evaluation import evaluate
+from services.evaluation import evaluate, suites
 
 pytestmark = pytest.mark.reference   # the references are Mitsuba's
 
@@ -175,7 +175,7 @@ def test_a_case_from_the_shared_folder_keeps_its_resolution_and_file_reference(m
         return [(budgets[-1], 0.1, 0, np.full((12, 16, 3), 0.6, np.float32))]
     monkeypatch.setattr(evaluate, "run_method", fake_run)
     monkeypatch.setattr(evaluate, "_warm_kernels", lambda: None)
-    files = evaluate.SharedFiles("case/floor.xml", "case/ref.exr", "a made-up reference",
+    files = suites.SharedFiles("case/floor.xml", "case/ref.exr", "a made-up reference",
                                  pbrt="case/floor.pbrt")
     suite = evaluate.Suite("file-test", 32, 32, (evaluate.Case("floor", "a file case", "file",
                                                                 files=files),), ("sppm-grid",))

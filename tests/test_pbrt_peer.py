@@ -16,7 +16,7 @@ from dosppm_core import metrics
 from dosppm_core.scene import builtin
 from dosppm_core.settings import RenderSettings
 from services.cli.main import main
-from services.evaluation import evaluate, pbrt
+from services.evaluation import evaluate, pbrt, suites
 
 BANDS = 4
 
@@ -148,13 +148,13 @@ def test_without_the_shared_folder_sponza_is_skipped_not_failed(monkeypatch, tmp
 
 def test_the_shared_folder_is_the_option_then_the_variable_then_beside_the_repository(monkeypatch):
     monkeypatch.setenv("DOSPPM_SHARED", "/from/env")
-    assert evaluate.shared_dir("/given") == "/given"
-    assert evaluate.shared_dir() == "/from/env"
+    assert suites.shared_dir("/given") == "/given"
+    assert suites.shared_dir() == "/from/env"
     monkeypatch.delenv("DOSPPM_SHARED")
-    beside = os.path.join(os.path.dirname(evaluate.REPOSITORY), "shared")
-    assert evaluate.shared_dir() == (beside if os.path.isdir(beside) else None)
+    beside = os.path.join(os.path.dirname(suites.REPOSITORY), "shared")
+    assert suites.shared_dir() == (beside if os.path.isdir(beside) else None)
     with pytest.raises(evaluate.CaseSkipped, match="no shared folder"):
-        evaluate.shared_file(None, "references/x.exr")
+        suites.shared_file(None, "references/x.exr")
 
 
 def test_methods_choose_the_estimator_and_depth():

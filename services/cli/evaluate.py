@@ -16,7 +16,7 @@ import dataclasses
 import sys
 
 from services.cli.errors import EXIT_FAILED, EXIT_OK, fail
-from services.evaluation import evaluate
+from services.evaluation import evaluate, suites
 
 
 def add_parser(sub) -> None:
@@ -39,7 +39,7 @@ def add_parser(sub) -> None:
     p.add_argument("--reference-spp-scale", type=float, default=1.0,
                    help="scale the suite's reference sample counts (quick looks: 0.1)")
     p.add_argument("--shared", metavar="DIR",
-                   help=f"the shared folder of scenes and references (default ${evaluate.SHARED_ENV}, "
+                   help=f"the shared folder of scenes and references (default ${suites.SHARED_ENV}, "
                         "else ../shared beside the repository); cases that need it are skipped "
                         "without it")
     p.add_argument("--seed", type=int, default=1)
