@@ -352,8 +352,9 @@ class TracerProcess:
                 self._to_server(frames)
                 self.bytes_to_server += sum(memoryview(f).nbytes for f in frames)
             else:
-                self.outbox.append((o.dest, frames, len(o.fields["batch"])))
-                self._outbox_rays += len(o.fields["batch"])
+                rays = len(o.fields["shadows" if o.fields["kind"] == "shadow" else "batch"])
+                self.outbox.append((o.dest, frames, rays))
+                self._outbox_rays += rays
         self._flush_outbox()
 
     def _to_server(self, frames, disposable: bool = False) -> None:
