@@ -28,9 +28,6 @@ Nothing is dropped silently:
 - every ROUTER sets ROUTER_MANDATORY, so sending to an unknown or
   disconnected identity raises `Unreachable` instead of vanishing, and a
   full queue raises `WouldBlock` (non-blocking send) instead of dropping;
-- every ROUTER sets ROUTER_HANDOVER: a peer's new connection under the
-  same identity replaces its old one (what was queued in the old one
-  belongs to jobs the server re-emits when the tracer registers again);
 - high-water marks are HWM_MESSAGES messages, not the default 1000: a
   message can be a ray batch of tens of MB (56 B per ray; the server's job
   messages aim at `MESSAGE_RAYS`, but a tracer's coalesced portal packages
@@ -53,16 +50,8 @@ Frames given to `send` must not be modified until sent: with copy=False,
 zmq reads the caller's arrays asynchronously. Received arrays are views of
 zmq's frames (`wire.decode`).
 
-Dead peers: the kernel's TCP keepalive finds dead TCP peers; hung
-processes are found by the roles' `heartbeat` messages. libzmq's own
-heartbeats (ZMQ_HEARTBEAT_*) are off on purpose: a PING sits behind the
-data in the same stream, so an engine that stopped reading because its
-RCVHWM pipe is full (back-pressure, a busy server) never sees it, times a
-healthy connection out and reconnects; a stale pipe activation from the old
-engine then aborts the process in libzmq 4.3.5 (`Assertion failed:
-!_io_error`/`_input_stopped` in stream_engine_base.cpp, zeromq/libzmq#3937,
-#4830). Keepalive probes are answered by the peer's kernel whether or not
-the process reads, so back-pressure cannot kill a connection.
+Heartbeats: libzmq's own (ZMQ_HEARTBEAT_*) find dead TCP peers; hung
+processes are found by the roles' `heartbeat` messages.
 
 Errors
 ------
@@ -93,9 +82,8 @@ from services.wire import MAX_FRAME_BYTES, Message, WireError, decode, error_rep
 # -- policy ---------------------------------------------------------------------
 HWM_MESSAGES = 16                # SNDHWM and RCVHWM, per socket and peer
 LINGER_MS = 2000                 # a closing socket still delivers its last results
-# TCP keepalive (seconds): a dead TCP peer is found 10 + 5 x 2 s after it
-# last spoke; hung processes are the server's heartbeats' job.
-TCP_KEEPALIVE_IDLE_S, TCP_KEEPALIVE_INTVL_S, TCP_KEEPALIVE_CNT = 10, 2, 5
+ZMQ_HEARTBEAT_IVL_MS = 1000      # transport heartbeats find dead TCP peers,
+ZMQ_HEARTBEAT_TIMEOUT_MS = 10_000  # not hung processes (the server's own do that)
 
 Context = zmq.Context
 
@@ -251,16 +239,10 @@ def _configured(context: zmq.Context | None, kind: int) -> zmq.Socket:
     raw.setsockopt(zmq.RCVHWM, HWM_MESSAGES)
     raw.setsockopt(zmq.LINGER, LINGER_MS)
     raw.setsockopt(zmq.MAXMSGSIZE, MAX_FRAME_BYTES)
-    raw.setsockopt(zmq.TCP_KEEPALIVE, 1)
-    raw.setsockopt(zmq.TCP_KEEPALIVE_IDLE, TCP_KEEPALIVE_IDLE_S)
-    raw.setsockopt(zmq.TCP_KEEPALIVE_INTVL, TCP_KEEPALIVE_INTVL_S)
-    raw.setsockopt(zmq.TCP_KEEPALIVE_CNT, TCP_KEEPALIVE_CNT)
+    raw.setsockopt(zmq.HEARTBEAT_IVL, ZMQ_HEARTBEAT_IVL_MS)
+    raw.setsockopt(zmq.HEARTBEAT_TIMEOUT, ZMQ_HEARTBEAT_TIMEOUT_MS)
     if kind == zmq.ROUTER:
         raw.setsockopt(zmq.ROUTER_MANDATORY, 1)
-        # A tracer that reconnects (a new DEALER, same identity) takes over
-        # at once; without this the ROUTER ignores the new connection for
-        # as long as it holds the old, half-dead one.
-        raw.setsockopt(zmq.ROUTER_HANDOVER, 1)
     return raw
 
 

@@ -324,8 +324,7 @@ class RejoinFailed(AssertionError):
 
 # A cut of 7-10 s used to leave the tracer out for good: its registers, or
 # the server's welcome, jobs and peers' portal packages, were queued in TCP
-# connections libzmq replaced after its 10 s heartbeat timeout (those
-# heartbeats are off now: see services/transport.py), and were
+# connections libzmq replaces after its 10 s heartbeat timeout, and were
 # lost without an error. Now a tracer that goes 5 s without hearing the
 # server opens a new connection and registers again (its jobs in flight are
 # re-emitted); a lost welcome is resent when heartbeats do not echo it; job

@@ -111,10 +111,10 @@ class TracerProcess:
     def _replace_connection(self) -> None:
         """The server went silent: drop the connection and open a new one.
         The old one may be a TCP connection a network cut left half dead;
-        the server's ROUTER hands this identity over to the new one
-        (ROUTER_HANDOVER), and closing the old one frees its socket. What
-        was queued in it belongs to jobs the server re-emits when this
-        tracer registers."""
+        closing it tells the server (once packets flow) to let go of this
+        identity, which its ROUTER otherwise keeps, ignoring the new
+        connection, until its heartbeat times out. What was queued in it
+        belongs to jobs the server re-emits when this tracer registers."""
         old, self.dealer = self.dealer, self._connect_server()
         if self._poller is not None:
             self._poller.unregister(old)
