@@ -170,22 +170,28 @@ class HitPoints(_Record):
 
 @dataclass
 class ShadowRays(_Record):
-    """Shadow rays from hit points to points sampled on lights (direct
-    light by next-event estimation). A ray that reaches `tmax` without
-    hitting anything adds `radiance` to its pixel. It continues its eye
-    path: same pixel, same job, and it ends that path (counted STORED,
-    like a hit point without one)."""
+    """The direct-light ray of each hit point (next-event estimation). It
+    continues its eye path (same pixel, same job) and ends it, counted
+    STORED like a hit point without one. Two kinds, by `pdf`:
+
+    - pdf 0, a shadow ray to a point sampled on a light: if nothing lies
+      before `tmax` it adds `radiance` to its pixel;
+    - pdf > 0, a BSDF-sampled ray of a glossy hit point (multiple
+      importance sampling, `kernels.direct`): `tmax` is infinite, and if
+      its first hit is the front of an emitting triangle it adds
+      radiance * Le / (c_light p_light + pdf) there."""
     origin: np.ndarray      # float32 (n, 3), off the hit point's surface
-    direction: np.ndarray   # float32 (n, 3), unit, toward the light
-    radiance: np.ndarray    # float32 (n, 3): the contribution if unoccluded
-    tmax: np.ndarray        # float32 (n,): distance to the light point
+    direction: np.ndarray   # float32 (n, 3), unit
+    radiance: np.ndarray    # float32 (n, 3): the contribution (or its factor) if unoccluded
+    tmax: np.ndarray        # float32 (n,): distance to the light point (inf: to the first hit)
+    pdf: np.ndarray         # float32 (n,): 0, or c_bsdf times the BSDF's solid-angle pdf
     pixel: np.ndarray       # int32 (n,)
     tmin: np.ndarray = None  # float32 (n,): searched in earlier chunks (as RayBatch)
     job: np.ndarray = None   # int64 (n,): the eye job
 
     SCHEMA = {"origin": (np.float32, (3,)), "direction": (np.float32, (3,)),
-              "radiance": (np.float32, (3,)), "tmax": (np.float32, ()), "pixel": (np.int32, ()),
-              "tmin": (np.float32, ()), "job": (np.int64, ())}
+              "radiance": (np.float32, (3,)), "tmax": (np.float32, ()), "pdf": (np.float32, ()),
+              "pixel": (np.int32, ()), "tmin": (np.float32, ()), "job": (np.int64, ())}
 
     def __post_init__(self):
         if self.tmin is None:

@@ -9,7 +9,7 @@ from dosppm_core.accel import Accelerator
 from dosppm_core.jobs import STORED, HitPoints, PhotonDeposits, RayBatch, ShadowRays
 from dosppm_core.kernels import direct, emit, paths
 from dosppm_core.kernels.paths import SurfaceData
-from dosppm_core.scene.model import LightTable, Scene
+from dosppm_core.scene.model import LIGHT_TRIANGLE, LightTable, Scene
 
 NO_CULL = np.array([[-np.inf] * 3, [np.inf] * 3])
 EPS_REL = 2e-5   # spawn offset relative to |p|: ~300 float32 ulps
@@ -92,24 +92,40 @@ def light_arrays(lights: LightTable) -> tuple:
 
 
 def shadow_rays(surf: SurfaceData, lights: tuple, hits: HitPoints, states, jobs) -> ShadowRays:
-    """A light sample and its shadow ray per hit point (`kernels.direct`);
-    hit points whose sample contributes nothing get none."""
-    rows, o, d, tmax, rgb = direct.sample_direct(
+    """The direct-light ray of each hit point (`kernels.direct`: a shadow
+    ray to a light sample, or on glossy surfaces under triangle lights a
+    BSDF-sampled one, by one-sample MIS); hit points whose sample cannot
+    contribute get none."""
+    mis = bool(np.any(lights[0] == LIGHT_TRIANGLE))
+    rows, o, d, tmax, rgb, pdf = direct.sample_direct(
         (hits.position, hits.normal, hits.outgoing, hits.weight, hits.material),
-        np.ascontiguousarray(states), surf, lights, EPS_REL)
-    return ShadowRays(o, d, rgb, tmax, hits.pixel[rows], job=np.asarray(jobs)[rows])
+        np.ascontiguousarray(states), surf, lights, mis, EPS_REL)
+    return ShadowRays(o, d, rgb, tmax, pdf, hits.pixel[rows], job=np.asarray(jobs)[rows])
 
 
-def trace_shadows(accel: Accelerator, shadows: ShadowRays):
-    """Shadow rays against one aggregate holding the whole scene. Returns
-    ((pixel, rgb) of those that reached their light, end counts)."""
+def shadow_results(shadows: ShadowRays, prim, t, surf: SurfaceData, total_power: float, ended=None):
+    """(pixel, rgb) that the ended rays among `shadows` bring, given their
+    first hits in [0, tmax] (`prim` -1: none): a shadow ray with no hit
+    reached its light; a BSDF-sampled one brings what its hit emits.
+    `ended` (bool) limits it to rays that end here (not leaving a chunk)."""
+    ended = np.ones(len(shadows), bool) if ended is None else ended
+    lit = ended & (shadows.pdf == 0) & (prim < 0)
+    found = np.flatnonzero(ended & (shadows.pdf > 0) & (prim >= 0))
+    rgb = direct.emitter_radiance(shadows.direction[found], shadows.radiance[found], shadows.pdf[found],
+                                  prim[found], t[found], surf, float(total_power))
+    return (np.concatenate([shadows.pixel[lit], shadows.pixel[found]]),
+            np.concatenate([shadows.radiance[lit], rgb]))
+
+
+def trace_shadows(accel: Accelerator, surf: SurfaceData, lights: tuple, shadows: ShadowRays):
+    """Direct-light rays against one aggregate holding the whole scene.
+    Returns ((pixel, rgb) of the light they found, end counts)."""
     ends = np.zeros(END_KINDS, np.int64)
     ends[STORED] = len(shadows)
     if not len(shadows):
         return (np.empty(0, np.int32), np.empty((0, 3), np.float32)), ends
-    prim, _t, _u, _v = accel.intersect(shadows.origin, shadows.direction, shadows.tmax)
-    lit = prim < 0
-    return (shadows.pixel[lit], shadows.radiance[lit]), ends
+    prim, t, _u, _v = accel.intersect(shadows.origin, shadows.direction, shadows.tmax)
+    return shadow_results(shadows, prim, t, surf, lights[6].sum()), ends
 
 
 def trace_photons(accel, surf, batch, cull_box, max_depth, deposit_from: int = 0):
@@ -165,7 +181,7 @@ def trace_eye(accel, surf, batch, max_depth, lights: tuple | None = None):
         rgb.append(e)
         shadows.append(s)
         ends += c
-    (p, e), c = trace_shadows(accel, ShadowRays.concat(shadows))
+    (p, e), c = trace_shadows(accel, surf, lights, ShadowRays.concat(shadows))
     pix.append(p)
     rgb.append(e)
     ends += c

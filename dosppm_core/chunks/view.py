@@ -20,7 +20,7 @@ from dosppm_core.chunks.tree import ChunkTree
 from dosppm_core.jobs import ESCAPED, STORED, HitPoints, PhotonDeposits, RayBatch, ShadowRays
 from dosppm_core.kernels.paths import ELSEWHERE
 from dosppm_core.scene.model import SceneHeader
-from dosppm_core.trace import END_KINDS, SurfaceData, advance_eye, scatter_photons
+from dosppm_core.trace import END_KINDS, SurfaceData, advance_eye, scatter_photons, shadow_results
 
 
 class ChunkView:
@@ -30,6 +30,7 @@ class ChunkView:
                  tree: ChunkTree, threads: int = 1):
         self.index, self.tree, self.geometry = index, tree, geometry
         self.eps = PORTAL_EPS * header.diagonal()
+        self.total_power = header.lights.total_power    # BSDF-sampled direct-light rays weigh by it
         m = header.materials
         self.surf = SurfaceData(geometry.vertices, geometry.triangles, geometry.tri_material,
                                 m.kind, m.reflectance, m.emission, m.ior, m.roughness,
@@ -154,19 +155,18 @@ def trace_eye_in_chunk(view: ChunkView, batch: RayBatch, max_depth: int, lights:
 
 
 def trace_shadows_in_chunk(view: ChunkView, shadows: ShadowRays):
-    """Shadow rays in this chunk: blocked here, leaving through a portal
-    before their light, or arrived. Returns ((pixel, rgb) of those that
-    arrived, end counts (STORED: each ended eye path), {chunk: ShadowRays}
-    leaving)."""
+    """Direct-light rays in this chunk: blocked here (or, BSDF-sampled,
+    finding an emitter here), leaving through a portal before their end,
+    or arrived. Returns ((pixel, rgb) of the light found, end counts
+    (STORED: each ended eye path), {chunk: ShadowRays} leaving)."""
     counts = np.zeros(END_KINDS, np.int64)
     if not len(shadows):
         return (np.empty(0, np.int32), np.empty((0, 3), np.float32)), counts, {}
-    prim, _t, _u, _v, nxt, t_exit = view.intersect(shadows, shadows.tmax)
+    prim, t, _u, _v, nxt, t_exit = view.intersect(shadows, shadows.tmax)
     leaving = (prim < 0) & (nxt >= 0) & (t_exit < shadows.tmax)
-    arrived = (prim < 0) & ~leaving
     rows = np.flatnonzero(leaving)
     out = {}
     if len(rows):
         out = shadows.partition(nxt[rows], rows=rows, replace={"tmin": t_exit.astype(np.float32)})
     counts[STORED] = len(shadows) - len(rows)
-    return (shadows.pixel[arrived], shadows.radiance[arrived]), counts, out
+    return shadow_results(shadows, prim, t, view.surf, view.total_power, ~leaving), counts, out

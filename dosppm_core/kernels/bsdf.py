@@ -124,6 +124,22 @@ def sample_bsdf(kind, two_sided, ior, alpha, n0, n1, n2, w0, w1, w2,
 
 
 @nb.njit(cache=True, error_model="numpy")
+def glossy_pdf(alpha, n0, n1, n2, w0, w1, w2, i0, i1, i2):
+    """Solid-angle density with which `sample_bsdf` picks wi on a glossy
+    surface (n facing wo): D(h) cos_h / (4 |wo.h|); zero below the horizon."""
+    if dot(n0, n1, n2, i0, i1, i2) <= 0.0 or dot(n0, n1, n2, w0, w1, w2) <= 0.0:
+        return 0.0
+    h0, h1, h2 = w0 + i0, w1 + i1, w2 + i2
+    hl = math.sqrt(h0 * h0 + h1 * h1 + h2 * h2)
+    h0, h1, h2 = h0 / hl, h1 / hl, h2 / hl
+    wo_h = dot(w0, w1, w2, h0, h1, h2)
+    if wo_h <= 0.0:
+        return 0.0
+    cos_h = dot(n0, n1, n2, h0, h1, h2)
+    return ggx_d(cos_h, alpha) * cos_h / (4.0 * wo_h)
+
+
+@nb.njit(cache=True, error_model="numpy")
 def _sample_glossy(alpha, n0, n1, n2, w0, w1, w2, cos_o, u1, u2):
     # Sample h from D(h) cos(theta_h); pdf(wi) = D cos_h / (4 |wo.h|).
     tan2 = alpha * alpha * u1 / max(1.0 - u1, 1e-12)

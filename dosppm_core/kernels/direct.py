@@ -11,6 +11,17 @@ written beside a shadow ray from x to y. The ray's pixel receives the
 contribution if nothing lies between x and y. Triangle lights are sampled
 by area (G = cos_y / d^2), point and spot lights have G = 1 / d^2.
 
+On a glossy hit point in a scene with triangle lights, a narrow lobe
+reflecting a large light is sampled badly by the light alone, so the ray
+is chosen by one-sample multiple importance sampling (Veach 1997, 9.2.4):
+with probability C_LIGHT the light sample above, else a direction from the
+BSDF; either way the estimate is f cos Le / (C_LIGHT p_light + C_BSDF
+p_bsdf) in solid angle, the balance heuristic. A BSDF-sampled ray looks for
+its first hit (`tmax` FIRST_HIT); if that is the front of an emitting
+triangle, `emitter_radiance` finishes the estimate there. One ray per hit
+point either way, so an eye path stays one path (exact accounting). Point
+and spot lights are sampled by the light alone (no direction finds them).
+
 The light choice and the point on the light draw from the eye path's own
 random stream at the hit point, so the same seed samples the same light
 whatever chunk or tracer the hit point was found in.
@@ -20,11 +31,14 @@ import math
 import numba as nb
 import numpy as np
 
-from dosppm_core.kernels.bsdf import eval_bsdf
+from dosppm_core.kernels.bsdf import eval_bsdf, glossy_pdf, sample_bsdf
 from dosppm_core.kernels.emit import select_light
 from dosppm_core.kernels.paths import offset_origin
 from dosppm_core.kernels.rng import next_float
-from dosppm_core.scene.model import LIGHT_POINT, LIGHT_TRIANGLE
+from dosppm_core.scene.model import GLOSSY, LIGHT_POINT, LIGHT_TRIANGLE
+
+C_LIGHT = 0.5          # share of light samples at glossy hit points (MIS); 1 elsewhere
+FIRST_HIT = 1e37       # tmax of a BSDF-sampled ray: finite (the wire refuses inf), past any scene
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
@@ -85,52 +99,144 @@ def _sample_light(lights, li, p0, p1, p2, u1, u2):
 
 
 @nb.njit(cache=True, parallel=True, error_model="numpy")
-def sample_direct(hits, states, surf, lights, eps_rel):
-    """One light sample per hit point. `hits` is (position, normal,
+def sample_direct(hits, states, surf, lights, mis, eps_rel):
+    """One direct-light ray per hit point. `hits` is (position, normal,
     outgoing, weight, material) of `jobs.HitPoints`, `states` each eye
     path's rng state at its hit point, `surf` a `SurfaceData`, `lights`
-    the LightTable's (kind, p0, p1, p2, value, cone, power, cdf).
+    the LightTable's (kind, p0, p1, p2, value, cone, power, cdf), `mis`
+    whether the scene has triangle lights (glossy hit points then use MIS).
 
-    Returns (rows, origin, direction, tmax, radiance) of the shadow rays
-    with a non-zero contribution (`rows` index the hit points)."""
+    Returns (rows, origin, direction, tmax, radiance, pdf) of the rays that
+    may contribute (`rows` index the hit points; `jobs.ShadowRays`)."""
     position, normal, outgoing, weight, material = hits
-    kinds, refl, rough, eps_abs = surf.kind, surf.reflectance, surf.roughness, surf.eps_abs
-    power, cdf = lights[6], lights[7]
-    total = power.sum()
     n = position.shape[0]
-    origin = np.empty((n, 3), np.float32)
-    direction = np.empty((n, 3), np.float32)
-    tmax = np.empty(n, np.float32)
-    radiance = np.zeros((n, 3), np.float32)
+    out = (np.empty((n, 3), np.float32), np.empty((n, 3), np.float32), np.empty(n, np.float32),
+           np.zeros((n, 3), np.float32), np.zeros(n, np.float32))
     keep = np.zeros(n, np.bool_)
     for i in nb.prange(n):
+        m = material[i]
+        glossy = mis and surf.kind[m] == GLOSSY
         st, ul = next_float(states[i])
         st, u1 = next_float(st)
         st, u2 = next_float(st)
-        li = select_light(cdf, ul)
         p0, p1, p2 = np.float64(position[i, 0]), np.float64(position[i, 1]), np.float64(position[i, 2])
-        q0, q1, q2, w0, w1, w2, dist, g = _sample_light(lights, li, p0, p1, p2, u1, u2)
-        if not g > 0.0:
-            continue
         n0, n1, n2 = normal[i, 0], normal[i, 1], normal[i, 2]
-        m = material[i]
-        f = eval_bsdf(kinds[m], np.float64(rough[m]), n0, n1, n2,
-                      outgoing[i, 0], outgoing[i, 1], outgoing[i, 2], w0, w1, w2)
-        cos_x = n0 * w0 + n1 * w1 + n2 * w2
-        scale = f * cos_x * g * total / power[li]
-        if not scale > 0.0:
-            continue
-        o0, o1, o2 = offset_origin(p0, p1, p2, n0, n1, n2, w0, w1, w2, eps_rel, eps_abs)
-        # Stop short of the light: a triangle light must not shadow itself.
-        end = eps_rel * max(abs(q0), abs(q1), abs(q2)) + eps_abs
-        t = math.sqrt((q0 - o0) ** 2 + (q1 - o1) ** 2 + (q2 - o2) ** 2) - 2.0 * end
-        if not t > 0.0:
-            continue
-        origin[i, 0], origin[i, 1], origin[i, 2] = o0, o1, o2
-        direction[i, 0], direction[i, 1], direction[i, 2] = w0, w1, w2
-        tmax[i] = t
-        for k in range(3):
-            radiance[i, k] = weight[i, k] * refl[m, k] * lights[4][li, k] * scale
-        keep[i] = True
+        o0, o1, o2 = outgoing[i, 0], outgoing[i, 1], outgoing[i, 2]
+        if glossy:
+            st, ut = next_float(st)
+            if ut >= C_LIGHT:
+                keep[i] = _bsdf_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf,
+                                    u1, u2, eps_rel, out)
+                continue
+        keep[i] = _light_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights,
+                             glossy, ul, u1, u2, eps_rel, out)
     rows = np.flatnonzero(keep)
-    return rows, origin[rows], direction[rows], tmax[rows], radiance[rows]
+    origin, direction, tmax, radiance, pdf = out
+    return rows, origin[rows], direction[rows], tmax[rows], radiance[rows], pdf[rows]
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def _write_ray(i, out, p0, p1, p2, n0, n1, n2, w0, w1, w2, t, scale, weight, refl, m, pdf,
+               eps_rel, eps_abs):
+    origin, direction, tmax, radiance, pdfs = out
+    origin[i, 0], origin[i, 1], origin[i, 2] = offset_origin(p0, p1, p2, n0, n1, n2, w0, w1, w2,
+                                                             eps_rel, eps_abs)
+    direction[i, 0], direction[i, 1], direction[i, 2] = w0, w1, w2
+    tmax[i] = t
+    pdfs[i] = pdf
+    for k in range(3):
+        radiance[i, k] = weight[i, k] * refl[m, k] * scale
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def _light_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights, glossy,
+               ul, u1, u2, eps_rel, out):
+    """A shadow ray to a point sampled on a light chosen by power; writes
+    row i of `out`, returns whether it may contribute."""
+    power, cdf, value = lights[6], lights[7], lights[4]
+    li = select_light(cdf, ul)
+    p_sel = power[li] / power.sum()
+    q0, q1, q2, w0, w1, w2, dist, g = _sample_light(lights, li, p0, p1, p2, u1, u2)
+    if not g > 0.0:
+        return False
+    alpha = np.float64(surf.roughness[m])
+    f = eval_bsdf(surf.kind[m], alpha, n0, n1, n2, o0, o1, o2, w0, w1, w2)
+    cos_x = n0 * w0 + n1 * w1 + n2 * w2
+    if not f * cos_x > 0.0:
+        return False
+    if glossy and lights[0][li] == LIGHT_TRIANGLE:
+        # One-sample MIS, balance heuristic: f cos Le / (c_l p_l + c_b p_b).
+        p_light = p_sel / g
+        p_bsdf = glossy_pdf(alpha, n0, n1, n2, o0, o1, o2, w0, w1, w2)
+        scale = f * cos_x / (C_LIGHT * p_light + (1.0 - C_LIGHT) * p_bsdf)
+    elif glossy:
+        scale = f * cos_x * g / (p_sel * C_LIGHT)   # a delta light: only this technique finds it
+    else:
+        scale = f * cos_x * g / p_sel
+    # Stop short of the light: a triangle light must not shadow itself.
+    end = eps_rel * max(abs(q0), abs(q1), abs(q2)) + surf.eps_abs
+    t = dist - 2.0 * end
+    if not t > 0.0:
+        return False
+    _write_ray(i, out, p0, p1, p2, n0, n1, n2, w0, w1, w2, t, scale, weight, surf.reflectance, m, 0.0,
+               eps_rel, surf.eps_abs)
+    for k in range(3):
+        out[3][i, k] *= value[li, k]
+    return True
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def _bsdf_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, u1, u2, eps_rel, out):
+    """A direction sampled from the glossy lobe, looking for an emitter;
+    its radiance is W refl f cos, its pdf (1 - C_LIGHT) p_bsdf."""
+    alpha = np.float64(surf.roughness[m])
+    ok, w0, w1, w2, _scale, _spec = sample_bsdf(GLOSSY, True, 1.0, alpha, n0, n1, n2, o0, o1, o2,
+                                                u1, u2, 0.5, True)
+    if not ok:
+        return False
+    wl = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    w0, w1, w2 = w0 / wl, w1 / wl, w2 / wl
+    f = eval_bsdf(GLOSSY, alpha, n0, n1, n2, o0, o1, o2, w0, w1, w2)
+    p_bsdf = glossy_pdf(alpha, n0, n1, n2, o0, o1, o2, w0, w1, w2)
+    cos_x = n0 * w0 + n1 * w1 + n2 * w2
+    if not (f * cos_x > 0.0 and p_bsdf > 0.0):
+        return False
+    _write_ray(i, out, p0, p1, p2, n0, n1, n2, w0, w1, w2, FIRST_HIT, f * cos_x, weight,
+               surf.reflectance, m, (1.0 - C_LIGHT) * p_bsdf, eps_rel, surf.eps_abs)
+    return True
+
+
+@nb.njit(cache=True, parallel=True, error_model="numpy")
+def emitter_radiance(direction, radiance, pdf, prim, t, surf, total_power):
+    """What BSDF-sampled rays (pdf > 0) bring from the triangles they hit
+    first (`prim` into `surf`, distance `t`): radiance * Le / (C_LIGHT
+    p_light + pdf) where the hit is the front of an emitter, else 0.
+    p_light is the density with which light sampling picks that direction:
+    the triangle's share of the power (pi A mean(Le) / total) over its
+    solid angle (cos_y A / t^2)."""
+    n = prim.shape[0]
+    rgb = np.zeros((n, 3), np.float32)
+    verts, tris, emit = surf.vertices, surf.triangles, surf.emission
+    for i in nb.prange(n):
+        tri = prim[i]
+        if tri < 0 or not pdf[i] > 0.0:
+            continue
+        m = surf.tri_material[tri]
+        le = (emit[m, 0] + emit[m, 1] + emit[m, 2]) / 3.0
+        if not le > 0.0:
+            continue
+        a, b, c = verts[tris[tri, 0]], verts[tris[tri, 1]], verts[tris[tri, 2]]
+        e10, e11, e12 = np.float64(b[0]) - a[0], np.float64(b[1]) - a[1], np.float64(b[2]) - a[2]
+        e20, e21, e22 = np.float64(c[0]) - a[0], np.float64(c[1]) - a[1], np.float64(c[2]) - a[2]
+        nx = e11 * e22 - e12 * e21
+        ny = e12 * e20 - e10 * e22
+        nz = e10 * e21 - e11 * e20
+        nl = math.sqrt(nx * nx + ny * ny + nz * nz)
+        cos_y = -(nx * direction[i, 0] + ny * direction[i, 1] + nz * direction[i, 2]) / nl
+        if not cos_y > 0.0:       # one-sided: emits on its CCW front
+            continue
+        p_light = math.pi * le * np.float64(t[i]) ** 2 / (cos_y * total_power)
+        k = 1.0 / (C_LIGHT * p_light + pdf[i])
+        for j in range(3):
+            rgb[i, j] = radiance[i, j] * emit[m, j] * k
+    return rgb
