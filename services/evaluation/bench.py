@@ -50,7 +50,7 @@ def _photon_rays(r: Renderer, photons: int, job0: int):
                             r.surf.eps_abs)
             for k, done in enumerate(range(0, photons, s.photons_per_job)))
     deposits, _ends, _culled = trace_photon_jobs(
-        r.accel, r.surf, jobs, NO_CULL, s.max_depth,
+        r.accel, r.surf, jobs, NO_CULL, s.max_depth, deposit_from=s.deposit_from,
         on_batch=lambda b: batches.append((b.origin, b.direction)))
     return deposits, photons, batches
 
