@@ -39,9 +39,8 @@ def add_parser(sub) -> None:
     p.add_argument("--reference-spp-scale", type=float, default=1.0,
                    help="scale the suite's reference sample counts (quick looks: 0.1)")
     p.add_argument("--shared", metavar="DIR",
-                   help=f"the shared folder of scenes and references (default ${suites.SHARED_ENV}, "
-                        "else ../shared beside the repository); cases that need it are skipped "
-                        "without it")
+                   help=f"the shared folder of scenes and references (default ${suites.SHARED_ENV}); "
+                        "cases that need it are skipped without it")
     p.add_argument("--seed", type=int, default=1)
     p.set_defaults(func=run)
 

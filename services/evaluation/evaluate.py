@@ -26,8 +26,8 @@ the reflectance times the floor radiance that light tracing renders from
 above).
 
 A case may instead take its scene and reference image from the shared
-folder (`--shared DIR`, else $DOSPPM_SHARED, else ../shared beside the
-repository): `sponza-point`'s reference is pbrt-v4's. Without the folder
+folder (`--shared DIR`, else $DOSPPM_SHARED): `sponza-point`'s reference
+is pbrt-v4's. Without the folder
 such a case is skipped with its reason, as a missing peer renderer is.
 """
 from __future__ import annotations

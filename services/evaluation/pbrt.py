@@ -4,8 +4,8 @@ scene format and command line).
 
 pbrt-v4's `sppm` integrator is the strongest public SPPM, and its `path`
 integrator a second independent reference beside Mitsuba 3. The binary is
-`$DOSPPM_PBRT`, else `pbrt` on the PATH (`../shared/peers/build-pbrt-v4.sh`
-builds one); without it the evaluation skips the pbrt methods.
+`$DOSPPM_PBRT`, else `pbrt` on the PATH (the project's peers folder has a
+script that builds one); without it the evaluation skips the pbrt methods.
 
 Mapping (our conventions follow Mitsuba's; see `dosppm_core.reference`):
 
@@ -36,7 +36,7 @@ depth      pbrt's `maxdepth` counts bounces as our `max_depth` does
 
 Units: pbrt-v4 renders spectrally, and divides each light's spectrum by its
 luminance, so an `rgb` emission of a grey light comes out as those RGB
-numbers (the closed-form sphere in `../shared/peers` agrees to 0.03%).
+numbers (a closed-form sphere agrees to 0.03%).
 Coloured lights and reflectances go through pbrt's RGB-to-spectrum
 upsampling: products of saturated colours differ from an RGB renderer's by
 a few percent.
@@ -66,7 +66,7 @@ from dosppm_core.scene.model import (
 )
 
 BINARY_ENV = "DOSPPM_PBRT"
-BUILD_HINT = "build it with ../shared/peers/build-pbrt-v4.sh, or set DOSPPM_PBRT"
+BUILD_HINT = "build pbrt-v4 and put it on the PATH, or set DOSPPM_PBRT"
 # A conductor with eta 1 and a huge k reflects everything at every angle:
 # Mitsuba's `conductor` with material "none" (Fresnel 1).
 PERFECT_CONDUCTOR = '"spectrum eta" [300 1 900 1] "spectrum k" [300 1e4 900 1e4]'

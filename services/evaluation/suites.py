@@ -8,7 +8,6 @@ import os
 from dataclasses import dataclass, field
 
 SHARED_ENV = "DOSPPM_SHARED"
-REPOSITORY = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
 class CaseSkipped(Exception):
@@ -143,12 +142,10 @@ class Sample:
 
 
 def shared_dir(given: str | None = None) -> str | None:
-    """The shared folder: `given`, else $DOSPPM_SHARED, else ../shared
-    beside the repository if it exists, else None."""
-    if given or os.environ.get(SHARED_ENV):
-        return given or os.environ[SHARED_ENV]
-    beside = os.path.join(os.path.dirname(REPOSITORY), "shared")
-    return beside if os.path.isdir(beside) else None
+    """The shared folder of scenes and references: `given`, else
+    $DOSPPM_SHARED, else None. The product never looks for it by itself:
+    tests and benchmarks say where it is."""
+    return given or os.environ.get(SHARED_ENV) or None
 
 
 def shared_file(shared: str | None, name: str) -> str:

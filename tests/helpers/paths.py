@@ -9,6 +9,7 @@ import pytest
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 # Scenes shared between projects sit beside the checkout (../shared/scenes),
 # not inside it: a clone elsewhere has none, and the tests reading them skip.
-SHARED_SCENES = os.path.normpath(os.path.join(REPO, "..", "shared", "scenes"))
+SHARED = os.path.normpath(os.path.join(REPO, "..", "shared"))
+SHARED_SCENES = os.path.join(SHARED, "scenes")
 needs_shared_scenes = pytest.mark.skipif(not os.path.isdir(SHARED_SCENES),
                                          reason="../shared/scenes (beside the checkout) absent")
