@@ -113,6 +113,7 @@ def sample_direct(hits, states, surf, lights, mis, eps_rel):
     out = (np.empty((n, 3), np.float32), np.empty((n, 3), np.float32), np.empty(n, np.float32),
            np.zeros((n, 3), np.float32), np.zeros(n, np.float32))
     keep = np.zeros(n, np.bool_)
+    total = lights[6].sum()     # once, not per ray: hundreds of lights in some scenes
     for i in nb.prange(n):
         m = material[i]
         glossy = mis and surf.kind[m] == GLOSSY
@@ -129,7 +130,7 @@ def sample_direct(hits, states, surf, lights, mis, eps_rel):
                                     u1, u2, eps_rel, out)
                 continue
         keep[i] = _light_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights,
-                             glossy, ul, u1, u2, eps_rel, out)
+                             total, glossy, ul, u1, u2, eps_rel, out)
     rows = np.flatnonzero(keep)
     origin, direction, tmax, radiance, pdf = out
     return rows, origin[rows], direction[rows], tmax[rows], radiance[rows], pdf[rows]
@@ -149,13 +150,13 @@ def _write_ray(i, out, p0, p1, p2, n0, n1, n2, w0, w1, w2, t, scale, weight, ref
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
-def _light_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights, glossy,
+def _light_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights, total, glossy,
                ul, u1, u2, eps_rel, out):
     """A shadow ray to a point sampled on a light chosen by power; writes
     row i of `out`, returns whether it may contribute."""
     power, cdf, value = lights[6], lights[7], lights[4]
     li = select_light(cdf, ul)
-    p_sel = power[li] / power.sum()
+    p_sel = power[li] / total
     q0, q1, q2, w0, w1, w2, dist, g = _sample_light(lights, li, p0, p1, p2, u1, u2)
     if not g > 0.0:
         return False
