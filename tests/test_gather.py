@@ -11,7 +11,7 @@ import pytest
 from dosppm_core.jobs import HitPoints, PhotonDeposits
 from dosppm_core.kernels.bsdf import eval_bsdf
 from dosppm_core.scene.model import Material, MaterialTable
-from dosppm_core.sppm.grid import NORMAL_COS, gather_grid, grid_layout
+from dosppm_core.sppm.grid import gather_grid, grid_layout
 from dosppm_core.sppm.hash import build_photon_hash, gather_hash, hash_layout, hash_statistics
 from dosppm_core.sppm.statistics import PixelStatistics, reorder_deposits
 
@@ -116,14 +116,14 @@ def _case(seed=2, free=40, plane=70, photons_per_surface=150):
 # -- the reference --------------------------------------------------------------------
 def brute_force_pairs(ph, hp, radius, materials=MATERIALS):
     """Every (hit point, photon) pair that counts, with the gathers' float32
-    distance and normal tests, and its BRDF-weighted flux. The BRDF is the
+    distance and hemisphere tests, and its BRDF-weighted flux. The BRDF is the
     scalar kernel (checked on its own in
     `test_reference_brdf_matches_float64_formulas`)."""
     d = ph.position[None, :, :] - hp.position[:, None, :]                # float32
     d2 = d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1] + d[..., 2] * d[..., 2]
-    hn, pn = hp.normal[:, None, :], ph.normal[None, :, :]
-    cos_n = hn[..., 0] * pn[..., 0] + hn[..., 1] * pn[..., 1] + hn[..., 2] * pn[..., 2]
-    ok = (d2.astype(np.float64) <= (radius * radius)[:, None]) & (cos_n >= NORMAL_COS)
+    hn, wi = hp.normal[:, None, :], ph.incoming[None, :, :]
+    cos_in = hn[..., 0] * wi[..., 0] + hn[..., 1] * wi[..., 1] + hn[..., 2] * wi[..., 2]
+    ok = (d2.astype(np.float64) <= (radius * radius)[:, None]) & (cos_in > 0)
     hs, js = np.nonzero(ok)
     phi = np.zeros((len(hs), 3))
     for i, (h, j) in enumerate(zip(hs, js)):

@@ -16,7 +16,7 @@ convergence, which is why the paper batches ~1M photons per update (§4.3).
 
 Each hit point visits the slots of all cells its radius sphere overlaps,
 each slot once (two overlapped cells may share a slot), and tests the kept
-photon's distance, normal and BRDF exactly like the grid gather.
+photon's distance and BRDF exactly like the grid gather.
 
 Selection. The kept photon is the one with the smallest priority, a
 counter-based hash of (seed, photon position and direction bits). It is
@@ -53,7 +53,6 @@ import numpy as np
 
 from dosppm_core.kernels.bsdf import eval_bsdf
 from dosppm_core.kernels.rng import mix64
-from dosppm_core.sppm.grid import NORMAL_COS
 
 RESOLUTION = (512, 128, 512)    # the paper's Table 1
 MAX_TABLE_SIZE = 1 << 24        # default cap on slots
@@ -383,12 +382,12 @@ def _gather_range(first_hp, end_hp, hp, hp_radius, grid, cells, materials, stamp
 def _gather_hit_point(h, r, hp, shading, grid, cells, stamp):
     """(M, Phi) of hit point h of radius r: the columns of cells its sphere
     overlaps, in each the occupied cells (found in the bitmap, their records
-    by rank), and their kept photons' distance, normal and BRDF tests. The
+    by rank), and their kept photons' distance and BRDF tests. The
     loops stay in one function: a call taking arrays, per word or photon,
     would reference-count each of them (numba), at twice the gather's time."""
     hp_pos, _hp_n, hp_out, hp_weight, _hp_mat = hp
     lo, cell, dims, axes, slack, bitmap, first = grid
-    c_pos, c_in, c_n, c_flux, c_count, c_shared = cells
+    c_pos, c_in, _c_n, c_flux, c_count, c_shared = cells
     n0, n1, n2, kind, rough, refl0, refl1, refl2 = shading
     words = (dims[2] + 63) // 64
     x, y, z = np.float64(hp_pos[h, axes[0]]), np.float64(hp_pos[h, axes[1]]), np.float64(hp_pos[h, axes[2]])
@@ -428,8 +427,8 @@ def _gather_hit_point(h, r, hp, shading, grid, cells, stamp):
                     d1 = c_pos[k, 1] - hp_pos[h, 1]
                     d2 = c_pos[k, 2] - hp_pos[h, 2]
                     if (d0 * d0 + d1 * d1 + d2 * d2 > r * r
-                            or n0 * c_n[k, 0] + n1 * c_n[k, 1] + n2 * c_n[k, 2] < NORMAL_COS):
-                        continue
+                            or n0 * c_in[k, 0] + n1 * c_in[k, 1] + n2 * c_in[k, 2] <= 0.0):
+                        continue    # outside the sphere, or from behind the surface (grid.py)
                     f = eval_bsdf(kind, rough, n0, n1, n2,
                                   hp_out[h, 0], hp_out[h, 1], hp_out[h, 2],
                                   c_in[k, 0], c_in[k, 1], c_in[k, 2])
