@@ -54,7 +54,7 @@ from dosppm_core.accel import Accelerator
 from dosppm_core.jobs import HitPoints, RayBatch
 from dosppm_core.scene import builtin
 from dosppm_core.sppm import hash as hash_gather
-from dosppm_core.sppm.statistics import initial_radius, reorder_deposits, spatial_order
+from dosppm_core.sppm.statistics import pixel_footprint, reorder_deposits, spatial_order
 
 # isort: split
 import numba
@@ -166,7 +166,7 @@ def _record_inputs(scene, accel, surf, args, parts) -> dict:
                                            trace.NO_CULL, MAX_DEPTH)[0]
         hits = _eye_bounces(scene, accel, surf, 1)[1]
         hits = hits.take(spatial_order(hits.position))
-        radius = initial_radius(scene, hits).astype(np.float64)
+        radius = 3.0 * pixel_footprint(scene, hits)   # a typical fitted radius
         box = np.stack([hits.position.min(0) - radius[0],
                         hits.position.max(0) + radius[0]]).astype(np.float64)
         inputs["hash"] = (hits, radius, reorder_deposits(deposits, box))

@@ -132,9 +132,8 @@ def test_sppm_converges_to_the_mirror_limit(tmp_path):
     """SPPM renders the caustic seen in the mirror: with an initial radius
     small against the floor the mirror shows (a few mm at the wall's foot),
     its mean over the mirror pixels is within 5% of the limit and its error
-    falls with iterations. The default radius (3 pixel footprints, ~50 mm
-    here) leaks light across the ring's wall and overshoots by ~13%,
-    which `dosppm evaluate` reports."""
+    falls with iterations. A radius large against the ring's wall leaks
+    light across it and overshoots, which `dosppm evaluate` reports."""
     scene = _cardioid(64)
     pixels = evaluate.specular_first_hit_share(scene, 64) > 0
     limit = ml.mirror_limit(scene, str(tmp_path), pixels, ml.LimitSettings(

@@ -8,8 +8,8 @@ results is the same, and lives here:
   directly) arrive tile by tile, from any chunk or tracer and in any order;
   `EyePass` collects them, and `SPPMIteration.install_eye_pass` replaces
   the hit points once the pass is complete, and starts the radius of each
-  pixel no photon has reached yet at its hit point's (`initial_radius`:
-  a few pixel footprints at its distance).
+  pixel no photon has reached yet at a pilot radius; the first batch that
+  reaches it fits it to the photon density there (`PixelStatistics.fit_radii`).
 - Photons are emitted against the current hit points: `cull_box` is their
   box grown by the largest radius (§4.3), or no box at all when culling is
   off (the DOSPPM server emits no photons before the first hit points).
@@ -29,7 +29,7 @@ import numpy as np
 
 from dosppm_core.jobs import END_NAMES, HitPoints, PhotonDeposits
 from dosppm_core.settings import Progress, RenderSettings
-from dosppm_core.sppm.statistics import PixelStatistics, initial_radius
+from dosppm_core.sppm.statistics import PixelStatistics, pilot_radius, pixel_footprint
 from dosppm_core.trace import NO_CULL
 
 
@@ -84,8 +84,7 @@ class SPPMIteration:
 
     def install_hit_points(self, hits: HitPoints, emitted: tuple) -> None:
         if self.settings.radius is None:      # else fixed by --radius for every pixel
-            self.stats.fit_radii(hits.pixel, initial_radius(self.header, hits),
-                                 fallback=self.header.diagonal() / 100.0)
+            self.stats.fit_radii(hits.pixel, pilot_radius(hits), pixel_footprint(self.header, hits))
         self.stats.replace_hit_points(hits, emitted)
         self.hit_point_total += len(hits)
 

@@ -106,15 +106,22 @@ def spatial_order(pos: np.ndarray, box: np.ndarray | None = None) -> np.ndarray:
     return (_morton_sorted(pos, box) & np.uint64(0xFFFFFFFF)).astype(np.int64)
 
 
-RADIUS_PIXELS = 3.0   # initial radius, in pixel footprints at the hit point's distance
+# The initial radius, fitted per hit point to the photons that reach it
+# (Hachisuka et al.'s k nearest photons, from one pilot gather): a disc
+# that holds RADIUS_DEPOSITS of every million deposits of a batch, so
+# bright and dark regions start at the same relative noise, whatever the
+# scene's scale or light power. Measured on Sponza and the failure-mode
+# suite (benchmarks/results/issue12-radius): see the README's accuracy
+# section.
+RADIUS_DEPOSITS = 120.0
+PILOT_DIAGONAL = 1.0 / 50.0   # pilot radius, as a fraction of the hit points' box diagonal
+PILOT_DEPOSITS = 100_000      # deposits the pilot gather reads at most
+MIN_RADIUS_PIXELS = 1.0       # no radius below one pixel footprint: the pixel filter blurs as much
 
 
-def initial_radius(scene: Scene, hits: HitPoints, pixels_across: float = RADIUS_PIXELS) -> np.ndarray:
-    """Each hit point's initial radius: `pixels_across` pixel footprints at
-    its distance from the camera, kept within [1e-5, 1/20] of the scene's
-    size. Near and far surfaces get radii of the same size on screen, so
-    the blur (the bias) is alike everywhere in the image, whatever the
-    scene's scale, instead of depending on one global guess."""
+def pixel_footprint(scene: Scene, hits: HitPoints, pixels_across: float = MIN_RADIUS_PIXELS) -> np.ndarray:
+    """`pixels_across` pixel footprints at each hit point's distance from
+    the camera, kept within [1e-5, 1/20] of the scene's size."""
     frame = scene.camera.frame()
     diag = scene.diagonal()
     dist = np.linalg.norm(hits.position.astype(np.float64) - frame[0], axis=1)
@@ -122,17 +129,39 @@ def initial_radius(scene: Scene, hits: HitPoints, pixels_across: float = RADIUS_
     return np.clip(pixels_across * footprint, 1e-5 * diag, diag / 20.0)
 
 
+def pilot_radius(hits: HitPoints) -> float:
+    """The radius a pixel starts at before its first photons: a fixed
+    fraction of the hit points' extent (the view, not the whole scene)."""
+    if len(hits) == 0:
+        return 1.0
+    p = hits.position.astype(np.float64)
+    diag = float(np.linalg.norm(p.max(0) - p.min(0)))
+    return max(diag * PILOT_DIAGONAL, 1e-6)
+
+
+def subsample(deposits, most: int) -> GatherPhotons:
+    """At most `most` deposits, evenly strided over the batch."""
+    n = len(deposits.position)
+    rows = np.arange(n) if n <= most else (np.arange(most) * (n / most)).astype(np.int64)
+    return GatherPhotons(deposits.position[rows], deposits.incoming[rows],
+                         deposits.normal[rows], deposits.flux[rows])
+
+
 class PixelStatistics:
     """N, R, tau and directly seen emission per pixel (eqs. 1-5)."""
 
     def __init__(self, width: int, height: int, radius: float | None, alpha: float = 0.7):
-        """`radius` None: set by `set_initial_radius` before the first batch."""
+        """`radius` None: each pixel's radius is fitted to the photon
+        density at its hit point (`fit_radii`, then the pilot gather of
+        the first batch that reaches it); else every pixel starts at it."""
         if not (0.0 < alpha < 1.0):
             raise ValueError(f"alpha must lie in (0, 1), got {alpha}")
         n = width * height
         self.width, self.height, self.alpha = width, height, alpha
+        self.fit = radius is None
         self.photon_count = np.zeros(n)           # N_i
         self.radius = np.full(n, np.nan if radius is None else float(radius))  # R_i
+        self.min_radius = np.zeros(n)             # per pixel: one pixel footprint
         self.tau = np.zeros((n, 3))               # tau_i
         self.emission = np.zeros((n, 3))          # sum over eye iterations
         self.eye_iterations = 0
@@ -148,15 +177,34 @@ class PixelStatistics:
             raise ValueError(f"initial radius must be > 0, got {radius}")
         self.radius[:] = radius
 
-    def fit_radii(self, pixels: np.ndarray, radii: np.ndarray, fallback: float) -> None:
-        """Start each pixel's radius at its hit point's `radii`, for every
-        pixel no photon has reached yet (its radius has never shrunk and its
-        tau is zero, so this changes no estimate). Pixels that have had no
-        hit point keep the median (or `fallback`), so no radius is NaN."""
+    def fit_radii(self, pixels: np.ndarray, pilot: float, min_radii: np.ndarray) -> None:
+        """Start every pixel no photon has reached yet (its radius has never
+        shrunk and its tau is zero, so this changes no estimate) at the
+        pilot radius; the first batch that reaches it fits it to the photon
+        density (`_fit_to_density`). Pixels without a hit point keep the
+        pilot radius, so no radius is NaN."""
         if not self.has_radius:
-            self.radius[:] = float(np.median(radii)) if len(radii) else fallback
+            self.radius[:] = pilot
         fresh = self.photon_count[pixels] == 0
-        self.radius[pixels[fresh]] = radii[fresh]
+        self.radius[pixels[fresh]] = np.maximum(pilot, min_radii[fresh])
+        self.min_radius[pixels] = min_radii
+
+    def _fit_to_density(self, deposits, hp: HitPoints, materials, threads: int) -> None:
+        """The radius of each pixel no photon has reached yet, from a pilot
+        gather of (a subsample of) this batch at the pilot radius: the disc
+        expected to hold RADIUS_DEPOSITS of every million deposits, kept
+        between one pixel footprint and the pilot radius."""
+        fresh = np.flatnonzero(self.photon_count[hp.pixel] == 0)
+        if len(fresh) == 0 or len(deposits) == 0:
+            return
+        pilot = subsample(deposits, PILOT_DEPOSITS)
+        hpf = hp.take(fresh)
+        r_pilot = self.radius[hpf.pixel]
+        m, _ = gather_grid(pilot, hpf, r_pilot, materials, threads)
+        share = m / len(pilot.position)                 # of the deposits, within r_pilot
+        with np.errstate(divide="ignore"):
+            r0 = r_pilot * np.sqrt(RADIUS_DEPOSITS * 1e-6 / share)
+        self.radius[hpf.pixel] = np.clip(r0, self.min_radius[hpf.pixel], r_pilot)
 
     # -- eye iterations -----------------------------------------------------
     def replace_hit_points(self, hits: HitPoints, emitted: tuple) -> None:
@@ -189,6 +237,8 @@ class PixelStatistics:
             return
         if gather not in GATHERS:
             raise ValueError(f"unknown gather {gather!r} (known: {', '.join(GATHERS)})")
+        if self.fit:
+            self._fit_to_density(deposits, hp, materials, threads)
         radius = self.radius[hp.pixel]
         # Registering the hit points in the grid and sorting the photons are
         # both mostly serial: do them at once, on two cores.
