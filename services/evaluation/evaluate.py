@@ -166,7 +166,7 @@ def run_method(method: Method, scene: Scene, budgets: list[float], seed: int,
     """(budget, seconds, photons, image) at each budget; `pbrt_file` is the
     scene for pbrt-v4 where a case gives one (else `scene` is exported)."""
     if method.kind == "sppm":
-        return _progressive(lambda: Renderer(scene, _settings(method, seed)), budgets)
+        return _progressive(lambda: Renderer(scene, _settings(method, seed, scene)), budgets)
     if method.kind == "osppm":
         return _progressive(lambda: _osppm(method, scene, seed, work), budgets)
     if method.kind == "dosppm":
@@ -178,8 +178,10 @@ def run_method(method: Method, scene: Scene, budgets: list[float], seed: int,
     raise ValueError(f"unknown method kind {method.kind!r}")
 
 
-def _settings(method: Method, seed: int) -> RenderSettings:
+def _settings(method: Method, seed: int, scene: Scene | None = None) -> RenderSettings:
     s = RenderSettings(seed=seed, gather=method.options.get("gather", "grid"))
+    if "radius_of_diagonal" in method.options:
+        s.radius = method.options["radius_of_diagonal"] * scene.diagonal()
     for name in ("direct", "max_depth"):    # else RenderSettings' defaults
         if name in method.options:
             setattr(s, name, method.options[name])

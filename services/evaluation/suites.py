@@ -67,6 +67,13 @@ METHODS = {m.name: m for m in (
            "SPPM, exact grid gather, the default estimator (direct light by shadow rays)"),
     Method("sppm-photons", "sppm", {"gather": "grid", "direct": "photons"},
            "SPPM, exact grid gather, the paper's pure estimator (direct light from photons)"),
+    # One global initial radius, as a user's --radius would give, beside the
+    # default's radius fitted per hit point (issue 12): the bias these leave
+    # is what the fit removes.
+    Method("sppm-radius-1/400", "sppm", {"gather": "grid", "radius_of_diagonal": 1 / 400},
+           "SPPM with one global initial radius, 1/400 of the scene's diagonal (--radius)"),
+    Method("sppm-radius-1/100", "sppm", {"gather": "grid", "radius_of_diagonal": 1 / 100},
+           "SPPM with one global initial radius, 1/100 of the scene's diagonal (--radius)"),
     Method("sppm-hash-512x128x512", "sppm", {"gather": "hash", "resolution": (512, 128, 512)},
            "SPPM, stochastic hash at the paper's table size"),
     Method("sppm-hash-128x32x128", "sppm", {"gather": "hash", "resolution": (128, 32, 128)},
