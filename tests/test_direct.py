@@ -108,6 +108,33 @@ def test_small_area_light_above_a_plane():
     assert got.mean() == pytest.approx(expected.mean(), rel=0.01)
 
 
+def _many_lamps(rng, n):
+    """n point lamps of assorted power, some near the plane, most far."""
+    pos = np.c_[rng.uniform(-4, 4, n), rng.uniform(-4, 4, n), rng.uniform(0.3, 3.0, n)]
+    return pos, rng.uniform(0.2, 4.0, n)
+
+
+def test_many_lights_chosen_by_their_contribution_stay_unbiased():
+    """Forty point lamps above the plane: the light chosen among a few
+    candidates by its unoccluded contribution (RIS) gives the closed-form
+    sum of all forty, per pixel and over the image."""
+    pos, power = _many_lamps(np.random.default_rng(7), 40)
+
+    def lamps(b):
+        for k in range(len(pos)):
+            b.add_point_light(pos[k], (power[k],) * 3, f"lamp{k}")
+    scene = _plane_scene(lamps)
+    x = _pixel_points(scene)
+    expected = np.zeros(x.shape[:2])
+    for p, i in zip(pos, power):
+        d = p - x
+        dist = np.linalg.norm(d, axis=-1)
+        expected += (RHO / math.pi * i * (d[..., 2] / dist) / dist ** 2).mean(-1)
+    got = _render(scene, iterations=256)
+    assert got.mean() == pytest.approx(expected.mean(), rel=0.01)
+    np.testing.assert_allclose(got, expected, rtol=0.08)
+
+
 def test_paper_estimator_blurs_the_same_light():
     """--direct photons still renders the plane (by photon density), to the
     same mean within its bias and noise."""
