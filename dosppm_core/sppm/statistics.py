@@ -108,12 +108,13 @@ def spatial_order(pos: np.ndarray, box: np.ndarray | None = None) -> np.ndarray:
 
 # The initial radius, fitted per hit point to the photons that reach it
 # (Hachisuka et al.'s k nearest photons, from one pilot gather): a disc
-# that holds RADIUS_DEPOSITS of every million deposits of a batch, so
-# bright and dark regions start at the same relative noise, whatever the
-# scene's scale or light power. Measured on Sponza and the failure-mode
-# suite (benchmarks/results/issue12-radius): see the README's accuracy
-# section.
-RADIUS_DEPOSITS = 120.0
+# expected to hold RADIUS_SHARE times a hit point's fair share of a batch
+# (1 / hit points), so bright and dark regions start at the same relative
+# noise whatever the scene's scale, its lights' power or the image's size.
+# 8 was best of 4, 8 and 16 on both Sponza (320x240) and the Cornell box
+# (128x128), where one count of photons per million (120) fitted Sponza but
+# left the box 1.6x noisier (docs/accuracy.md, "The initial radius").
+RADIUS_SHARE = 8.0
 PILOT_DIAGONAL = 1.0 / 50.0   # pilot radius, as a fraction of the hit points' box diagonal
 PILOT_DEPOSITS = 100_000      # deposits the pilot gather reads at most
 MIN_RADIUS_PIXELS = 1.0       # no radius below one pixel footprint: the pixel filter blurs as much
@@ -159,6 +160,7 @@ class PixelStatistics:
         n = width * height
         self.width, self.height, self.alpha = width, height, alpha
         self.fit = radius is None
+        self.fitted = np.zeros(n, bool)           # the pilot gather has set its radius
         self.photon_count = np.zeros(n)           # N_i
         self.radius = np.full(n, np.nan if radius is None else float(radius))  # R_i
         self.min_radius = np.zeros(n)             # per pixel: one pixel footprint
@@ -178,33 +180,45 @@ class PixelStatistics:
         self.radius[:] = radius
 
     def fit_radii(self, pixels: np.ndarray, pilot: float, min_radii: np.ndarray) -> None:
-        """Start every pixel no photon has reached yet (its radius has never
-        shrunk and its tau is zero, so this changes no estimate) at the
-        pilot radius; the first batch that reaches it fits it to the photon
-        density (`_fit_to_density`). Pixels without a hit point keep the
-        pilot radius, so no radius is NaN."""
+        """Start every pixel not fitted yet (no photon has reached it: its
+        radius has never shrunk and its tau is zero, so this changes no
+        estimate) at the pilot radius; the next batch fits it to the photon
+        density (`_fit_to_density`), once. Pixels without a hit point keep
+        the pilot radius, so no radius is NaN."""
         if not self.has_radius:
             self.radius[:] = pilot
-        fresh = self.photon_count[pixels] == 0
+        fresh = self._unfitted(pixels)
         self.radius[pixels[fresh]] = np.maximum(pilot, min_radii[fresh])
         self.min_radius[pixels] = min_radii
 
+    def _unfitted(self, pixels: np.ndarray) -> np.ndarray:
+        """Which of `pixels` have neither been fitted nor reached by a photon
+        (a checkpoint keeps no `fitted`: a resumed pixel with photons is
+        never reset)."""
+        return ~self.fitted[pixels] & (self.photon_count[pixels] == 0)
+
     def _fit_to_density(self, deposits, hp: HitPoints, materials, threads: int) -> None:
-        """The radius of each pixel no photon has reached yet, from a pilot
-        gather of (a subsample of) this batch at the pilot radius: the disc
-        expected to hold RADIUS_DEPOSITS of every million deposits, kept
-        between one pixel footprint and the pilot radius."""
-        fresh = np.flatnonzero(self.photon_count[hp.pixel] == 0)
+        """The radius of each pixel not fitted yet, from a pilot gather of (a
+        subsample of) this batch at the pilot radius: the disc expected to
+        hold RADIUS_SHARE / (hit points) of the deposits, kept between one
+        pixel footprint and the pilot radius. A pixel the pilot finds no
+        photon for (a light seen directly, a dark room) stays at the pilot
+        radius and is tried again with the next batch, on a subsample as
+        much smaller as such pixels are few (the Cornell box's lamp: 5%)."""
+        fresh = np.flatnonzero(self._unfitted(hp.pixel))
         if len(fresh) == 0 or len(deposits) == 0:
             return
-        pilot = subsample(deposits, PILOT_DEPOSITS)
+        few = min(1.0, max(0.1, 4.0 * len(fresh) / len(hp)))
+        pilot = subsample(deposits, int(PILOT_DEPOSITS * few))
         hpf = hp.take(fresh)
         r_pilot = self.radius[hpf.pixel]
         m, _ = gather_grid(pilot, hpf, r_pilot, materials, threads)
         share = m / len(pilot.position)                 # of the deposits, within r_pilot
+        target = RADIUS_SHARE / len(hp)                 # RADIUS_SHARE hit points' fair share
         with np.errstate(divide="ignore"):
-            r0 = r_pilot * np.sqrt(RADIUS_DEPOSITS * 1e-6 / share)
+            r0 = r_pilot * np.sqrt(target / share)
         self.radius[hpf.pixel] = np.clip(r0, self.min_radius[hpf.pixel], r_pilot)
+        self.fitted[hpf.pixel] = m > 0
 
     # -- eye iterations -----------------------------------------------------
     def replace_hit_points(self, hits: HitPoints, emitted: tuple) -> None:
