@@ -12,15 +12,13 @@ Reported per scene (medians of `repeats` runs):
 """
 from __future__ import annotations
 
-import json
-import os
-import platform
 import statistics
 import time
 
 import numpy as np
 
 from dosppm_core.modes.sppm import Renderer
+from services.evaluation.provenance import write_results
 from dosppm_core.settings import RenderSettings
 from dosppm_core.trace import NO_CULL, emit_photon_job, trace_photon_jobs
 
@@ -32,12 +30,16 @@ PAPER_TABLE4 = {
 }
 
 
-def _median_time(fn, repeats: int) -> float:
+def _median_time(fn, repeats: int, samples: list | None = None) -> float:
+    """The median of `repeats` timings of fn(); each timing is appended to
+    `samples` (the results file keeps every run, not only the median)."""
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
         fn()
         times.append(time.perf_counter() - t0)
+    if samples is not None:
+        samples.extend(times)
     return statistics.median(times)
 
 
@@ -61,16 +63,19 @@ def bench_scene(scene, photons: int = 1_000_000, repeats: int = 3, threads: int 
         r.run_iteration()
     out = {"scene": scene.name, "triangles": scene.triangle_count,
            "resolution": [int(scene.camera.width), int(scene.camera.height)]}
+    seconds = out["samples_s"] = {}     # every timing, by figure
     # Photon tracing, whole pipeline vs raw Embree on the same rays.
-    t_ours = _median_time(lambda: _photon_rays(r, photons, 10_000), repeats)
+    t_ours = _median_time(lambda: _photon_rays(r, photons, 10_000), repeats,
+                          seconds.setdefault("photon_pass", []))
     deposits, emitted, batches = _photon_rays(r, photons, 10_000)
     rays = sum(len(o) for o, _ in batches)
-    t_raw = _median_time(lambda: [r.accel.intersect(o, d) for o, d in batches], repeats)
+    t_raw = _median_time(lambda: [r.accel.intersect(o, d) for o, d in batches], repeats,
+                         seconds.setdefault("raw_embree", []))
     out.update(photon_rays=rays, photon_rays_per_s=rays / t_ours, raw_embree_rays_per_s=rays / t_raw,
                ratio_to_raw=t_raw / t_ours, photon_paths_per_s=emitted / t_ours,
                deposits_per_photon=len(deposits) / emitted)
     n_pix = int(scene.camera.width) * int(scene.camera.height)
-    t_eye = _median_time(r._eye_pass, repeats)
+    t_eye = _median_time(r._eye_pass, repeats, seconds.setdefault("eye_pass", []))
     out["hit_points_per_s"] = len(r.stats.hit_points) / t_eye
     out["eye_rays_per_s"] = n_pix / t_eye
     # Statistics update per 1M deposits, each gather, with/without reordering.
@@ -87,8 +92,9 @@ def bench_scene(scene, photons: int = 1_000_000, repeats: int = 3, threads: int 
                 (r.stats.photon_count, r.stats.radius, r.stats.tau,
                  r.stats.photons_emitted) = saved
             update()   # compile
-            ms = 1e3 * _median_time(update, repeats) * 1e6 / max(len(batch), 1)
-            out[f"update_ms_per_1M_{gather}_{'sorted' if reorder else 'unsorted'}"] = ms
+            name = f"update_ms_per_1M_{gather}_{'sorted' if reorder else 'unsorted'}"
+            ms = 1e3 * _median_time(update, repeats, seconds.setdefault(name, [])) * 1e6 / max(len(batch), 1)
+            out[name] = ms
     r.close()
     return out
 
@@ -105,11 +111,11 @@ def report(results: list[dict]) -> str:
          f"{1e5 / PAPER_TABLE4['photon_tracing_ms_per_100k_photons_cpu_1thread'] * 1e3:,.0f} (1 thread)"),
         ("hit points/s", "hit_points_per_s", "{:,.0f}",
          f"{640e3 / PAPER_TABLE4['hit_point_tracing_ms_per_640k_cpu_1thread'] * 1e3:,.0f} (1 thread)"),
-        ("update ms / 1M, grid, sorted (target <= 150)", "update_ms_per_1M_grid_sorted", "{:.0f}",
+        ("update ms per 1M deposits, grid, sorted (target <= 150)", "update_ms_per_1M_grid_sorted", "{:.0f}",
          "792.5 CPU / 18.4 GPU"),
-        ("update ms / 1M, grid, unsorted", "update_ms_per_1M_grid_unsorted", "{:.0f}", ""),
-        ("update ms / 1M, hash, sorted", "update_ms_per_1M_hash_sorted", "{:.0f}", ""),
-        ("update ms / 1M, hash, unsorted", "update_ms_per_1M_hash_unsorted", "{:.0f}", ""),
+        ("... grid, unsorted", "update_ms_per_1M_grid_unsorted", "{:.0f}", ""),
+        ("... hash, sorted", "update_ms_per_1M_hash_sorted", "{:.0f}", ""),
+        ("... hash, unsorted", "update_ms_per_1M_hash_unsorted", "{:.0f}", ""),
     ]
     for title, key, fmt, paper in rows:
         cells = [fmt.format(r[key]) if key in r else "-" for r in results]
@@ -117,11 +123,6 @@ def report(results: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def machine() -> dict:
-    return {"cpu_count": os.cpu_count(), "platform": platform.platform(),
-            "processor": platform.processor() or platform.machine()}
-
-
 def write_json(path: str, results: list[dict]) -> None:
-    with open(path, "w", encoding="utf-8") as f:
-        json.dump({"machine": machine(), "paper_table4": PAPER_TABLE4, "results": results}, f, indent=2)
+    """The results with their provenance (commit, date, machine, command)."""
+    write_results(path, {"paper_table4": PAPER_TABLE4, "results": results})

@@ -33,11 +33,9 @@ such a case is skipped with its reason, as a missing peer renderer is.
 from __future__ import annotations
 
 import csv
-import datetime
 import json
 import math
 import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -63,6 +61,7 @@ from dosppm_core.scene.soup import SceneSource
 from dosppm_core.settings import DIRECT_MODES, RenderSettings
 from dosppm_core.trace import eye_ray_job
 from services.evaluation import pbrt
+from services.evaluation.provenance import provenance
 from services.evaluation.suites import (CAUSTIC_SCENES, METHODS, SUITES, Case, CaseSkipped, Method, Sample, Suite,
                                         shared_dir, shared_file)
 
@@ -358,6 +357,9 @@ class Evaluation:
     failed: dict = field(default_factory=dict)       # "scene/method" -> error
     references: dict = field(default_factory=dict)   # scene -> description
     images: dict = field(default_factory=dict)       # (scene, method) -> image at full budget
+    # Commit, date, machine and command, taken when the run starts: the
+    # code that ran, not whatever HEAD is when the results are written.
+    provenance: dict = field(default_factory=provenance)
 
 
 def evaluate(suite: Suite, budget_s: float, methods: list[str] | None = None,
@@ -516,8 +518,8 @@ def write_results(ev: Evaluation, out_dir: str) -> list[str]:
     os.makedirs(out_dir, exist_ok=True)
     rows = [{k: (None if isinstance(v, float) and not math.isfinite(v) else v)
              for k, v in asdict(s).items()} for s in ev.samples]
-    doc = {"suite": ev.suite, "budget_s": ev.budget_s, "machine": _machine(),
-           "commit": _commit(), "date": datetime.datetime.now().isoformat(timespec="seconds"),
+    doc = {"suite": ev.suite, "budget_s": ev.budget_s, "provenance": ev.provenance,
+           "commit": ev.provenance["commit"], "date": ev.provenance["date"],
            "references": ev.references, "skipped": ev.skipped, "failed": ev.failed,
            "methods": {m: METHODS[m].about for m in {r["method"] for r in rows}},
            "samples": rows}
@@ -639,17 +641,3 @@ def _scene_order(ev: Evaluation) -> list[str]:
     order = [c.scene for c in SUITES[ev.suite].cases] if ev.suite in SUITES else []
     seen = list(dict.fromkeys(s.scene for s in ev.samples))
     return [s for s in order if s in seen] + [s for s in seen if s not in order]
-
-
-def _machine() -> dict:
-    return {"cpus": os.cpu_count(), "platform": platform.platform(),
-            "python": platform.python_version()}
-
-
-def _commit() -> str:
-    try:
-        here = os.path.dirname(os.path.abspath(__file__))
-        return subprocess.run(["git", "-C", here, "rev-parse", "--short", "HEAD"], capture_output=True,
-                              text=True, timeout=10).stdout.strip() or "unknown"
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
