@@ -44,12 +44,18 @@ def _osppm(doc: dict) -> str:
     return osppm.report(doc["rows"] if isinstance(doc, dict) else doc)
 
 
+def _equal_work(doc: dict) -> str:
+    import equal_work
+    return equal_work.report(doc)
+
+
 # table name -> (results file, the function that renders it)
 TABLES = {
     "core": ("benchmarks/results/core.json", _core),
     "dosppm": ("benchmarks/results/dosppm.json", _dosppm),
     "dosppm-building": ("benchmarks/results/dosppm-building.json", _dosppm),
     "osppm": ("benchmarks/results/osppm.json", _osppm),
+    "equal-work": ("benchmarks/results/equal-work.json", _equal_work),
 }
 
 

@@ -64,7 +64,8 @@ RENDER = (
     _opt("seed", int, _LIBRARY.seed, "random seed"),
     _opt("gather", str, _LIBRARY.gather, "statistics gather", ("grid", "hash")),
     _opt("alpha", float, _LIBRARY.alpha, "radius reduction (eqs. 1-2)"),
-    _opt("radius", float, _LIBRARY.radius, "initial radius in scene units (default: from scene and pixel size)"),
+    _opt("radius", float, _LIBRARY.radius, "initial radius in scene units, the same for every pixel "
+         "(default: fitted per pixel to the photons that reach it)"),
     _opt("max_depth", int, _LIBRARY.max_depth, "surfaces a path may hit"),
     _opt("direct", str, _LIBRARY.direct, "direct light at hit points: nee (a shadow ray each) or "
          "photons (the paper's pure estimator)", DIRECT_MODES),

@@ -73,14 +73,17 @@ def test_dosppm_bench_writes_every_timing_and_its_provenance(tmp_path):
     timing of every figure, not only the medians it reports."""
     from services.evaluation import bench
     from tests.helpers.scenes import small_scene
-    result = bench.bench_scene(small_scene("cornell-box", 32), photons=20_000, repeats=3)
+    result = bench.bench_scene(small_scene("cornell-box", 32), photons=20_000, repeats=3,
+                               paper_hit_points=4096)
     path = str(tmp_path / "core.json")
     bench.write_json(path, [result])
     with open(path) as f:
         doc = json.load(f)
     assert doc["provenance"]["commit"] == provenance.commit()
     got = doc["results"][0]
-    assert set(got["samples_s"]) >= {"photon_pass", "raw_embree", "eye_pass", "update_ms_per_1M_grid_sorted"}
+    assert set(got["samples_s"]) >= {"photon_pass", "raw_embree", "eye_pass", "update_ms_per_1M_grid_sorted",
+                                     "update_paper_hit_points"}
+    assert got["hit_points"] < 1024 and 3000 < got["hit_points_paper"] < 5200
     for name, times in got["samples_s"].items():
         assert len(times) == 3 and all(t > 0 for t in times), name
     passes = sorted(got["samples_s"]["photon_pass"])
