@@ -169,6 +169,8 @@ SERVICE = (
 SERVER = LIMITS + RENDER + CHUNKING + OPTIMISATIONS + SERVICE + (
     _opt("bind", str, "tcp://127.0.0.1:5555", "ZeroMQ endpoint tracers connect to", rule="endpoint"),
     _opt("min_tracers", int, 1, "tracers to wait for before rendering", rule="count"),
+    _opt("min_tracers_timeout", float, None, "start with the tracers there are (at least one) after "
+         "waiting this many seconds for --min-tracers (default: wait for ever)", rule="positive"),
     _opt("drain_timeout", float, 60.0, "at the end, wait this long for jobs in flight", rule="non_negative"),
     _opt("curve_secret", str, None, "this server's CURVE key file (dosppm keys): encrypt and authenticate"),
     _opt("curve_clients", str, None, "directory of the public key files of the tracers to admit"),

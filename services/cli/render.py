@@ -26,7 +26,7 @@ from dosppm_core.scene.soupfile import is_soup
 from dosppm_core.settings import SERVICE_JOB_SIZES, RenderSettings
 from services import config
 from services.cli.errors import EXIT_INTERRUPTED, EXIT_OK, fail, warnings_as_lines
-from services.local import run_server
+from services.local import run_server, warm_kernels
 from services.progress import COMPILING, ProgressReporter, kernels_cached, stderr_lines
 
 MODES = ("dosppm", "sppm", "osppm")
@@ -98,8 +98,9 @@ def _run_here(args) -> int:
         return fail(str(e))
     limit = config.stop_limit(args.time, args.photons, args.iterations)
     say(describe)
-    if not kernels_cached():
+    if not kernels_cached():    # compile now, not inside the render's clock
         say(COMPILING)
+        warm_kernels()
     reporter = ProgressReporter(limit, args.log, quiet=args.quiet)
     interrupted = False
     try:
