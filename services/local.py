@@ -43,9 +43,11 @@ def run_server(scene: str, v: dict, quiet: bool = False, spawn_tracers: int = 0)
             settings = _resumed_settings(settings, resume)
     except (SceneError, ValueError, OSError) as e:
         return fail(str(e))
+    # Kernels loaded (compiled, the first time) before any clock starts
+    # and before tracers are started, which then find them in the cache.
     if not kernels_cached():
         say(COMPILING)
-        warm_kernels()
+    warm_kernels()
     limits = _limits(v)
     reporter = ProgressReporter(config.stop_limit(limits.seconds, limits.photons, limits.iterations),
                                 v["log"], quiet=quiet)

@@ -98,9 +98,11 @@ def _run_here(args) -> int:
         return fail(str(e))
     limit = config.stop_limit(args.time, args.photons, args.iterations)
     say(describe)
-    if not kernels_cached():    # compile now, not inside the render's clock
+    # Load the kernels (compile them, the first time) before the render's
+    # clock starts: the time limit and the photons/s are the render's own.
+    if not kernels_cached():
         say(COMPILING)
-        warm_kernels()
+    warm_kernels()
     reporter = ProgressReporter(limit, args.log, quiet=args.quiet)
     interrupted = False
     try:
