@@ -40,24 +40,21 @@ import subprocess
 import sys
 import tempfile
 import time
+import dataclasses
 from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
+import dosppm_core as dp
 from dosppm_core import metrics
 from dosppm_core.accel import Accelerator
-from dosppm_core.chunks.store import ChunkStore
-from dosppm_core.chunks.subdivide import subdivide
 from dosppm_core.film import one_line, read_exr
 from dosppm_core.kernels.bsdf import is_specular
 from dosppm_core.mirror_limit import LimitSettings, mirror_limit
-from dosppm_core.modes.osppm import OutOfCoreRenderer
-from dosppm_core.modes.sppm import Renderer
 from dosppm_core.reference import cached_reference, render_reference
 from dosppm_core.scene import builtin
 from dosppm_core.scene.loaders import load_scene
 from dosppm_core.scene.model import Scene
-from dosppm_core.scene.soup import SceneSource
 from dosppm_core.settings import DIRECT_MODES, RenderSettings
 from dosppm_core.trace import eye_ray_job
 from services.evaluation import pbrt
@@ -164,10 +161,8 @@ def run_method(method: Method, scene: Scene, budgets: list[float], seed: int,
                work: str, pbrt_file: str | None = None) -> list[tuple[float, float, int, np.ndarray]]:
     """(budget, seconds, photons, image) at each budget; `pbrt_file` is the
     scene for pbrt-v4 where a case gives one (else `scene` is exported)."""
-    if method.kind == "sppm":
-        return _progressive(lambda: Renderer(scene, _settings(method, seed, scene)), budgets)
-    if method.kind == "osppm":
-        return _progressive(lambda: _osppm(method, scene, seed, work), budgets)
+    if method.kind in ("sppm", "osppm"):
+        return _progressive(method, scene, seed, budgets)
     if method.kind == "dosppm":
         return _dosppm(scene, budgets, seed, work)
     if method.kind == "mitsuba":
@@ -189,38 +184,15 @@ def _settings(method: Method, seed: int, scene: Scene | None = None) -> RenderSe
     return s
 
 
-def _osppm(method: Method, scene: Scene, seed: int, work: str):
-    path = tempfile.mkdtemp(prefix="store-", dir=work)
-    os.rmdir(path)
-    subdivide(SceneSource(scene), path, chunks=int(method.options["chunks"]))
-    return OutOfCoreRenderer(ChunkStore.open(path), _settings(method, seed))
-
-
-def _progressive(make, budgets):
-    """Run a progressive renderer, stopping at each budget in turn (an
-    iteration that spans several budgets stops once, at the last), and
-    going on from there."""
-    renderer = make()
-    try:
-        out, k, t0 = [], 0, time.perf_counter()
-        while k < len(budgets):
-            renderer.run_iteration()
-            elapsed = time.perf_counter() - t0
-            if elapsed >= budgets[k]:
-                while k + 1 < len(budgets) and elapsed >= budgets[k + 1]:
-                    k += 1
-                if hasattr(renderer, "finish"):
-                    # OSPPM's image lacks the photons still queued at
-                    # portals until they are traced, as `dosppm render`
-                    # does before it writes (the time counts).
-                    renderer.finish()
-                    elapsed = time.perf_counter() - t0
-                out.append((budgets[k], elapsed, int(renderer.stats.photons_emitted),
-                            renderer.image().copy()))
-                k += 1
-        return out
-    finally:
-        renderer.close()
+def _progressive(method: Method, scene: Scene, seed: int, budgets):
+    """One render through the Python API, its image taken at each budget
+    in turn (an iteration that spans several budgets stops once, at the
+    last). OSPPM's image is drained of the photons still queued at portals
+    at each stop, as `dosppm render` does before it writes (the time counts)."""
+    settings = dataclasses.asdict(_settings(method, seed, scene))
+    return [(img.stats["stop"], img.stats["seconds"], img.stats["photons"], img.pixels)
+            for img in dp.render_stops(scene, budgets, mode=method.kind, chunks=method.options.get("chunks"),
+                                       **settings)]
 
 
 def _mitsuba(scene: Scene, integrator: str, budgets, seed: int):
@@ -494,20 +466,14 @@ def carry_over(ev: Evaluation, out_dir: str, running: set) -> None:
 
 def _warm_kernels() -> None:
     """Compile (or load) the numba kernels, the chunked ones included, for
-    either kind of direct light, before any clock starts."""
+    either kind of direct light and gather, before any clock starts."""
     scene = builtin.make("cornell-box")
     scene.camera.width = scene.camera.height = 8
-    with tempfile.TemporaryDirectory(prefix="dosppm-warm-") as work:
-        for direct in DIRECT_MODES:
-            method = Method("warm", "osppm", {"chunks": 4, "direct": direct})
-            for make in (lambda m=method: Renderer(scene, _settings(m, 0)),
-                         lambda m=method: _osppm(m, scene, 0, work)):
-                r = make()
-                r.settings.photons_per_iteration = 2000
-                for gather in ("grid", "hash"):
-                    r.settings.gather = gather
-                    r.run_iteration()
-                r.close()
+    for direct in DIRECT_MODES:
+        for gather in ("grid", "hash"):
+            for mode in ("sppm", "osppm"):
+                dp.render(scene, iterations=1, mode=mode, chunks=4, direct=direct, gather=gather,
+                          photons_per_iteration=2000)
 
 
 # -- output ---------------------------------------------------------------------
