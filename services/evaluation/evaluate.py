@@ -223,7 +223,7 @@ def _pbrt(method: Method, scene: Scene, budgets, seed: int, work: str, pbrt_file
     integrator = method.options["integrator"]
     settings = pbrt.RenderSettings(integrator, 1, int(method.options["max_depth"]),
                                    int(scene.camera.width), int(scene.camera.height),
-                                   radius=pbrt_sppm_radius(scene) if integrator == "sppm" else 1.0)
+                                   radius=_pbrt_radius(method, scene))
     target, run_file = os.path.join(work, "pbrt.exr"), os.path.join(work, "pbrt-run.pbrt")
     out = []
     while settings.samples:
@@ -237,6 +237,17 @@ def _pbrt(method: Method, scene: Scene, budgets, seed: int, work: str, pbrt_file
         out.append((next((b for b in budgets if seconds <= b), budgets[-1]), seconds, photons, image))
         settings = replace(settings, samples=_next_samples(settings.samples, seconds, budgets[-1]))
     return out
+
+
+def _pbrt_radius(method: Method, scene: Scene) -> float:
+    """pbrt-v4 SPPM's one global initial radius: the method's fraction of
+    the scene's diagonal (as our sppm-radius-* methods), else 3 pixel
+    footprints; irrelevant to its path tracer."""
+    if method.options["integrator"] != "sppm":
+        return 1.0
+    if "radius_of_diagonal" in method.options:
+        return method.options["radius_of_diagonal"] * scene.diagonal()
+    return pbrt_sppm_radius(scene)
 
 
 def _next_samples(samples: int, seconds: float, budget: float) -> int:
@@ -464,6 +475,23 @@ def carry_over(ev: Evaluation, out_dir: str, running: set) -> None:
                       if k.split("/")[0] not in running})
 
 
+def read_results(path: str) -> Evaluation:
+    """An evaluation back from its results.json (for tables and charts
+    made after the run; the images are not kept)."""
+    with open(path, encoding="utf-8") as f:
+        return read_results_doc(json.load(f))
+
+
+def read_results_doc(doc: dict) -> Evaluation:
+    ev = Evaluation(doc["suite"], doc["budget_s"], references=doc.get("references", {}),
+                    skipped=doc.get("skipped", {}), failed=doc.get("failed", {}),
+                    provenance=doc.get("provenance") or {"commit": doc.get("commit"), "date": doc.get("date")})
+    names = Sample.__dataclass_fields__
+    ev.samples = [Sample(**{k: (math.nan if v is None else v) for k, v in row.items() if k in names})
+                  for row in doc.get("samples", [])]
+    return ev
+
+
 def _warm_kernels() -> None:
     """Compile (or load) the numba kernels, the chunked ones included, for
     either kind of direct light and gather, before any clock starts."""
@@ -508,25 +536,27 @@ def write_results(ev: Evaluation, out_dir: str) -> list[str]:
     return paths
 
 
-def final_samples(ev: Evaluation) -> dict:
-    """(scene, method) -> the sample at the largest budget."""
+def final_samples(ev: Evaluation, budget_s: float | None = None) -> dict:
+    """(scene, method) -> the sample at the largest budget (or at the
+    budget `budget_s`: the last run filed under it)."""
     best = {}
     for s in ev.samples:
         key = (s.scene, s.method)
+        if budget_s is not None and s.budget_s != budget_s:
+            continue
         if key not in best or s.budget_s >= best[key].budget_s:
             best[key] = s
     return best
 
 
-def summary_markdown(ev: Evaluation) -> str:
-    last = final_samples(ev)
-    scenes = _scene_order(ev)
-    methods = list(dict.fromkeys(s.method for s in ev.samples))
-    lines = [f"relMSE at {ev.budget_s:g} s of render time (suite `{ev.suite}`), with the "
-             "mean-luminance bias, or the mean luminance Y where the reference is black "
-             "(light that leaked); ! = a non-finite pixel", "",
-             "| scene | " + " | ".join(methods) + " |", "|---|" + "---|" * len(methods)]
-    for scene in scenes:
+def relmse_table(ev: Evaluation, budget_s: float | None = None, methods: list | None = None) -> list[str]:
+    """Markdown rows: per scene and method, relMSE with the mean-luminance
+    bias (or the mean luminance Y where the reference is black) at the
+    last budget or at `budget_s`."""
+    last = final_samples(ev, budget_s)
+    methods = methods or list(dict.fromkeys(s.method for s in ev.samples))
+    lines = ["| scene | " + " | ".join(methods) + " |", "|---|" + "---|" * len(methods)]
+    for scene in _scene_order(ev):
         cells = []
         for m in methods:
             s = last.get((scene, m))
@@ -534,6 +564,15 @@ def summary_markdown(ev: Evaluation) -> str:
                          f"{s.relmse:.3g} ({s.bias:+.1%})" if math.isfinite(s.bias) else
                          f"{s.relmse:.3g} (Y {s.mean_luminance:.2g})")
         lines.append(f"| {scene} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def summary_markdown(ev: Evaluation) -> str:
+    last = final_samples(ev)
+    methods = list(dict.fromkeys(s.method for s in ev.samples))
+    lines = [f"relMSE at {ev.budget_s:g} s of render time (suite `{ev.suite}`), with the "
+             "mean-luminance bias, or the mean luminance Y where the reference is black "
+             "(light that leaked); ! = a non-finite pixel", "", *relmse_table(ev, None, methods)]
     lines += mirror_limit_table(ev, last, methods)
     lines += ["", *claims(ev)]
     if ev.skipped:
