@@ -65,6 +65,11 @@ def _evaluation(budget_s: float | None = None, mirror: bool = False):
     return table
 
 
+def _many_lights(doc: dict) -> str:
+    import many_lights
+    return many_lights.report(doc)
+
+
 # table name -> (results file, the function that renders it)
 TABLES = {
     "core": ("benchmarks/results/core.json", _core),
@@ -72,6 +77,7 @@ TABLES = {
     "dosppm-building": ("benchmarks/results/dosppm-building.json", _dosppm),
     "osppm": ("benchmarks/results/osppm.json", _osppm),
     "equal-work": ("benchmarks/results/equal-work.json", _equal_work),
+    "many-lights": ("benchmarks/results/many-lights.json", _many_lights),
     "accuracy-failure-modes": ("docs/evaluation/results.json", _evaluation()),
     "accuracy-failure-modes-mirror": ("docs/evaluation/results.json", _evaluation(mirror=True)),
     "accuracy-sponza-20s": ("benchmarks/results/issue12-sponza/results.json", _evaluation(20.0)),
