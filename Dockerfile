@@ -1,11 +1,14 @@
 # One image for both roles of the render service: `dosppm server` and
 # `dosppm worker` (see docker-compose.yml and deploy/README.md).
 #
-# The base image is made locally (no registry is needed):
-#   debootstrap --variant=minbase --include=python3,python3-venv,curl bookworm rootfs
-#   tar -C rootfs -c . | docker import - local/bookworm
-#   docker build --network host -t dosppm .
-FROM local/bookworm
+#   docker build -t dosppm .                  # from the official Python image
+#   docker build --build-arg BASE=local/bookworm -t dosppm .
+#
+# BASE is any Debian 12 image with python3 (3.11 or later) and its venv
+# module: the official python:3.12-slim-bookworm by default; the CI, which
+# reaches no image registry, makes one with debootstrap (.ci/compose-check).
+ARG BASE=python:3.12-slim-bookworm
+FROM ${BASE}
 
 ENV LANG=C.UTF-8 \
     PATH=/opt/dosppm/bin:$PATH \

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 2's benchmark: the default scene and the Stanford dragon in the
 # Cornell box, measured in one run. Writes benchmarks/results/core.json and
-# prints the table that README.md quotes.
+# prints the table that docs/performance.md quotes.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 mkdir -p benchmarks/results

@@ -26,7 +26,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -43,6 +42,7 @@ from dosppm_core.scene.generate import generate_building  # noqa: E402
 from dosppm_core.scene.soup import SceneSource  # noqa: E402
 from dosppm_core.scene.soupfile import open_soup  # noqa: E402
 from dosppm_core.settings import RenderSettings  # noqa: E402
+from services.evaluation.provenance import median_of, write_results  # noqa: E402
 
 DRAGON = os.path.join(ROOT, "..", "shared", "scenes", "stanford_dragon", "dragon_100k.ply")
 PAPER = {  # Günther & Grosch, photons per machine-second (Table 3, best: GPU cluster)
@@ -99,15 +99,6 @@ def _single(make, seconds: float) -> dict:
             "hit_points_per_s": (p.hit_points - p0.hit_points) / dt, "iterations": p.iteration}
 
 
-def _median(runs: list[dict]) -> dict:
-    out = dict(runs[0])
-    for k, v in runs[0].items():
-        if isinstance(v, (int, float)):
-            out[k] = statistics.median(r[k] for r in runs)
-    out["repeats"] = len(runs)
-    return out
-
-
 def _scene(args, work):
     if os.path.exists(DRAGON):
         return "dragon in Cornell box", builtin.cornell_with_mesh(DRAGON)
@@ -124,7 +115,7 @@ def run(args) -> dict:
     R = results["runs"]
 
     def rep(fn):
-        return _median([fn() for _ in range(args.repeats)])
+        return median_of([fn() for _ in range(args.repeats)])
 
     settings = RenderSettings(threads=2)
     R["sppm"] = rep(lambda: _single(lambda: Renderer(scene, settings), args.seconds))
@@ -219,14 +210,13 @@ def main() -> int:
     if args.building_only:
         work = tempfile.mkdtemp(prefix="dosppm-bench-")
         res = {"seconds": args.seconds, "runs": {},
-               "building": _building(args, work, lambda fn: _median([fn() for _ in range(args.repeats)]))}
+               "building": _building(args, work, lambda fn: median_of([fn() for _ in range(args.repeats)]))}
         text = report_building(res)
     else:
         res = run(args)
         text = report(res)
     print(text)
-    with open(args.json, "w", encoding="utf-8") as f:
-        json.dump(res, f, indent=1)
+    write_results(args.json, res)
     return 0
 
 

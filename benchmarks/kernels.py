@@ -55,6 +55,7 @@ from dosppm_core.jobs import HitPoints, RayBatch
 from dosppm_core.scene import builtin
 from dosppm_core.sppm import hash as hash_gather
 from dosppm_core.sppm.statistics import pixel_footprint, reorder_deposits, spatial_order
+from services.evaluation.provenance import provenance
 
 # isort: split
 import numba
@@ -286,7 +287,7 @@ def main() -> None:
     run_record = {"commit": commit, "dosppm_core_modified": dirty, "label": args.label,
                   "against_commit": against, "tree": ROOT, "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
                   "settings": {k: v for k, v in vars(args).items() if k not in ("json", "fresh")},
-                  "results": results}
+                  "provenance": provenance(), "results": results}
     runs = []
     if os.path.exists(args.json) and not args.fresh:
         with open(args.json) as f:

@@ -38,6 +38,7 @@ from dosppm_core.scene.generate import generate_building  # noqa: E402
 from dosppm_core.scene.soup import SceneSource  # noqa: E402
 from dosppm_core.scene.soupfile import open_soup  # noqa: E402
 from dosppm_core.settings import RenderSettings  # noqa: E402
+from services.evaluation.provenance import write_results  # noqa: E402
 
 CHUNKS = (1, 2, 4, 8, 16)
 DRAGON = os.path.join(ROOT, "..", "shared", "scenes", "stanford_dragon", "dragon_100k.ply")
@@ -123,27 +124,28 @@ def main() -> int:
                 print(json.dumps(row), file=sys.stderr)
                 results.append(row)
                 shutil.rmtree(path)
-    _report(results)
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out, "w") as f:
-        json.dump(results, f, indent=2)
+    print(report(results))
+    write_results(args.out, {"rows": results})
     return 0
 
 
-def _report(results: list[dict]) -> None:
-    print("| scene | c | duplicated | subdivide s | load+BVH s/chunk | photons/s (all resident) "
-          "| vs c=1 | photons/s (2 resident) | vs c=1 | hit points per eye-tracing s (all) | vs c=1 |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+def report(results: list[dict]) -> str:
+    """The Figure 11 / Table 1 table, in Markdown."""
+    lines = ["| scene | c | duplicated | subdivide s | load+BVH s/chunk | photons/s (all resident) "
+             "| vs c=1 | photons/s (2 resident) | vs c=1 | hit points per eye-tracing s (all) | vs c=1 |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     base = {}
     for r in results:
         b = base.setdefault(r["scene"], r)
         dup = r["stored_triangles"] / r["triangles"] - 1
-        print(f"| {r['scene']} | {r['chunks']} | {dup:.1%} | {r['subdivide_s']:.1f} "
-              f"| {r['load_build_s_median']:.3f} "
-              f"| {r['all']['photons_per_s']:,.0f} | {r['all']['photons_per_s'] / b['all']['photons_per_s']:.2f} "
-              f"| {r['two']['photons_per_s']:,.0f} | {r['two']['photons_per_s'] / b['all']['photons_per_s']:.2f} "
-              f"| {r['all']['hit_points_per_eye_s']:,.0f} "
-              f"| {r['all']['hit_points_per_eye_s'] / b['all']['hit_points_per_eye_s']:.2f} |")
+        lines.append(
+            f"| {r['scene']} | {r['chunks']} | {dup:.1%} | {r['subdivide_s']:.1f} "
+            f"| {r['load_build_s_median']:.3f} "
+            f"| {r['all']['photons_per_s']:,.0f} | {r['all']['photons_per_s'] / b['all']['photons_per_s']:.2f} "
+            f"| {r['two']['photons_per_s']:,.0f} | {r['two']['photons_per_s'] / b['all']['photons_per_s']:.2f} "
+            f"| {r['all']['hit_points_per_eye_s']:,.0f} "
+            f"| {r['all']['hit_points_per_eye_s'] / b['all']['hit_points_per_eye_s']:.2f} |")
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":

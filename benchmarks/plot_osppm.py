@@ -17,7 +17,8 @@ def main() -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     with open(os.path.join(ROOT, "benchmarks", "results", "osppm.json")) as f:
-        rows = json.load(f)
+        data = json.load(f)
+    rows = data["rows"] if isinstance(data, dict) else data     # older files: the rows alone
     fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
     for ax, (key, title) in zip(axes, (("all", "every chunk resident"),
                                        ("two", "room for two chunks (active + prefetched)"))):

@@ -20,3 +20,19 @@ from dosppm_core import _kernel_cache  # noqa: E402
 
 __version__ = "0.1.0"
 _kernel_cache.refresh()
+
+# The Python API (dosppm_core.api): dp.load, dp.render, dp.render_stops,
+# dp.write, dp.Image. Loaded on first use, so that importing the package
+# stays cheap for the services (no numba, no Embree until needed).
+_API = ("Image", "load", "render", "render_stops", "write")
+
+
+def __getattr__(name: str):
+    if name in _API:
+        from dosppm_core import api
+        return getattr(api, name)
+    raise AttributeError(f"module 'dosppm_core' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(list(globals()) + list(_API))

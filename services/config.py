@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import os
 import re
 import tomllib
@@ -28,6 +29,7 @@ class Option:
     default: object
     help: str
     choices: tuple | None = None
+    rule: str | None = None    # a key of RULES: what a value must be, wherever it comes from
 
 
 class ConfigError(ValueError):
@@ -49,39 +51,100 @@ def _default_store_cache() -> str:
     return os.path.join(base, "dosppm", "chunks")
 
 
-def _opt(name, type_, default, help_, choices=None):
-    return Option(name, type_, default, help_, choices)
+def _opt(name, type_, default, help_, choices=None, rule=None):
+    return Option(name, type_, default, help_, choices, rule)
+
+
+# What a numeric or address setting must be. Each returns None when the
+# value is good, else what is wrong with it (a flag, DOSPPM_<NAME> or a
+# TOML key: the same rule, the same words).
+def _positive(v):
+    return None if math.isfinite(v) and v > 0 else f"must be > 0, got {v:g}"
+
+
+def _non_negative(v):
+    return None if math.isfinite(v) and v >= 0 else f"must be >= 0, got {v:g}"
+
+
+def _count(v):
+    return None if v >= 1 else f"must be >= 1, got {v}"
+
+
+def _open_unit(v):
+    return None if 0 < v < 1 else f"must lie in (0, 1), got {v:g}"
+
+
+def _finite(v):
+    return None if math.isfinite(v) else f"must be a finite number, got {v:g}"
+
+
+def _size(v):
+    try:
+        parse_bytes(v, "size")
+    except ValueError as e:
+        return str(e).removeprefix("size: ")
+    return None
+
+
+def _host_port(v):
+    if v == "off":
+        return None
+    host, _, port = v.rpartition(":")
+    return _port(port, v) if host else f"expected HOST:PORT or 'off', got {v!r}"
+
+
+def _endpoint(v):
+    m = re.fullmatch(r"(tcp)://([^:/]+|\[[0-9a-fA-F:]+\]):(\*|[0-9]+)", v) or re.fullmatch(r"(ipc|inproc)://.+", v)
+    if not m:
+        return f"expected a ZeroMQ endpoint such as tcp://HOST:PORT, got {v!r}"
+    return None if m.group(1) != "tcp" or m.group(3) == "*" else _port(m.group(3), v)
+
+
+def _port(port: str, whole: str):
+    ok = port.isdigit() and 0 <= int(port) <= 65535
+    return None if ok else f"port must be 0-65535, got {whole!r}"
+
+
+RULES = {"positive": _positive, "non_negative": _non_negative, "count": _count, "open_unit": _open_unit,
+         "finite": _finite, "size": _size, "host_port": _host_port, "endpoint": _endpoint}
+
+
+def problem(o: Option, value) -> str | None:
+    """What is wrong with `value` for option `o`, or None."""
+    return RULES[o.rule](value) if o.rule and value is not None else None
 
 
 # When a render stops: one of these (the `render` command takes only one).
 LIMITS = (
-    _opt("time", float, None, f"stop after S seconds of rendering (default {SECONDS:g} if no other limit)"),
-    _opt("photons", float, None, "stop once N photons are emitted"),
-    _opt("iterations", int, None, "stop after K eye iterations"),
+    _opt("time", float, None, f"stop after S seconds of rendering (default {SECONDS:g} if no other limit)",
+         rule="positive"),
+    _opt("photons", float, None, "stop once N photons are emitted", rule="positive"),
+    _opt("iterations", int, None, "stop after K eye iterations", rule="count"),
 )
 RENDER = (
     _opt("out", str, "out.exr", "output EXR (a PNG preview beside it)"),
-    _opt("seed", int, _LIBRARY.seed, "random seed"),
+    _opt("seed", int, _LIBRARY.seed, "random seed", rule="non_negative"),
     _opt("gather", str, _LIBRARY.gather, "statistics gather", ("grid", "hash")),
-    _opt("alpha", float, _LIBRARY.alpha, "radius reduction (eqs. 1-2)"),
-    _opt("radius", float, _LIBRARY.radius, "initial radius in scene units (default: from scene and pixel size)"),
-    _opt("max_depth", int, _LIBRARY.max_depth, "surfaces a path may hit"),
+    _opt("alpha", float, _LIBRARY.alpha, "radius reduction (eqs. 1-2)", rule="open_unit"),
+    _opt("radius", float, _LIBRARY.radius, "initial radius in scene units, the same for every pixel "
+         "(default: fitted per pixel to the photons that reach it)", rule="positive"),
+    _opt("max_depth", int, _LIBRARY.max_depth, "surfaces a path may hit", rule="count"),
     _opt("direct", str, _LIBRARY.direct, "direct light at hit points: nee (a shadow ray each) or "
          "photons (the paper's pure estimator)", DIRECT_MODES),
-    _opt("photons_per_iteration", int, _LIBRARY.photons_per_iteration, "photons between eye iterations"),
-    _opt("photons_per_job", int, SERVICE_JOB_SIZES["photons_per_job"], "photons per photon job"),
-    _opt("photon_batch", int, _LIBRARY.photon_batch, "deposits per statistics update (server batching)"),
-    _opt("width", int, None, "image width override"),
-    _opt("height", int, None, "image height override"),
-    _opt("threads", int, THREADS, "threads for tracing and the statistics update"),
-    _opt("exposure", float, 0.0, "PNG preview exposure in stops"),
+    _opt("photons_per_iteration", int, _LIBRARY.photons_per_iteration, "photons between eye iterations", rule="count"),
+    _opt("photons_per_job", int, SERVICE_JOB_SIZES["photons_per_job"], "photons per photon job", rule="count"),
+    _opt("photon_batch", int, _LIBRARY.photon_batch, "deposits per statistics update (server batching)", rule="count"),
+    _opt("width", int, None, "image width override", rule="count"),
+    _opt("height", int, None, "image height override", rule="count"),
+    _opt("threads", int, THREADS, "threads for tracing and the statistics update", rule="count"),
+    _opt("exposure", float, 0.0, "PNG preview exposure in stops", rule="finite"),
     _opt("log", str, None, "append JSON-lines progress records here"),
 )
 # How a scene that is not a chunk store yet is cut into one.
 CHUNKING = (
     _opt("budget", str, None, "memory per chunk, BVH included, when subdividing, e.g. 512MiB "
-         f"(default {BUDGET_BYTES // 2 ** 20}MiB unless --chunks)"),
-    _opt("chunks", int, None, "force this many chunks"),
+         f"(default {BUDGET_BYTES // 2 ** 20}MiB unless --chunks)", rule="size"),
+    _opt("chunks", int, None, "force this many chunks", rule="count"),
     _opt("store_cache", str, _default_store_cache(), "where chunk stores made on the fly are kept"),
 )
 # The paper's optimisations, each of which can be switched off (Figure 15).
@@ -93,33 +156,36 @@ OPTIMISATIONS = (
 )
 # The server's running of a render (`render` starts a server too).
 SERVICE = (
-    _opt("http", str, "127.0.0.1:8080", "status page HOST:PORT, or 'off'"),
-    _opt("min_photon_jobs", int, 1000, "photon jobs kept in flight (the paper's 1k)"),
-    _opt("snapshot_interval", float, 60.0, "write the image every S seconds"),
+    _opt("http", str, "127.0.0.1:8080", "status page HOST:PORT, or 'off'", rule="host_port"),
+    _opt("min_photon_jobs", int, 1000, "photon jobs kept in flight (the paper's 1k)", rule="count"),
+    _opt("snapshot_interval", float, 60.0, "write the image every S seconds", rule="positive"),
     _opt("checkpoint", str, None, "checkpoint directory (default: OUT's name + '.checkpoint')"),
-    _opt("checkpoint_interval", float, 60.0, "seconds between checkpoints of the pixel statistics; 0: none"),
+    _opt("checkpoint_interval", float, 60.0, "seconds between checkpoints of the pixel statistics; 0: none",
+         rule="non_negative"),
     _opt("resume", str, None, "continue the render saved in this checkpoint directory"),
     _opt("tracer_timeout", float, 10.0, "drop a tracer silent this long (its jobs are re-emitted); "
-         "raise it for chunks that take longer than this to load"),
+         "raise it for chunks that take longer than this to load", rule="positive"),
 )
 SERVER = LIMITS + RENDER + CHUNKING + OPTIMISATIONS + SERVICE + (
-    _opt("bind", str, "tcp://127.0.0.1:5555", "ZeroMQ endpoint tracers connect to"),
-    _opt("min_tracers", int, 1, "tracers to wait for before rendering"),
-    _opt("drain_timeout", float, 60.0, "at the end, wait this long for jobs in flight"),
+    _opt("bind", str, "tcp://127.0.0.1:5555", "ZeroMQ endpoint tracers connect to", rule="endpoint"),
+    _opt("min_tracers", int, 1, "tracers to wait for before rendering", rule="count"),
+    _opt("min_tracers_timeout", float, None, "start with the tracers there are (at least one) after "
+         "waiting this many seconds for --min-tracers (default: wait for ever)", rule="positive"),
+    _opt("drain_timeout", float, 60.0, "at the end, wait this long for jobs in flight", rule="non_negative"),
     _opt("curve_secret", str, None, "this server's CURVE key file (dosppm keys): encrypt and authenticate"),
     _opt("curve_clients", str, None, "directory of the public key files of the tracers to admit"),
 )
 TRACER = (
-    _opt("server", str, "tcp://127.0.0.1:5555", "the server's endpoint"),
-    _opt("bind", str, "tcp://127.0.0.1:*", "endpoint for portal packages from other tracers"),
+    _opt("server", str, "tcp://127.0.0.1:5555", "the server's endpoint", rule="endpoint"),
+    _opt("bind", str, "tcp://127.0.0.1:*", "endpoint for portal packages from other tracers", rule="endpoint"),
     _opt("advertise", str, None, "address other tracers reach this one at when binding 0.0.0.0; 'auto': "
          "this host's address on the route to the server"),
     _opt("store", str, None, "a local copy of the chunk store (else chunks are fetched)"),
     _opt("cache_dir", str, None, "where fetched chunks are kept"),
-    _opt("memory", str, None, "resident chunk memory, e.g. 4GiB (default: all its chunks)"),
-    _opt("threads", int, THREADS, "tracing threads"),
+    _opt("memory", str, None, "resident chunk memory, e.g. 4GiB (default: all its chunks)", rule="size"),
+    _opt("threads", int, THREADS, "tracing threads", rule="count"),
     _opt("id", str, None, "tracer id (default host-pid-random)"),
-    _opt("retry", float, 60.0, "keep trying to reach the server this long, in seconds"),
+    _opt("retry", float, 60.0, "keep trying to reach the server this long, in seconds", rule="non_negative"),
     _opt("curve_secret", str, None, "this tracer's CURVE key file (dosppm keys)"),
     _opt("curve_server_key", str, None, "the server's public key file"),
     _opt("curve_clients", str, None, "directory of the public key files of the tracers (its peers)"),
@@ -139,7 +205,44 @@ def add_options(parser, options, defaults: bool = True) -> None:
         if o.type is bool:
             parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=default, help=o.help)
         else:
-            parser.add_argument(flag, type=o.type, default=default, choices=o.choices, help=o.help)
+            parser.add_argument(flag, type=checked(o.type, o.rule), default=default, choices=o.choices,
+                                help=o.help, metavar=flag[2:].replace("-", "_").upper())
+
+
+def checked(type_, rule: str | None):
+    """An argparse `type` that converts and then applies RULES[rule]: a
+    bad value is argparse's one-line error naming the flag, exit status 2."""
+    def convert(text: str):
+        try:
+            value = _parse(type_, text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {_NOUN.get(type_, type_.__name__)}, got {text!r}") from None
+        why = RULES[rule](value) if rule else None
+        if why:
+            raise argparse.ArgumentTypeError(why)
+        return value
+    convert.__name__ = type_.__name__   # argparse names the type in its own messages
+    return convert
+
+
+_NOUN = {int: "an integer", float: "a number", str: "text"}
+
+
+def _parse(type_, text: str):
+    """int, float or str of a flag's text; counts may be written 1_000_000
+    or 1e6."""
+    if type_ not in (int, float):
+        return type_(text)
+    text = text.replace("_", "")
+    if type_ is float:
+        return float(text)
+    try:
+        return int(text)
+    except ValueError:
+        f = float(text)
+        if not f.is_integer():
+            raise
+        return int(f)
 
 
 def add_role_options(parser: argparse.ArgumentParser, options) -> None:
@@ -173,12 +276,17 @@ def _convert(o: Option, value, where: str):
         if isinstance(value, bool) or text in ("1", "true", "yes", "on", "0", "false", "no", "off"):
             return value if isinstance(value, bool) else text in ("1", "true", "yes", "on")
         raise ConfigError(f"{where}: expected true or false, got {value!r}")
+    if o.type is int and isinstance(value, float) and not value.is_integer():
+        raise ConfigError(f"{where}: expected an integer, got {value!r}")   # int() would cut it
     try:
         converted = o.type(value)
     except (TypeError, ValueError):
-        raise ConfigError(f"{where}: expected {o.type.__name__}, got {value!r}") from None
+        raise ConfigError(f"{where}: expected {_NOUN.get(o.type, o.type.__name__)}, got {value!r}") from None
     if o.choices and converted not in o.choices:
         raise ConfigError(f"{where}: expected one of {', '.join(o.choices)}, got {value!r}")
+    why = problem(o, converted)
+    if why:
+        raise ConfigError(f"{where}: {why}")
     return converted
 
 
@@ -262,9 +370,9 @@ def parse_int(text, flag: str, least: int) -> int:
     return value
 
 
-def positive_int(text: str) -> int:
-    """argparse type of a count that must be >= 1."""
-    try:
-        return parse_int(text, "value", 1)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}") from None
+# argparse types for the flags outside the option table (bench, evaluate,
+# subdivide, reference, render's own).
+positive_int = checked(int, "count")
+positive_float = checked(float, "positive")
+non_negative_int = checked(int, "non_negative")
+size = checked(str, "size")

@@ -43,14 +43,16 @@ def run_server(scene: str, v: dict, quiet: bool = False, spawn_tracers: int = 0)
             settings = _resumed_settings(settings, resume)
     except (SceneError, ValueError, OSError) as e:
         return fail(str(e))
+    # Kernels loaded (compiled, the first time) before any clock starts
+    # and before tracers are started, which then find them in the cache.
     if not kernels_cached():
         say(COMPILING)
-        warm_kernels()
+    warm_kernels()
     limits = _limits(v)
     reporter = ProgressReporter(config.stop_limit(limits.seconds, limits.photons, limits.iterations),
                                 v["log"], quiet=quiet)
     try:
-        server = _server(store, settings, v, http, limits, reporter, resume)
+        server = _server(store, settings, v, http, limits, reporter, resume, say)
     except Exception as e:   # zmq bind errors and the like: one line, not a traceback
         return fail(f"cannot start the server: {e}")
     cam = store.header.camera
@@ -107,7 +109,7 @@ def _limits(v: dict) -> Limits:
     return limits
 
 
-def _server(store, settings, v: dict, http, limits: Limits, reporter, resume) -> ServerProcess:
+def _server(store, settings, v: dict, http, limits: Limits, reporter, resume, say) -> ServerProcess:
     ckpt = v["checkpoint"] or v["resume"] or (os.path.splitext(v["out"])[0] + ".checkpoint" if v["out"] else None)
     return ServerProcess(store, settings, bind=v["bind"], http=http, out=v["out"], limits=limits,
                          snapshot_interval_s=v["snapshot_interval"],
@@ -117,7 +119,8 @@ def _server(store, settings, v: dict, http, limits: Limits, reporter, resume) ->
                          concurrent=v["concurrent"], client_batching=v["client_batching"],
                          tracer_timeout_s=v["tracer_timeout"], checkpoint_dir=ckpt,
                          checkpoint_interval_s=v["checkpoint_interval"], resume=resume,
-                         curve_secret=v["curve_secret"], curve_clients=v["curve_clients"])
+                         curve_secret=v["curve_secret"], curve_clients=v["curve_clients"],
+                         min_tracers_timeout_s=v["min_tracers_timeout"], say=say)
 
 
 def _write_summary(out: str, summary: dict) -> None:
@@ -159,21 +162,28 @@ def _reap(tracers: list, timeout_s: float = 10.0) -> None:
 def run_tracer(v: dict, quiet: bool = False) -> int:
     """Serve as one tracer with settings `v` (the options of
     `config.TRACER`) until the server ends the render."""
+    say = stderr_lines(quiet)
     try:
         memory = config.parse_bytes(v["memory"], "--memory")
     except ValueError as e:
         return fail(str(e))
+    # Kernels are loaded, or compiled, before the tracer registers: a
+    # tracer busy compiling sends no heartbeats and would be evicted.
+    if not kernels_cached():
+        say(COMPILING)
+    warm_kernels()
     try:
         tp = TracerProcess(v["server"], bind=v["bind"], advertise=v["advertise"], store=v["store"],
                            cache_dir=v["cache_dir"], memory_bytes=memory, threads=v["threads"],
                            tracer_id=v["id"], connect_timeout_s=v["retry"], curve_secret=v["curve_secret"],
-                           curve_server_key=v["curve_server_key"], curve_clients=v["curve_clients"])
+                           curve_server_key=v["curve_server_key"], curve_clients=v["curve_clients"],
+                           say=say)
         reason = tp.run()
     except (TracerError, WireError, transport.TransportError) as e:   # a bind refused, say
         return fail(str(e), EXIT_FAILED)
     except KeyboardInterrupt:
         return EXIT_INTERRUPTED
-    stderr_lines(quiet)(f"dosppm: tracer {tp.tracer_id}: {reason}")
+    say(f"tracer {tp.tracer_id}: {reason}")
     return EXIT_OK
 
 

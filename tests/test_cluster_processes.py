@@ -115,3 +115,50 @@ def test_sigint_stops_the_render_and_writes_the_image(tmp_path):
         summary = json.load(f)
     c = summary["counters"]
     assert c["photons_committed"] > 0 and c["photons_emitted"] == c["photons_committed"]
+
+
+def test_a_server_says_what_it_waits_for_and_a_tracer_where_it_joined(tmp_path):
+    """`dosppm server --min-tracers 2 --min-tracers-timeout S` with one
+    worker: /status says it waits for tracers, the server prints how many
+    have registered, then starts with the one it has and says so; the
+    worker prints the server, its id and its chunks. (The count while
+    some, not all, have registered: tests/test_scheduler.py.)"""
+    port, http = free_port(), free_port()
+    out = tmp_path / "img.exr"
+    server = start_dosppm("server", "cornell-box", "--width", "32", "--height", "32", "--time", "3",
+                          "--bind", f"tcp://127.0.0.1:{port}", "--http", f"127.0.0.1:{http}",
+                          "--min-tracers", "2", "--min-tracers-timeout", "4", "--out", str(out),
+                          "--store-cache", str(tmp_path / "stores"), "--checkpoint-interval", "0",
+                          stderr=subprocess.PIPE, text=True)
+    worker = None
+    try:
+        waiting = _status_until(http, lambda s: s.get("phase") == "waiting")
+        assert waiting["waiting_for"] == {"tracers": 2, "registered": 0, "min_tracers": 2}, waiting
+        worker = start_dosppm("worker", "--server", f"tcp://127.0.0.1:{port}", "--id", "solo",
+                              "--threads", "1", stderr=subprocess.PIPE, text=True)
+        running = _status_until(http, lambda s: s.get("phase") == "render")
+        assert running["waiting_for"] is None and len(running["tracers"]) == 1, running
+        assert server.wait(120) == 0 and worker.wait(60) == 0
+        said, joined = server.stderr.read(), worker.stderr.read()
+    finally:
+        for p in (server, worker):
+            if p is not None and p.poll() is None:
+                p.kill()
+    assert "waiting for tracers: 0 of 2 registered" in said, said
+    assert "starting with 1 of 2 tracers: waited 4 s (--min-tracers-timeout)" in said, said
+    assert f"tracer solo: registered with server tcp://127.0.0.1:{port} as tracer 0, chunks 0" in joined, joined
+    assert out.exists()
+
+
+def _status_until(port: int, ok, timeout_s: float = 90.0) -> dict:
+    deadline, last = time.monotonic() + timeout_s, None
+    while time.monotonic() < deadline:
+        try:
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/status", timeout=2) as r:
+                last = json.load(r)
+            if ok(last):
+                return last
+        except OSError:
+            pass
+        time.sleep(0.2)
+    raise AssertionError(f"status never matched; last: {last}")

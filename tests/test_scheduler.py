@@ -230,3 +230,49 @@ def test_jobs_untouched_while_every_tracer_is_idle_are_re_emitted_after_the_stal
     state.tick(late + 3.5)
     assert state.counters["jobs_timed_out"] == 1
     assert not (sent & set(state.jobs)), "the stalled jobs were not discarded"
+
+
+def _waiting_state(timeout_s):
+    scene = small_scene("cornell-box", 32)
+    provider = MemoryChunks(scene, uniform_tree(root_box(scene), (2, 1, 1)))
+    return ServerState(provider.header, provider.tree, RenderSettings(photons_per_job=512, tile_pixels=256),
+                       "k", min_photon_jobs=8, min_tracers=3, min_tracers_timeout_s=timeout_s,
+                       tracer_timeout_s=1e6)     # no evictions: the wait is under test
+
+
+def _jobs(outs):
+    return [o for o in outs if o.type in wire.JOB_MESSAGES]
+
+
+def test_the_server_says_what_it_waits_for_and_starts_with_all_tracers():
+    s = _waiting_state(None)
+    assert s.waiting_for() == {"tracers": 3, "registered": 0, "min_tracers": 3}
+    _register(s, "a")
+    _register(s, "b")
+    assert not _jobs(s.tick(1000.0)) and not s.started       # no timeout: waits for ever
+    assert s.status()["waiting_for"] == {"tracers": 1, "registered": 2, "min_tracers": 3}
+    _register(s, "c")
+    assert _jobs(s.tick(1001.0)) and s.started
+    assert s.waiting_for() is None and s.start_note is None
+
+
+def test_min_tracers_timeout_starts_with_the_tracers_there_are():
+    early = _waiting_state(30.0)
+    early.tick(0.0)
+    _register(early, "a", now=10.0)
+    assert not _jobs(early.tick(29.0)) and not early.started    # within the timeout: waits
+    s = _waiting_state(30.0)
+    s.tick(0.0)
+    assert not _jobs(s.tick(40.0)) and not s.started          # none yet: nothing to render with
+    _register(s, "a", now=41.0)
+    assert _jobs(s.tick(41.0)) and s.started                  # one, and 30 s have passed
+    assert s.start_note == "starting with 1 of 3 tracers: waited 30 s (--min-tracers-timeout)"
+    assert s.waiting_for() is None
+
+
+def test_a_chunk_left_without_a_tracer_is_what_the_render_waits_for(state):
+    _register(state, "a")
+    state.tick(0.0)
+    assert state.waiting_for() is None
+    state.owners[1] = []          # as after its only tracer was evicted
+    assert state.waiting_for() == {"chunk_owners": [1]}

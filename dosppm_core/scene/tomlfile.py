@@ -56,12 +56,20 @@ def load_toml(path: str | os.PathLike) -> Scene:
     found relative to the TOML file. `scene.render_settings` holds the
     `[render]` table as a plain dict (empty when absent)."""
     path = os.fspath(path)
-    doc = _read_document(path)
+    return scene_from_document(_read_document(path), path, os.path.splitext(os.path.basename(path))[0],
+                               os.path.dirname(os.path.abspath(path)))
+
+
+def scene_from_document(doc: dict, path: str, name: str, base_dir: str) -> Scene:
+    """A `Scene` from the tables of a scene file, already parsed (a dict
+    of the same shape: the Python API's `load`). `path` names the source
+    in error messages; mesh files are found relative to `base_dir`."""
+    if not isinstance(doc, dict):
+        raise SceneError(f"{path}: a scene is a table (dict) of camera, materials, shapes and lights")
     _check_keys(doc, _TOP_KEYS, path, "")
-    builder = SceneBuilder(source=path, name=os.path.splitext(os.path.basename(path))[0])
+    builder = SceneBuilder(source=path, name=name)
     builder.camera = _read_camera(doc, path)
     materials = _read_materials(doc, builder, path)
-    base_dir = os.path.dirname(os.path.abspath(path))
     used = {_read_shape(shape, builder, path, f"shapes[{i}]", base_dir)
             for i, shape in enumerate(_entries(doc, "shapes", path))}
     lights = _entries(doc, "lights", path)

@@ -18,9 +18,9 @@ def add_parser(sub) -> None:
                    help="built-in names or scene files (default: the default scene)")
     p.add_argument("--mesh", action="append", default=[],
                    help="also bench this mesh file placed in glass in the Cornell box (repeatable)")
-    p.add_argument("--photons", type=int, default=1_000_000)
-    p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--threads", type=int, default=config.THREADS)
+    p.add_argument("--photons", type=config.positive_int, default=1_000_000)
+    p.add_argument("--repeats", type=config.positive_int, default=3)
+    p.add_argument("--threads", type=config.positive_int, default=config.THREADS)
     p.add_argument("--json", help="write the results here")
     p.set_defaults(func=run)
 

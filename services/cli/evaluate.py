@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 import sys
 
+from services import config
 from services.cli.errors import EXIT_FAILED, EXIT_OK, fail
 from services.evaluation import evaluate, suites
 
@@ -28,7 +29,7 @@ def add_parser(sub) -> None:
                     "shared folder (pbrt-v4's, for sponza-point). Writes results.json, "
                     "results.csv, summary.md and, with matplotlib, the charts.")
     p.add_argument("suite", choices=sorted(evaluate.SUITES), help="the suite of scenes")
-    p.add_argument("--budget-s", type=float, default=20.0,
+    p.add_argument("--budget-s", type=config.positive_float, default=20.0,
                    help="render seconds per method and scene (default 20)")
     p.add_argument("--out", default="evaluation", help="output folder (default ./evaluation)")
     p.add_argument("--method", action="append", choices=sorted(evaluate.METHODS),
@@ -36,12 +37,12 @@ def add_parser(sub) -> None:
     p.add_argument("--scene", action="append", help="only this scene of the suite (repeatable)")
     p.add_argument("--reference-cache", help="where references are kept "
                                              "(default ~/.cache/dosppm/references)")
-    p.add_argument("--reference-spp-scale", type=float, default=1.0,
+    p.add_argument("--reference-spp-scale", type=config.positive_float, default=1.0,
                    help="scale the suite's reference sample counts (quick looks: 0.1)")
     p.add_argument("--shared", metavar="DIR",
                    help=f"the shared folder of scenes and references (default ${suites.SHARED_ENV}); "
                         "cases that need it are skipped without it")
-    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--seed", type=config.non_negative_int, default=1)
     p.set_defaults(func=run)
 
 

@@ -28,9 +28,16 @@ from services.config import ConfigError
 COMMANDS = (render, scenes, subdivide, bench, reference, compare, evaluate, server, tracer, keys)
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse, but a mistake is one line naming the flag and value (not
+    the whole usage), with exit status 2; subcommands inherit it."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="dosppm", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = Parser(prog="dosppm", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
     for command in COMMANDS:
         command.add_parser(sub)

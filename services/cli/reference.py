@@ -16,7 +16,7 @@ from dosppm_core.film import FilmError, write_exr
 from dosppm_core.scene import loaders
 from dosppm_core.scene.model import SceneError
 from services.cli.errors import EXIT_FAILED, EXIT_OK, fail
-from services.config import positive_int
+from services.config import non_negative_int, positive_int
 
 
 def add_parser(sub) -> None:
@@ -32,7 +32,7 @@ def add_parser(sub) -> None:
                         f"(Mitsuba max_depth = this + 1; negative: unbounded; "
                         f"default {reference.DEFAULT_MAX_DEPTH})")
     p.add_argument("--integrator", choices=reference.INTEGRATORS, default="path")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=non_negative_int, default=0)
     p.add_argument("--width", type=positive_int, help="override the camera's width")
     p.add_argument("--height", type=positive_int, help="override the camera's height")
     p.add_argument("--variant", default=None,

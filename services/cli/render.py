@@ -26,7 +26,7 @@ from dosppm_core.scene.soupfile import is_soup
 from dosppm_core.settings import SERVICE_JOB_SIZES, RenderSettings
 from services import config
 from services.cli.errors import EXIT_INTERRUPTED, EXIT_OK, fail, warnings_as_lines
-from services.local import run_server
+from services.local import run_server, warm_kernels
 from services.progress import COMPILING, ProgressReporter, kernels_cached, stderr_lines
 
 MODES = ("dosppm", "sppm", "osppm")
@@ -56,14 +56,14 @@ def add_parser(sub) -> None:
     p.add_argument("--quiet", action="store_true")
     ooc = p.add_argument_group("chunks (--mode osppm and dosppm)")
     config.add_options(ooc, config.CHUNKING)
-    ooc.add_argument("--memory", metavar="SIZE",
+    ooc.add_argument("--memory", metavar="SIZE", type=config.size,
                      help="osppm: resident chunks at most this much (default: twice the budget or all)")
     ooc.add_argument("--schedule", choices=("pipelined", "drained"), default="pipelined",
                      help="osppm: pipelined: one sweep over the chunks per iteration, portal rays "
                           "carried over (§3.3); drained: every ray ends within its iteration, which "
                           "reproduces the unchunked image exactly")
     service = p.add_argument_group("the render service (--mode dosppm, the default)")
-    service.add_argument("--tracers", type=int, help="tracer processes (default: one per core)")
+    service.add_argument("--tracers", type=config.positive_int, help="tracer processes (default: one per core)")
     config.add_options(service, _SERVICE)
     optimisations = p.add_argument_group("the paper's optimisations (Figure 15; --no-cull in every mode)")
     config.add_options(optimisations, config.OPTIMISATIONS)
@@ -81,8 +81,6 @@ def run(args) -> int:
 def _run_service(args) -> int:
     """A server in this process and `--tracers` tracer processes."""
     n = args.tracers or os.cpu_count() or 1
-    if n < 1:
-        return fail("--tracers must be >= 1")
     values = {o.name: o.default for o in config.SERVER}
     values.update({o.name: getattr(args, o.name) for o in _SERVER_FLAGS})
     values.update(bind="tcp://127.0.0.1:*", min_tracers=n)
@@ -100,8 +98,11 @@ def _run_here(args) -> int:
         return fail(str(e))
     limit = config.stop_limit(args.time, args.photons, args.iterations)
     say(describe)
+    # Load the kernels (compile them, the first time) before the render's
+    # clock starts: the time limit and the photons/s are the render's own.
     if not kernels_cached():
         say(COMPILING)
+    warm_kernels()
     reporter = ProgressReporter(limit, args.log, quiet=args.quiet)
     interrupted = False
     try:

@@ -17,7 +17,7 @@ from dosppm_core.chunks.subdivide import DEFAULT_GRID, format_bytes, subdivide
 from dosppm_core.scene.loaders import load_source
 from dosppm_core.scene.model import SceneError
 from services.cli.errors import EXIT_OK, fail
-from services.config import parse_bytes, positive_int
+from services.config import parse_bytes, positive_int, size
 
 
 def add_parser(sub) -> None:
@@ -26,7 +26,7 @@ def add_parser(sub) -> None:
         description="Subdivide SCENE into box-shaped chunks (§4.1: binning, kd-tree, portals, "
                     "insertion) and write them as a chunk store in DIR.")
     p.add_argument("scene", help="built-in scene name, .toml or Mitsuba .xml file, or a soup directory")
-    p.add_argument("--budget", type=str, metavar="SIZE",
+    p.add_argument("--budget", type=size, metavar="SIZE",
                    help="memory per loaded chunk, BVH included, e.g. 512MiB (KiB, MiB, GiB)")
     p.add_argument("--chunks", type=positive_int, metavar="C",
                    help="force exactly C chunks instead (a budget given too is then checked)")

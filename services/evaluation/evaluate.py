@@ -33,36 +33,32 @@ such a case is skipped with its reason, as a missing peer renderer is.
 from __future__ import annotations
 
 import csv
-import datetime
 import json
 import math
 import os
-import platform
 import subprocess
 import sys
 import tempfile
 import time
+import dataclasses
 from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
+import dosppm_core as dp
 from dosppm_core import metrics
 from dosppm_core.accel import Accelerator
-from dosppm_core.chunks.store import ChunkStore
-from dosppm_core.chunks.subdivide import subdivide
 from dosppm_core.film import one_line, read_exr
 from dosppm_core.kernels.bsdf import is_specular
 from dosppm_core.mirror_limit import LimitSettings, mirror_limit
-from dosppm_core.modes.osppm import OutOfCoreRenderer
-from dosppm_core.modes.sppm import Renderer
 from dosppm_core.reference import cached_reference, render_reference
 from dosppm_core.scene import builtin
 from dosppm_core.scene.loaders import load_scene
 from dosppm_core.scene.model import Scene
-from dosppm_core.scene.soup import SceneSource
 from dosppm_core.settings import DIRECT_MODES, RenderSettings
 from dosppm_core.trace import eye_ray_job
 from services.evaluation import pbrt
+from services.evaluation.provenance import provenance
 from services.evaluation.suites import (CAUSTIC_SCENES, METHODS, SUITES, Case, CaseSkipped, Method, Sample, Suite,
                                         shared_dir, shared_file)
 
@@ -165,10 +161,8 @@ def run_method(method: Method, scene: Scene, budgets: list[float], seed: int,
                work: str, pbrt_file: str | None = None) -> list[tuple[float, float, int, np.ndarray]]:
     """(budget, seconds, photons, image) at each budget; `pbrt_file` is the
     scene for pbrt-v4 where a case gives one (else `scene` is exported)."""
-    if method.kind == "sppm":
-        return _progressive(lambda: Renderer(scene, _settings(method, seed, scene)), budgets)
-    if method.kind == "osppm":
-        return _progressive(lambda: _osppm(method, scene, seed, work), budgets)
+    if method.kind in ("sppm", "osppm"):
+        return _progressive(method, scene, seed, budgets)
     if method.kind == "dosppm":
         return _dosppm(scene, budgets, seed, work)
     if method.kind == "mitsuba":
@@ -190,38 +184,15 @@ def _settings(method: Method, seed: int, scene: Scene | None = None) -> RenderSe
     return s
 
 
-def _osppm(method: Method, scene: Scene, seed: int, work: str):
-    path = tempfile.mkdtemp(prefix="store-", dir=work)
-    os.rmdir(path)
-    subdivide(SceneSource(scene), path, chunks=int(method.options["chunks"]))
-    return OutOfCoreRenderer(ChunkStore.open(path), _settings(method, seed))
-
-
-def _progressive(make, budgets):
-    """Run a progressive renderer, stopping at each budget in turn (an
-    iteration that spans several budgets stops once, at the last), and
-    going on from there."""
-    renderer = make()
-    try:
-        out, k, t0 = [], 0, time.perf_counter()
-        while k < len(budgets):
-            renderer.run_iteration()
-            elapsed = time.perf_counter() - t0
-            if elapsed >= budgets[k]:
-                while k + 1 < len(budgets) and elapsed >= budgets[k + 1]:
-                    k += 1
-                if hasattr(renderer, "finish"):
-                    # OSPPM's image lacks the photons still queued at
-                    # portals until they are traced, as `dosppm render`
-                    # does before it writes (the time counts).
-                    renderer.finish()
-                    elapsed = time.perf_counter() - t0
-                out.append((budgets[k], elapsed, int(renderer.stats.photons_emitted),
-                            renderer.image().copy()))
-                k += 1
-        return out
-    finally:
-        renderer.close()
+def _progressive(method: Method, scene: Scene, seed: int, budgets):
+    """One render through the Python API, its image taken at each budget
+    in turn (an iteration that spans several budgets stops once, at the
+    last). OSPPM's image is drained of the photons still queued at portals
+    at each stop, as `dosppm render` does before it writes (the time counts)."""
+    settings = dataclasses.asdict(_settings(method, seed, scene))
+    return [(img.stats["stop"], img.stats["seconds"], img.stats["photons"], img.pixels)
+            for img in dp.render_stops(scene, budgets, mode=method.kind, chunks=method.options.get("chunks"),
+                                       **settings)]
 
 
 def _mitsuba(scene: Scene, integrator: str, budgets, seed: int):
@@ -252,7 +223,7 @@ def _pbrt(method: Method, scene: Scene, budgets, seed: int, work: str, pbrt_file
     integrator = method.options["integrator"]
     settings = pbrt.RenderSettings(integrator, 1, int(method.options["max_depth"]),
                                    int(scene.camera.width), int(scene.camera.height),
-                                   radius=pbrt_sppm_radius(scene) if integrator == "sppm" else 1.0)
+                                   radius=_pbrt_radius(method, scene))
     target, run_file = os.path.join(work, "pbrt.exr"), os.path.join(work, "pbrt-run.pbrt")
     out = []
     while settings.samples:
@@ -266,6 +237,17 @@ def _pbrt(method: Method, scene: Scene, budgets, seed: int, work: str, pbrt_file
         out.append((next((b for b in budgets if seconds <= b), budgets[-1]), seconds, photons, image))
         settings = replace(settings, samples=_next_samples(settings.samples, seconds, budgets[-1]))
     return out
+
+
+def _pbrt_radius(method: Method, scene: Scene) -> float:
+    """pbrt-v4 SPPM's one global initial radius: the method's fraction of
+    the scene's diagonal (as our sppm-radius-* methods), else 3 pixel
+    footprints; irrelevant to its path tracer."""
+    if method.options["integrator"] != "sppm":
+        return 1.0
+    if "radius_of_diagonal" in method.options:
+        return method.options["radius_of_diagonal"] * scene.diagonal()
+    return pbrt_sppm_radius(scene)
 
 
 def _next_samples(samples: int, seconds: float, budget: float) -> int:
@@ -358,6 +340,9 @@ class Evaluation:
     failed: dict = field(default_factory=dict)       # "scene/method" -> error
     references: dict = field(default_factory=dict)   # scene -> description
     images: dict = field(default_factory=dict)       # (scene, method) -> image at full budget
+    # Commit, date, machine and command, taken when the run starts: the
+    # code that ran, not whatever HEAD is when the results are written.
+    provenance: dict = field(default_factory=provenance)
 
 
 def evaluate(suite: Suite, budget_s: float, methods: list[str] | None = None,
@@ -490,22 +475,33 @@ def carry_over(ev: Evaluation, out_dir: str, running: set) -> None:
                       if k.split("/")[0] not in running})
 
 
+def read_results(path: str) -> Evaluation:
+    """An evaluation back from its results.json (for tables and charts
+    made after the run; the images are not kept)."""
+    with open(path, encoding="utf-8") as f:
+        return read_results_doc(json.load(f))
+
+
+def read_results_doc(doc: dict) -> Evaluation:
+    ev = Evaluation(doc["suite"], doc["budget_s"], references=doc.get("references", {}),
+                    skipped=doc.get("skipped", {}), failed=doc.get("failed", {}),
+                    provenance=doc.get("provenance") or {"commit": doc.get("commit"), "date": doc.get("date")})
+    names = Sample.__dataclass_fields__
+    ev.samples = [Sample(**{k: (math.nan if v is None else v) for k, v in row.items() if k in names})
+                  for row in doc.get("samples", [])]
+    return ev
+
+
 def _warm_kernels() -> None:
     """Compile (or load) the numba kernels, the chunked ones included, for
-    either kind of direct light, before any clock starts."""
+    either kind of direct light and gather, before any clock starts."""
     scene = builtin.make("cornell-box")
     scene.camera.width = scene.camera.height = 8
-    with tempfile.TemporaryDirectory(prefix="dosppm-warm-") as work:
-        for direct in DIRECT_MODES:
-            method = Method("warm", "osppm", {"chunks": 4, "direct": direct})
-            for make in (lambda m=method: Renderer(scene, _settings(m, 0)),
-                         lambda m=method: _osppm(m, scene, 0, work)):
-                r = make()
-                r.settings.photons_per_iteration = 2000
-                for gather in ("grid", "hash"):
-                    r.settings.gather = gather
-                    r.run_iteration()
-                r.close()
+    for direct in DIRECT_MODES:
+        for gather in ("grid", "hash"):
+            for mode in ("sppm", "osppm"):
+                dp.render(scene, iterations=1, mode=mode, chunks=4, direct=direct, gather=gather,
+                          photons_per_iteration=2000)
 
 
 # -- output ---------------------------------------------------------------------
@@ -516,8 +512,8 @@ def write_results(ev: Evaluation, out_dir: str) -> list[str]:
     os.makedirs(out_dir, exist_ok=True)
     rows = [{k: (None if isinstance(v, float) and not math.isfinite(v) else v)
              for k, v in asdict(s).items()} for s in ev.samples]
-    doc = {"suite": ev.suite, "budget_s": ev.budget_s, "machine": _machine(),
-           "commit": _commit(), "date": datetime.datetime.now().isoformat(timespec="seconds"),
+    doc = {"suite": ev.suite, "budget_s": ev.budget_s, "provenance": ev.provenance,
+           "commit": ev.provenance["commit"], "date": ev.provenance["date"],
            "references": ev.references, "skipped": ev.skipped, "failed": ev.failed,
            "methods": {m: METHODS[m].about for m in {r["method"] for r in rows}},
            "samples": rows}
@@ -540,25 +536,27 @@ def write_results(ev: Evaluation, out_dir: str) -> list[str]:
     return paths
 
 
-def final_samples(ev: Evaluation) -> dict:
-    """(scene, method) -> the sample at the largest budget."""
+def final_samples(ev: Evaluation, budget_s: float | None = None) -> dict:
+    """(scene, method) -> the sample at the largest budget (or at the
+    budget `budget_s`: the last run filed under it)."""
     best = {}
     for s in ev.samples:
         key = (s.scene, s.method)
+        if budget_s is not None and s.budget_s != budget_s:
+            continue
         if key not in best or s.budget_s >= best[key].budget_s:
             best[key] = s
     return best
 
 
-def summary_markdown(ev: Evaluation) -> str:
-    last = final_samples(ev)
-    scenes = _scene_order(ev)
-    methods = list(dict.fromkeys(s.method for s in ev.samples))
-    lines = [f"relMSE at {ev.budget_s:g} s of render time (suite `{ev.suite}`), with the "
-             "mean-luminance bias, or the mean luminance Y where the reference is black "
-             "(light that leaked); ! = a non-finite pixel", "",
-             "| scene | " + " | ".join(methods) + " |", "|---|" + "---|" * len(methods)]
-    for scene in scenes:
+def relmse_table(ev: Evaluation, budget_s: float | None = None, methods: list | None = None) -> list[str]:
+    """Markdown rows: per scene and method, relMSE with the mean-luminance
+    bias (or the mean luminance Y where the reference is black) at the
+    last budget or at `budget_s`."""
+    last = final_samples(ev, budget_s)
+    methods = methods or list(dict.fromkeys(s.method for s in ev.samples))
+    lines = ["| scene | " + " | ".join(methods) + " |", "|---|" + "---|" * len(methods)]
+    for scene in _scene_order(ev):
         cells = []
         for m in methods:
             s = last.get((scene, m))
@@ -566,6 +564,15 @@ def summary_markdown(ev: Evaluation) -> str:
                          f"{s.relmse:.3g} ({s.bias:+.1%})" if math.isfinite(s.bias) else
                          f"{s.relmse:.3g} (Y {s.mean_luminance:.2g})")
         lines.append(f"| {scene} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def summary_markdown(ev: Evaluation) -> str:
+    last = final_samples(ev)
+    methods = list(dict.fromkeys(s.method for s in ev.samples))
+    lines = [f"relMSE at {ev.budget_s:g} s of render time (suite `{ev.suite}`), with the "
+             "mean-luminance bias, or the mean luminance Y where the reference is black "
+             "(light that leaked); ! = a non-finite pixel", "", *relmse_table(ev, None, methods)]
     lines += mirror_limit_table(ev, last, methods)
     lines += ["", *claims(ev)]
     if ev.skipped:
@@ -639,17 +646,3 @@ def _scene_order(ev: Evaluation) -> list[str]:
     order = [c.scene for c in SUITES[ev.suite].cases] if ev.suite in SUITES else []
     seen = list(dict.fromkeys(s.scene for s in ev.samples))
     return [s for s in order if s in seen] + [s for s in seen if s not in order]
-
-
-def _machine() -> dict:
-    return {"cpus": os.cpu_count(), "platform": platform.platform(),
-            "python": platform.python_version()}
-
-
-def _commit() -> str:
-    try:
-        here = os.path.dirname(os.path.abspath(__file__))
-        return subprocess.run(["git", "-C", here, "rev-parse", "--short", "HEAD"], capture_output=True,
-                              text=True, timeout=10).stdout.strip() or "unknown"
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"

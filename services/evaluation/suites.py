@@ -87,6 +87,9 @@ METHODS = {m.name: m for m in (
     Method("mitsuba-ptracer", "mitsuba", {"integrator": "ptracer"}, "Mitsuba 3 light tracer"),
     Method("pbrt-sppm", "pbrt", {"integrator": "sppm", "max_depth": 10},
            "pbrt-v4 SPPM, 100k photons per iteration, radius 3 pixel footprints, depth 10"),
+    Method("pbrt-sppm-radius-1/100", "pbrt", {"integrator": "sppm", "max_depth": 10,
+                                               "radius_of_diagonal": 1 / 100},
+           "pbrt-v4 SPPM, radius 1/100 of the scene's diagonal (tuned by hand on Sponza), depth 10"),
     Method("pbrt-path", "pbrt", {"integrator": "path", "max_depth": 10},
            "pbrt-v4 path tracer, depth 10"),
 )}

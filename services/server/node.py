@@ -63,15 +63,20 @@ class ServerProcess:
                  concurrent: bool = True, client_batching: bool = True, tracer_timeout_s: float = 10.0,
                  checkpoint_dir: str | None = None, checkpoint_interval_s: float = 60.0,
                  resume: dict | None = None, curve_secret: str | None = None,
-                 curve_clients: str | None = None):
+                 curve_clients: str | None = None, min_tracers_timeout_s: float | None = None,
+                 say=None):
+        """`say` prints a line for the user (what the server waits for)."""
         self.store, self.settings = store, settings
+        self.say = say or (lambda *parts: None)
+        self._said_waiting: str | None = None
         self.out, self.exposure, self.reporter = out, exposure, reporter
         self.limits = limits or Limits(seconds=config.SECONDS)
         self.snapshot_interval_s, self.drain_timeout_s = snapshot_interval_s, drain_timeout_s
         self.state = ServerState(store.header, store.tree, settings, store.key, store.manifest,
                                  min_photon_jobs=min_photon_jobs, queue_target_rays=queue_target_rays,
                                  min_tracers=min_tracers, concurrent=concurrent,
-                                 client_batching=client_batching, tracer_timeout_s=tracer_timeout_s)
+                                 client_batching=client_batching, tracer_timeout_s=tracer_timeout_s,
+                                 min_tracers_timeout_s=min_tracers_timeout_s)
         self.statistics = ServerStatistics(store.header, settings, threads=threads)
         self.checkpoint_dir, self.checkpoint_interval_s = checkpoint_dir, checkpoint_interval_s
         if resume is not None:
@@ -145,7 +150,8 @@ class ServerProcess:
                 self.started_at = now
             if now - last_status >= STATUS_INTERVAL_S:
                 last_status = now
-                self._publish_status(now, phase)
+                self._publish_status(now, phase if self.state.started else "waiting")
+                self._say_waiting()
                 self._check_watch()
             if now - last_progress >= PROGRESS_INTERVAL_S and self.reporter and self.started_at:
                 last_progress = now
@@ -165,6 +171,20 @@ class ServerProcess:
                 self.state.finish()
                 self._pump_updates()
                 return
+
+    def _say_waiting(self) -> None:
+        """A line whenever what the render waits for changes: tracers to
+        register, a chunk without a tracer, or the timeout that ended a wait."""
+        w = self.state.waiting_for()
+        if w is None:       # running: say why a wait ended short, once
+            line = self.state.start_note if self._said_waiting else None
+        elif "tracers" in w:
+            line = f"waiting for tracers: {w['registered']} of {w['min_tracers']} registered"
+        else:
+            line = f"waiting for a tracer to hold chunk(s) {', '.join(map(str, w['chunk_owners']))}"
+        if line is not None and line != self._said_waiting:
+            self.say(line)
+        self._said_waiting = line
 
     def _checkpoint_due(self, since_s: float) -> bool:
         return bool(self.checkpoint_dir) and self.checkpoint_interval_s > 0 and \

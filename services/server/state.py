@@ -133,14 +133,19 @@ class ServerState:
                  manifest: dict | None = None, min_photon_jobs: int = 1000,
                  queue_target_rays: int = 262_144, min_tracers: int = 1,
                  concurrent: bool = True, client_batching: bool = True,
-                 tracer_timeout_s: float = 10.0):
+                 tracer_timeout_s: float = 10.0, min_tracers_timeout_s: float | None = None):
         """`concurrent` False and `client_batching` False switch off two of
-        the paper's optimisations, for the Figure 15 benchmark."""
+        the paper's optimisations, for the Figure 15 benchmark. The render
+        starts once `min_tracers` have registered or, with at least one,
+        `min_tracers_timeout_s` after the first tick (None: never)."""
         settings.validate()
         self.header, self.tree, self.settings = header, tree, settings
         self.store_key, self.manifest = store_key, manifest
         self.min_photon_jobs, self.queue_target = int(min_photon_jobs), int(queue_target_rays)
         self.min_tracers = int(min_tracers)
+        self.min_tracers_timeout_s = min_tracers_timeout_s
+        self._waiting_since: float | None = None
+        self.start_note: str | None = None    # why the render started short of min_tracers
         self.concurrent, self.client_batching = bool(concurrent), bool(client_batching)
         self.tracer_timeout_s = float(tracer_timeout_s)
         self.job_timeout_s = max(30.0, 3 * self.tracer_timeout_s)
@@ -405,7 +410,7 @@ class ServerState:
             out += self._evict_silent(now)
             self._watchdog(now)
         if not self.started:
-            if len(self.tracers) < self.min_tracers:
+            if not self._ready_to_start(now):
                 return out
             self.started = True
         if not self.emitting or not all(self.owners):
@@ -418,6 +423,28 @@ class ServerState:
                 self._photon_pending.append(self._new_job("photon", self.settings.photons_per_job))
             out += self._send_photon_jobs()
         return out
+
+    def _ready_to_start(self, now: float) -> bool:
+        if len(self.tracers) >= self.min_tracers:
+            return True
+        if self._waiting_since is None:
+            self._waiting_since = now
+        timeout = self.min_tracers_timeout_s
+        if timeout is None or not self.tracers or now - self._waiting_since < timeout:
+            return False
+        self.start_note = (f"starting with {len(self.tracers)} of {self.min_tracers} tracers: "
+                           f"waited {timeout:g} s (--min-tracers-timeout)")
+        return True
+
+    def waiting_for(self) -> dict | None:
+        """What keeps the render from running, for the status page and the
+        server's log line: tracers still to register, or chunks no tracer
+        holds (after an eviction); None while it runs."""
+        if not self.started:
+            return {"tracers": self.min_tracers - len(self.tracers), "registered": len(self.tracers),
+                    "min_tracers": self.min_tracers}
+        unowned = [k for k, o in enumerate(self.owners) if not o]
+        return {"chunk_owners": unowned} if unowned else None
 
     def _alternate(self) -> list[Out]:
         """The schedule DOSPPM improves on (Figure 15, 'alternating'): an
@@ -653,6 +680,7 @@ class ServerState:
     def status(self) -> dict:
         c = self.counters
         return {"protocol": PROTOCOL_VERSION, "iteration": self.eye_completed,
+                "waiting_for": self.waiting_for(),
                 "photons_emitted": c["photons_emitted"], "photons_committed": c["photons_committed"],
                 "jobs_in_flight": len(self.jobs), "photon_jobs_in_flight": self.photon_jobs_in_flight,
                 "hit_points": c["hit_points"], "chunks": self.tree.chunk_count,

@@ -42,6 +42,10 @@ def reachable_address(server_url: str) -> str:
         return s.getsockname()[0]
 
 
+def _chunk_list(chunks) -> str:
+    return ", ".join(map(str, chunks)) if chunks else "none yet"
+
+
 def default_tracer_id() -> str:
     return f"{pysocket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:6]}"
 
@@ -51,7 +55,9 @@ class TracerProcess:
                  store: str | None = None, cache_dir: str | None = None, memory_bytes: float | None = None,
                  threads: int = 1, tracer_id: str | None = None, context: transport.Context | None = None,
                  connect_timeout_s: float = SERVER_TIMEOUT_S, curve_secret: str | None = None,
-                 curve_server_key: str | None = None, curve_clients: str | None = None):
+                 curve_server_key: str | None = None, curve_clients: str | None = None, say=None):
+        """`say` prints a line for the user: the server joined, rejoins."""
+        self.say = say or (lambda *parts: None)
         self.server_url, self.bind, self.advertise = server, bind, advertise
         self.store_path, self.cache_dir = store, cache_dir
         self.memory_bytes, self.threads = memory_bytes, threads
@@ -232,6 +238,8 @@ class TracerProcess:
                                      direct=welcome.settings.get("direct", "nee"))
             log.info("tracer %s joined as %d at %s, chunks %s", self.tracer_id, welcome.tracer_index,
                      self.endpoint, welcome.chunks)
+            self.say(f"tracer {self.tracer_id}: registered with server {self.server_url} as tracer "
+                     f"{welcome.tracer_index}, chunks {_chunk_list(welcome.chunks)}, portals at {self.endpoint}")
             self._loop()
         finally:
             self._close()
@@ -289,7 +297,9 @@ class TracerProcess:
                 self.jobs_received = 0
                 self.state.reset()
                 self._rejoining, self._backoff = False, 0.0
-                log.warning("rejoined the server as tracer %d", msg.tracer_index)
+                log.info("rejoined the server as tracer %d", msg.tracer_index)
+                self.say(f"tracer {self.tracer_id}: rejoined server {self.server_url} as tracer "
+                         f"{msg.tracer_index}, chunks {_chunk_list(msg.chunks)}")
             elif msg.type in ("error", "refused"):
                 log.warning("server says: %s", msg.reason)
             else:

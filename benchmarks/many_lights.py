@@ -1,0 +1,94 @@
+"""Issue 12: does direct light by shadow rays pay off among hundreds of
+lights, and is a light tree needed? On the generated building (600 ceiling
+lights), each estimator renders for the same time twice, with two seeds:
+half the relMSE between the two images is its noise (SPPM's kernel bias is
+the same in both and cancels), with no reference needed.
+
+    python benchmarks/many_lights.py [--seconds 30] [--triangles 1e6]
+
+Estimators: the default (a shadow ray per hit point, the light chosen among
+8 candidates drawn by power by its unoccluded contribution, photons from
+their second surface on) and the paper's (every photon deposits, direct
+light included). Writes benchmarks/results/many-lights.json with provenance.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+
+from dosppm_core import metrics  # noqa: E402
+from dosppm_core.chunks.store import ChunkStore  # noqa: E402
+from dosppm_core.chunks.subdivide import subdivide  # noqa: E402
+from dosppm_core.modes.osppm import OutOfCoreRenderer  # noqa: E402
+from dosppm_core.scene.generate import generate_building  # noqa: E402
+from dosppm_core.scene.soupfile import open_soup  # noqa: E402
+from dosppm_core.settings import RenderSettings  # noqa: E402
+from services.evaluation.provenance import write_results  # noqa: E402
+
+ESTIMATORS = {"shadow rays (default)": "nee", "photons only (the paper's)": "photons"}
+
+
+def _render(store_path: str, direct: str, seed: int, seconds: float):
+    """(image, photons) after `seconds` of iterations (the first, which
+    loads the scene and kernels, excluded)."""
+    r = OutOfCoreRenderer(ChunkStore.open(store_path), RenderSettings(seed=seed, direct=direct, threads=2))
+    try:
+        r.run_iteration()
+        p0, t0 = r.progress(), time.perf_counter()
+        while time.perf_counter() - t0 < seconds:
+            r.run_iteration()
+        r.finish()
+        return r.image().copy(), r.progress().photons_emitted - p0.photons_emitted
+    finally:
+        r.close()
+
+
+def run(args) -> dict:
+    work = tempfile.mkdtemp(prefix="dosppm-many-lights-")
+    generate_building(os.path.join(work, "b"), triangles=int(args.triangles), lights=args.lights, seed=1,
+                      width=args.width, height=args.height)
+    subdivide(open_soup(os.path.join(work, "b")), os.path.join(work, "s"), chunks=1)
+    rows = {}
+    for name, direct in ESTIMATORS.items():
+        (a, pa), (b, pb) = (_render(os.path.join(work, "s"), direct, seed, args.seconds) for seed in (1, 2))
+        rows[name] = {"direct": direct, "photons": [int(pa), int(pb)],
+                      "noise_relmse": metrics.relmse(a, b) / 2,
+                      "mean_luminance": [float(metrics.luminance(a).mean()), float(metrics.luminance(b).mean())]}
+        print(f"{name}: noise relMSE {rows[name]['noise_relmse']:.4g}, photons {pa:,}", file=sys.stderr)
+    return {"scene": f"generated building, {int(args.triangles):,} triangles, {args.lights} lights, "
+                     f"{args.width}x{args.height}", "seconds": args.seconds, "rows": rows}
+
+
+def report(res: dict) -> str:
+    lines = [f"{res['scene']}, {res['seconds']:g} s a render, two seeds each: noise = relMSE between "
+             "the two images / 2.", "",
+             "| estimator | photons per render | noise relMSE | mean luminance (seed 1, 2) |", "|---|---|---|---|"]
+    for name, r in res["rows"].items():
+        lines.append(f"| {name} | {r['photons'][0]:,} | {r['noise_relmse']:.4g} | "
+                     f"{r['mean_luminance'][0]:.4g}, {r['mean_luminance'][1]:.4g} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--seconds", type=float, default=30.0)
+    p.add_argument("--triangles", type=float, default=1e6)
+    p.add_argument("--lights", type=int, default=600)
+    p.add_argument("--width", type=int, default=192)
+    p.add_argument("--height", type=int, default=144)
+    p.add_argument("--json", default=os.path.join(ROOT, "benchmarks", "results", "many-lights.json"))
+    args = p.parse_args(argv)
+    res = run(args)
+    print(report(res))
+    write_results(args.json, res)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

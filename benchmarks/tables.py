@@ -1,0 +1,150 @@
+"""Fill the performance tables of the README and docs/ from the results
+files under benchmarks/results/, so that no quoted figure is typed by hand.
+
+A Markdown file marks each generated table:
+
+    <!-- table:core -->
+    ...replaced on every run...
+    <!-- /table:core -->
+
+and the table is followed by a line naming its results file, commit, date,
+machine and command. `--check` changes nothing and fails if a marked table
+differs from what its results file gives (the test suite runs it).
+
+    python benchmarks/tables.py [--check] [FILE.md ...]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import sys
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
+
+DOCS = ("README.md", "docs/performance.md", "docs/accuracy.md")
+MARKED = re.compile(r"(<!-- table:([\w-]+) -->\n)(.*?)(<!-- /table:\2 -->)", re.S)
+
+
+def _core(doc: dict) -> str:
+    from services.evaluation import bench
+    return bench.report(doc["results"])
+
+
+def _dosppm(doc: dict) -> str:
+    import dosppm as service_bench
+    return service_bench.report(doc) if "sppm" in doc.get("runs", {}) else service_bench.report_building(doc)
+
+
+def _osppm(doc: dict) -> str:
+    import osppm
+    return osppm.report(doc["rows"] if isinstance(doc, dict) else doc)
+
+
+def _equal_work(doc: dict) -> str:
+    import equal_work
+    return equal_work.report(doc)
+
+
+def _evaluation(budget_s: float | None = None, mirror: bool = False):
+    """A relMSE (bias) table of a `dosppm evaluate` results.json, at its
+    last budget or at `budget_s`; `mirror`: the mirror-limit table instead."""
+    def table(doc: dict) -> str:
+        from services.evaluation import evaluate
+        ev = evaluate.read_results_doc(doc)
+        budget = budget_s if budget_s is not None else ev.budget_s
+        if mirror:
+            last = evaluate.final_samples(ev)
+            methods = list(dict.fromkeys(s.method for s in ev.samples))
+            return "\n".join(evaluate.mirror_limit_table(ev, last, methods)).strip("\n")
+        head = f"relMSE at {budget:g} s (mean-luminance bias; Y: mean luminance where the reference is black):"
+        return head + "\n\n" + "\n".join(evaluate.relmse_table(ev, budget_s))
+    return table
+
+
+def _many_lights(doc: dict) -> str:
+    import many_lights
+    return many_lights.report(doc)
+
+
+# table name -> (results file, the function that renders it)
+TABLES = {
+    "core": ("benchmarks/results/core.json", _core),
+    "dosppm": ("benchmarks/results/dosppm.json", _dosppm),
+    "dosppm-building": ("benchmarks/results/dosppm-building.json", _dosppm),
+    "osppm": ("benchmarks/results/osppm.json", _osppm),
+    "equal-work": ("benchmarks/results/equal-work.json", _equal_work),
+    "many-lights": ("benchmarks/results/many-lights.json", _many_lights),
+    "accuracy-failure-modes": ("docs/evaluation/results.json", _evaluation()),
+    "accuracy-failure-modes-mirror": ("docs/evaluation/results.json", _evaluation(mirror=True)),
+    "accuracy-sponza-20s": ("benchmarks/results/issue12-sponza/results.json", _evaluation(20.0)),
+    "accuracy-sponza-80s": ("benchmarks/results/issue12-sponza/results.json", _evaluation(80.0)),
+    "radius-20s": ("benchmarks/results/issue12-radius/results.json", _evaluation(20.0)),
+    "radius-80s": ("benchmarks/results/issue12-radius/results.json", _evaluation(80.0)),
+}
+
+
+def source_line(path: str, doc: dict, doc_dir: str = "") -> str:
+    """Where the table came from, linked from a document in `doc_dir`;
+    files written before provenance was recorded say so rather than guess."""
+    link = os.path.relpath(path, doc_dir or ".")
+    p = doc.get("provenance") if isinstance(doc, dict) else None
+    if not p and isinstance(doc, dict) and doc.get("commit"):     # an evaluation before provenance
+        p = {"commit": doc["commit"], "date": doc.get("date", "?"), "machine": doc.get("machine", {})}
+    if not p:
+        return f"Source: [{path}]({link}) (written before commit and machine were recorded)."
+    m = p.get("machine") or {}
+    cpu = f"{m['cpu']} x{m.get('cpu_count', '?')}" if m.get("cpu") else f"{m.get('cpus', '?')} CPUs"
+    command = f", `{p['command']}`" if p.get("command") else ""
+    return f"Source: [{path}]({link}), commit {p['commit'][:10]}, {p['date'][:10]}, {cpu}{command}."
+
+
+def render(name: str, root: str = ROOT, doc_dir: str = "") -> str:
+    path, fn = TABLES[name]
+    with open(os.path.join(root, path), encoding="utf-8") as f:
+        doc = json.load(f)
+    return fn(doc).rstrip("\n") + "\n\n" + source_line(path, doc, doc_dir) + "\n"
+
+
+def fill(text: str, root: str = ROOT, doc_dir: str = "") -> str:
+    """`text` (of a document in `doc_dir`, from the top of the checkout)
+    with every marked table regenerated."""
+    def one(m):
+        if m.group(2) not in TABLES:
+            raise KeyError(f"unknown table {m.group(2)!r} (known: {', '.join(TABLES)})")
+        return m.group(1) + render(m.group(2), root, doc_dir) + m.group(4)
+    return MARKED.sub(one, text)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("files", nargs="*", default=list(DOCS))
+    ap.add_argument("--check", action="store_true", help="fail if a table differs from its results")
+    args = ap.parse_args(argv)
+    stale = []
+    for name in args.files:
+        path = os.path.join(ROOT, name)
+        if not os.path.exists(path):
+            continue
+        with open(path, encoding="utf-8") as f:
+            text = f.read()
+        new = fill(text, doc_dir=os.path.dirname(name))
+        if new != text:
+            stale.append(name)
+            if not args.check:
+                with open(path, "w", encoding="utf-8") as f:
+                    f.write(new)
+    if args.check and stale:
+        print(f"tables differ from benchmarks/results in: {', '.join(stale)} "
+              "(run python benchmarks/tables.py)", file=sys.stderr)
+        return 1
+    for name in stale if not args.check else []:
+        print(f"updated {name}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,163 @@
+"""The Python API, in the style of Mitsuba 3:
+
+    import dosppm_core as dp
+
+    scene = dp.load("cornell-glass")           # a built-in name, a .toml or .xml file, or a dict
+    image = dp.render(scene, seconds=10)       # (height, width, 3) float32 radiance, with .stats
+    dp.write("out.exr", image)                 # .exr (linear, float) or .png (tone-mapped)
+
+`render` runs in this process: mode "sppm" (the whole scene) or "osppm"
+(the scene cut into chunks, out of core). The distributed mode, a server
+and tracer processes, is the `dosppm render` command: it needs sockets,
+which this library does not know.
+
+`render_stops` renders once and hands back the image at several times,
+as the evaluation does to chart error against time.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+import tempfile
+import time
+from collections.abc import Iterator, Mapping
+
+import numpy as np
+
+from dosppm_core.film import write_exr, write_png
+from dosppm_core.scene.loaders import load_scene
+from dosppm_core.scene.model import Scene, SceneError
+from dosppm_core.scene.tomlfile import scene_from_document
+from dosppm_core.settings import RenderSettings
+
+MODES = ("sppm", "osppm")
+_SETTINGS = {f.name for f in dataclasses.fields(RenderSettings)}
+
+
+@dataclasses.dataclass(frozen=True)
+class Image:
+    """A rendered image: `pixels`, linear radiance as (height, width, 3)
+    float32, and `stats` (mode, iterations, photons, hit points, seconds).
+    numpy and matplotlib take it as the array itself."""
+    pixels: np.ndarray
+    stats: dict
+
+    def __array__(self, dtype=None, copy=None):
+        return self.pixels if dtype is None else self.pixels.astype(dtype)
+
+    @property
+    def shape(self) -> tuple:
+        return self.pixels.shape
+
+
+def load(scene: str | os.PathLike | Mapping, width: int | None = None, height: int | None = None) -> Scene:
+    """A scene from a built-in name, a TOML or Mitsuba XML file, or a dict
+    with the tables of the TOML format (docs/scene-format.md; mesh files
+    relative to the working directory). `width`/`height` override the camera's."""
+    if isinstance(scene, Mapping):
+        out = scene_from_document(dict(scene), "scene dict", "scene", os.getcwd())
+        for key, value in (("width", width), ("height", height)):
+            if value:
+                setattr(out.camera, key, int(value))
+        return out
+    return load_scene(os.fspath(scene), width=width, height=height)
+
+
+def render(scene: Scene | str, seconds: float | None = None, *, photons: int | None = None,
+           iterations: int | None = None, mode: str = "sppm", chunks: int | None = None,
+           **settings) -> Image:
+    """Render `scene` (a Scene, or what `load` takes) until the first limit
+    given is reached: `seconds` of rendering, `photons` emitted or
+    `iterations`; with none, 10 seconds. `settings` are RenderSettings
+    fields (seed, radius, alpha, direct, gather, photons_per_iteration,
+    threads, ...). Mode "osppm" cuts the scene into `chunks` chunks (default 4)."""
+    if seconds is None and photons is None and iterations is None:
+        seconds = 10.0
+    last = None
+    for last in _run(scene, mode, chunks, settings, [seconds], photons, iterations):
+        pass
+    return last
+
+
+def render_stops(scene: Scene | str, seconds: list[float], *, mode: str = "sppm", chunks: int | None = None,
+                 **settings) -> Iterator[Image]:
+    """One render, its image handed back as each time in `seconds` passes
+    (an iteration that spans several times is handed back once, at the last)."""
+    yield from _run(scene, mode, chunks, settings, sorted(seconds), None, None)
+
+
+def write(path: str | os.PathLike, image, exposure: float = 0.0) -> None:
+    """An image (an `Image` or an array) as .exr (linear float) or .png
+    (sRGB, `exposure` in stops)."""
+    path = os.fspath(path)
+    rgb = np.asarray(image, dtype=np.float32)
+    ext = os.path.splitext(path)[1].lower()
+    if ext == ".exr":
+        write_exr(path, rgb)
+    elif ext == ".png":
+        write_png(path, rgb, exposure)
+    else:
+        raise ValueError(f"{path}: unknown image format {ext!r} (expected .exr or .png)")
+
+
+# -- the loop -------------------------------------------------------------------------
+
+def _run(scene, mode: str, chunks, settings: dict, stops: list, photons, iterations) -> Iterator[Image]:
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {', '.join(MODES)} (the distributed mode is the "
+                         f"`dosppm render` command), got {mode!r}")
+    unknown = sorted(set(settings) - _SETTINGS)
+    if unknown:
+        raise TypeError(f"unknown render setting {unknown[0]!r} (known: {', '.join(sorted(_SETTINGS))})")
+    scene = scene if isinstance(scene, Scene) else load(scene)
+    with tempfile.TemporaryDirectory(prefix="dosppm-api-") as work:
+        renderer = _renderer(scene, mode, chunks, RenderSettings(**settings), work)
+        try:
+            yield from _stops(renderer, mode, stops, photons, iterations)
+        finally:
+            renderer.close()
+
+
+def _renderer(scene: Scene, mode: str, chunks, settings: RenderSettings, work: str):
+    # Imported here: `import dosppm_core` stays light (no numba, no Embree).
+    if mode == "sppm":
+        from dosppm_core.modes.sppm import Renderer
+        return Renderer(scene, settings)
+    from dosppm_core.chunks.store import ChunkStore
+    from dosppm_core.chunks.subdivide import subdivide
+    from dosppm_core.modes.osppm import OutOfCoreRenderer
+    from dosppm_core.scene.soup import SceneSource
+    path = os.path.join(work, "store")
+    subdivide(SceneSource(scene), path, chunks=chunks or 4)
+    return OutOfCoreRenderer(ChunkStore.open(path), settings)
+
+
+def _stops(renderer, mode: str, stops: list, photons, iterations) -> Iterator[Image]:
+    """Iterations until the limits, an image at each time in `stops` (wall
+    time from the first iteration, OSPPM's draining of its portal queues
+    included); `stats['stop']` is the time it was handed back for."""
+    k, t0 = 0, time.perf_counter()
+    while True:
+        p = renderer.run_iteration()
+        elapsed = time.perf_counter() - t0
+        done = ((photons is not None and p.photons_emitted >= photons)
+                or (iterations is not None and p.iteration >= iterations))
+        due = [t for t in stops[k:] if t is not None and elapsed >= t]
+        if not (due or done):
+            continue
+        k += len(due)
+        if hasattr(renderer, "finish"):
+            renderer.finish()    # OSPPM: trace the photons still queued at portals
+        yield _image(renderer, mode, time.perf_counter() - t0, due[-1] if due else None)
+        if done or k >= len(stops):
+            return
+
+
+def _image(renderer, mode: str, seconds: float, stop: float | None) -> Image:
+    p = renderer.progress()
+    stats = {"mode": mode, "iterations": p.iteration, "photons": int(p.photons_emitted),
+             "hit_points": int(p.hit_points), "seconds": seconds, "stop": stop}
+    return Image(np.array(renderer.image(), dtype=np.float32), stats)
+
+
+__all__ = ["Image", "MODES", "SceneError", "load", "render", "render_stops", "write"]
