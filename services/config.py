@@ -131,7 +131,8 @@ RENDER = (
     _opt("max_depth", int, _LIBRARY.max_depth, "surfaces a path may hit", rule="count"),
     _opt("direct", str, _LIBRARY.direct, "direct light at hit points: nee (a shadow ray each) or "
          "photons (the paper's pure estimator)", DIRECT_MODES),
-    _opt("photons_per_iteration", int, _LIBRARY.photons_per_iteration, "photons between eye iterations", rule="count"),
+    _opt("photons_per_iteration", int, _LIBRARY.photons_per_iteration, "photons between eye iterations "
+         "(default: 1.5 per pixel, at least 10,000)", rule="count"),
     _opt("photons_per_job", int, SERVICE_JOB_SIZES["photons_per_job"], "photons per photon job", rule="count"),
     _opt("photon_batch", int, _LIBRARY.photon_batch, "deposits per statistics update (server batching)", rule="count"),
     _opt("width", int, None, "image width override", rule="count"),

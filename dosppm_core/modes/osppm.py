@@ -54,7 +54,8 @@ class OutOfCoreRenderer:
                  memory_bytes: float | None = None, pipelined: bool = True):
         self.provider = provider
         self.header, self.tree = provider.header, provider.tree
-        self.settings = settings or RenderSettings()
+        cam = provider.header.camera
+        self.settings = (settings or RenderSettings()).for_image(cam.width * cam.height)
         self.settings.validate()
         self.pipelined = pipelined
         s = self.settings

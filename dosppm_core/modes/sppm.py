@@ -24,7 +24,7 @@ class Renderer:
 
     def __init__(self, scene: Scene, settings: RenderSettings | None = None):
         self.scene = scene
-        self.settings = settings or RenderSettings()
+        self.settings = (settings or RenderSettings()).for_image(scene.camera.width * scene.camera.height)
         self.settings.validate()
         self.accel = Accelerator(scene.vertices, scene.triangles, threads=self.settings.threads)
         self.surf = SurfaceData.from_scene(scene)

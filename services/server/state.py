@@ -138,6 +138,7 @@ class ServerState:
         the paper's optimisations, for the Figure 15 benchmark. The render
         starts once `min_tracers` have registered or, with at least one,
         `min_tracers_timeout_s` after the first tick (None: never)."""
+        settings = settings.for_image(int(header.camera.width) * int(header.camera.height))
         settings.validate()
         self.header, self.tree, self.settings = header, tree, settings
         self.store_key, self.manifest = store_key, manifest
