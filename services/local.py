@@ -167,11 +167,12 @@ def run_tracer(v: dict, quiet: bool = False) -> int:
         memory = config.parse_bytes(v["memory"], "--memory")
     except ValueError as e:
         return fail(str(e))
-    # Kernels are loaded, or compiled, before the tracer registers: a
-    # tracer busy compiling sends no heartbeats and would be evicted.
+    # Kernels are compiled before the tracer registers: a tracer busy
+    # compiling sends no heartbeats and would be evicted. (Cached kernels
+    # load at the first job in about a second, well within the timeout.)
     if not kernels_cached():
         say(COMPILING)
-    warm_kernels()
+        warm_kernels()
     try:
         tp = TracerProcess(v["server"], bind=v["bind"], advertise=v["advertise"], store=v["store"],
                            cache_dir=v["cache_dir"], memory_bytes=memory, threads=v["threads"],

@@ -143,8 +143,7 @@ class ServerState:
         self.header, self.tree, self.settings = header, tree, settings
         self.store_key, self.manifest = store_key, manifest
         self.min_photon_jobs, self.queue_target = int(min_photon_jobs), int(queue_target_rays)
-        self.min_tracers = int(min_tracers)
-        self.min_tracers_timeout_s = min_tracers_timeout_s
+        self.min_tracers, self.min_tracers_timeout_s = int(min_tracers), min_tracers_timeout_s
         self._waiting_since: float | None = None
         self.start_note: str | None = None    # why the render started short of min_tracers
         self.concurrent, self.client_batching = bool(concurrent), bool(client_batching)
