@@ -94,9 +94,10 @@ def _resumed_settings(settings: RenderSettings, doc: dict) -> RenderSettings:
 def _http(text: str):
     if text in (None, "", "off"):
         return None
+    why = config.problem(config.option("http"), text)    # the rule a flag or DOSPPM_HTTP meets
+    if why:
+        raise ValueError(f"--http: {why}")
     host, _, port = text.rpartition(":")
-    if not host or not port.isdigit():
-        raise ValueError(f"--http: expected HOST:PORT or 'off', got {text!r}")
     return host, int(port)
 
 
