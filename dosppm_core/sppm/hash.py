@@ -542,8 +542,10 @@ def build_photon_hash(ph, hp_pos: np.ndarray, hp_radius: np.ndarray, threads: in
     bitmap, first = _occupancy(cell_prio, int(L.dims[0] * L.dims[1]), int(L.dims[2]))
     keys.sort()
     n_valid = int(np.searchsorted(keys, _EMPTY))
-    photons = (pos, inc, np.ascontiguousarray(ph.normal, np.float32),
-               np.ascontiguousarray(ph.flux, np.float32))
+    # The normal column is carried for the record only: no gather reads it,
+    # and a reordered batch (GatherPhotons) has none.
+    normal = np.zeros_like(pos) if ph.normal is None else np.ascontiguousarray(ph.normal, np.float32)
+    photons = (pos, inc, normal, np.ascontiguousarray(ph.flux, np.float32))
     count, multi, c_kept, c_count, c_shared, rows = _select_photons(
         keys, cell_prio, n_valid, bitmap, first, int(L.dims[2]), photons, threads)
     return PhotonHash(layout=L, bitmap=bitmap, first=first, count=count, multi=multi,

@@ -22,12 +22,36 @@ import numpy as np
 
 from dosppm_core.jobs import HitPoints, PhotonDeposits
 from dosppm_core.scene.model import Scene
-from dosppm_core.sppm.grid import build_hit_point_grid, gather_grid
+from dosppm_core.sppm.grid import build_hit_point_grid, gather_grid, reach_box
 from dosppm_core.sppm.hash import gather_hash
 
 GATHERS = ("grid", "hash")
 # One helper thread for the part of an update that overlaps the photon sort.
 _PREP = ThreadPoolExecutor(1, thread_name_prefix="dosppm-gather-prep")
+
+
+@nb.njit(cache=True, nogil=True)
+def _spread(q):
+    """The 10 low bits of q spread to every third bit."""
+    x = np.uint32(q)
+    x = (x | (x << np.uint32(16))) & np.uint32(0x030000FF)
+    x = (x | (x << np.uint32(8))) & np.uint32(0x0300F00F)
+    x = (x | (x << np.uint32(4))) & np.uint32(0x030C30C3)
+    return (x | (x << np.uint32(2))) & np.uint32(0x09249249)
+
+
+@nb.njit(cache=True, nogil=True)
+def _morton_code(x, y, z, lo, scale, shift):
+    """The Morton code of point (x, y, z) quantised to 1024 >> shift steps
+    per axis over the box at `lo` (tuples, not arrays: numba reference-
+    counts the arrays of a call, which in a loop over 1M points costs more
+    than the code)."""
+    lo0, lo1, lo2 = lo
+    s0, s1, s2 = scale
+    qx = min(max(int((x - lo0) * s0), 0), 1023) >> shift
+    qy = min(max(int((y - lo1) * s1), 0), 1023) >> shift
+    qz = min(max(int((z - lo2) * s2), 0), 1023) >> shift
+    return _spread(qx) | (_spread(qy) << np.uint32(1)) | (_spread(qz) << np.uint32(2))
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
@@ -37,53 +61,67 @@ def morton_packed(pos, lo, scale):
     n = pos.shape[0]
     out = np.empty(n, np.uint64)
     for i in nb.prange(n):
-        code = np.uint32(0)
-        for k in range(3):
-            q = int((pos[i, k] - lo[k]) * scale[k])
-            q = min(max(q, 0), 1023)
-            x = np.uint32(q)
-            x = (x | (x << np.uint32(16))) & np.uint32(0x030000FF)
-            x = (x | (x << np.uint32(8))) & np.uint32(0x0300F00F)
-            x = (x | (x << np.uint32(4))) & np.uint32(0x030C30C3)
-            x = (x | (x << np.uint32(2))) & np.uint32(0x09249249)
-            code |= x << np.uint32(k)
+        code = _morton_code(pos[i, 0], pos[i, 1], pos[i, 2], lo, scale, 0)
         out[i] = (np.uint64(code) << np.uint64(32)) | np.uint64(i)
     return out
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
-def _permute_gather_columns(pos, inc, nrm, flux, packed):
-    """The four columns the gather reads, permuted in one parallel pass by
-    the row index in the low 32 bits of `packed` (numpy takes ~40 ms per
-    (n, 3) array for 1M rows here). The job column is not needed by the
-    gather, so it is not moved."""
-    n = packed.shape[0]
-    out = np.empty((4, n, 3), np.float32)
-    for i in nb.prange(n):
-        j = np.int64(packed[i] & np.uint64(0xFFFFFFFF))
-        for k in range(3):
-            out[0, i, k] = pos[j, k]
-            out[1, i, k] = inc[j, k]
-            out[2, i, k] = nrm[j, k]
-            out[3, i, k] = flux[j, k]
-    return out
+def _bucket_columns(pos, inc, flux, lo, scale, bits, threads, code, out):
+    """The gather's columns, counting-sorted into 2^(3 bits) buckets along
+    a Morton curve: a histogram and one scatter per thread over its own
+    contiguous part of the rows, so the order is stable and the same for
+    any thread timing. Into `out` (n, 9): position, incoming, flux; `code`
+    (n,) int32 is scratch (both numpy's: see grid.build_grid)."""
+    n = pos.shape[0]
+    where = np.zeros((threads, 1 << (3 * bits)), np.int64)
+    for t in nb.prange(threads):
+        for i in range(n * t // threads, n * (t + 1) // threads):
+            code[i] = _morton_code(pos[i, 0], pos[i, 1], pos[i, 2], lo, scale, 10 - bits)
+            where[t, code[i]] += 1
+    run = 0
+    for b in range(where.shape[1]):       # bucket-major, then thread: stable
+        for t in range(threads):
+            run, where[t, b] = run + where[t, b], run
+    for t in nb.prange(threads):
+        for i in range(n * t // threads, n * (t + 1) // threads):
+            d = where[t, code[i]]
+            where[t, code[i]] = d + 1
+            for k in range(3):
+                out[d, k] = pos[i, k]
+                out[d, 3 + k] = inc[i, k]
+                out[d, 6 + k] = flux[i, k]
 
 
 class GatherPhotons(NamedTuple):
     """What a gather reads of photon deposits (PhotonDeposits has the same
-    attributes, so either can be gathered)."""
+    attributes, so either can be gathered). No gather reads the deposit's
+    normal (a photon counts by the hit point's side, as in pbrt-v4), so a
+    reordered batch has none."""
     position: np.ndarray
     incoming: np.ndarray
-    normal: np.ndarray
+    normal: np.ndarray | None
     flux: np.ndarray
 
 
-def reorder_deposits(deposits: PhotonDeposits, box: np.ndarray | None) -> GatherPhotons:
-    """The gather's columns of `deposits`, sorted along a Morton curve over
-    `box` (the gather's box)."""
-    out = _permute_gather_columns(deposits.position, deposits.incoming, deposits.normal,
-                                  deposits.flux, _morton_sorted(deposits.position, box))
-    return GatherPhotons(out[0], out[1], out[2], out[3])
+BUCKET_BITS = 5   # 32^3 buckets: of the order of the grid's cells, so a bucket's cells stay in cache
+
+
+def reorder_deposits(deposits: PhotonDeposits, box: np.ndarray | None,
+                     threads: int = 2) -> GatherPhotons:
+    """The gather's columns of `deposits`, bucketed along a Morton curve
+    over `box` (the gather's box): the spatial reordering of the Photon
+    Pipeline paper, by a counting sort (2x faster here than sorting full
+    Morton keys, and the gather runs as fast)."""
+    pos = deposits.position
+    if box is None:
+        box = np.stack([pos.min(0), pos.max(0)]).astype(np.float64)
+    scale = 1023.999 / np.maximum(box[1] - box[0], 1e-30)
+    out = np.empty((len(pos), 9), np.float32)   # one interleaved row per deposit
+    _bucket_columns(pos, deposits.incoming, deposits.flux, tuple(map(float, box[0])),
+                    tuple(map(float, scale)), BUCKET_BITS, max(1, threads),
+                    np.empty(len(pos), np.int32), out)
+    return GatherPhotons(out[:, 0:3], out[:, 3:6], None, out[:, 6:9])
 
 
 def _morton_sorted(pos: np.ndarray, box: np.ndarray | None) -> np.ndarray:
@@ -92,7 +130,7 @@ def _morton_sorted(pos: np.ndarray, box: np.ndarray | None) -> np.ndarray:
     if box is None:
         box = np.stack([pos.min(0), pos.max(0)]).astype(np.float64)
     ext = np.maximum(box[1] - box[0], 1e-30)
-    packed = morton_packed(pos, box[0], 1023.999 / ext)
+    packed = morton_packed(pos, tuple(map(float, box[0])), tuple(map(float, 1023.999 / ext)))
     packed.sort()
     return packed
 
@@ -144,8 +182,7 @@ def subsample(deposits, most: int) -> GatherPhotons:
     """At most `most` deposits, evenly strided over the batch."""
     n = len(deposits.position)
     rows = np.arange(n) if n <= most else (np.arange(most) * (n / most)).astype(np.int64)
-    return GatherPhotons(deposits.position[rows], deposits.incoming[rows],
-                         deposits.normal[rows], deposits.flux[rows])
+    return GatherPhotons(deposits.position[rows], deposits.incoming[rows], None, deposits.flux[rows])
 
 
 class PixelStatistics:
@@ -235,9 +272,7 @@ class PixelStatistics:
         photon culling box of §4.3 (None before the first iteration)."""
         if len(self.hit_points) == 0:
             return None
-        r = float(self.radius[self.hit_points.pixel].max())
-        p = self.hit_points.position
-        return np.stack([p.min(0) - r, p.max(0) + r]).astype(np.float64)
+        return reach_box(self.hit_points.position, self.radius[self.hit_points.pixel])
 
     # -- photon batches -----------------------------------------------------
     def apply_photons(self, deposits: PhotonDeposits, emitted: int, materials,
@@ -258,7 +293,7 @@ class PixelStatistics:
         # both mostly serial: do them at once, on two cores.
         grid = _PREP.submit(build_hit_point_grid, hp, radius, materials) if gather == "grid" else None
         if reorder:
-            deposits = reorder_deposits(deposits, self.gather_box())
+            deposits = reorder_deposits(deposits, self.gather_box(), threads=1)
         if grid is not None:
             m, phi = gather_grid(deposits, hp, radius, materials, threads, grid.result())
         else:

@@ -51,6 +51,8 @@ def default_tracer_id() -> str:
 
 
 class TracerProcess:
+    state_class = TracerState   # the replay harness (services/evaluation/replay.py) swaps it
+
     def __init__(self, server: str, bind: str = "tcp://127.0.0.1:*", advertise: str | None = None,
                  store: str | None = None, cache_dir: str | None = None, memory_bytes: float | None = None,
                  threads: int = 1, tracer_id: str | None = None, context: transport.Context | None = None,
@@ -232,7 +234,7 @@ class TracerProcess:
             provider = self._provider(welcome)
             batching = welcome.settings.get("client_batching", True)
             self.session = welcome.settings.get("session")
-            self.state = TracerState(self.endpoint, provider, welcome.settings["max_depth"],
+            self.state = self.state_class(self.endpoint, provider, welcome.settings["max_depth"],
                                      memory_bytes=self.memory_bytes, threads=self.threads,
                                      step_rays=STEP_RAYS if batching else 0,
                                      direct=welcome.settings.get("direct", "nee"))
