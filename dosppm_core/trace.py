@@ -19,11 +19,23 @@ END_KINDS = 5
 def emit_photon_job(scene: Scene, seed: int, job: int, count: int, eps_abs: float) -> RayBatch:
     """The `count` photons of emission job `job` (a pure function of its
     arguments, so a job can be re-emitted and traces the same photons)."""
+    return emit_photon_jobs(scene, seed, [job], [count], eps_abs)
+
+
+def emit_photon_jobs(scene: Scene, seed: int, keys, counts, eps_abs: float) -> RayBatch:
+    """The photons of several jobs at once, job after job, each exactly as
+    `emit_photon_job` makes it (rng key keys[m], counts[m] photons); their
+    `job` column holds the keys."""
     L = scene.lights
+    keys = np.asarray(keys, np.uint64)
+    counts = np.asarray(counts, np.int64)
+    starts = np.zeros(len(counts) + 1, np.int64)
+    np.cumsum(counts, out=starts[1:])
     o, d, f, st = emit.emit_photons(L.kind, L.p0, L.p1, L.p2, L.value, L.cone, L.power,
-                                    L.cdf, np.uint64(seed), np.uint64(job), count, eps_abs)
-    return RayBatch(o, d, f, np.full(count, -1, np.int32), np.zeros(count, np.int32), st,
-                    job=np.full(count, job, np.int64))
+                                    L.cdf, np.uint64(seed), keys, starts, eps_abs)
+    n = int(starts[-1])
+    return RayBatch(o, d, f, np.full(n, -1, np.int32), np.zeros(n, np.int32), st,
+                    job=np.repeat(keys.astype(np.int64), counts))
 
 
 def eye_ray_job(scene: Scene, seed: int, iteration: int, pixel_start: int, count: int) -> RayBatch:

@@ -61,13 +61,16 @@ def route(batch: RayBatch, chunks: np.ndarray) -> dict[int, RayBatch]:
     return batch.partition(chunks)
 
 
-def start_chunks(tree: ChunkTree, batch: RayBatch) -> tuple[dict[int, RayBatch], int]:
-    """Route new rays (tmin 0) to the chunk each starts in; rays that miss
-    the scene's box altogether are returned as a count (escaped)."""
+def start_chunks(tree: ChunkTree, batch: RayBatch, keep_lost: bool = False):
+    """Route new rays (tmin 0) to the chunk each starts in: ({chunk: rays},
+    rays that miss the scene's box altogether (escaped), as a count, or
+    with `keep_lost` as a record, None if there are none)."""
     chunk, tmin = enter(tree, batch.origin, batch.direction)
     batch.tmin = np.maximum(batch.tmin, tmin)
     routed = route(batch, chunk)
     lost = routed.pop(-1, None)
+    if keep_lost:
+        return routed, lost
     return routed, 0 if lost is None else len(lost)
 
 

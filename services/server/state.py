@@ -41,7 +41,7 @@ from dosppm_core.chunks.view import start_chunks
 from dosppm_core.jobs import END_NAMES, HitPoints, PhotonDeposits, RayBatch
 from dosppm_core.settings import RenderSettings
 from dosppm_core.sppm.iteration import EyePass
-from dosppm_core.trace import emit_photon_job, eye_ray_job
+from dosppm_core.trace import emit_photon_jobs, eye_ray_job
 from services.wire import JOB_MESSAGES, PROTOCOL_VERSION, Out
 
 MESSAGE_RAYS = 32_768         # rays per job message the server aims for
@@ -587,11 +587,12 @@ class ServerState:
         return [Out(tid, "eye_job", dict(eye_iteration=e.index, chunk=k, batch=RayBatch.concat(b)))
                 for (tid, k), b in parts.items()]
 
-    def _route(self, j: int, batch: RayBatch, parts: dict) -> set:
-        """Split a new job's paths by start chunk into `parts` per (tracer,
-        chunk); paths that miss the scene end here. Returns the tracers."""
-        routed, lost = start_chunks(self.tree, batch)
-        self.path_ends[1] += lost           # ESCAPED, before any tracer saw them
+    def _route(self, js, batch: RayBatch, parts: dict) -> set:
+        """Split the paths of new jobs `js` (their ids in `batch.job`) by
+        start chunk into `parts` per (tracer, chunk); paths that miss the
+        scene end here. Returns the tracers."""
+        js = np.atleast_1d(np.asarray(js, np.int64))
+        routed, lost = start_chunks(self.tree, batch, keep_lost=True)
         receivers = set()
         for k, part in routed.items():
             t = self._least_loaded(k)
@@ -599,28 +600,51 @@ class ServerState:
             t.rays_sent += len(part)
             parts.setdefault((t.id, k), []).append(part)
             receivers.add(t.id)
-        self.jobs[j].sent = True
-        self.jobs[j].progress_s = self._now
-        self._segments(j, len(batch) - lost)
+        order = np.argsort(js)                      # a job's row in js, by searching the sorted ids
+
+        def per_job(ids):
+            return np.bincount(order[np.searchsorted(js[order], ids)], minlength=len(js))
+        paths, missed = per_job(batch.job), np.zeros(len(js), np.int64)
+        if lost is not None:
+            self.path_ends[1] += len(lost)          # ESCAPED, before any tracer saw them
+            missed = per_job(lost.job)
+        for j, n in zip(js.tolist(), (paths - missed).tolist()):
+            self.jobs[j].sent = True
+            self.jobs[j].progress_s = self._now
+            self._segments(j, n)
         return receivers
 
     def _send_photon_jobs(self) -> list[Out]:
         s, out, parts = self.settings, [], {}
         box = self.cull_box      # NO_CULL when culling is off (`SPPMIteration.cull_box`)
         # Photon jobs start where the lights are: the tracers that got the
-        # last job's photons gate the next one, so a slow one is never
+        # last jobs' photons gate the next ones, so a slow one is never
         # sent more than one job past its credit.
-        while self._photon_pending and not any(
-                self.tracers[t].load_estimate >= self.credit
-                for t in self._photon_receivers if t in self.tracers):
-            j = self._photon_pending.popleft()
-            count = self.jobs[j].paths
-            batch = emit_photon_job(self.header, s.seed, self.jobs[j].rng_key, count, self.eps_abs)
-            batch.job[:] = j
-            self.counters["photons_emitted"] += count
-            self._photon_receivers = self._route(j, batch, parts)
+        while self._photon_pending:
+            loads = [self.tracers[t].load_estimate for t in self._photon_receivers if t in self.tracers]
+            room = self.credit - max(loads) if loads else 1     # no receivers known yet: one job
+            if room <= 0:
+                break
+            js = self._take_pending(min(room, MESSAGE_RAYS))
+            counts = [self.jobs[j].paths for j in js]
+            # Emitted together (the photons are the same as one by one): a
+            # kernel call and a routing per job cost the server more than
+            # the photons themselves at the service's 1,024 per job.
+            batch = emit_photon_jobs(self.header, s.seed, [self.jobs[j].rng_key for j in js], counts,
+                                     self.eps_abs)
+            batch.job = np.repeat(np.asarray(js, np.int64), counts)
+            self.counters["photons_emitted"] += sum(counts)
+            self._photon_receivers = self._route(js, batch, parts)
             out += self._flush(parts, box, full_only=True)
         return out + self._flush(parts, box, full_only=False)
+
+    def _take_pending(self, rays: int) -> list[int]:
+        """Pending photon jobs from the front, up to `rays` paths (at least one job)."""
+        js, n = [], 0
+        while self._photon_pending and (not js or n + self.jobs[self._photon_pending[0]].paths <= rays):
+            js.append(self._photon_pending.popleft())
+            n += self.jobs[js[-1]].paths
+        return js
 
     def _flush(self, parts: dict, box, full_only: bool) -> list[Out]:
         out = []

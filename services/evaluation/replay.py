@@ -1,0 +1,190 @@
+"""How many tracers one server core feeds (issue 13): a real server, fed at
+full speed by synthetic tracers that replay recorded results.
+
+A synthetic tracer is the real tracer process (`TracerProcess`: the same
+registration, heartbeats, wire messages and sockets) whose state traces
+its first RECORDED_STEPS photon steps for real and then answers every
+photon package at once with one of those results, relabelled to the
+package's jobs: its deposits are cycled to the package's size (the
+recorded deposits per path), and every path is reported ended, so the
+server's exactly-once accounting holds. Eye and shadow rays are traced
+for real: they are a small share of a render's rays and their hit points
+must be right for the statistics.
+
+The server's own counters then give what one server core does at most:
+photons applied per second of server CPU, CPU per results message, and
+the statistics update's share. The tracer side's rate comes from the
+recorded steps: photons per second of real tracing on one core.
+
+    python -m services.evaluation.replay --tracers 2 --seconds 20
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+from services.tracer.node import TracerProcess
+from services.tracer.state import SERVER, TracerState
+from services.wire import Out
+
+RECORDED_STEPS = 16
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+
+class ReplayState(TracerState):
+    """TracerState whose photon steps replay recorded results once
+    RECORDED_STEPS of them were traced for real."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.recorded: list[tuple[dict, int]] = []   # (results fields, paths traced)
+        self.counters.update(replayed_steps=0, recorded_paths=0, recorded_s=0.0)
+
+    def _trace_photons(self, view, q):
+        if len(self.recorded) < RECORDED_STEPS:
+            rays = q.rays
+            t0 = time.perf_counter()
+            out = super()._trace_photons(view, q)
+            self.counters["recorded_s"] += time.perf_counter() - t0
+            paths = rays - q.rays
+            self.counters["recorded_paths"] += paths
+            self.recorded.append((out[0].fields, paths))
+            return out
+        taken = self._take(q.photons)
+        jobs = np.concatenate([p.batch.job for p in taken])
+        q.rays -= len(jobs)
+        fields, paths = self.recorded[self.counters["replayed_steps"] % len(self.recorded)]
+        self.counters["replayed_steps"] += 1
+        self.counters["rays_traced"] += len(jobs)
+        return [Out(SERVER, "results", _relabelled(fields, paths, jobs, view.index, self.queued_rays))]
+
+
+def _relabelled(fields: dict, paths: int, jobs: np.ndarray, chunk: int, queued: int) -> dict:
+    """A recorded step's results for a package of paths of `jobs`: deposits
+    cycled to the package's size and spread over its jobs, every path
+    ended."""
+    ids, fed = np.unique(jobs, return_counts=True)
+    rec = fields["deposits"]
+    n = int(round(len(rec) * len(jobs) / max(paths, 1)))
+    rows = np.arange(n) % max(len(rec), 1)
+    deposits = dataclasses.replace(rec.take(rows), job=ids[np.arange(n) % len(ids)].astype(np.int64))
+    ends = np.asarray(fields["ends"]) * len(jobs) // max(paths, 1)
+    ends[np.argmax(ends)] += len(jobs) - ends.sum()      # the wire checks: every path ended once
+    return dict(chunk=chunk, ends=ends, culled=0, deposits=deposits, job_ids=ids.astype(np.int64),
+                job_fed=fed.astype(np.int64), job_left=np.zeros(len(ids), np.int64), queued=queued)
+
+
+class ReplayTracer(TracerProcess):
+    state_class = ReplayState
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def run(scene: str, tracers: int, seconds: float, work: str, extra=()) -> dict:
+    """One server and `tracers` synthetic tracers for `seconds`; returns the
+    server's summary (its JSON) and the tracers' recorded rates."""
+    from dosppm_core.chunks.subdivide import open_or_subdivide
+    from dosppm_core.scene import builtin
+    from dosppm_core.scene.soup import SceneSource
+    store = open_or_subdivide(SceneSource(builtin.make(scene)), os.path.join(work, "store"), chunks=1)
+    endpoint = f"tcp://127.0.0.1:{_free_port()}"
+    out = os.path.join(work, f"replay-{time.monotonic_ns()}.exr")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [ROOT, os.environ.get("PYTHONPATH")])))
+    server = subprocess.Popen([sys.executable, *os.environ.get("DOSPPM_REPLAY_PROFILE", "").split(), "-m", "services.cli", "server", store.path, "--bind", endpoint,
+                               "--time", str(seconds), "--min-tracers", str(tracers), "--out", out,
+                               "--http", "off", "--quiet", *extra], env=env)
+    procs = [subprocess.Popen([sys.executable, "-m", "services.evaluation.replay", "--tracer", endpoint,
+                               "--store", store.path], env=env, stdout=subprocess.PIPE, text=True)
+             for _ in range(tracers)]
+    try:
+        server.wait(timeout=seconds * 10 + 300)
+        # Each synthetic tracer prints its counters as it ends.
+        counters = [json.loads(p.communicate(timeout=30)[0] or "{}") for p in procs]
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    if server.returncode != 0:
+        raise RuntimeError(f"replay: the server exited with status {server.returncode}")
+    with open(os.path.splitext(out)[0] + ".json", encoding="utf-8") as f:
+        return dict(json.load(f), replay_tracers=counters)
+
+
+def figures(s: dict) -> dict:
+    """Photons per server CPU-second, CPU per message, and the tracer side's
+    real rate per core, from a server summary of a replayed render."""
+    c, tr = s["counters"], s["replay_tracers"]
+    photons, cpu, secs = c["photons_committed"], max(s.get("cpu_s", 0.0), 1e-9), s["seconds"]
+    traced = sum(t.get("recorded_paths", 0) for t in tr)
+    traced_s = sum(t.get("recorded_s", 0.0) for t in tr)
+    per_core = traced / max(traced_s, 1e-9)          # photon paths/s of one tracer thread
+    server_rate = photons / cpu                      # photons per server CPU-second
+    return {"seconds": secs, "photons": photons, "photons_per_s": photons / secs,
+            "server_cpu_s": cpu, "server_cpu_load": cpu / secs,
+            "photons_per_server_cpu_s": server_rate,
+            "results_messages": c["results"], "server_cpu_ms_per_message": 1e3 * cpu / max(c["results"], 1),
+            "deposits_per_message": c["deposits_received"] / max(c["results"], 1),
+            "update_s": s.get("update_seconds", 0.0), "update_share_of_cpu": s.get("update_seconds", 0.0) / cpu,
+            "tracer_photons_per_core_s": per_core,
+            "tracer_cores_per_server_core": server_rate / max(per_core, 1e-9)}
+
+
+def _tracer_main(args) -> int:
+    tp = ReplayTracer(args.tracer, store=args.store, threads=1, tracer_id=f"replay-{os.getpid()}")
+    tp.run()
+    print(json.dumps(getattr(tp, "state", None) and tp.state.counters))
+    return 0
+
+
+def report(res: dict) -> str:
+    r = res["replay"]
+    return "\n".join([
+        f"Replay: {res['scene']}, one server and {res['tracers']} synthetic tracers, {res['seconds']:.0f} s a run, "
+        f"medians of {r['repeats']}.", "",
+        "| figure | value |", "|---|---|",
+        f"| photons applied per second of server CPU | {r['photons_per_server_cpu_s']:,.0f} |",
+        f"| server CPU per results message (ms) | {r['server_cpu_ms_per_message']:.1f} |",
+        f"| deposits per results message | {r['deposits_per_message']:,.0f} |",
+        f"| statistics updates, share of server CPU | {r['update_share_of_cpu']:.0%} |",
+        f"| one tracer thread, photon paths/s (recorded steps) | {r['tracer_photons_per_core_s']:,.0f} |",
+        f"| **tracer cores one server core feeds** | **{r['tracer_cores_per_server_core']:.1f}** |",
+        f"| ... in the paper's CPU server / GPU server | 12.4 / 105 |"])
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--tracer", help=argparse.SUPPRESS)      # internal: be one synthetic tracer
+    p.add_argument("--store", help=argparse.SUPPRESS)
+    p.add_argument("--scene", default="cornell-glass")
+    p.add_argument("--tracers", type=int, default=2)
+    p.add_argument("--seconds", type=float, default=20.0)
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--json", help="write the runs, with provenance, here")
+    args = p.parse_args(argv)
+    if args.tracer:
+        return _tracer_main(args)
+    from services.evaluation.provenance import median_of, write_results
+    with tempfile.TemporaryDirectory(prefix="dosppm-replay-") as work:
+        runs = [figures(run(args.scene, args.tracers, args.seconds, work)) for _ in range(args.repeats)]
+    res = {"scene": args.scene, "tracers": args.tracers, "seconds": args.seconds, "replay": median_of(runs)}
+    print(report(res))
+    if args.json:
+        write_results(args.json, res)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
