@@ -41,5 +41,5 @@ def test_a_server_fed_by_synthetic_tracers_applies_what_it_committed(tmp_path):
     assert s["replay_tracers"][0]["replayed_steps"] > 0      # past the recorded steps: replaying
     assert c["photons_committed"] > 0
     assert s["photons_applied"] == c["photons_committed"]
-    f = replay.figures(s)
+    f = replay.figures(s, per_core=1e5)
     assert f["photons_per_server_cpu_s"] > 0 and f["tracer_photons_per_core_s"] > 0
