@@ -49,6 +49,25 @@ def _equal_work(doc: dict) -> str:
     return equal_work.report(doc)
 
 
+def _replay(doc: dict) -> str:
+    from services.evaluation import replay
+    return replay.report(doc)
+
+
+def _pbrt_side_by_side(doc: dict) -> str:
+    p, o = doc["pbrt_sppm"], doc["dosppm_sppm"]
+    w, h = doc["resolution"]
+    return "\n".join([
+        f"Equal work per iteration: {doc['scene']} at {w}x{h}, {doc['photons_per_iteration']:,} photons per "
+        f"iteration, depth {doc['max_depth']}, {doc['threads']} threads, shadow rays for direct light in both; "
+        f"medians of {p['repeats']}, alternated in one run.", "",
+        "| renderer | photons/s | vs pbrt-v4 | hit points/s |", "|---|---|---|---|",
+        f"| pbrt-v4 `sppm` (process time at {p['iterations'][1]} minus at {p['iterations'][0]} iterations) "
+        f"| {p['photons_per_s']:,.0f} | 1.00 | - |",
+        f"| dosppm SPPM, one process ({o['iterations']:.0f} iterations after a warm-up) "
+        f"| {o['photons_per_s']:,.0f} | {o['photons_per_s'] / p['photons_per_s']:.2f} | {o['hit_points_per_s']:,.0f} |"])
+
+
 def _evaluation(budget_s: float | None = None, mirror: bool = False):
     """A relMSE (bias) table of a `dosppm evaluate` results.json, at its
     last budget or at `budget_s`; `mirror`: the mirror-limit table instead."""
@@ -84,8 +103,8 @@ TABLES = {
     "accuracy-sponza-80s": ("benchmarks/results/issue12-sponza/results.json", _evaluation(80.0)),
     "radius-20s": ("benchmarks/results/issue12-radius/results.json", _evaluation(20.0)),
     "radius-80s": ("benchmarks/results/issue12-radius/results.json", _evaluation(80.0)),
-    "radius-20s": ("benchmarks/results/issue12-radius/results.json", _evaluation(20.0)),
-    "radius-80s": ("benchmarks/results/issue12-radius/results.json", _evaluation(80.0)),
+    "replay": ("benchmarks/results/replay.json", _replay),
+    "pbrt-side-by-side": ("benchmarks/results/pbrt-side-by-side.json", _pbrt_side_by_side),
 }
 
 

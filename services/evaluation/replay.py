@@ -179,7 +179,7 @@ def report(res: dict) -> str:
         f"| statistics updates, share of server CPU | {r['update_share_of_cpu']:.0%} |",
         f"| one tracer thread, photon paths/s (alone, same scene) | {r['tracer_photons_per_core_s']:,.0f} |",
         f"| **tracer cores one server core feeds** | **{r['tracer_cores_per_server_core']:.1f}** |",
-        f"| ... in the paper's CPU server / GPU server | 12.4 / 105 |"])
+        "| ... in the paper's CPU server / GPU server | 12.4 / 105 |"])
 
 
 def main(argv=None) -> int:
