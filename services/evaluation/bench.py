@@ -90,6 +90,7 @@ def bench_scene(scene, photons: int = 1_000_000, repeats: int = 3, threads: int 
         for reorder in (True, False):
             name = f"update_ms_per_1M_{gather}_{'sorted' if reorder else 'unsorted'}"
             out[name] = _update_ms(r, batch, gather, reorder, repeats, seconds.setdefault(name, []))
+    out.update(_update_parts(r, batch, repeats, seconds))
     # Per emitted photon, the unit a render's throughput is quoted in.
     out["update_ms_per_1M_emitted_grid_sorted"] = (out["update_ms_per_1M_grid_sorted"]
                                                    * out["deposits_per_photon"])
@@ -114,6 +115,24 @@ def _update_ms(r: Renderer, batch, gather: str, reorder: bool, repeats: int, sam
         s.photon_count, s.radius, s.tau, s.photons_emitted = saved
     update()   # compile
     return 1e3 * _median_time(update, repeats, samples) * 1e6 / max(len(batch), 1)
+
+
+def _update_parts(r: Renderer, batch, repeats: int, seconds: dict) -> dict:
+    """The grid update's parts, each timed alone, ms per 1M deposits: the
+    photons' reordering and the hit points' grid (which overlap in an
+    update: the grid is built on a second thread) and the gather."""
+    from dosppm_core.sppm.grid import build_hit_point_grid, gather_grid
+    from dosppm_core.sppm.statistics import reorder_deposits
+    st, mats, threads = r.stats, r.scene.materials, r.settings.threads
+    hp, radius, box = st.hit_points, st.radius[st.hit_points.pixel], st.gather_box()
+    grid = build_hit_point_grid(hp, radius, mats)
+    photons = reorder_deposits(batch, box, threads)
+    parts = {"reorder": lambda: reorder_deposits(batch, box, threads),
+             "grid_build": lambda: build_hit_point_grid(hp, radius, mats),
+             "gather": lambda: gather_grid(photons, hp, radius, mats, threads, grid)}
+    per = 1e3 * 1e6 / max(len(batch), 1)
+    return {f"update_part_ms_per_1M_{name}": per * _median_time(fn, repeats, seconds.setdefault(name, []))
+            for name, fn in parts.items()}
 
 
 def _at_hit_points(scene, hit_points: int, threads: int) -> Renderer:
@@ -147,6 +166,10 @@ def report(results: list[dict]) -> str:
         ("hit points/s", "hit_points_per_s", "{:,.0f}",
          f"{640e3 / PAPER_TABLE4['hit_point_tracing_ms_per_640k_cpu_1thread'] * 1e3:,.0f} (1 thread)"),
         ("update ms per 1M deposits, grid, sorted (target <= 50)", "update_ms_per_1M_grid_sorted", "{:.0f}", ""),
+        ("... of which gather (alone)", "update_part_ms_per_1M_gather", "{:.0f}", ""),
+        ("... of which photon reordering (alone, 2 threads)", "update_part_ms_per_1M_reorder", "{:.0f}", ""),
+        ("... of which hit-point grid (alone, overlaps the reordering)", "update_part_ms_per_1M_grid_build",
+         "{:.0f}", ""),
         ("... grid, unsorted", "update_ms_per_1M_grid_unsorted", "{:.0f}", ""),
         ("... grid, sorted, at the paper's 640k hit points", "update_ms_per_1M_grid_sorted_paper_hit_points",
          "{:.0f}", "792.5 CPU / 18.4 GPU"),

@@ -103,6 +103,7 @@ class ServerProcess:
         self.failure: str | None = None
         self.started_at: float | None = None
         self.finished_at: float | None = None
+        self.loop_cpu_s = 0.0            # the message loop thread's CPU, set as it ends
         self.bytes_in = self.bytes_out = 0
         self.undeliverable = 0
 
@@ -122,6 +123,9 @@ class ServerProcess:
             self._serve()
             self.finished_at = time.monotonic()
         finally:
+            # The message loop's own CPU (this thread): messages, job making,
+            # accounting; the rest of the process's is the statistics'.
+            self.loop_cpu_s = time.thread_time()
             self._coalesce_queued_updates()
             if self.checkpoint_dir and self.state.counters["photons_committed"]:
                 self._checkpoint()
@@ -404,6 +408,7 @@ class ServerProcess:
         st["photons_applied"] = self.statistics.photons_applied
         st["photons_in_image"] = int(self.statistics.stats.photons_emitted)   # N_e, resumed part included
         st["cpu_s"] = round(time.process_time(), 3)
+        st["loop_cpu_s"] = round(self.loop_cpu_s, 3)
         if self.started_at is not None and self.finished_at is not None:
             st["seconds"] = self.finished_at - self.started_at   # rendering, drain included
         return st
