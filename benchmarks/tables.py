@@ -25,7 +25,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
 
-DOCS = ("README.md", "docs/performance.md", "docs/accuracy.md")
+DOCS = ("README.md", "docs/performance.md", "docs/accuracy.md", "docs/reliability.md")
 MARKED = re.compile(r"(<!-- table:([\w-]+) -->\n)(.*?)(<!-- /table:\2 -->)", re.S)
 
 
@@ -47,6 +47,19 @@ def _osppm(doc: dict) -> str:
 def _equal_work(doc: dict) -> str:
     import equal_work
     return equal_work.report(doc)
+
+
+def _reliability(doc: dict) -> str:
+    """What the fault, load and rejoin tests measured (tests/helpers/figures.py)."""
+    def fmt(values: list) -> str:
+        lo, hi = min(values), max(values)
+        return f"{lo:,}" if lo == hi else f"{lo:,}-{hi:,}"
+    lines = ["| fault or load | measured | run at |", "|---|---|---|"]
+    for test, values in doc["tests"].items():
+        measured = "; ".join(f"{k.replace('_', ' ')} {fmt(v)}" for k, v in values.items())
+        run = doc.get("runs", {}).get(test, {})
+        lines.append(f"| {test} | {measured} | {run.get('commit', '?')[:7]}, {run.get('date', '?')[:10]} |")
+    return "\n".join(lines)
 
 
 def _replay(doc: dict) -> str:
@@ -104,6 +117,7 @@ TABLES = {
     "radius-20s": ("benchmarks/results/issue12-radius/results.json", _evaluation(20.0)),
     "radius-80s": ("benchmarks/results/issue12-radius/results.json", _evaluation(80.0)),
     "replay": ("benchmarks/results/replay.json", _replay),
+    "reliability": ("benchmarks/results/reliability.json", _reliability),
     "pbrt-side-by-side": ("benchmarks/results/pbrt-side-by-side.json", _pbrt_side_by_side),
 }
 

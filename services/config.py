@@ -164,6 +164,8 @@ SERVICE = (
     _opt("checkpoint_interval", float, 60.0, "seconds between checkpoints of the pixel statistics; 0: none",
          rule="non_negative"),
     _opt("resume", str, None, "continue the render saved in this checkpoint directory"),
+    _opt("ledger", str, None, "record every statistics update applied in this file, to re-trace and "
+         "check later (services/ledger.py)"),
     _opt("tracer_timeout", float, 10.0, "drop a tracer silent this long (its jobs are re-emitted); "
          "raise it for chunks that take longer than this to load", rule="positive"),
 )

@@ -9,6 +9,7 @@ from collections import deque
 
 from dosppm_core.settings import RenderSettings
 from services import wire
+from services.ledger import Ledger
 from services.server.state import ServerState
 from services.server.statistics import ServerStatistics
 from services.tracer.state import SERVER, TracerState
@@ -22,13 +23,17 @@ def _over_the_wire(msg_type: str, fields: dict):
 class InProcessCluster:
     def __init__(self, store, settings: RenderSettings, tracers: int = 2, min_photon_jobs: int = 64,
                  queue_target_rays: int = 65_536, step_rays: int = 16_384,
-                 memory_bytes: float | None = None, tracer_timeout_s: float = 10.0):
+                 memory_bytes: float | None = None, tracer_timeout_s: float = 10.0, tamper=None):
+        """`tamper(sender, dest, msg)`: the messages to deliver instead of
+        `msg` (a faulty transport, for the ledger's negative controls)."""
         self.settings = settings
         self.server = ServerState(store.header, store.tree, settings, getattr(store, "key", "memory"),
                                   getattr(store, "manifest", None),
                                   min_photon_jobs=min_photon_jobs, queue_target_rays=queue_target_rays,
                                   min_tracers=tracers, tracer_timeout_s=tracer_timeout_s)
-        self.statistics = ServerStatistics(store.header, settings, threads=settings.threads)
+        self.statistics = ServerStatistics(store.header, settings, threads=settings.threads,
+                                           ledger=Ledger(settings))
+        self.tamper = tamper
         self.store, self.step_rays, self.memory_bytes = store, step_rays, memory_bytes
         self.tracers: dict[str, TracerState] = {}
         self.by_endpoint: dict[str, str] = {}
@@ -69,7 +74,9 @@ class InProcessCluster:
             frames = wire.encode(o.type, **o.fields)
             self.wire_bytes += sum(len(memoryview(f).cast("B")) for f in frames)
             self.messages += 1
-            self.mail.append((sender, o.dest, wire.decode([bytes(f) for f in frames])))
+            msg = wire.decode([bytes(f) for f in frames])
+            for m in (self.tamper(sender, o.dest, msg) if self.tamper else [msg]):
+                self.mail.append((sender, o.dest, m))
 
     def _deliver(self) -> None:
         while self.mail:
@@ -129,6 +136,7 @@ class InProcessCluster:
             raise RuntimeError(f"cluster did not drain: {len(self.server.jobs)} jobs in flight")
         self.server.finish()
         self._apply_updates()
+        self.statistics.end_ledger()
 
     def image(self):
         return self.statistics.image()

@@ -74,6 +74,7 @@ import logging
 import os
 
 import zmq
+import zmq.utils.monitor
 import zmq.auth
 from zmq.auth.thread import ThreadAuthenticator
 
@@ -307,6 +308,36 @@ def curve_client(socket: Socket, secret_file: str, server_public: bytes) -> None
         raw.curve_secretkey, raw.curve_publickey, raw.curve_serverkey = secret, public, server_public
     except zmq.ZMQError as e:   # a server key of the wrong length or alphabet
         raise CurveError(f"CURVE key of the server or peer: {e}") from None
+
+
+_HANDSHAKE_EVENTS = {zmq.EVENT_HANDSHAKE_SUCCEEDED: "accepted", zmq.EVENT_HANDSHAKE_FAILED_AUTH: "refused",
+                     zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL: "refused", zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL: "refused"}
+
+
+def handshake(endpoint: str, secret_file: str | None = None, server_public: bytes | None = None,
+              timeout_s: float = 3.0) -> str:
+    """Probe a socket: how a connection to `endpoint` (as a CURVE client
+    with the key pair in `secret_file`, or in plain text without one) ends
+    its handshake: 'accepted', 'refused', or 'silent' (no answer within
+    `timeout_s`). Nothing is sent."""
+    raw = zmq.Context.instance().socket(zmq.DEALER)
+    raw.setsockopt(zmq.LINGER, 0)
+    if secret_file:
+        public, secret = _key_pair(secret_file)
+        raw.curve_secretkey, raw.curve_publickey, raw.curve_serverkey = secret, public, server_public
+    events = 0
+    for e in _HANDSHAKE_EVENTS:
+        events |= e
+    monitor = raw.get_monitor_socket(events)
+    try:
+        raw.connect(endpoint)
+        if monitor.poll(int(timeout_s * 1000)):
+            return _HANDSHAKE_EVENTS[zmq.utils.monitor.recv_monitor_message(monitor)["event"]]
+        return "silent"
+    finally:
+        raw.disable_monitor()
+        monitor.close()
+        raw.close()
 
 
 def start_authenticator(clients_dir: str, context: zmq.Context | None = None) -> ThreadAuthenticator:

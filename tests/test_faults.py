@@ -2,8 +2,10 @@
 over tcp on loopback): a tracer killed with SIGKILL, and one hung with
 SIGSTOP, mid-render. The server detects each within its --tracer-timeout,
 reassigns the chunks, re-emits the jobs in flight, and the render
-completes with no photon lost and none counted twice (the server's own
-accounting), its image agreeing within noise with failure-free renders."""
+completes with no photon lost and none counted twice, by the server's own
+accounting and by its ledger re-traced in this process
+(services/ledger.py), its image agreeing within noise with failure-free
+renders."""
 from __future__ import annotations
 
 import json
@@ -15,9 +17,12 @@ import urllib.request
 import pytest
 
 from dosppm_core.film import read_exr
+from services import ledger
 from services.server import checkpoint
+from tests.helpers import figures
 from tests.helpers.cli import free_port, run_dosppm, start_dosppm
 from tests.helpers.cluster import assert_same_within_noise
+from tests.helpers.scenes import small_scene
 
 pytestmark = pytest.mark.slow   # a server and three tracer processes per render
 PHOTONS = 1_500_000
@@ -43,7 +48,7 @@ class Cluster:
                "--photons-per-iteration", "40000", "--min-photon-jobs", "64", "--seed", str(self.seed),
                "--tracer-timeout", str(TIMEOUT_S), "--threads", "1", "--out", str(self.tmp / "img.exr"),
                "--store-cache", str(self.tmp / "stores"), "--checkpoint", str(self.tmp / "ckpt"),
-               "--checkpoint-interval", "1", "--quiet", *extra]
+               "--checkpoint-interval", "1", "--ledger", str(self.tmp / "render.ledger"), "--quiet", *extra]
         return start_dosppm(*cmd, stderr=open(self.tmp / log, "w"))
 
     def status(self) -> dict:
@@ -105,7 +110,15 @@ def _mid_render(c: Cluster) -> None:
     c.wait_for(lambda st: st.get("photons_committed", 0) > 0 and len(st.get("tracers", [])) == 3)
 
 
-def _assert_exactly_once(summary: dict) -> None:
+def _assert_ledger(tmp) -> None:
+    """Exactly once, from outside the server: the jobs its ledger says it
+    applied, re-traced in this process, give its totals (services/ledger.py)."""
+    problems = ledger.check(small_scene("cornell-caustic", 64), ledger.read(str(tmp / "render.ledger")))
+    assert problems == [], problems
+
+
+def _assert_exactly_once(summary: dict, tmp) -> None:
+    _assert_ledger(tmp)
     k = summary["counters"]
     assert k["tracers_evicted"] >= 1 and k["jobs_discarded"] > 0
     lost = k["photons_emitted"] - k["photons_discarded"] - k["photons_completed"]
@@ -122,11 +135,12 @@ def test_a_tracer_killed_mid_render(tmp_path, failure_free):
         c.workers[1].send_signal(signal.SIGKILL)
         st = c.wait_for(lambda st: st["counters"]["tracers_evicted"] >= 1)
         detected = time.monotonic() - t0
+        figures.record("tracer killed (SIGKILL)", detected_s=round(detected, 2), timeout_s=TIMEOUT_S)
         assert detected < TIMEOUT_S + 3.0, f"detected after {detected:.1f} s"
         assert {t["id"] for t in st["tracers"]} == {"w0", "w2"}
         assert sorted(k for t in st["tracers"] for k in t["chunks"]) == [0, 1, 2, 3]
     img, summary = _render(tmp_path, 5, kill)
-    _assert_exactly_once(summary)
+    _assert_exactly_once(summary, tmp_path)
     assert_same_within_noise(img, failure_free[5], failure_free[9])
 
 
@@ -138,8 +152,9 @@ def test_a_hung_tracer_is_dropped_and_rejoins_when_it_wakes(tmp_path, failure_fr
         c.workers[2].send_signal(signal.SIGCONT)
         # Awake again, it learns it was dropped, registers and gets chunks.
         c.wait_for(lambda st: any(t["id"] == "w2" and t["chunks"] for t in st["tracers"]), 30)
+        figures.record("tracer hung (SIGSTOP), then woken", rejoined=1)
     img, summary = _render(tmp_path, 5, hang)
-    _assert_exactly_once(summary)
+    _assert_exactly_once(summary, tmp_path)
     assert_same_within_noise(img, failure_free[5], failure_free[9])
 
 
@@ -163,6 +178,9 @@ def test_the_server_killed_and_resumed_from_its_checkpoint(tmp_path, failure_fre
     assert summary["photons_in_image"] == saved["photons_emitted"] + summary["photons_applied"]
     k = summary["counters"]
     assert k["photons_emitted"] - k["photons_discarded"] == k["photons_completed"] == k["photons_committed"]
+    _assert_ledger(tmp_path)       # the resumed ledger: up to the checkpoint, then the second server's
+    figures.record("server killed (SIGKILL), --resume", resumed=1,
+                   photons_before_kill=saved["photons_emitted"], photons_in_image=summary["photons_in_image"])
     assert_same_within_noise(img, failure_free[5], failure_free[9])
 
 
@@ -205,4 +223,5 @@ def test_a_tracer_added_mid_render_gets_work(tmp_path, failure_free):
     assert {t["id"] for t in summary["tracers"]} == {"w0", "w1", "late"}
     assert k["photons_emitted"] - k["photons_discarded"] == k["photons_completed"] == k["photons_committed"]
     assert k["over_counted_paths"] == 0 and k["tracers_evicted"] == 0
+    _assert_ledger(tmp_path)
     assert_same_within_noise(img, failure_free[5], failure_free[9])

@@ -5,6 +5,7 @@ back as anything but replies (handlers); no frame may take long (no hang);
 memory stays bounded; and no fabricated deposit reaches the statistics."""
 from __future__ import annotations
 
+import re
 import time
 import tracemalloc
 
@@ -81,7 +82,12 @@ def _feed(server, tracer, msg) -> None:
     elif msg.type in ("photon_job", "eye_job", "portal_rays"):
         try:
             outs = tracer.handle(msg)
-        except ValueError:      # the shell answers it with an error (a range the wire cannot know)
+        except ValueError as e:
+            # The only refusal the state makes itself: a chunk the wire
+            # cannot know is out of range (the shell answers it with an
+            # error message). Anything else is a bug.
+            assert type(e) is ValueError and re.fullmatch(r"chunk -?\d+ out of range \(scene has \d+\)",
+                                                          str(e)), repr(e)
             outs = []
     else:
         outs = []

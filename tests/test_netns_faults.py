@@ -20,7 +20,8 @@ discarded jobs count towards it too):
 In every case the server (and every tracer that stayed connected) exits
 0, the server's accounting (OUT.json) is exact (emitted - discarded =
 completed = committed = applied, nothing over-counted, no job left in
-flight), and the image is finite, not black, and its mean luminance
+flight), its ledger re-traced in the test's process gives its totals
+(services/ledger.py: exactly once, checked from outside), and the image is finite, not black, and its mean luminance
 within 3% of a fault-free render's with the same seed (not closer: faults
 change how many eye iterations a photon limit gets).
 
@@ -40,9 +41,11 @@ import numpy as np
 import pytest
 
 from dosppm_core.film import read_exr
-from tests.helpers import netns
+from services import ledger
+from tests.helpers import figures, netns
 from tests.helpers.cli import DOSPPM
 from tests.helpers.netns import Procs
+from tests.helpers.scenes import small_scene
 
 pytestmark = [pytest.mark.netns, pytest.mark.slow]
 PHOTONS = 1_500_000
@@ -120,7 +123,7 @@ class Render:
             "--min-photon-jobs", "64", "--seed", str(SEED), "--tracer-timeout", str(tracer_timeout_s),
             "--out", str(self.out), "--width", "64", "--height", "64", "--chunks", "4",
             "--threads", "1", "--store-cache", str(folder / "store-cache"), "--checkpoint-interval", "0",
-            "--quiet"], env)
+            "--ledger", str(folder / "render.ledger"), "--quiet"], env)
         for h in ("t1", "t2"):
             self.procs.start(h, hosts[h][0], py + [
                 "worker", "--server", f"tcp://{server_ip}:{ZMQ_PORT}", "--bind", f"tcp://0.0.0.0:{PEER_PORT}",
@@ -191,6 +194,7 @@ class Render:
         summary = json.loads(self.out.with_suffix(".json").read_text())
         img, _ = read_exr(str(self.out))
         return {"summary": summary, "img": img, "history": self.history(), "tails": self.tails,
+                "ledger": ledger.read(str(self.folder / "render.ledger")),
                 "logs": {n: self.log(n) for n in ("server", "t1", "t2")}}
 
     def log(self, name: str) -> str:
@@ -226,6 +230,9 @@ def _assert_exact(res, healthy=None, photons=PHOTONS) -> None:
         == s["photons_applied"], (k, s["photons_applied"], tails)
     assert k["over_counted_paths"] == 0, (k, tails)
     assert s["jobs_in_flight"] == 0, (s["jobs_in_flight"], tails)
+    # From outside the server: its ledger's jobs, re-traced here, give its totals.
+    problems = ledger.check(small_scene("cornell-caustic", 64), res["ledger"])
+    assert problems == [], (problems, tails)
     img = res["img"]
     assert img.shape[:2] == (64, 64), img.shape
     assert np.isfinite(img).all(), "non-finite pixels"
@@ -272,6 +279,8 @@ def test_a_short_link_cut_stalls_the_render_without_an_eviction(lan, tmp_path, h
         cut["server_exit_at_plug"] = r.server_exit()
     res = _render(lan.hosts, tmp_path / "short-cut", 6, pull_the_cable)
     print(f"short cut: {cut}")
+    figures.record("cable cut 2 s (< timeout)", seconds=round(res["summary"]["seconds"], 2),
+                   healthy_seconds=round(healthy["summary"]["seconds"], 2))
     _assert_exact(res, healthy)
     k = res["summary"]["counters"]
     assert k["tracers_evicted"] == 0 and k["jobs_discarded"] == 0, (k, res["tails"])
@@ -309,6 +318,7 @@ def test_a_long_link_cut_evicts_the_tracer_and_the_other_finishes(lan, tmp_path,
     # only be committed at the end; the summary has it, the poll may not.
     seen["committed_alone"] = res["summary"]["counters"]["photons_committed"] - seen["committed_at_eviction"]
     print(f"long cut: {seen}")
+    figures.record("cable cut past the timeout", evicted_after_s=seen["evicted_after_s"], timeout_s=3)
     assert seen["evicted_after_s"] < 3 + 4, seen   # timeout + tick, status and poll periods
     _assert_exact(res, healthy)
     k = res["summary"]["counters"]
@@ -378,6 +388,7 @@ def test_a_cut_off_tracer_rejoins_once_the_link_is_back(lan, tmp_path, healthy):
     assert k["tracers_evicted"] >= 1, k
     final = {t["id"]: t for t in res["summary"]["tracers"]}
     assert sorted(final) == ["tracer-t1", "tracer-t2"] and final["tracer-t1"]["results"] > 0, final
+    figures.record("cable cut 8 s, then back", rejoined=1)
 
 
 def _add_loss_rule(ns: str) -> None:
@@ -409,4 +420,8 @@ def test_five_percent_packet_loss_slows_the_render_down(lan, tmp_path, healthy):
           f"{healthy['summary']['seconds']:.1f} s without loss")
     _assert_exact(res, healthy)
     assert dropped > 0, "the rule dropped no packets"
+    figures.record("5% packet loss on a tracer host", seconds=round(res["summary"]["seconds"], 2),
+                   healthy_seconds=round(healthy["summary"]["seconds"], 2), packets_dropped=dropped)
+    assert res["summary"]["seconds"] > healthy["summary"]["seconds"], \
+        ("5% packet loss did not slow the render", res["summary"]["seconds"], healthy["summary"]["seconds"])
     assert res["summary"]["counters"]["tracers_evicted"] == 0, res["summary"]["counters"]

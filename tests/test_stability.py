@@ -89,7 +89,10 @@ def test_furnace_energy_never_exceeds_its_closed_form_limit(albedo):
             r.run_iteration()
             img = r.image()
             assert np.isfinite(img).all() and img.min() >= 0
-            assert img.mean() <= depth_limited * 1.05 and depth_limited <= limit
+            # Within noise of the closed form from both sides (a black or
+            # half-lit furnace fails too), and never above the limit.
+            assert abs(img.mean() / depth_limited - 1) < 0.05, (img.mean(), depth_limited)
+            assert img.mean() <= limit * 1.05
     finally:
         r.close()
 

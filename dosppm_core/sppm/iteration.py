@@ -69,6 +69,7 @@ class SPPMIteration:
         self.hit_point_total = 0
         self.photons_applied = 0
         self.deposits_applied = 0
+        self.flux_applied = np.zeros(3)       # of every deposit applied, float64
         self.update_seconds = 0.0
         self._pending: list[PhotonDeposits] = []
         self._pending_rows = 0
@@ -132,7 +133,18 @@ class SPPMIteration:
                                  hash_options=s.hash_options)
         self.photons_applied += int(emitted)
         self.deposits_applied += len(deposits)
+        self.flux_applied += deposits.flux.sum(axis=0, dtype=np.float64)
         self.update_seconds += time.perf_counter() - t0
+
+    def totals(self) -> dict:
+        """What the statistics hold in all: N_e, hit points installed,
+        deposits applied and their flux, N and tau summed over the pixels.
+        Two renders of the same steps agree on these up to summation order
+        (services/ledger.py compares a server's with a re-trace's)."""
+        st = self.stats
+        return {"photons_emitted": int(st.photons_emitted), "hit_points": int(self.hit_point_total),
+                "deposits": int(self.deposits_applied), "flux": self.flux_applied.tolist(),
+                "N": float(st.photon_count.sum()), "tau": st.tau.sum(axis=0).tolist()}
 
     # -- what a render shows -------------------------------------------------------
     def count_path_ends(self, ends: np.ndarray) -> None:

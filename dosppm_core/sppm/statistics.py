@@ -179,9 +179,18 @@ def pilot_radius(hits: HitPoints) -> float:
 
 
 def subsample(deposits, most: int) -> GatherPhotons:
-    """At most `most` deposits, evenly strided over the batch."""
+    """About `most` of the deposits, chosen by a hash of their position
+    bits: the same deposits whatever order a batch arrived in, so a pilot
+    gather (and the radii it fits) depends on the batch alone (a render's
+    ledger re-traces the batch in another order, services/ledger.py)."""
     n = len(deposits.position)
-    rows = np.arange(n) if n <= most else (np.arange(most) * (n / most)).astype(np.int64)
+    if n <= most:
+        return GatherPhotons(deposits.position, deposits.incoming, None, deposits.flux)
+    bits = np.ascontiguousarray(deposits.position, np.float32).view(np.uint32).astype(np.uint64)
+    h = (bits[:, 0] * 0x9E3779B1 ^ bits[:, 1] * 0x85EBCA77 ^ bits[:, 2] * 0xC2B2AE3D) & 0xFFFFFFFF
+    rows = np.flatnonzero(h < np.uint64(most / n * 2.0 ** 32))
+    if len(rows) == 0:          # all hashed alike (a batch of one repeated position)
+        rows = np.arange(most)
     return GatherPhotons(deposits.position[rows], deposits.incoming[rows], None, deposits.flux[rows])
 
 

@@ -133,6 +133,9 @@ def tracer_rate(scene: str, photons: int = 400_000) -> float:
     from dosppm_core.scene import builtin
     from dosppm_core.settings import RenderSettings
     from services.evaluation.bench import _photon_rays
+    import numba
+    before = numba.get_num_threads()
+    numba.set_num_threads(1)        # the kernels' parallel loops too, not only Embree's
     r = Renderer(builtin.make(scene), RenderSettings(threads=1, photons_per_iteration=50_000))
     try:
         r.run_iteration()                               # compile, fit the radii
@@ -141,6 +144,7 @@ def tracer_rate(scene: str, photons: int = 400_000) -> float:
         return photons / (time.perf_counter() - t0)
     finally:
         r.close()
+        numba.set_num_threads(before)
 
 
 def figures(s: dict, per_core: float) -> dict:

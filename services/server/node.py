@@ -29,6 +29,7 @@ from dosppm_core.film import encode_png, tonemap_srgb8, write_exr, write_png
 from dosppm_core.jobs import PhotonDeposits
 from dosppm_core.settings import Progress, RenderSettings
 from services import config, transport, wire
+from services.ledger import Ledger
 from services.server import checkpoint
 from services.server.http import StatusServer
 from services.server.state import ServerState, Update
@@ -64,8 +65,9 @@ class ServerProcess:
                  checkpoint_dir: str | None = None, checkpoint_interval_s: float = 60.0,
                  resume: dict | None = None, curve_secret: str | None = None,
                  curve_clients: str | None = None, min_tracers_timeout_s: float | None = None,
-                 say=None):
-        """`say` prints a line for the user (what the server waits for)."""
+                 ledger: str | None = None, say=None):
+        """`say` prints a line for the user (what the server waits for);
+        `ledger`: a file to record every update applied in (services/ledger.py)."""
         self.store, self.settings = store, settings
         self.say = say or (lambda *parts: None)
         self._said_waiting: str | None = None
@@ -77,7 +79,9 @@ class ServerProcess:
                                  min_tracers=min_tracers, concurrent=concurrent,
                                  client_batching=client_batching, tracer_timeout_s=tracer_timeout_s,
                                  min_tracers_timeout_s=min_tracers_timeout_s)
-        self.statistics = ServerStatistics(store.header, settings, threads=threads)
+        book = None if ledger is None else Ledger(
+            settings, ledger, resume_at=None if resume is None else resume.get("ledger_records"))
+        self.statistics = ServerStatistics(store.header, settings, threads=threads, ledger=book)
         self.checkpoint_dir, self.checkpoint_interval_s = checkpoint_dir, checkpoint_interval_s
         if resume is not None:
             checkpoint.restore(self.statistics.stats, resume)
@@ -131,6 +135,7 @@ class ServerProcess:
                 self._checkpoint()
             self._updates.put(None)
             worker.join()
+            self.statistics.end_ledger()
             self._write_image()
             self._say_goodbye()
             restore()

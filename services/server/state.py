@@ -41,7 +41,7 @@ from dosppm_core.chunks.view import start_chunks
 from dosppm_core.jobs import END_NAMES, HitPoints, PhotonDeposits, RayBatch
 from dosppm_core.settings import RenderSettings
 from dosppm_core.sppm.iteration import EyePass
-from dosppm_core.trace import emit_photon_jobs, eye_ray_job
+from dosppm_core.trace import NO_CULL, emit_photon_jobs, eye_ray_job
 from services.wire import JOB_MESSAGES, PROTOCOL_VERSION, Out
 
 MESSAGE_RAYS = 32_768         # rays per job message the server aims for
@@ -96,6 +96,7 @@ class Job:
     # The photon job whose random streams this one traces: itself, or the
     # job it re-emits after a tracer failure (the same photons, a new id).
     rng_key: int | None = None
+    cull_box: np.ndarray | None = None    # a photon job's, as sent (§4.3)
 
 
 @dataclass
@@ -116,6 +117,26 @@ class Update:
     photons_emitted: int = 0
     directory: str | None = None     # "checkpoint": where, and what besides the statistics
     meta: dict | None = None
+    # What was applied, for the ledger (services/ledger.py): the eye
+    # iteration of "hits"; the committed jobs of "photons" as (rng keys,
+    # paths, cull boxes (n, 2, 3)).
+    eye_iteration: int | None = None
+    jobs: tuple | None = None
+
+
+def _within_own_boxes(deposits: PhotonDeposits, jobs: tuple) -> PhotonDeposits:
+    """The deposits inside the cull box their own job was sent with. A
+    tracer culls a coalesced package against the union of its jobs' boxes,
+    which keeps more; culling again here makes what a job adds a function
+    of the job alone, so the ledger can re-trace it (services/ledger.py)."""
+    ids, _keys, _paths, boxes = jobs
+    if len(deposits) == 0 or len(ids) == 0 or np.isinf(boxes).all():
+        return deposits
+    at = np.minimum(np.searchsorted(ids, deposits.job), len(ids) - 1)
+    box = boxes[at]
+    p = deposits.position
+    inside = np.all((p >= box[:, 0]) & (p <= box[:, 1]), axis=1) | (ids[at] != deposits.job)
+    return deposits if inside.all() else deposits.take(inside)
 
 
 def assign_chunks(chunk_count: int, endpoints: list[str]) -> list[list[str]]:
@@ -175,9 +196,9 @@ class ServerState:
         self.eye_completed = 0
         self._photons_at_eye_start = 0
         self._held: list[PhotonDeposits] = []
-        self._held_rows = 0
-        self._next_batch_at = settings.photon_batch
+        self._held_rows, self._next_batch_at = 0, settings.photon_batch
         self._ready_emitted = 0
+        self._ready_jobs: list[tuple[int, Job]] = []    # photon jobs complete since the last batch
         self.updates: deque[Update] = deque()
         self._last_heartbeat = -1e30
         self.counters = {"photons_emitted": 0, "photons_completed": 0, "photons_committed": 0,
@@ -359,6 +380,7 @@ class ServerState:
             self.counters["photons_completed"] += job.paths
             self.counters["photon_jobs_completed"] += 1
             self._ready_emitted += job.paths
+            self._ready_jobs.append((j, job))
             return
         self.counters["eye_jobs_completed"] += 1
         e = self.eye
@@ -368,7 +390,7 @@ class ServerState:
 
     def _finish_eye_iteration(self, e: EyeIteration) -> None:
         hits, emitted_light = e.results.complete()
-        self.updates.append(Update("hits", hits=hits, emitted_light=emitted_light))
+        self.updates.append(Update("hits", hits=hits, emitted_light=emitted_light, eye_iteration=e.index))
         self.counters["hit_points"] += len(hits)
         self.eye, self.eye_completed = None, self.eye_completed + 1
 
@@ -381,11 +403,25 @@ class ServerState:
         status = self._job_status(held.job)
         commit, keep = held.take(status == COMPLETE), held.take(status == IN_FLIGHT)
         self.counters["deposits_discarded"] += int(np.sum(status == DISCARDED))   # lost with a tracer
-        self.updates.append(Update("photons", deposits=commit, photons_emitted=self._ready_emitted))
+        jobs = self._ready_job_columns()
+        commit = _within_own_boxes(commit, jobs)
+        self.updates.append(Update("photons", deposits=commit, photons_emitted=self._ready_emitted,
+                                   jobs=jobs[1:]))
         self.counters["photons_committed"] += self._ready_emitted
-        self._ready_emitted = 0
+        self._ready_emitted, self._ready_jobs = 0, []
         self._held, self._held_rows = ([keep] if len(keep) else []), len(keep)
         self._next_batch_at = self._held_rows + self.settings.photon_batch
+
+    def _ready_job_columns(self) -> tuple:
+        """(ids, rng keys, paths, cull boxes (n, 2, 3)) of the photon jobs
+        complete since the last batch, by id."""
+        ready = sorted(self._ready_jobs, key=lambda jj: jj[0])
+        ids = np.array([j for j, _ in ready], np.int64)
+        keys = np.array([job.rng_key for _, job in ready], np.int64)
+        paths = np.array([job.paths for _, job in ready], np.int64)
+        boxes = np.array([NO_CULL if job.cull_box is None else job.cull_box for _, job in ready],
+                         np.float64).reshape(-1, 2, 3)
+        return ids, keys, paths, boxes
 
     # -- emission ------------------------------------------------------------------------
     def tick(self, now: float) -> list[Out]:
@@ -413,8 +449,13 @@ class ServerState:
             if not self._ready_to_start(now):
                 return out
             self.started = True
-        if not self.emitting or not all(self.owners):
+        if not all(self.owners):
             return out
+        if not self.emitting:
+            # Draining: only jobs re-emitted for a lost tracer still go out.
+            # Their photons were emitted once and count towards N_e: left
+            # unsent, they would hold the drain until its timeout.
+            return out + (self._send_photon_jobs() if self._photon_pending else [])
         if not self.concurrent:
             return out + self._alternate()
         out += self._maybe_start_eye_iteration()
@@ -633,6 +674,8 @@ class ServerState:
             batch = emit_photon_jobs(self.header, s.seed, [self.jobs[j].rng_key for j in js], counts,
                                      self.eps_abs)
             batch.job = np.repeat(np.asarray(js, np.int64), counts)
+            for j in js:
+                self.jobs[j].cull_box = box
             self.counters["photons_emitted"] += sum(counts)
             self._photon_receivers = self._route(js, batch, parts)
             out += self._flush(parts, box, full_only=True)

@@ -12,15 +12,18 @@ import numpy as np
 
 from dosppm_core.settings import RenderSettings
 from dosppm_core.sppm.iteration import SPPMIteration
+from services.ledger import Ledger
 from services.server import checkpoint
 
 
 class ServerStatistics:
-    def __init__(self, header, settings: RenderSettings, threads: int):
+    def __init__(self, header, settings: RenderSettings, threads: int, ledger: Ledger | None = None):
+        """`ledger`: where every applied update is recorded (services/ledger.py)."""
         self.header, self.settings, self.threads = header, settings, threads
         self.sppm = SPPMIteration(header, settings, threads=threads)
         self.lock = threading.Lock()       # held while statistics change; snapshots take it
         self.update_seconds = 0.0
+        self.ledger = ledger
 
     @property
     def stats(self):
@@ -40,16 +43,26 @@ class ServerStatistics:
         t0 = time.perf_counter()
         with self.lock:
             if update.kind == "checkpoint":
-                checkpoint.write(update.directory, self.sppm.stats, update.meta)
+                # Where a resumed render's ledger goes on from (see Ledger).
+                meta = update.meta if self.ledger is None else dict(update.meta, ledger_records=self.ledger.count)
+                checkpoint.write(update.directory, self.sppm.stats, meta)
             elif update.kind == "hits":
                 self.sppm.install_hit_points(update.hits, update.emitted_light)
             else:
                 # The state already cut this batch at `photon_batch` deposits
                 # (only complete jobs count), so it is one update.
                 self.sppm.apply_photon_batch(update.deposits, update.photons_emitted)
+            if self.ledger is not None:
+                self.ledger.record(update)
             box = self.sppm.cull_box() if self.sppm.has_hit_points else None
         self.update_seconds += time.perf_counter() - t0
         return box
+
+    def end_ledger(self) -> None:
+        """The totals, once every update is applied (the ledger's last record)."""
+        if self.ledger is not None:
+            with self.lock:
+                self.ledger.end(self.sppm.totals())
 
     def image(self) -> np.ndarray:
         with self.lock:

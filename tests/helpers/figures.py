@@ -1,0 +1,43 @@
+"""Figures the reliability tests measure (detection times, slowdowns, peak
+server RSS, the largest outbox, rejoins), kept as an artifact (issue 15).
+
+`record(test, **values)` notes what a test measured. With
+DOSPPM_RECORD_FIGURES=PATH set, the session's figures are merged into the
+JSON file at PATH when it ends, each test's under its own name with every
+sample kept, plus the provenance of the run; `benchmarks/tables.py` makes
+docs/reliability.md's table from `benchmarks/results/reliability.json`.
+Without it nothing is written (a plain test run leaves the tree alone).
+"""
+from __future__ import annotations
+
+import json
+import os
+
+ENV = "DOSPPM_RECORD_FIGURES"
+_FIGURES: dict[str, dict[str, list]] = {}
+
+
+def record(test: str, **values) -> None:
+    for k, v in values.items():
+        _FIGURES.setdefault(test, {}).setdefault(k, []).append(v)
+
+
+def write_if_asked() -> str | None:
+    """Merge this session's figures into $DOSPPM_RECORD_FIGURES; its path, or None."""
+    path = os.environ.get(ENV)
+    if not path or not _FIGURES:
+        return None
+    from services.evaluation.provenance import provenance, write_results
+    try:
+        with open(path, encoding="utf-8") as f:
+            old = json.load(f)
+    except (OSError, ValueError):
+        old = {}
+    tests = dict(old.get("tests", {}))
+    runs = dict(old.get("runs", {}))
+    here = provenance()
+    for test, values in _FIGURES.items():
+        tests[test] = values
+        runs[test] = {"commit": here["commit"], "date": here["date"]}
+    write_results(path, {"tests": tests, "runs": runs})
+    return path
