@@ -32,7 +32,7 @@ class InProcessCluster:
                                   min_photon_jobs=min_photon_jobs, queue_target_rays=queue_target_rays,
                                   min_tracers=tracers, tracer_timeout_s=tracer_timeout_s)
         self.statistics = ServerStatistics(store.header, settings, threads=settings.threads,
-                                           ledger=Ledger(settings))
+                                           ledger=Ledger(settings, (store.header.camera.width, store.header.camera.height)))
         self.tamper = tamper
         self.store, self.step_rays, self.memory_bytes = store, step_rays, memory_bytes
         self.tracers: dict[str, TracerState] = {}
@@ -136,7 +136,7 @@ class InProcessCluster:
             raise RuntimeError(f"cluster did not drain: {len(self.server.jobs)} jobs in flight")
         self.server.finish()
         self._apply_updates()
-        self.statistics.end_ledger()
+        self.statistics.end_ledger((self.server.counters["deposits_late"], self.server.flux_late))
 
     def image(self):
         return self.statistics.image()

@@ -40,12 +40,12 @@ import time
 import numpy as np
 import pytest
 
+from dosppm_core.chunks.store import ChunkStore
 from dosppm_core.film import read_exr
 from services import ledger
 from tests.helpers import figures, netns
 from tests.helpers.cli import DOSPPM
 from tests.helpers.netns import Procs
-from tests.helpers.scenes import small_scene
 
 pytestmark = [pytest.mark.netns, pytest.mark.slow]
 PHOTONS = 1_500_000
@@ -195,6 +195,8 @@ class Render:
         img, _ = read_exr(str(self.out))
         return {"summary": summary, "img": img, "history": self.history(), "tails": self.tails,
                 "ledger": ledger.read(str(self.folder / "render.ledger")),
+                "store": next(d for d in (self.folder / "store-cache").iterdir()
+                              if (d / "manifest.msgpack").exists()),
                 "logs": {n: self.log(n) for n in ("server", "t1", "t2")}}
 
     def log(self, name: str) -> str:
@@ -231,7 +233,7 @@ def _assert_exact(res, healthy=None, photons=PHOTONS) -> None:
     assert k["over_counted_paths"] == 0, (k, tails)
     assert s["jobs_in_flight"] == 0, (s["jobs_in_flight"], tails)
     # From outside the server: its ledger's jobs, re-traced here, give its totals.
-    problems = ledger.check(small_scene("cornell-caustic", 64), res["ledger"])
+    problems = ledger.check(ChunkStore.open(str(res["store"])), res["ledger"])
     assert problems == [], (problems, tails)
     img = res["img"]
     assert img.shape[:2] == (64, 64), img.shape

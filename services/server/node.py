@@ -80,7 +80,8 @@ class ServerProcess:
                                  client_batching=client_batching, tracer_timeout_s=tracer_timeout_s,
                                  min_tracers_timeout_s=min_tracers_timeout_s)
         book = None if ledger is None else Ledger(
-            settings, ledger, resume_at=None if resume is None else resume.get("ledger_records"))
+            settings, (store.header.camera.width, store.header.camera.height), ledger,
+            resume_at=None if resume is None else resume.get("ledger_records"))
         self.statistics = ServerStatistics(store.header, settings, threads=threads, ledger=book)
         self.checkpoint_dir, self.checkpoint_interval_s = checkpoint_dir, checkpoint_interval_s
         if resume is not None:
@@ -135,7 +136,7 @@ class ServerProcess:
                 self._checkpoint()
             self._updates.put(None)
             worker.join()
-            self.statistics.end_ledger()
+            self.statistics.end_ledger((self.state.counters["deposits_late"], self.state.flux_late))
             self._write_image()
             self._say_goodbye()
             restore()

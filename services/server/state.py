@@ -207,9 +207,11 @@ class ServerState:
                          "over_counted_paths": 0, "results": 0, "updates": 0,
                          "photons_discarded": 0, "jobs_discarded": 0, "tracers_evicted": 0,
                          "eye_iterations_restarted": 0, "deposits_discarded": 0, "deposits_stale": 0,
+                         "deposits_late": 0,
                          "refused": 0, "tracers_rejoined": 0, "jobs_timed_out": 0, "welcomes_resent": 0,
                          "job_messages_lost": 0}
         self.path_ends = np.zeros(len(END_NAMES), np.int64)
+        self.flux_late = np.zeros(3)      # of the deposits counted in `deposits_late`
 
     # -- tracers -------------------------------------------------------------------
     def welcome_fields(self, t: TracerInfo) -> dict:
@@ -344,9 +346,11 @@ class ServerState:
         if msg.deposits is not None and len(msg.deposits):
             # Only deposits of photon jobs in flight are held: a finished,
             # discarded or never-made job's deposits can never count.
-            live = self._job_status(msg.deposits.job) == IN_FLIGHT
+            status = self._job_status(msg.deposits.job)
+            live = status == IN_FLIGHT
             deposits = msg.deposits if live.all() else msg.deposits.take(live)
             c["deposits_stale"] += len(msg.deposits) - len(deposits)
+            self._note_late(msg.deposits, status == COMPLETE)
             if len(deposits):
                 self._held.append(deposits)
                 self._held_rows += len(deposits)
@@ -357,6 +361,16 @@ class ServerState:
             self._segments(j, left - fed, stale=fed - left)
         self._maybe_batch()
         return []
+
+    def _note_late(self, deposits: PhotonDeposits, late: np.ndarray) -> None:
+        """Deposits of a job already complete, dropped: counted with their
+        flux for the ledger (services/ledger.py). A known race, issue 15: a
+        step whose paths all left its chunk ends none, so its message, with
+        the deposits made on the way, may reach the server after the
+        downstream tracer's report has completed the job."""
+        if late.any():
+            self.counters["deposits_late"] += int(late.sum())
+            self.flux_late += deposits.flux[late].sum(axis=0, dtype=np.float64)
 
     def _segments(self, j: int, change: int, stale: int = 0) -> None:
         """Open path segments of job j change by `change`; at zero, once

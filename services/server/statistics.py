@@ -58,11 +58,13 @@ class ServerStatistics:
         self.update_seconds += time.perf_counter() - t0
         return box
 
-    def end_ledger(self) -> None:
-        """The totals, once every update is applied (the ledger's last record)."""
+    def end_ledger(self, late: tuple[int, np.ndarray]) -> None:
+        """The totals, once every update is applied (the ledger's last
+        record), with the deposits the state dropped as late: (count, flux)."""
         if self.ledger is not None:
             with self.lock:
-                self.ledger.end(self.sppm.totals())
+                self.ledger.end(dict(self.sppm.totals(), deposits_late=int(late[0]),
+                                     flux_late=np.asarray(late[1], np.float64).tolist()))
 
     def image(self) -> np.ndarray:
         with self.lock:
