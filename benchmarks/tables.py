@@ -62,6 +62,11 @@ def _reliability(doc: dict) -> str:
     return "\n".join(lines)
 
 
+def _render_default(doc: dict) -> str:
+    import render_default
+    return render_default.report(doc)
+
+
 def _replay(doc: dict) -> str:
     from services.evaluation import replay
     return replay.report(doc)
@@ -117,6 +122,7 @@ TABLES = {
     "radius-20s": ("benchmarks/results/issue12-radius/results.json", _evaluation(20.0)),
     "radius-80s": ("benchmarks/results/issue12-radius/results.json", _evaluation(80.0)),
     "replay": ("benchmarks/results/replay.json", _replay),
+    "render-default": ("benchmarks/results/render-default.json", _render_default),
     "reliability": ("benchmarks/results/reliability.json", _reliability),
     "pbrt-side-by-side": ("benchmarks/results/pbrt-side-by-side.json", _pbrt_side_by_side),
 }

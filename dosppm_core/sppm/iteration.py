@@ -136,6 +136,14 @@ class SPPMIteration:
         self.flux_applied += deposits.flux.sum(axis=0, dtype=np.float64)
         self.update_seconds += time.perf_counter() - t0
 
+    def restore_totals(self, totals: dict) -> None:
+        """The counts of `totals` of a checkpointed render (its statistics
+        are restored on their own), so a resumed render's totals are the
+        whole render's."""
+        self.hit_point_total = int(totals["hit_points"])
+        self.deposits_applied = int(totals["deposits"])
+        self.flux_applied = np.asarray(totals["flux"], np.float64)
+
     def totals(self) -> dict:
         """What the statistics hold in all: N_e, hit points installed,
         deposits applied and their flux, N and tau summed over the pixels.

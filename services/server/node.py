@@ -86,6 +86,8 @@ class ServerProcess:
         self.checkpoint_dir, self.checkpoint_interval_s = checkpoint_dir, checkpoint_interval_s
         if resume is not None:
             checkpoint.restore(self.statistics.stats, resume)
+            if "ledger_totals" in resume:
+                self.statistics.sppm.restore_totals(resume["ledger_totals"])
             self.state.resume(resume)
         self.router = transport.router(context)
         self.auth = None

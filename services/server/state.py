@@ -642,12 +642,11 @@ class ServerState:
         return [Out(tid, "eye_job", dict(eye_iteration=e.index, chunk=k, batch=RayBatch.concat(b)))
                 for (tid, k), b in parts.items()]
 
-    def _route(self, js, batch: RayBatch, parts: dict) -> set:
-        """Split the paths of new jobs `js` (their ids in `batch.job`) by
-        start chunk into `parts` per (tracer, chunk); paths that miss the
-        scene end here. Returns the tracers."""
-        js = np.atleast_1d(np.asarray(js, np.int64))
-        routed, lost = start_chunks(self.tree, batch, keep_lost=True)
+    def _route(self, j: int, batch: RayBatch, parts: dict) -> set:
+        """Split a new job's paths by start chunk into `parts` per (tracer,
+        chunk); paths that miss the scene end here. Returns the tracers."""
+        routed, lost = start_chunks(self.tree, batch)
+        self.path_ends[1] += lost           # ESCAPED, before any tracer saw them
         receivers = set()
         for k, part in routed.items():
             t = self._least_loaded(k)
@@ -655,53 +654,29 @@ class ServerState:
             t.rays_sent += len(part)
             parts.setdefault((t.id, k), []).append(part)
             receivers.add(t.id)
-        order = np.argsort(js)                      # a job's row in js, by searching the sorted ids
-
-        def per_job(ids):
-            return np.bincount(order[np.searchsorted(js[order], ids)], minlength=len(js))
-        paths, missed = per_job(batch.job), np.zeros(len(js), np.int64)
-        if lost is not None:
-            self.path_ends[1] += len(lost)          # ESCAPED, before any tracer saw them
-            missed = per_job(lost.job)
-        for j, n in zip(js.tolist(), (paths - missed).tolist()):
-            self.jobs[j].sent = True
-            self.jobs[j].progress_s = self._now
-            self._segments(j, n)
+        self.jobs[j].sent = True
+        self.jobs[j].progress_s = self._now
+        self._segments(j, len(batch) - lost)
         return receivers
 
     def _send_photon_jobs(self) -> list[Out]:
         s, out, parts = self.settings, [], {}
         box = self.cull_box      # NO_CULL when culling is off (`SPPMIteration.cull_box`)
         # Photon jobs start where the lights are: the tracers that got the
-        # last jobs' photons gate the next ones, so a slow one is never
+        # last job's photons gate the next one, so a slow one is never
         # sent more than one job past its credit.
-        while self._photon_pending:
-            loads = [self.tracers[t].load_estimate for t in self._photon_receivers if t in self.tracers]
-            room = self.credit - max(loads) if loads else 1     # no receivers known yet: one job
-            if room <= 0:
-                break
-            js = self._take_pending(min(room, MESSAGE_RAYS))
-            counts = [self.jobs[j].paths for j in js]
-            # Emitted together (the photons are the same as one by one): a
-            # kernel call and a routing per job cost the server more than
-            # the photons themselves at the service's 1,024 per job.
-            batch = emit_photon_jobs(self.header, s.seed, [self.jobs[j].rng_key for j in js], counts,
-                                     self.eps_abs)
-            batch.job = np.repeat(np.asarray(js, np.int64), counts)
-            for j in js:
-                self.jobs[j].cull_box = box
-            self.counters["photons_emitted"] += sum(counts)
-            self._photon_receivers = self._route(js, batch, parts)
+        while self._photon_pending and not any(
+                self.tracers[t].load_estimate >= self.credit
+                for t in self._photon_receivers if t in self.tracers):
+            j = self._photon_pending.popleft()
+            count = self.jobs[j].paths
+            batch = emit_photon_jobs(self.header, s.seed, [self.jobs[j].rng_key], [count], self.eps_abs)
+            batch.job[:] = j
+            self.jobs[j].cull_box = box          # for the ledger: the box it is sent with
+            self.counters["photons_emitted"] += count
+            self._photon_receivers = self._route(j, batch, parts)
             out += self._flush(parts, box, full_only=True)
         return out + self._flush(parts, box, full_only=False)
-
-    def _take_pending(self, rays: int) -> list[int]:
-        """Pending photon jobs from the front, up to `rays` paths (at least one job)."""
-        js, n = [], 0
-        while self._photon_pending and (not js or n + self.jobs[self._photon_pending[0]].paths <= rays):
-            js.append(self._photon_pending.popleft())
-            n += self.jobs[js[-1]].paths
-        return js
 
     def _flush(self, parts: dict, box, full_only: bool) -> list[Out]:
         out = []
@@ -718,7 +693,8 @@ class ServerState:
         return {"store_key": self.store_key, "settings": self.settings_dict(),
                 "next_job": self.next_job, "next_eye_iteration": self.eye_started,
                 "counters": {"photons": self.photons_before + self.counters["photons_committed"],
-                             "eye_iterations": self.iterations_before + self.eye_completed}}
+                             "eye_iterations": self.iterations_before + self.eye_completed},
+                "late": [self.counters["deposits_late"], self.flux_late.tolist()]}
 
     def settings_dict(self) -> dict:
         s = self.settings
@@ -732,6 +708,8 @@ class ServerState:
         self.eye_started = int(doc["next_eye_iteration"])
         self.photons_before = int(doc["counters"]["photons"])
         self.iterations_before = int(doc["counters"]["eye_iterations"])
+        late, flux = doc.get("late", (0, (0.0, 0.0, 0.0)))    # for the ledger
+        self.counters["deposits_late"], self.flux_late = int(late), np.asarray(flux, np.float64)
         self._eye_restart = True      # hit points first: photons wait for their box
 
     # -- the end ---------------------------------------------------------------------------

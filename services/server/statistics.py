@@ -44,7 +44,8 @@ class ServerStatistics:
         with self.lock:
             if update.kind == "checkpoint":
                 # Where a resumed render's ledger goes on from (see Ledger).
-                meta = update.meta if self.ledger is None else dict(update.meta, ledger_records=self.ledger.count)
+                meta = update.meta if self.ledger is None else dict(
+                    update.meta, ledger_records=self.ledger.count, ledger_totals=self.sppm.totals())
                 checkpoint.write(update.directory, self.sppm.stats, meta)
             elif update.kind == "hits":
                 self.sppm.install_hit_points(update.hits, update.emitted_light)
