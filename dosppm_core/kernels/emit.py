@@ -85,9 +85,9 @@ def emit_photons(kind, p0, p1, p2, value, cone, power, cdf, seed, jobs, starts, 
     """Photons of the emission jobs `jobs` (rng keys), job m's photons
     being rows [starts[m], starts[m + 1]); lights chosen in proportion to
     power. A photon depends only on (seed, its job's key, its index in the
-    job), so jobs emitted together or alone trace the same photons: the
-    server emits a message's worth of small jobs in one call (one call per
-    1,024-photon job cost it 2.5x more per photon).
+    job), so jobs emitted together or alone trace the same photons (one
+    call per 1,024-photon job costs 2.5x more per photon than many jobs at
+    once).
 
     Each photon's flux is radiant power / pdf, so the image is the sum over
     photons divided by the number emitted (eq. 5's N_e). Surface photons

@@ -212,6 +212,7 @@ class ServerState:
                          "job_messages_lost": 0}
         self.path_ends = np.zeros(len(END_NAMES), np.int64)
         self.flux_late = np.zeros(3)      # of the deposits counted in `deposits_late`
+        self.late_at_resume = 0
 
     # -- tracers -------------------------------------------------------------------
     def welcome_fields(self, t: TracerInfo) -> dict:
@@ -710,6 +711,9 @@ class ServerState:
         self.iterations_before = int(doc["counters"]["eye_iterations"])
         late, flux = doc.get("late", (0, (0.0, 0.0, 0.0)))    # for the ledger
         self.counters["deposits_late"], self.flux_late = int(late), np.asarray(flux, np.float64)
+        # Some of these may belong to jobs committed after the checkpoint,
+        # whose ledger records the resumed render cut: the check allows them.
+        self.late_at_resume = int(late)
         self._eye_restart = True      # hit points first: photons wait for their box
 
     # -- the end ---------------------------------------------------------------------------

@@ -59,13 +59,15 @@ class ServerStatistics:
         self.update_seconds += time.perf_counter() - t0
         return box
 
-    def end_ledger(self, late: tuple[int, np.ndarray]) -> None:
+    def end_ledger(self, late: tuple) -> None:
         """The totals, once every update is applied (the ledger's last
-        record), with the deposits the state dropped as late: (count, flux)."""
+        record), with the deposits the state dropped as late: (count, flux,
+        count already at a resumed checkpoint)."""
         if self.ledger is not None:
             with self.lock:
                 self.ledger.end(dict(self.sppm.totals(), deposits_late=int(late[0]),
-                                     flux_late=np.asarray(late[1], np.float64).tolist()))
+                                     flux_late=np.asarray(late[1], np.float64).tolist(),
+                                     late_at_resume=int(late[2])))
 
     def image(self) -> np.ndarray:
         with self.lock:
