@@ -180,9 +180,13 @@ def compare(server: dict, retraced: dict, rtol: float = RTOL) -> list[str]:
     then compared within a tolerance of their share."""
     problems = []
     late = int(server.get("deposits_late", 0))
-    for k in ("photons_emitted", "hit_points"):
-        if server[k] != retraced[k]:
-            problems.append(f"{k}: server {server[k]:,}, re-traced {retraced[k]:,}")
+    if server["photons_emitted"] != retraced["photons_emitted"]:
+        problems.append(f"photons_emitted: server {server['photons_emitted']:,}, re-traced "
+                        f"{retraced['photons_emitted']:,}")
+    late_hits = int(server.get("hit_points_late", 0))
+    if server["hit_points"] + late_hits != retraced["hit_points"]:
+        problems.append(f"hit_points: server {server['hit_points']:,} (+{late_hits:,} late), re-traced "
+                        f"{retraced['hit_points']:,}")
     # Late deposits counted by a render before its checkpoint may belong to
     # jobs committed after it, which the resumed render's ledger cut.
     resumed = int(server.get("late_at_resume", 0))
@@ -193,7 +197,7 @@ def compare(server: dict, retraced: dict, rtol: float = RTOL) -> list[str]:
     if not np.allclose(flux, retraced["flux"], rtol=rtol + 10.0 * resumed / max(retraced["deposits"], 1),
                        atol=0.0):
         problems.append(f"flux: server {flux.tolist()} (late included), re-traced {retraced['flux']}")
-    share = rtol + 10.0 * late / max(retraced["deposits"], 1)
+    share = rtol + 10.0 * late / max(retraced["deposits"], 1) + 10.0 * late_hits / max(retraced["hit_points"], 1)
     for k in ("N", "tau"):
         a, b = np.atleast_1d(server[k]), np.atleast_1d(retraced[k])
         if not np.allclose(a, b, rtol=share, atol=0.0):

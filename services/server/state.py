@@ -197,8 +197,7 @@ class ServerState:
         self._photons_at_eye_start = 0
         self._held: list[PhotonDeposits] = []
         self._held_rows, self._next_batch_at = 0, settings.photon_batch
-        self._ready_emitted = 0
-        self._ready_jobs: list[tuple[int, Job]] = []    # photon jobs complete since the last batch
+        self._ready_emitted, self._ready_jobs = 0, []    # photon paths and jobs complete since the last batch
         self.updates: deque[Update] = deque()
         self._last_heartbeat = -1e30
         self.counters = {"photons_emitted": 0, "photons_completed": 0, "photons_committed": 0,
@@ -207,12 +206,10 @@ class ServerState:
                          "over_counted_paths": 0, "results": 0, "updates": 0,
                          "photons_discarded": 0, "jobs_discarded": 0, "tracers_evicted": 0,
                          "eye_iterations_restarted": 0, "deposits_discarded": 0, "deposits_stale": 0,
-                         "deposits_late": 0,
-                         "refused": 0, "tracers_rejoined": 0, "jobs_timed_out": 0, "welcomes_resent": 0,
-                         "job_messages_lost": 0}
+                         "deposits_late": 0, "hit_points_late": 0, "refused": 0, "tracers_rejoined": 0,
+                         "jobs_timed_out": 0, "welcomes_resent": 0, "job_messages_lost": 0}
         self.path_ends = np.zeros(len(END_NAMES), np.int64)
-        self.flux_late = np.zeros(3)      # of the deposits counted in `deposits_late`
-        self.late_at_resume = 0
+        self._init_late()
 
     # -- tracers -------------------------------------------------------------------
     def welcome_fields(self, t: TracerInfo) -> dict:
@@ -358,10 +355,21 @@ class ServerState:
                 c["deposits_received"] += len(deposits)
         if msg.hits is not None and self.eye is not None and msg.eye_iteration == self.eye.index:
             self.eye.results.add(msg.hits, msg.emitted_pixels, msg.emitted_rgb)
+        elif msg.hits is not None and msg.eye_iteration in self._eye_done:
+            # The same race as late deposits: an eye step whose shadow rays
+            # all left its chunk ends no path of the job on balance.
+            self.counters["hit_points_late"] += len(msg.hits)
         for j, fed, left in zip(msg.job_ids.tolist(), msg.job_fed.tolist(), msg.job_left.tolist()):
             self._segments(j, left - fed, stale=fed - left)
         self._maybe_batch()
         return []
+
+    def _init_late(self) -> None:
+        """What the ledger's check needs besides the late counters: the flux
+        of the late deposits, those counted before a resumed checkpoint, and
+        the eye iterations installed (their late hit points are counted)."""
+        self.flux_late, self.late_at_resume = np.zeros(3), 0
+        self._eye_done: set[int] = set()
 
     def _note_late(self, deposits: PhotonDeposits, late: np.ndarray) -> None:
         """Deposits of a job already complete, dropped: counted with their
@@ -407,6 +415,7 @@ class ServerState:
         hits, emitted_light = e.results.complete()
         self.updates.append(Update("hits", hits=hits, emitted_light=emitted_light, eye_iteration=e.index))
         self.counters["hit_points"] += len(hits)
+        self._eye_done.add(e.index)
         self.eye, self.eye_completed = None, self.eye_completed + 1
 
     def _maybe_batch(self, final: bool = False) -> None:

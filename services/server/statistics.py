@@ -61,13 +61,13 @@ class ServerStatistics:
 
     def end_ledger(self, late: tuple) -> None:
         """The totals, once every update is applied (the ledger's last
-        record), with the deposits the state dropped as late: (count, flux,
-        count already at a resumed checkpoint)."""
+        record), with what the state dropped as late: (deposits, their flux,
+        deposits already at a resumed checkpoint, hit points)."""
         if self.ledger is not None:
             with self.lock:
                 self.ledger.end(dict(self.sppm.totals(), deposits_late=int(late[0]),
                                      flux_late=np.asarray(late[1], np.float64).tolist(),
-                                     late_at_resume=int(late[2])))
+                                     late_at_resume=int(late[2]), hit_points_late=int(late[3])))
 
     def image(self) -> np.ndarray:
         with self.lock:
