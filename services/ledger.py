@@ -134,7 +134,7 @@ def retrace(provider, records: list[dict], threads: int = 1) -> dict:
     return sppm.totals()
 
 
-def _run(tracer, kind: str, field: str) -> list:
+def _run(tracer, field: str) -> list:
     """Step `tracer` until it has no work; the `field` of every results message."""
     out = []
     while tracer.has_work():
@@ -153,7 +153,7 @@ def _eye_pass(tracer, tree, header, settings: RenderSettings, iteration: int) ->
         for k, part in start_chunks(tree, batch)[0].items():
             tracer.receive("eye", k, part, eye_iteration=iteration)
     eye = EyePass(iteration)
-    for f in _run(tracer, "eye", "emitted_pixels"):
+    for f in _run(tracer, "emitted_pixels"):
         eye.add(f["hits"], f["emitted_pixels"], f["emitted_rgb"])
     return eye
 
@@ -169,7 +169,7 @@ def _photons(tracer, tree, header, settings: RenderSettings, keys, paths, boxes)
         batch.job[:] = m
         for k, part in start_chunks(tree, batch)[0].items():
             tracer.receive("photon", k, part, cull_box=boxes[m])
-    return PhotonDeposits.concat([f["deposits"] for f in _run(tracer, "photon", "deposits")])
+    return PhotonDeposits.concat([f["deposits"] for f in _run(tracer, "deposits")])
 
 
 def compare(server: dict, retraced: dict, rtol: float = RTOL) -> list[str]:
