@@ -136,8 +136,7 @@ class InProcessCluster:
             raise RuntimeError(f"cluster did not drain: {len(self.server.jobs)} jobs in flight")
         self.server.finish()
         self._apply_updates()
-        self.statistics.end_ledger((self.server.counters["deposits_late"], self.server.flux_late, 0,
-                                     self.server.counters["hit_points_late"]))
+        self.statistics.end_ledger(self.server.counters["deposits_late"])
 
     def image(self):
         return self.statistics.image()

@@ -50,8 +50,13 @@ Frames given to `send` must not be modified until sent: with copy=False,
 zmq reads the caller's arrays asynchronously. Received arrays are views of
 zmq's frames (`wire.decode`).
 
-Heartbeats: libzmq's own (ZMQ_HEARTBEAT_*) find dead TCP peers; hung
-processes are found by the roles' `heartbeat` messages.
+Dead TCP peers are found by the kernel: keepalive probes on an idle
+connection and a 10 s retransmission limit (ZMQ_TCP_MAXRT) on a busy one.
+Not libzmq's own heartbeats (ZMQ_HEARTBEAT_*): a heartbeat timeout on a
+connection whose input is stopped by RCVHWM makes libzmq 4.3 abort the
+process (`!_io_error`, libzmq issues 3937 and 4364; it killed the server of
+tests/test_load.py). Hung processes are found by the roles' `heartbeat`
+messages.
 
 Errors
 ------
@@ -83,8 +88,10 @@ from services.wire import MAX_FRAME_BYTES, Message, WireError, decode, error_rep
 # -- policy ---------------------------------------------------------------------
 HWM_MESSAGES = 16                # SNDHWM and RCVHWM, per socket and peer
 LINGER_MS = 2000                 # a closing socket still delivers its last results
-ZMQ_HEARTBEAT_IVL_MS = 1000      # transport heartbeats find dead TCP peers,
-ZMQ_HEARTBEAT_TIMEOUT_MS = 10_000  # not hung processes (the server's own do that)
+TCP_KEEPALIVE_IDLE_S = 2         # the kernel finds dead TCP peers (module doc),
+TCP_KEEPALIVE_INTVL_S = 1        # idle ones after 2 + 8 x 1 s of probes,
+TCP_KEEPALIVE_CNT = 8
+TCP_MAXRT_MS = 10_000            # busy ones after 10 s of unacknowledged data
 
 Context = zmq.Context
 
@@ -240,8 +247,11 @@ def _configured(context: zmq.Context | None, kind: int) -> zmq.Socket:
     raw.setsockopt(zmq.RCVHWM, HWM_MESSAGES)
     raw.setsockopt(zmq.LINGER, LINGER_MS)
     raw.setsockopt(zmq.MAXMSGSIZE, MAX_FRAME_BYTES)
-    raw.setsockopt(zmq.HEARTBEAT_IVL, ZMQ_HEARTBEAT_IVL_MS)
-    raw.setsockopt(zmq.HEARTBEAT_TIMEOUT, ZMQ_HEARTBEAT_TIMEOUT_MS)
+    raw.setsockopt(zmq.TCP_KEEPALIVE, 1)
+    raw.setsockopt(zmq.TCP_KEEPALIVE_IDLE, TCP_KEEPALIVE_IDLE_S)
+    raw.setsockopt(zmq.TCP_KEEPALIVE_INTVL, TCP_KEEPALIVE_INTVL_S)
+    raw.setsockopt(zmq.TCP_KEEPALIVE_CNT, TCP_KEEPALIVE_CNT)
+    raw.setsockopt(zmq.TCP_MAXRT, TCP_MAXRT_MS)
     if kind == zmq.ROUTER:
         raw.setsockopt(zmq.ROUTER_MANDATORY, 1)
     return raw

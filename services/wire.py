@@ -66,7 +66,8 @@ Messages
                      public_key|None (its CURVE key, for its peers)
       heartbeat      status {} (informational: queue, load, resident chunks)
       results        chunk, culled, queued, eye_iteration|None, ends i64 (5,),
-                     job_ids + job_fed + job_left i64 (k,); optional
+                     job_ids + job_fed + job_left i64 (k,), credit
+                     returned (credit_job + credit_exp i64); optional
                      deposits: PhotonDeposits, hits: HitPoints,
                      emitted_pixels i32 (m,) + emitted_rgb f32 (m, 3): light
                      seen directly and direct light by shadow rays
@@ -79,14 +80,16 @@ Messages
       refused        reason
       peers          table_version, peers [[endpoint]] indexed by chunk,
                      keys {endpoint: CURVE public key} (with CURVE)
-      photon_job     chunk, cull_box f64 (2, 3), batch (one or more jobs)
-      eye_job        eye_iteration, chunk, batch
+      photon_job     chunk, cull_box f64 (2, 3), batch (one or more jobs),
+                     credit (credit_job + credit_exp i64: one term per job)
+      eye_job        eye_iteration, chunk, batch, credit
       chunk_data     chunk, sha256, part, parts, offset, file_bytes, data u8
       heartbeat, shutdown (reason)
     tracer -> tracer
       portal_rays    kind "photon"|"eye"|"shadow", chunk (the destination),
                      eye_iteration (eye, shadow), cull_box (photon only),
-                     batch: RayBatch (photon, eye) or shadows: ShadowRays
+                     batch: RayBatch (photon, eye) or shadows: ShadowRays,
+                     credit
 
 `MESSAGES` holds the specs; `describe()` prints this table from them.
 
@@ -107,21 +110,24 @@ and the paths that left it through portals (travelling on in
 in the step. `ends` counts those by how they ended (`dosppm_core.jobs`:
 CONTINUES, ESCAPED, ABSORBED, MAX_DEPTH, STORED), so ends[CONTINUES] is
 always 0 and sum(job_fed - job_left) == sum(ends) (the wire refuses
-anything else). The server keeps, per job, the number of open path
-segments: the paths it sent, plus every job_left, minus every job_fed.
+anything else); the server counts them (path ends, stale paths).
 
-    job j finished  <=>  open segments of j == 0
+Completion is decided by credit (`services.credit`): every job message and
+portal package carries a share of its jobs' credit (one term 2**-e per
+job), and every `results` message returns the shares its step kept back,
+in the same message as the step's deposits and hit points.
 
-An eye path that stores a hit point goes on as that hit point's shadow
-ray (a `portal_rays` package of kind "shadow" when it crosses a portal),
-with the eye job's id: it ends the path where it stops, blocked or at its
-light, so an eye job is finished only once its direct light is in.
-A segment is closed by the same `results` message that carries its
-deposits and hit points, so when a job is finished the server also holds
-everything it produced: no deposit of a finished job can still be on its
-way (results of two tracers arrive in no guaranteed order).
-No timeout is involved: each path ends exactly once, so the sum cannot
-reach N_j while a path of j is queued, traced or in a portal package.
+    job j finished  <=>  the credit returned for j sums to 1
+
+Counting open path segments instead is not enough: a step whose paths
+all left its chunk closes none, yet its message carries deposits, and the
+downstream tracer's report may arrive first (results of two tracers
+arrive in no guaranteed order). A share is returned only with a message,
+so a job whose credit is all back has all its deposits and hit points in
+hand. An eye path that stores a hit point goes on as that hit point's
+shadow ray (a `portal_rays` package of kind "shadow" when it crosses a
+portal), with the eye job's id and credit, so an eye job is finished only
+once its direct light is in. No timeout is involved.
 `culled` counts photon *deposits* dropped by the cull box (§4.3), not
 paths; `queued` is the rays waiting at the tracer after the step (the
 server's ray credit reads it: see `services.transport`, back-pressure).
@@ -140,8 +146,9 @@ import msgpack
 import numpy as np
 
 from dosppm_core.jobs import CONTINUES, END_NAMES, HitPoints, PhotonDeposits, RayBatch, ShadowRays
+from services import credit
 
-PROTOCOL_VERSION = 2   # 2: shadow rays (portal_rays kind 'shadow')
+PROTOCOL_VERSION = 3   # 2: shadow rays (portal_rays kind 'shadow'); 3: credit (services/credit.py)
 
 # -- policy ---------------------------------------------------------------------
 MAX_ELEMENTS = 1 << 28           # per array: sanity cap on a declared size
@@ -330,7 +337,25 @@ class Spec:
         return frozenset(c.wire for g in self.groups for c in g.columns)
 
 
+def _credit() -> Group:
+    return plain("credit", ("credit_job", np.int64, (), None), ("credit_exp", np.int64, (), None))
+
+
+def _check_credit(f: dict) -> str | None:
+    """Exponents bounded, so a hostile message cannot make the server's
+    exact sums huge (services/credit.py)."""
+    e = f["credit_exp"]
+    if len(e) and (e.min() < 0 or e.max() > credit.MAX_EXP):
+        return f"field 'credit_exp' needs 0 <= exponent <= {credit.MAX_EXP}"
+    if (f["credit_job"] < 0).any():
+        return "field 'credit_job' has a negative job id"
+    return None
+
+
 def _check_results(f: dict) -> str | None:
+    problem = _check_credit(f)
+    if problem:
+        return problem
     ends = f["ends"]
     if (ends < 0).any():
         return f"field 'ends' has a negative count {ends.tolist()}"
@@ -349,6 +374,9 @@ def _check_results(f: dict) -> str | None:
 
 
 def _check_portal_rays(f: dict) -> str | None:
+    problem = _check_credit(f)
+    if problem:
+        return problem
     photon, shadow = f["kind"] == "photon", f["kind"] == "shadow"
     if photon and (f.get("cull_box") is None or f["eye_iteration"] is not None):
         return "field 'cull_box' is required and 'eye_iteration' must be None for photons"
@@ -378,6 +406,7 @@ _SPECS = (
          (plain("ends", ("ends", np.int64, (), None), rows=len(END_NAMES)),
           plain("job_paths", ("job_ids", np.int64, (), None), ("job_fed", np.int64, (), None),
                 ("job_left", np.int64, (), None)),
+          _credit(),
           record("deposits", PhotonDeposits, optional=True),
           record("hits", HitPoints, optional=True),
           plain("emitted", ("emitted_pixels", np.int32, (), None),
@@ -392,8 +421,10 @@ _SPECS = (
     Spec("refused", _S2T, {"reason": STR}, any_version=True),
     Spec("peers", _S2T, {"table_version": INT, "peers": _List(_List(STR)), "keys": DATA},
          defaults={"keys": {}}),
-    Spec("photon_job", _S2T, {"chunk": INT}, (_cull_box(), record("batch", RayBatch))),
-    Spec("eye_job", _S2T, {"eye_iteration": INT, "chunk": INT}, (record("batch", RayBatch),)),
+    Spec("photon_job", _S2T, {"chunk": INT}, (_cull_box(), record("batch", RayBatch), _credit()),
+         check=_check_credit),
+    Spec("eye_job", _S2T, {"eye_iteration": INT, "chunk": INT}, (record("batch", RayBatch), _credit()),
+         check=_check_credit),
     Spec("chunk_data", _S2T, {"chunk": INT, "sha256": _Hex(), "part": INT, "parts": _Int(1),
                               "offset": INT, "file_bytes": INT},
          (plain("data", ("data", np.uint8, (), None)),), check=_check_chunk_data),
@@ -401,7 +432,7 @@ _SPECS = (
     Spec("portal_rays", _T2T, {"kind": _Choice("photon", "eye", "shadow"), "chunk": INT,
                                "eye_iteration": _Nullable(INT)},
          (_cull_box(optional=True), record("batch", RayBatch, optional=True),
-          record("shadows", ShadowRays, optional=True)),
+          record("shadows", ShadowRays, optional=True), _credit()),
          check=_check_portal_rays, defaults={"eye_iteration": None}),
 )
 MESSAGES: dict[str, Spec] = {s.name: s for s in _SPECS}

@@ -69,7 +69,7 @@ def test_cluster_renders_the_single_process_image(caustic, layout):
     assert k["photons_emitted"] >= PHOTONS
     assert k["photons_emitted"] == k["photons_completed"] == k["photons_committed"]
     assert c.statistics.stats.photons_emitted == k["photons_emitted"]
-    assert k["over_counted_paths"] == 0 and k["stale_paths"] == 0 and not s.jobs
+    assert k["over_credited_jobs"] == 0 and k["stale_paths"] == 0 and not s.jobs
     assert c.statistics.deposits_applied == k["deposits_received"]
     # Hit-point iterations complete exactly: iteration i has the hit points
     # of single-process SPPM's iteration i (eye rays depend only on it).
@@ -143,7 +143,7 @@ def test_a_tracer_joining_mid_render_gets_chunks_and_work(caustic):
     assert c.tracers[new].counters["rays_traced"] > 0
     k = c.server.counters
     assert k["photons_emitted"] == k["photons_completed"] == k["photons_committed"]
-    assert k["over_counted_paths"] == 0 and k["stale_paths"] == 0
+    assert k["over_credited_jobs"] == 0 and k["stale_paths"] == 0
     _assert_same_within_noise(c.image(), ref[5][0], ref[9][0])
 
 
@@ -200,5 +200,5 @@ def test_a_killed_tracer_loses_no_photon_and_counts_none_twice(caustic):
     # applied; discarded jobs' deposits never reached the statistics.
     assert k["photons_emitted"] - k["photons_discarded"] == k["photons_completed"] == k["photons_committed"]
     assert c.statistics.stats.photons_emitted == k["photons_committed"]
-    assert k["over_counted_paths"] == 0
+    assert k["over_credited_jobs"] == 0
     _assert_same_within_noise(c.image(), ref[5][0], ref[9][0])

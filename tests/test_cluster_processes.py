@@ -47,7 +47,7 @@ def test_local_cluster_renders_the_single_process_image(tmp_path, chunks, tracer
     assert c["photons_emitted"] >= PHOTONS
     assert c["photons_emitted"] == c["photons_completed"] == c["photons_committed"]
     assert summary["photons_applied"] == c["photons_committed"]
-    assert c["over_counted_paths"] == 0 and c["stale_paths"] == 0
+    assert c["over_credited_jobs"] == 0 and c["stale_paths"] == 0
     assert summary["jobs_in_flight"] == 0 and summary["iteration"] >= 1
     assert len(summary["tracers"]) == tracers
     assert all(t["results"] > 0 for t in summary["tracers"]), "a tracer did no work"

@@ -125,7 +125,7 @@ def _assert_exactly_once(summary: dict, tmp) -> None:
     lost = k["photons_emitted"] - k["photons_discarded"] - k["photons_completed"]
     assert lost == 0, k
     assert k["photons_completed"] == k["photons_committed"] == summary["photons_applied"]
-    assert k["over_counted_paths"] == 0, k
+    assert k["over_credited_jobs"] == 0, k
     assert summary["jobs_in_flight"] == 0
 
 
@@ -223,6 +223,6 @@ def test_a_tracer_added_mid_render_gets_work(tmp_path, failure_free):
     k = summary["counters"]
     assert {t["id"] for t in summary["tracers"]} == {"w0", "w1", "late"}
     assert k["photons_emitted"] - k["photons_discarded"] == k["photons_completed"] == k["photons_committed"]
-    assert k["over_counted_paths"] == 0 and k["tracers_evicted"] == 0
+    assert k["over_credited_jobs"] == 0 and k["tracers_evicted"] == 0
     _assert_ledger(tmp_path)
     assert_same_within_noise(img, failure_free[5], failure_free[9])

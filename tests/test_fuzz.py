@@ -107,7 +107,7 @@ def test_100k_mutated_frames(roles):
     base = None
     for k in range(FRAMES):
         frames = _mutate(valid[k % len(valid)], rng) if k % 10 else valid[k % len(valid)]
-        t0 = time.perf_counter()
+        t0 = time.process_time()     # CPU time: a shared machine's stalls are not the decoder's
         try:
             msg = wire.decode(frames)
         except wire.WireError as e:
@@ -115,7 +115,7 @@ def test_100k_mutated_frames(roles):
             assert "\n" not in str(e) and len(str(e)) < 400
             continue
         finally:
-            slowest = max(slowest, time.perf_counter() - t0)
+            slowest = max(slowest, time.process_time() - t0)
         decoded += 1
         _feed(server, tracer, msg)
         if tracer.queued_rays > 100_000:      # the tracer would trace these; here, forget them
@@ -125,7 +125,7 @@ def test_100k_mutated_frames(roles):
     current = tracemalloc.get_traced_memory()[0]
     tracemalloc.stop()
     assert decoded > 10_000 and errors > 50_000, (decoded, errors)
-    assert slowest < 0.5, f"one frame took {slowest:.3f} s"
+    assert slowest < 0.5, f"one frame took {slowest:.3f} s of CPU"
     assert current - base < 64 << 20, f"memory grew by {(current - base) >> 20} MiB"
     # Results for jobs that never existed were counted stale, and none of
     # their fabricated deposits is held for the statistics.

@@ -83,7 +83,7 @@ def test_sixteen_tracers_keep_the_server_bounded(tmp_path):
     assert max(s.get("photon_jobs_in_flight", 0) for s in statuses) >= 1000
     # Nothing dropped: every photon sent was completed and applied once.
     assert k["photons_emitted"] - k["photons_discarded"] == k["photons_completed"] == k["photons_committed"]
-    assert k["over_counted_paths"] == 0 and summary.get("undeliverable", 0) == 0
+    assert k["over_credited_jobs"] == 0 and summary.get("undeliverable", 0) == 0
     assert peak < SERVER_RSS_LIMIT, f"server peak RSS {peak >> 20} MiB"
     outbox = max((t.get("outbox_rays", 0) for s in statuses for t in s.get("tracers", [])), default=0)
     assert outbox < OUTBOX_RAYS_LIMIT, f"a tracer held {outbox} rays for its peers"

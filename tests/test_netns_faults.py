@@ -230,7 +230,7 @@ def _assert_exact(res, healthy=None, photons=PHOTONS) -> None:
     assert k["photons_emitted"] >= photons, (k, tails)   # discarded photons count towards the limit
     assert k["photons_emitted"] - k["photons_discarded"] == k["photons_completed"] == k["photons_committed"] \
         == s["photons_applied"], (k, s["photons_applied"], tails)
-    assert k["over_counted_paths"] == 0, (k, tails)
+    assert k["over_credited_jobs"] == 0, (k, tails)
     assert s["jobs_in_flight"] == 0, (s["jobs_in_flight"], tails)
     # From outside the server: its ledger's jobs, re-traced here, give its totals.
     problems = ledger.check(ChunkStore.open(str(res["store"])), res["ledger"])

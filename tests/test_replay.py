@@ -24,8 +24,10 @@ def test_a_relabelled_step_is_a_valid_results_message_for_the_package():
     rng = np.random.default_rng(1)
     fields, paths = _recorded(rng)
     jobs = np.repeat(np.array([40, 7, 12], np.int64), [1024, 1024, 512])
-    out = replay._relabelled(fields, paths, jobs, chunk=0, queued=0)
+    credit = (np.array([40, 7, 12, 12], np.int64), np.array([0, 1, 2, 2], np.int64))
+    out = replay._relabelled(fields, paths, jobs, chunk=0, queued=0, credit=credit)
     msg = wire.decode(wire.encode("results", **out))
+    assert msg.credit_job.tolist() == [40, 7, 12, 12] and msg.credit_exp.tolist() == [0, 1, 2, 2]
     assert sorted(msg.job_ids.tolist()) == [7, 12, 40]
     assert dict(zip(msg.job_ids.tolist(), msg.job_fed.tolist())) == {7: 1024, 12: 512, 40: 1024}
     assert not msg.job_left.any()

@@ -62,30 +62,41 @@ def test_unregistered_sender_gets_an_error(state):
     assert out[0].type == "error" and "not registered" in out[0].fields["reason"]
 
 
-def _results(job_ids, job_ended, deposits_job=()):
-    """Paths of each job fed into a step and ended there (none left)."""
+def _results(job_ids, job_ended, deposits_job=(), credit=()):
+    """Paths of each job fed into a step and ended there (none left), and
+    the credit it returns: [(job, exponent)]."""
     ended = int(np.sum(job_ended))
     dep = PhotonDeposits(*(np.zeros((len(deposits_job), 3), np.float32) for _ in range(4)),
                          job=np.asarray(deposits_job, np.int64))
     return _msg("results", chunk=0, ends=np.array([0, ended, 0, 0, 0], np.int64),
                 job_ids=np.asarray(job_ids, np.int64), job_fed=np.asarray(job_ended, np.int64),
                 job_left=np.zeros(len(job_ids), np.int64),
-                deposits=dep)
+                credit_job=np.array([j for j, _ in credit], np.int64),
+                credit_exp=np.array([e for _, e in credit], np.int64), deposits=dep)
+
+
+def _shares(out, j):
+    """The credit terms of job j its job messages carried."""
+    return [(j, e) for o in out if o.type in ("photon_job", "eye_job")
+            for jj, e in zip(o.fields["credit_job"].tolist(), o.fields["credit_exp"].tolist()) if jj == j]
 
 
 def test_a_job_counts_once_when_all_its_paths_have_ended(state):
     _register(state, "a")
     state.cull_box = np.array([[-1e9] * 3, [1e9] * 3])
     state.eye_completed = 1                       # hit points exist
-    state.tick(0.0)
+    out = state.tick(0.0)
     j = next(j for j, job in state.jobs.items() if job.kind == "photon")
-    paths, segments = state.jobs[j].paths, state.jobs[j].open
-    state.on_message("a", _results([j], [segments - 1], deposits_job=[j, j]), 0.1)
+    paths, shares = state.jobs[j].paths, _shares(out, j)
+    # Half of the first share back: all paths ended, but credit is missing
+    # (a message still on its way could hold deposits).
+    half = [(j, shares[0][1] + 1)]
+    state.on_message("a", _results([j], [paths - 1], deposits_job=[j, j], credit=half), 0.1)
     assert j in state.jobs and state.counters["photons_completed"] == 0
-    state.on_message("a", _results([j], [1]), 0.2)
+    state.on_message("a", _results([j], [1], credit=half + shares[1:]), 0.2)
     assert j not in state.jobs and state.counters["photons_completed"] == paths
     # Late or duplicated reports of a finished job are stale, never counted.
-    state.on_message("a", _results([j], [5]), 0.3)
+    state.on_message("a", _results([j], [5], credit=half), 0.3)
     assert state.counters["stale_paths"] == 5 and state.counters["photons_completed"] == paths
     state.stop_emitting()
     state.jobs.clear()
@@ -100,9 +111,9 @@ def test_deposits_of_unfinished_jobs_wait_for_their_job(state):
     state.cull_box = np.array([[-1e9] * 3, [1e9] * 3])
     state.eye_completed = 1
     state.settings.photon_batch = state._next_batch_at = 3
-    state.tick(0.0)
+    out = state.tick(0.0)
     j1, j2 = [j for j, job in state.jobs.items() if job.kind == "photon"][:2]
-    state.on_message("a", _results([j1], [state.jobs[j1].open], deposits_job=[j1, j2, j2]), 0.1)
+    state.on_message("a", _results([j1], [512], deposits_job=[j1, j2, j2], credit=_shares(out, j1)), 0.1)
     u = [u for u in state.updates if u.kind == "photons"]
     assert len(u) == 1 and u[0].deposits.job.tolist() == [j1]
     assert u[0].photons_emitted == 512

@@ -72,7 +72,8 @@ def test_garbage_gets_an_error_and_the_server_keeps_serving(server):
     assert _reply(d).type == "error"
     d.send(wire.encode("results", chunk=0, ends=np.zeros(5, np.int64),
                                  job_ids=np.zeros(0, np.int64), job_fed=np.zeros(0, np.int64),
-                                 job_left=np.zeros(0, np.int64)))
+                                 job_left=np.zeros(0, np.int64), credit_job=np.zeros(0, np.int64),
+                          credit_exp=np.zeros(0, np.int64)))
     msg = _reply(d)
     assert msg.type == "error" and "not registered" in msg.reason
     # Still serving: a proper registration is welcomed, then heartbeats come.

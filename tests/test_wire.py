@@ -37,10 +37,21 @@ def random_record(cls, n: int, rng: np.random.Generator):
     return cls(**cols)
 
 
+NO_CREDIT = dict(credit_job=np.zeros(0, np.int64), credit_exp=np.zeros(0, np.int64))
+
+
 def sample_fields(msg_type: str, n: int, rng: np.random.Generator, variant: int = 0) -> dict:
     """Valid fields for `msg_type` with records of `n` rows; `variant`
     picks which optional parts a results message carries (and the kind
     of a portal package: 0, 2 photon, 1 eye, 3 shadow)."""
+    fields = _sample_fields(msg_type, n, rng, variant)
+    if msg_type in ("results", "photon_job", "eye_job", "portal_rays"):
+        fields.update(credit_job=rng.integers(0, 1000, n % 4, dtype=np.int64),
+                      credit_exp=rng.integers(0, 300, n % 4, dtype=np.int64))
+    return fields
+
+
+def _sample_fields(msg_type: str, n: int, rng: np.random.Generator, variant: int) -> dict:
     box = np.array([[-1.0, -2.0, -3.0], [4.0, 5.0, np.inf]])
     batch = random_record(RayBatch, n, rng)
     if msg_type == "register":
@@ -158,13 +169,15 @@ def test_records_come_back_as_library_classes():
     assert msg.cull_box.dtype == np.float64 and msg.cull_box[1, 2] == np.inf
     empty = decode(encode("results", chunk=0, ends=np.zeros(5, np.int64),
                           job_ids=np.zeros(0, np.int64), job_fed=np.zeros(0, np.int64),
-                          job_left=np.zeros(0, np.int64)))
+                          job_left=np.zeros(0, np.int64), credit_job=np.zeros(0, np.int64),
+                          credit_exp=np.zeros(0, np.int64)))
     assert empty.deposits is None and empty.hits is None and empty.emitted_pixels is None
 
 
 def test_encode_is_zero_copy_on_the_senders_arrays():
     batch = random_record(RayBatch, 1000, np.random.default_rng(2))
-    frames = encode("eye_job", eye_iteration=0, chunk=0, batch=batch)
+    frames = encode("eye_job", eye_iteration=0, chunk=0, batch=batch, credit_job=np.zeros(1, np.int64),
+                    credit_exp=np.zeros(1, np.int64))
     for col, view in zip(RayBatch.SCHEMA, frame_views(frames)):
         assert np.shares_memory(view, getattr(batch, col)), col
 
@@ -261,8 +274,8 @@ CASES = {
                        ["photon_job", "'arrays'", "missing"]),
     "arrays not a list": (_header_edit(lambda h: h.update(arrays={})), ["photon_job", "'arrays'", "list"]),
     "array entry malformed": (_header_edit(lambda h: h["arrays"][0].pop("shape")), ["photon_job", "entry 0"]),
-    "frame missing": (("photon_job", 0, lambda h, f: f.pop()), ["photon_job", "'arrays'", "lists 9 arrays"]),
-    "extra frame": (("photon_job", 0, lambda h, f: f.append(b"")), ["photon_job", "10 array frames"]),
+    "frame missing": (("photon_job", 0, lambda h, f: f.pop()), ["photon_job", "'arrays'", "lists 11 arrays"]),
+    "extra frame": (("photon_job", 0, lambda h, f: f.append(b"")), ["photon_job", "12 array frames"]),
     "array missing": (("photon_job", 0, lambda h, f: _drop_array("batch.rng")(h, f)),
                       ["photon_job", "'batch.rng'", "missing"]),
     "unknown array": (("photon_job", 0, lambda h, f: h["arrays"][0].update(name="batch.spin")),
@@ -280,9 +293,10 @@ CASES = {
                    ["photon_job", "'batch.pixel'", "shape"]),
     "negative length": (("photon_job", 0, lambda h, f: h["arrays"][0].update(shape=[-4, 3])),
                         ["photon_job", "shape"]),
-    "too large": (("photon_job", 0, lambda h, f: h["arrays"][-1].update(shape=[1 << 40])),
+    "too large": (("photon_job", 0, lambda h, f: h["arrays"][_index(h, "batch.job") - 1].update(shape=[1 << 40])),
                   ["photon_job", "'batch.job'", "cap"]),
-    "frame size": (("photon_job", 0, lambda h, f: f.__setitem__(-1, f[-1][:-1])),
+    "frame size": (("photon_job", 0, lambda h, f: f.__setitem__(_index(h, "batch.job"),
+                                                                f[_index(h, "batch.job")][:-1])),
                    ["photon_job", "'batch.job'", "31 bytes", "needs 32"]),
     "unequal record lengths": (("photon_job", 0, lambda h, f: _set_array(h, f, "batch.depth",
                                                                          np.zeros(3, np.int32))),
@@ -335,7 +349,7 @@ def test_each_malformed_message_is_refused_naming_type_and_field(case):
 
 def test_infinite_cull_box_means_no_culling_and_is_accepted():
     msg = decode(encode("photon_job", chunk=0, cull_box=np.array([[-np.inf] * 3, [np.inf] * 3]),
-                        batch=RayBatch.empty()))
+                        batch=RayBatch.empty(), **NO_CREDIT))
     assert np.isinf(msg.cull_box).all()
 
 
@@ -364,7 +378,8 @@ def test_encode_wants_both_emitted_arrays():
     with pytest.raises(WireError, match="'emitted_rgb' must come with 'emitted_pixels'"):
         encode("results", chunk=0, eye_iteration=0, ends=np.zeros(5, np.int64),
                job_ids=np.zeros(0, np.int64), job_fed=np.zeros(0, np.int64),
-                          job_left=np.zeros(0, np.int64),
+                          job_left=np.zeros(0, np.int64), credit_job=np.zeros(0, np.int64),
+                          credit_exp=np.zeros(0, np.int64),
                emitted_pixels=np.zeros(2, np.int32))
 
 
@@ -373,7 +388,7 @@ def test_encode_takes_numpy_scalars_and_missing_nullable_fields():
                         endpoint="tcp://x:1", has_store=np.bool_(False)))
     assert msg.store_key is None and msg.has_store is False
     assert decode(encode("eye_job", chunk=np.int32(3), eye_iteration=np.uint64(1),
-                         batch=RayBatch.empty())).chunk == 3
+                         batch=RayBatch.empty(), **NO_CREDIT)).chunk == 3
 
 
 # -- version mismatch ------------------------------------------------------------

@@ -34,7 +34,7 @@ import time
 import numpy as np
 
 from services.tracer.node import TracerProcess
-from services.tracer.state import SERVER, TracerState
+from services.tracer.state import SERVER, TracerState, concat_credit
 from services.wire import Out
 
 RECORDED_STEPS = 16
@@ -66,13 +66,14 @@ class ReplayState(TracerState):
         fields, paths = self.recorded[self.counters["replayed_steps"] % len(self.recorded)]
         self.counters["replayed_steps"] += 1
         self.counters["rays_traced"] += len(jobs)
-        return [Out(SERVER, "results", _relabelled(fields, paths, jobs, view.index, self.queued_rays))]
+        return [Out(SERVER, "results", _relabelled(fields, paths, jobs, view.index, self.queued_rays,
+                                                   concat_credit(taken)))]
 
 
-def _relabelled(fields: dict, paths: int, jobs: np.ndarray, chunk: int, queued: int) -> dict:
+def _relabelled(fields: dict, paths: int, jobs: np.ndarray, chunk: int, queued: int, credit: tuple) -> dict:
     """A recorded step's results for a package of paths of `jobs`: deposits
     cycled to the package's size and spread over its jobs, every path
-    ended."""
+    ended, so all of the package's `credit` returned."""
     ids, fed = np.unique(jobs, return_counts=True)
     rec = fields["deposits"]
     n = int(round(len(rec) * len(jobs) / max(paths, 1)))
@@ -81,7 +82,8 @@ def _relabelled(fields: dict, paths: int, jobs: np.ndarray, chunk: int, queued: 
     ends = np.asarray(fields["ends"]) * len(jobs) // max(paths, 1)
     ends[np.argmax(ends)] += len(jobs) - ends.sum()      # the wire checks: every path ended once
     return dict(chunk=chunk, ends=ends, culled=0, deposits=deposits, job_ids=ids.astype(np.int64),
-                job_fed=fed.astype(np.int64), job_left=np.zeros(len(ids), np.int64), queued=queued)
+                job_fed=fed.astype(np.int64), job_left=np.zeros(len(ids), np.int64), queued=queued,
+                credit_job=credit[0], credit_exp=credit[1])
 
 
 class ReplayTracer(TracerProcess):

@@ -138,8 +138,7 @@ class ServerProcess:
                 self._checkpoint()
             self._updates.put(None)
             worker.join()
-            self.statistics.end_ledger((self.state.counters["deposits_late"], self.state.flux_late,
-                                        self.state.late_at_resume, self.state.counters["hit_points_late"]))
+            self.statistics.end_ledger(self.state.counters["deposits_late"])
             self._write_image()
             self._say_goodbye()
             restore()

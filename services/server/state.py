@@ -42,6 +42,7 @@ from dosppm_core.jobs import END_NAMES, HitPoints, PhotonDeposits, RayBatch
 from dosppm_core.settings import RenderSettings
 from dosppm_core.sppm.iteration import EyePass
 from dosppm_core.trace import NO_CULL, emit_photon_jobs, eye_ray_job
+from services.credit import Account, by_job, split as split_credit, whole
 from services.wire import JOB_MESSAGES, PROTOCOL_VERSION, Out
 
 MESSAGE_RAYS = 32_768         # rays per job message the server aims for
@@ -90,7 +91,7 @@ class Job:
     kind: str                        # "photon" or "eye"
     paths: int                       # N_j, counted as emitted when complete
     eye_iteration: int | None = None
-    open: int = 0                    # path segments sent or passed on, not yet traced
+    credit: Account = field(default_factory=Account)   # returned so far (services/credit.py)
     sent: bool = False               # all its paths have left the server
     progress_s: float = 0.0          # when a result last touched it (the watchdog's clock)
     # The photon job whose random streams this one traces: itself, or the
@@ -137,6 +138,13 @@ def _within_own_boxes(deposits: PhotonDeposits, jobs: tuple) -> PhotonDeposits:
     p = deposits.position
     inside = np.all((p >= box[:, 0]) & (p <= box[:, 1]), axis=1) | (ids[at] != deposits.job)
     return deposits if inside.all() else deposits.take(inside)
+
+
+def _package(parts: list) -> dict:
+    """A job message's batch and credit from its (batch, credit share) parts."""
+    return dict(batch=RayBatch.concat([b for b, _ in parts]),
+                credit_job=np.concatenate([c[0] for _, c in parts]),
+                credit_exp=np.concatenate([c[1] for _, c in parts]))
 
 
 def assign_chunks(chunk_count: int, endpoints: list[str]) -> list[list[str]]:
@@ -203,13 +211,12 @@ class ServerState:
         self.counters = {"photons_emitted": 0, "photons_completed": 0, "photons_committed": 0,
                          "photon_jobs_completed": 0, "eye_jobs_completed": 0, "hit_points": 0,
                          "deposits_received": 0, "culled": 0, "stale_paths": 0,
-                         "over_counted_paths": 0, "results": 0, "updates": 0,
+                         "over_credited_jobs": 0, "results": 0, "updates": 0,
                          "photons_discarded": 0, "jobs_discarded": 0, "tracers_evicted": 0,
                          "eye_iterations_restarted": 0, "deposits_discarded": 0, "deposits_stale": 0,
-                         "deposits_late": 0, "hit_points_late": 0, "refused": 0, "tracers_rejoined": 0,
+                         "deposits_late": 0, "refused": 0, "tracers_rejoined": 0,
                          "jobs_timed_out": 0, "welcomes_resent": 0, "job_messages_lost": 0}
         self.path_ends = np.zeros(len(END_NAMES), np.int64)
-        self._init_late()
 
     # -- tracers -------------------------------------------------------------------
     def welcome_fields(self, t: TracerInfo) -> dict:
@@ -348,51 +355,34 @@ class ServerState:
             live = status == IN_FLIGHT
             deposits = msg.deposits if live.all() else msg.deposits.take(live)
             c["deposits_stale"] += len(msg.deposits) - len(deposits)
-            self._note_late(msg.deposits, status == COMPLETE)
+            # Of a job already complete: impossible by credit (a duplicated
+            # message would do it); counted, and the ledger's check fails.
+            c["deposits_late"] += int(np.sum(status == COMPLETE))
             if len(deposits):
                 self._held.append(deposits)
                 self._held_rows += len(deposits)
                 c["deposits_received"] += len(deposits)
         if msg.hits is not None and self.eye is not None and msg.eye_iteration == self.eye.index:
             self.eye.results.add(msg.hits, msg.emitted_pixels, msg.emitted_rgb)
-        elif msg.hits is not None and msg.eye_iteration in self._eye_done:
-            # The same race as late deposits: an eye step whose shadow rays
-            # all left its chunk ends no path of the job on balance.
-            self.counters["hit_points_late"] += len(msg.hits)
-        for j, fed, left in zip(msg.job_ids.tolist(), msg.job_fed.tolist(), msg.job_left.tolist()):
-            self._segments(j, left - fed, stale=fed - left)
+        live = np.isin(msg.job_ids, np.fromiter(self.jobs, np.int64, len(self.jobs)))
+        c["stale_paths"] += int((msg.job_fed - msg.job_left)[~live].sum())   # never counted twice
+        for j, exps in by_job(msg.credit_job, msg.credit_exp).items():
+            self._credit(j, exps)
         self._maybe_batch()
         return []
 
-    def _init_late(self) -> None:
-        """What the ledger's check needs besides the late counters: the flux
-        of the late deposits, those counted before a resumed checkpoint, and
-        the eye iterations installed (their late hit points are counted)."""
-        self.flux_late, self.late_at_resume = np.zeros(3), 0
-        self._eye_done: set[int] = set()
-
-    def _note_late(self, deposits: PhotonDeposits, late: np.ndarray) -> None:
-        """Deposits of a job already complete, dropped: counted with their
-        flux for the ledger (services/ledger.py). A known race, issue 15: a
-        step whose paths all left its chunk ends none, so its message, with
-        the deposits made on the way, may reach the server after the
-        downstream tracer's report has completed the job."""
-        if late.any():
-            self.counters["deposits_late"] += int(late.sum())
-            self.flux_late += deposits.flux[late].sum(axis=0, dtype=np.float64)
-
-    def _segments(self, j: int, change: int, stale: int = 0) -> None:
-        """Open path segments of job j change by `change`; at zero, once
-        all its paths were sent, the job is complete (exact accounting)."""
+    def _credit(self, j: int, exps: list[int]) -> None:
+        """Credit returned for job j (services/credit.py); once it sums to 1
+        and all its paths were sent, the job is complete, with everything it
+        produced in hand."""
         job = self.jobs.get(j)
         if job is None:
-            self.counters["stale_paths"] += stale   # a finished or unknown job: never counted twice
-            return
-        job.open += change
+            return                  # a finished, discarded or unknown job
+        job.credit.add(exps)
         job.progress_s = self._now
-        if job.open < 0:
-            self.counters["over_counted_paths"] += -job.open
-        if job.open <= 0 and job.sent:
+        if job.credit.over:
+            self.counters["over_credited_jobs"] += 1
+        if job.credit.complete and job.sent:
             self._complete(j, job)
 
     def _complete(self, j: int, job: Job) -> None:
@@ -415,7 +405,6 @@ class ServerState:
         hits, emitted_light = e.results.complete()
         self.updates.append(Update("hits", hits=hits, emitted_light=emitted_light, eye_iteration=e.index))
         self.counters["hit_points"] += len(hits)
-        self._eye_done.add(e.index)
         self.eye, self.eye_completed = None, self.eye_completed + 1
 
     def _maybe_batch(self, final: bool = False) -> None:
@@ -649,24 +638,26 @@ class ServerState:
             batch = eye_ray_job(self.header, s.seed, e.index, start, count)
             batch.job[:] = j
             self._route(j, batch, parts)
-        return [Out(tid, "eye_job", dict(eye_iteration=e.index, chunk=k, batch=RayBatch.concat(b)))
+        return [Out(tid, "eye_job", dict(eye_iteration=e.index, chunk=k, **_package(b)))
                 for (tid, k), b in parts.items()]
 
     def _route(self, j: int, batch: RayBatch, parts: dict) -> set:
         """Split a new job's paths by start chunk into `parts` per (tracer,
-        chunk); paths that miss the scene end here. Returns the tracers."""
+        chunk), each with its share of the job's credit; paths that miss
+        the scene end here. Returns the tracers."""
         routed, lost = start_chunks(self.tree, batch)
         self.path_ends[1] += lost           # ESCAPED, before any tracer saw them
+        (_, kept), shares = split_credit(*whole(j), [part.job for part in routed.values()])
         receivers = set()
-        for k, part in routed.items():
+        for (k, part), share in zip(routed.items(), shares):
             t = self._least_loaded(k)
             t.sent_since_report += len(part)
             t.rays_sent += len(part)
-            parts.setdefault((t.id, k), []).append(part)
+            parts.setdefault((t.id, k), []).append((part, share))
             receivers.add(t.id)
         self.jobs[j].sent = True
         self.jobs[j].progress_s = self._now
-        self._segments(j, len(batch) - lost)
+        self._credit(j, kept.tolist())      # the server's own share: all of it when none was sent
         return receivers
 
     def _send_photon_jobs(self) -> list[Out]:
@@ -690,10 +681,9 @@ class ServerState:
 
     def _flush(self, parts: dict, box, full_only: bool) -> list[Out]:
         out = []
-        for key in [k for k, b in parts.items() if not full_only or sum(map(len, b)) >= MESSAGE_RAYS]:
+        for key in [k for k, b in parts.items() if not full_only or sum(len(p) for p, _ in b) >= MESSAGE_RAYS]:
             tid, k = key
-            out.append(Out(tid, "photon_job", dict(chunk=k, cull_box=box,
-                                                   batch=RayBatch.concat(parts.pop(key)))))
+            out.append(Out(tid, "photon_job", dict(chunk=k, cull_box=box, **_package(parts.pop(key)))))
         return out
 
     # -- checkpoints ---------------------------------------------------------------------
@@ -703,8 +693,7 @@ class ServerState:
         return {"store_key": self.store_key, "settings": self.settings_dict(),
                 "next_job": self.next_job, "next_eye_iteration": self.eye_started,
                 "counters": {"photons": self.photons_before + self.counters["photons_committed"],
-                             "eye_iterations": self.iterations_before + self.eye_completed},
-                "late": [self.counters["deposits_late"], self.flux_late.tolist()]}
+                             "eye_iterations": self.iterations_before + self.eye_completed}}
 
     def settings_dict(self) -> dict:
         s = self.settings
@@ -718,11 +707,6 @@ class ServerState:
         self.eye_started = int(doc["next_eye_iteration"])
         self.photons_before = int(doc["counters"]["photons"])
         self.iterations_before = int(doc["counters"]["eye_iterations"])
-        late, flux = doc.get("late", (0, (0.0, 0.0, 0.0)))    # for the ledger
-        self.counters["deposits_late"], self.flux_late = int(late), np.asarray(flux, np.float64)
-        # Some of these may belong to jobs committed after the checkpoint,
-        # whose ledger records the resumed render cut: the check allows them.
-        self.late_at_resume = int(late)
         self._eye_restart = True      # hit points first: photons wait for their box
 
     # -- the end ---------------------------------------------------------------------------

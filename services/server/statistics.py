@@ -59,15 +59,13 @@ class ServerStatistics:
         self.update_seconds += time.perf_counter() - t0
         return box
 
-    def end_ledger(self, late: tuple) -> None:
+    def end_ledger(self, deposits_late: int) -> None:
         """The totals, once every update is applied (the ledger's last
-        record), with what the state dropped as late: (deposits, their flux,
-        deposits already at a resumed checkpoint, hit points)."""
+        record), with the deposits the state dropped because their job was
+        already complete (none, by credit: services/credit.py)."""
         if self.ledger is not None:
             with self.lock:
-                self.ledger.end(dict(self.sppm.totals(), deposits_late=int(late[0]),
-                                     flux_late=np.asarray(late[1], np.float64).tolist(),
-                                     late_at_resume=int(late[2]), hit_points_late=int(late[3])))
+                self.ledger.end(dict(self.sppm.totals(), deposits_late=int(deposits_late)))
 
     def image(self) -> np.ndarray:
         with self.lock:

@@ -29,17 +29,32 @@ from dosppm_core.chunks.cache import ChunkCache, next_with_work
 from dosppm_core.chunks.view import trace_eye_in_chunk, trace_photons_in_chunk, trace_shadows_in_chunk
 from dosppm_core.jobs import HitPoints, RayBatch, ShadowRays, paths_per_job
 from dosppm_core.trace import light_arrays
+from services.credit import split as split_credit
 from services.wire import Out
 
 SERVER = "server"           # Out.dest of messages for the server
 STEP_RAYS = 65_536          # rays coalesced into one traced batch
 DWELL_STEPS = 32            # steps on one chunk before moving on when not all fit
+_CARRY_CREDIT = ("photon_job", "eye_job", "portal_rays")
 
 
 @dataclass
 class Package:
     batch: RayBatch | ShadowRays
-    cull_box: np.ndarray | None = None     # photons only
+    credit: tuple                           # (job ids, exponents): its share of its jobs' credit
+    cull_box: np.ndarray | None = None      # photons only
+
+
+def own_credit(batch) -> tuple:
+    """Credit 1 for each job in `batch`: for packages made outside the
+    protocol (the ledger's re-trace, tests), whose credit nobody sums."""
+    ids = np.unique(batch.job)
+    return ids.astype(np.int64), np.zeros(len(ids), np.int64)
+
+
+def concat_credit(packages: list[Package]) -> tuple:
+    return (np.concatenate([p.credit[0] for p in packages]),
+            np.concatenate([p.credit[1] for p in packages]))
 
 
 @dataclass
@@ -110,31 +125,34 @@ class TracerState:
 
     def _hand_over(self, k: int) -> list[Out]:
         q = self.queues.pop(k)
-        out = [self._portal(k, "photon", p.batch, cull_box=p.cull_box) for p in q.photons]
-        out += [self._portal(k, "eye", p.batch, eye_iteration=e) for e, ps in q.eye.items() for p in ps]
-        out += [self._portal(k, "shadow", p.batch, eye_iteration=e) for e, ps in q.shadows.items() for p in ps]
+        out = [self._portal(k, "photon", p.batch, p.credit, cull_box=p.cull_box) for p in q.photons]
+        out += [self._portal(k, "eye", p.batch, p.credit, eye_iteration=e) for e, ps in q.eye.items() for p in ps]
+        out += [self._portal(k, "shadow", p.batch, p.credit, eye_iteration=e)
+                for e, ps in q.shadows.items() for p in ps]
         self.counters["forwarded_rays"] += q.rays
         return [o for o in out if o is not None]
 
     # -- incoming packages -------------------------------------------------------
     def receive(self, kind: str, chunk: int, batch: RayBatch | ShadowRays, cull_box=None,
-                eye_iteration: int | None = None) -> list[Out]:
-        """Queue a package for `chunk` (an emission job or portal package),
-        or pass it on when another tracer serves that chunk."""
+                eye_iteration: int | None = None, credit: tuple | None = None) -> list[Out]:
+        """Queue a package for `chunk` (an emission job or portal package)
+        with its share of credit (None: `own_credit`), or pass it on when
+        another tracer serves that chunk."""
         if not 0 <= chunk < len(self.owners):
             raise ValueError(f"chunk {chunk} out of range (scene has {len(self.owners)})")
         if not len(batch):
             return []
+        credit = own_credit(batch) if credit is None else credit
         if not self.serves(chunk):
             self.counters["forwarded_rays"] += len(batch)
-            out = self._portal(chunk, kind, batch, cull_box=cull_box, eye_iteration=eye_iteration)
+            out = self._portal(chunk, kind, batch, credit, cull_box=cull_box, eye_iteration=eye_iteration)
             return [] if out is None else [out]
         q = self.queues.setdefault(chunk, ChunkQueue())
         if kind == "photon":
-            q.photons.append(Package(batch, np.asarray(cull_box, np.float64)))
+            q.photons.append(Package(batch, credit, np.asarray(cull_box, np.float64)))
         else:
             queues = q.shadows if kind == "shadow" else q.eye
-            queues.setdefault(int(eye_iteration), deque()).append(Package(batch))
+            queues.setdefault(int(eye_iteration), deque()).append(Package(batch, credit))
         q.rays += len(batch)
         return []
 
@@ -152,15 +170,16 @@ class TracerState:
         """A decoded message from the server or a peer."""
         if msg.type == "peers":
             return self.set_peers(msg.table_version, msg.peers)
+        credit = (msg.credit_job, msg.credit_exp) if msg.type in _CARRY_CREDIT else None
         if msg.type == "photon_job":
-            return self.receive("photon", msg.chunk, msg.batch, cull_box=msg.cull_box)
+            return self.receive("photon", msg.chunk, msg.batch, cull_box=msg.cull_box, credit=credit)
         if msg.type == "eye_job":
-            return self.receive("eye", msg.chunk, msg.batch, eye_iteration=msg.eye_iteration)
+            return self.receive("eye", msg.chunk, msg.batch, eye_iteration=msg.eye_iteration, credit=credit)
         if msg.type == "portal_rays":
             rays = msg.shadows if msg.kind == "shadow" else msg.batch
             self.counters["portal_rays_in"] += len(rays)
             return self.receive(msg.kind, msg.chunk, rays, cull_box=msg.cull_box,
-                                eye_iteration=msg.eye_iteration)
+                                eye_iteration=msg.eye_iteration, credit=credit)
         return []
 
     @property
@@ -223,31 +242,32 @@ class TracerState:
         return taken
 
     def _trace_eye(self, view, q: ChunkQueue) -> list[Out]:
-        e, batch = self._take_iteration(q, q.eye, RayBatch)
+        e, batch, credit = self._take_iteration(q, q.eye, RayBatch)
         hits, (pix, rgb), ends, outgoing, shadows = trace_eye_in_chunk(view, batch, self.max_depth,
                                                                        self.lights)
         fields = dict(chunk=view.index, eye_iteration=e, ends=ends, hits=hits, emitted_pixels=pix,
                       emitted_rgb=rgb)
-        return self._after_trace(batch, fields, [("eye", outgoing), ("shadow", shadows)], eye_iteration=e)
+        return self._after_trace(batch, credit, fields, [("eye", outgoing), ("shadow", shadows)],
+                                 eye_iteration=e)
 
     def _trace_shadows(self, view, q: ChunkQueue) -> list[Out]:
-        e, batch = self._take_iteration(q, q.shadows, ShadowRays)
+        e, batch, credit = self._take_iteration(q, q.shadows, ShadowRays)
         (pix, rgb), ends, outgoing = trace_shadows_in_chunk(view, batch)
         fields = dict(chunk=view.index, eye_iteration=e, ends=ends, hits=HitPoints.empty(),
                       emitted_pixels=pix, emitted_rgb=rgb)
         outgoing = {k: [part] for k, part in outgoing.items()}
-        return self._after_trace(batch, fields, [("shadow", outgoing)], eye_iteration=e)
+        return self._after_trace(batch, credit, fields, [("shadow", outgoing)], eye_iteration=e)
 
     def _take_iteration(self, q: ChunkQueue, queues: dict, record):
-        """(eye iteration, coalesced batch) of the oldest eye iteration's
-        packages waiting in `queues`."""
+        """(eye iteration, coalesced batch, its credit) of the oldest eye
+        iteration's packages waiting in `queues`."""
         e = min(queues)
         taken = self._take(queues[e])
         if not queues[e]:
             del queues[e]
         batch = record.concat([p.batch for p in taken])
         q.rays -= len(batch)
-        return e, batch
+        return e, batch, concat_credit(taken)
 
     def _trace_photons(self, view, q: ChunkQueue) -> list[Out]:
         taken = self._take(q.photons)
@@ -257,40 +277,44 @@ class TracerState:
         deposits, ends, culled, outgoing = trace_photons_in_chunk(view, batch, box, self.max_depth,
                                                                   self.deposit_from)
         fields = dict(chunk=view.index, ends=ends, culled=int(culled), deposits=deposits)
-        return self._after_trace(batch, fields, [("photon", outgoing)], cull_box=box)
+        return self._after_trace(batch, concat_credit(taken), fields, [("photon", outgoing)], cull_box=box)
 
-    def _after_trace(self, batch, fields, outgoing, **extra) -> list[Out]:
-        """Results go out before the portal packages they preceded, so the
-        server sees a path's deposits no later than (in practice) its end.
+    def _after_trace(self, batch, credit, fields, outgoing, **extra) -> list[Out]:
+        """The step's results for the server and its packages leaving.
         `outgoing` is [(kind, {chunk: [records]})]: the paths leaving, whose
-        job ids the results count as left (exact accounting)."""
+        job ids the results count as left. The batch's credit is split
+        between the leaving packages and the results (services/credit.py),
+        which return a share of every job they carry deposits or hit points of."""
         self.counters["rays_traced"] += len(batch)
+        leaving = [(kind, chunk, type(parts[0]).concat(parts))
+                   for kind, out in outgoing for chunk, parts in out.items()]
         fields["job_ids"], fields["job_fed"], fields["job_left"] = paths_per_job(
-            [batch.job], [b.job for _kind, out in outgoing for parts in out.values() for b in parts])
+            [batch.job], [b.job for _kind, _chunk, b in leaving])
+        (fields["credit_job"], fields["credit_exp"]), shares = split_credit(
+            *credit, [b.job for _kind, _chunk, b in leaving])
         portal = []
-        for kind, out in outgoing:
-            for chunk, parts in out.items():
-                merged = type(parts[0]).concat(parts)
-                if self.serves(chunk):
-                    portal += self.receive(kind, chunk, merged, **extra)
-                else:
-                    self.counters["portal_rays_out"] += len(merged)
-                    o = self._portal(chunk, kind, merged, **extra)
-                    portal += [] if o is None else [o]
+        for (kind, chunk, merged), share in zip(leaving, shares):
+            if self.serves(chunk):
+                portal += self.receive(kind, chunk, merged, credit=share, **extra)
+            else:
+                self.counters["portal_rays_out"] += len(merged)
+                o = self._portal(chunk, kind, merged, share, **extra)
+                portal += [] if o is None else [o]
         fields["queued"] = self.queued_rays
         return [Out(SERVER, "results", fields), *portal]
 
-    def _portal(self, chunk: int, kind: str, batch: RayBatch, cull_box=None,
+    def _portal(self, chunk: int, kind: str, batch: RayBatch, credit: tuple, cull_box=None,
                 eye_iteration: int | None = None) -> Out | None:
         """A portal package to a tracer serving `chunk`, spreading packages
         over the tracers that share it (c < n). None while nobody serves it
         (the caller keeps it: see `unroutable`)."""
         owners = [o for o in self.owners[chunk] if o != self.endpoint] or self.owners[chunk]
         if not owners:
-            self.unroutable.append((kind, chunk, batch, cull_box, eye_iteration))
+            self.unroutable.append((kind, chunk, batch, cull_box, eye_iteration, credit))
             return None
         dest = owners[next(self._next_owner[chunk]) % len(owners)]
-        fields = dict(kind=kind, chunk=chunk, **{"shadows" if kind == "shadow" else "batch": batch})
+        fields = dict(kind=kind, chunk=chunk, credit_job=credit[0], credit_exp=credit[1],
+                      **{"shadows" if kind == "shadow" else "batch": batch})
         if kind == "photon":
             fields["cull_box"] = cull_box
         else:
@@ -302,9 +326,9 @@ class TracerState:
         name an owner."""
         held, self.unroutable = self.unroutable, []
         out = []
-        for kind, chunk, batch, box, e in held:
-            out += self.receive(kind, chunk, batch, cull_box=box, eye_iteration=e) \
-                if self.serves(chunk) else [o for o in [self._portal(chunk, kind, batch, box, e)] if o]
+        for kind, chunk, batch, box, e, credit in held:
+            out += self.receive(kind, chunk, batch, cull_box=box, eye_iteration=e, credit=credit) \
+                if self.serves(chunk) else [o for o in [self._portal(chunk, kind, batch, credit, box, e)] if o]
         return out
 
     def status(self) -> dict:
