@@ -50,13 +50,18 @@ Frames given to `send` must not be modified until sent: with copy=False,
 zmq reads the caller's arrays asynchronously. Received arrays are views of
 zmq's frames (`wire.decode`).
 
-Dead TCP peers are found by the kernel: keepalive probes on an idle
-connection and a 10 s retransmission limit (ZMQ_TCP_MAXRT) on a busy one.
-Not libzmq's own heartbeats (ZMQ_HEARTBEAT_*): a heartbeat timeout on a
-connection whose input is stopped by RCVHWM makes libzmq 4.3 abort the
-process (`!_io_error`, libzmq issues 3937 and 4364; it killed the server of
-tests/test_load.py). Hung processes are found by the roles' `heartbeat`
-messages.
+Liveness is the roles' business: hung or cut-off processes are found by
+their `heartbeat` messages, and a tracer that hears nothing from the server
+opens a new connection under its own identity, which a ROUTER hands over
+to at once (ZMQ_ROUTER_HANDOVER; the old connection and what was queued in
+it are dropped, which the job-message acknowledgements recover). The
+kernel's keepalive closes idle connections to dead hosts. Not libzmq's own
+heartbeats (ZMQ_HEARTBEAT_*): a heartbeat timeout on a connection whose
+input is stopped by RCVHWM makes libzmq 4.3 abort the process
+(`!_io_error`, libzmq issues 3937 and 4364; it killed the server of
+tests/test_load.py). Not a retransmission limit (ZMQ_TCP_MAXRT) either:
+Linux applies it to zero-window probes, so it cut the connections of
+tracers that were only slow to read (16 tracers on 2 cores).
 
 Errors
 ------
@@ -88,10 +93,9 @@ from services.wire import MAX_FRAME_BYTES, Message, WireError, decode, error_rep
 # -- policy ---------------------------------------------------------------------
 HWM_MESSAGES = 16                # SNDHWM and RCVHWM, per socket and peer
 LINGER_MS = 2000                 # a closing socket still delivers its last results
-TCP_KEEPALIVE_IDLE_S = 2         # the kernel finds dead TCP peers (module doc),
-TCP_KEEPALIVE_INTVL_S = 1        # idle ones after 2 + 8 x 1 s of probes,
+TCP_KEEPALIVE_IDLE_S = 2         # the kernel closes idle connections to dead
+TCP_KEEPALIVE_INTVL_S = 1        # hosts after 2 + 8 x 1 s of probes (module doc)
 TCP_KEEPALIVE_CNT = 8
-TCP_MAXRT_MS = 10_000            # busy ones after 10 s of unacknowledged data
 
 Context = zmq.Context
 
@@ -251,9 +255,9 @@ def _configured(context: zmq.Context | None, kind: int) -> zmq.Socket:
     raw.setsockopt(zmq.TCP_KEEPALIVE_IDLE, TCP_KEEPALIVE_IDLE_S)
     raw.setsockopt(zmq.TCP_KEEPALIVE_INTVL, TCP_KEEPALIVE_INTVL_S)
     raw.setsockopt(zmq.TCP_KEEPALIVE_CNT, TCP_KEEPALIVE_CNT)
-    raw.setsockopt(zmq.TCP_MAXRT, TCP_MAXRT_MS)
     if kind == zmq.ROUTER:
         raw.setsockopt(zmq.ROUTER_MANDATORY, 1)
+        raw.setsockopt(zmq.ROUTER_HANDOVER, 1)
     return raw
 
 
