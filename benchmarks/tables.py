@@ -51,12 +51,14 @@ def _equal_work(doc: dict) -> str:
 
 def _reliability(doc: dict) -> str:
     """What the fault, load and rejoin tests measured (tests/helpers/figures.py)."""
-    def fmt(values: list) -> str:
+    def fmt(key: str, values: list) -> str:
+        if key in ("rejoined", "resumed"):          # 1 per success, 0 per failure
+            return f"{sum(values)} of {len(values)} runs"
         lo, hi = min(values), max(values)
         return f"{lo:,}" if lo == hi else f"{lo:,}-{hi:,}"
     lines = ["| fault or load | measured | run at |", "|---|---|---|"]
     for test, values in doc["tests"].items():
-        measured = "; ".join(f"{k.replace('_', ' ')} {fmt(v)}" for k, v in values.items())
+        measured = "; ".join(f"{k.replace('_', ' ')} {fmt(k, v)}" for k, v in values.items())
         run = doc.get("runs", {}).get(test, {})
         lines.append(f"| {test} | {measured} | {run.get('commit', '?')[:7]}, {run.get('date', '?')[:10]} |")
     return "\n".join(lines)

@@ -275,14 +275,22 @@ def test_a_short_link_cut_stalls_the_render_without_an_eviction(lan, tmp_path, h
     def pull_the_cable(r: Render):
         r.mid_render()
         lan.link("t1", "down")
+        cut["down"] = time.time()
         cut["committed_at_cut"] = r.last().get("committed")
         time.sleep(2.0)
+        cut["up"] = time.time()
         lan.link("t1", "up")
         cut["server_exit_at_plug"] = r.server_exit()
     res = _render(lan.hosts, tmp_path / "short-cut", 6, pull_the_cable)
-    print(f"short cut: {cut}")
+    # The stall: while the cable is out, jobs with paths at t1 cannot
+    # complete (their credit is there), so completions nearly stop.
+    stalled = _completion_rate(res["history"], cut["down"] + 0.5, cut["up"])
+    healthy_rate = healthy["summary"]["counters"]["photons_completed"] / healthy["summary"]["seconds"]
+    print(f"short cut: {cut}; completions during the cut {stalled:,.0f}/s, healthy {healthy_rate:,.0f}/s")
     figures.record("cable cut 2 s (< timeout)", seconds=round(res["summary"]["seconds"], 2),
-                   healthy_seconds=round(healthy["summary"]["seconds"], 2))
+                   healthy_seconds=round(healthy["summary"]["seconds"], 2),
+                   rate_during_cut=round(stalled / healthy_rate, 3))
+    assert stalled < 0.25 * healthy_rate, (stalled, healthy_rate, res["tails"])
     _assert_exact(res, healthy)
     k = res["summary"]["counters"]
     assert k["tracers_evicted"] == 0 and k["jobs_discarded"] == 0, (k, res["tails"])
@@ -290,6 +298,16 @@ def test_a_short_link_cut_stalls_the_render_without_an_eviction(lan, tmp_path, h
     assert cut["committed_at_cut"] < PHOTONS and cut["server_exit_at_plug"] is None, (cut, res["tails"])
     assert sorted(t["id"] for t in res["summary"]["tracers"]) == ["tracer-t1", "tracer-t2"], res["tails"]
     assert "registering again" not in res["logs"]["t1"], res["logs"]["t1"][-3000:]
+
+
+def _completion_rate(history: list[dict], t0: float, t1: float) -> float:
+    """Photons completed per second between wall times t0 and t1, from the
+    status poller's history (about 5 polls a second)."""
+    window = [(h["t"], h["counters"]["photons_completed"]) for h in history
+              if t0 <= h["t"] <= t1 and "counters" in h]
+    assert len(window) >= 3, f"only {len(window)} status polls during the cut"
+    (ta, a), (tb, b) = window[0], window[-1]
+    return (b - a) / (tb - ta)
 
 
 RETRY_S = 15
@@ -373,8 +391,10 @@ def test_a_cut_off_tracer_rejoins_once_the_link_is_back(lan, tmp_path, healthy):
                                    "(it never got the welcome)\n" + r.procs.tails())
             _wait_while_progressing(r, stall_s=15, limit_s=120)
         except RejoinFailed:
+            figures.record("cable cut 8 s, then back", rejoined=0)
             raise
         except AssertionError as e:
+            figures.record("cable cut 8 s, then back", rejoined=0)
             raise RejoinFailed(str(e)) from None
         res = r.finish()
     finally:

@@ -4,7 +4,8 @@ server RSS, the largest outbox, rejoins), kept as an artifact (issue 15).
 `record(test, **values)` notes what a test measured. With
 DOSPPM_RECORD_FIGURES=PATH set, the session's figures are merged into the
 JSON file at PATH when it ends, each test's under its own name with every
-sample kept, plus the provenance of the run; `benchmarks/tables.py` makes
+sample kept (added to those of earlier runs of the same commit), plus the
+provenance of the run; `benchmarks/tables.py` makes
 docs/reliability.md's table from `benchmarks/results/reliability.json`.
 Without it nothing is written (a plain test run leaves the tree alone).
 """
@@ -37,6 +38,10 @@ def write_if_asked() -> str | None:
     runs = dict(old.get("runs", {}))
     here = provenance()
     for test, values in _FIGURES.items():
+        # Runs of the same commit add samples (a test run N times gives
+        # "successes of N"); a new commit starts over.
+        if runs.get(test, {}).get("commit") == here["commit"]:
+            values = {k: list(tests[test].get(k, [])) + v for k, v in values.items()}
         tests[test] = values
         runs[test] = {"commit": here["commit"], "date": here["date"]}
     write_results(path, {"tests": tests, "runs": runs})
