@@ -279,6 +279,12 @@ class ServerProcess:
             except transport.WouldBlock:
                 return
             except transport.Unreachable:
+                if tid not in self.state.tracers:
+                    # A reply to a peer that is gone: an unregistered one, or
+                    # the old connection of a tracer that connected again
+                    # (libzmq renames it on handover). No job was in it.
+                    box.clear()
+                    return
                 self.undeliverable += len(box)
                 log.warning("tracer %s unreachable: %d messages not delivered", tid, len(box))
                 box.clear()
