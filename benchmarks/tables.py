@@ -64,6 +64,30 @@ def _reliability(doc: dict) -> str:
     return "\n".join(lines)
 
 
+def _reliability_short(doc: dict) -> str:
+    """The README's cut of the same figures: what happened, one line each."""
+    t = doc["tests"]
+    med = lambda xs: sorted(xs)[len(xs) // 2]    # noqa: E731
+    runs = lambda xs: f"{sum(xs)} of {len(xs)} runs"   # noqa: E731
+    rows = [
+        ("tracer killed", lambda v: f"evicted {med(v['detected_s']):g} s after the kill"),
+        ("tracer hung (SIGSTOP), then woken", lambda v: f"rejoined in {runs(v['rejoined'])}"),
+        ("server killed (SIGKILL), --resume", lambda v: f"resumed in {runs(v['resumed'])}"),
+        ("cable cut 2 s (< timeout)", lambda v: f"completions stall to {med(v['rate_during_cut']):.0%}"),
+        ("cable cut 8 s, then back", lambda v: f"rejoined in {runs(v['rejoined'])}"),
+        ("5% packet loss on a tracer host", lambda v: f"{med(v['seconds']) / med(v['healthy_seconds']):.2f}x "
+                                                       "the healthy time"),
+        ("16 tracers, 1k jobs in flight, one stopped 8 s",
+         lambda v: f"server peak {med(v['server_peak_rss_mib'])} MiB"),
+    ]
+    lines = ["| fault (each checked by the ledger) | what happened |", "|---|---|"]
+    for name, say in rows:
+        key = next((k for k in t if k.startswith(name)), None)
+        if key is not None:
+            lines.append(f"| {key} | {say(t[key])} |")
+    return "\n".join(lines)
+
+
 def _render_default(doc: dict) -> str:
     import render_default
     return render_default.report(doc)
@@ -126,6 +150,7 @@ TABLES = {
     "replay": ("benchmarks/results/replay.json", _replay),
     "render-default": ("benchmarks/results/render-default.json", _render_default),
     "reliability": ("benchmarks/results/reliability.json", _reliability),
+    "reliability-short": ("benchmarks/results/reliability.json", _reliability_short),
     "pbrt-side-by-side": ("benchmarks/results/pbrt-side-by-side.json", _pbrt_side_by_side),
 }
 
