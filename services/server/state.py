@@ -18,8 +18,9 @@ statistics updates it hands over. What it does:
   photons: the next starts once the last is complete and
   `photons_per_iteration` photons have been emitted since it started.
 - Exact accounting: the server made every path, so it knows each job's
-  path count; tracers report ended paths per job; a job is complete when
-  all its paths have ended (no timeout). Only then do its photons count as
+  path count; tracers report ended paths per job and return the job's
+  credit with the messages that carry its deposits; a job is complete when
+  all its credit is back (services/credit.py; no timeout). Only then do its photons count as
   emitted (N_e), exactly once, and only complete eye iterations replace
   the hit points.
 - Server batching: deposits are held until their job is complete and
