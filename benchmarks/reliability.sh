@@ -9,11 +9,8 @@ cd "$(dirname "$0")/.."
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
 out=benchmarks/results/reliability.json
 rm -f "$out"     # one run's figures, not a merge with an older commit's
-rejoin=tests/test_netns_faults.py::test_a_cut_off_tracer_rejoins_once_the_link_is_back
-repeat=()
-for _ in $(seq "${REJOIN_RUNS:-3}"); do repeat+=("$rejoin"); done
 # A failed rejoin is recorded as one (0 of the runs), so keep going.
-DOSPPM_RECORD_FIGURES="$out" python -m pytest -q -p no:cacheprovider --keep-duplicates \
-    tests/test_faults.py tests/test_load.py tests/test_netns_faults.py "${repeat[@]:1}" \
+DOSPPM_REJOIN_RUNS="${REJOIN_RUNS:-3}" DOSPPM_RECORD_FIGURES="$out" python -m pytest -q -p no:cacheprovider \
+    tests/test_faults.py tests/test_load.py tests/test_netns_faults.py \
     || echo "reliability.sh: some tests failed (above); their figures are not in $out" >&2
 python benchmarks/tables.py

@@ -366,7 +366,10 @@ class RejoinFailed(AssertionError):
 # (the 30 s watchdog stays as the last resort). 12 of 12 runs passed.
 
 
-def test_a_cut_off_tracer_rejoins_once_the_link_is_back(lan, tmp_path, healthy):
+# DOSPPM_REJOIN_RUNS=N runs it N times (benchmarks/reliability.sh), for the
+# figure "rejoined in k of N runs".
+@pytest.mark.parametrize("run", range(int(os.environ.get("DOSPPM_REJOIN_RUNS", "1"))))
+def test_a_cut_off_tracer_rejoins_once_the_link_is_back(lan, tmp_path, healthy, run):
     r = Render(lan.hosts, tmp_path / "rejoin", 3, photons=PHOTONS_REJOIN)
     try:
         r.mid_render()
