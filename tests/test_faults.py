@@ -212,7 +212,10 @@ def test_a_tracer_added_mid_render_gets_work(tmp_path, failure_free):
     """Two tracers start the render; a third joins while it runs, is given
     chunks by the new round-robin table and traces; nothing is lost."""
     def join(c: Cluster):
-        c.wait_for(lambda st: st.get("photons_committed", 0) > 0)
+        # Once photons flow, not once the first batch is committed: that
+        # is 1M of the 1.5M photons, and a tracer starting on a loaded
+        # machine could find the render over.
+        c.wait_for(lambda st: st.get("photons_emitted", 0) > 0)
         c.workers.append(start_dosppm(
             "worker", "--server", f"tcp://127.0.0.1:{c.port}", "--threads", "1", "--id", "late",
             "--cache-dir", str(c.tmp / "late"), "--quiet", stderr=open(c.tmp / "late.log", "w")))

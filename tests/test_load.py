@@ -83,7 +83,11 @@ def test_sixteen_tracers_keep_the_server_bounded(tmp_path):
     assert max(s.get("photon_jobs_in_flight", 0) for s in statuses) >= 1000
     # Nothing dropped: every photon sent was completed and applied once.
     assert k["photons_emitted"] - k["photons_discarded"] == k["photons_completed"] == k["photons_committed"]
-    assert k["over_credited_jobs"] == 0 and summary.get("undeliverable", 0) == 0
+    # A message that found no connection (the stopped tracer reconnects
+    # when it wakes: 8 s is past its 5 s of server silence) drops that
+    # tracer, and its jobs are re-emitted: the counts above stay exact.
+    assert k["over_credited_jobs"] == 0
+    assert summary.get("undeliverable", 0) == 0 or k["tracers_evicted"] >= 1, k
     assert peak < SERVER_RSS_LIMIT, f"server peak RSS {peak >> 20} MiB"
     outbox = max((t.get("outbox_rays", 0) for s in statuses for t in s.get("tracers", [])), default=0)
     assert outbox < OUTBOX_RAYS_LIMIT, f"a tracer held {outbox} rays for its peers"
