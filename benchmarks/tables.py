@@ -80,7 +80,7 @@ def _reliability_short(doc: dict) -> str:
         ("16 tracers, 1k jobs in flight, one stopped 8 s",
          lambda v: f"server peak {med(v['server_peak_rss_mib'])} MiB"),
     ]
-    lines = ["| fault (each checked by the ledger) | what happened |", "|---|---|"]
+    lines = ["| fault or load | what happened |", "|---|---|"]
     for name, say in rows:
         key = next((k for k in t if k.startswith(name)), None)
         if key is not None:

@@ -62,6 +62,20 @@ GUESS_VERTICES_PER_TRIANGLE = 0.5
 
 RECORD = np.dtype([("corners", "<f4", (3, 3)), ("material", "<i4"), ("global_id", "<i4")])
 
+# Working memory per triangle of a source block during insertion: the block
+# read (40 B), its records (44), the (triangle, chunk) overlap pairs and
+# their sorted copies (44), the records copied out per chunk (44), index
+# arrays (~24). Binning needs less. `subdivide(memory_bytes=...)` sizes
+# blocks with it, so the subdivider's memory is set, not the scene's size:
+# one block, or one chunk being written (about 1.5x the chunk budget).
+BLOCK_BYTES_PER_TRIANGLE = 200
+MIN_BLOCK = 4096
+
+
+def block_for_memory(memory_bytes: int) -> int:
+    """Triangles per source block for a working memory of `memory_bytes`."""
+    return max(MIN_BLOCK, int(memory_bytes) // BLOCK_BYTES_PER_TRIANGLE)
+
 
 def chunk_memory_bytes(triangles: int, vertices: int) -> int:
     """Estimated resident bytes of a loaded chunk, BVH build peak included."""
@@ -495,11 +509,15 @@ class SubdivisionReport:
 
 
 def subdivide(source, out: str, budget_bytes: int | None = None, grid: int = DEFAULT_GRID,
-              chunks: int | None = None, block: int = BLOCK) -> SubdivisionReport:
+              chunks: int | None = None, block: int = BLOCK,
+              memory_bytes: int | None = None) -> SubdivisionReport:
     """Subdivide `source` (a `TriangleSource`) into a chunk store at `out`.
     Give a memory budget per chunk, or `chunks` to force that many (a budget
-    given too is then checked, not used to split)."""
+    given too is then checked, not used to split). `memory_bytes` sizes the
+    source blocks (`block_for_memory`) instead of `block`."""
     _check_arguments(source, budget_bytes, grid, chunks)
+    if memory_bytes is not None:
+        block = block_for_memory(memory_bytes)
     chunkstore.check_target(out)
     seconds = {}
     t = time.perf_counter()

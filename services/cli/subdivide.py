@@ -1,6 +1,6 @@
 """`dosppm subdivide`: cut a scene into a chunk store.
 
-    dosppm subdivide SCENE --budget 512MiB --out DIR [--chunks C] [--grid N]
+    dosppm subdivide SCENE --budget 512MiB --out DIR [--chunks C] [--grid N] [--memory SIZE]
 
 SCENE is a built-in name, a .toml or Mitsuba .xml scene file, or a triangle
 soup directory. Exit codes: 0 success, 2 bad input (one line on stderr
@@ -32,6 +32,10 @@ def add_parser(sub) -> None:
                    help="force exactly C chunks instead (a budget given too is then checked)")
     p.add_argument("--grid", type=positive_int, default=DEFAULT_GRID, metavar="N",
                    help=f"bins of the uniform counting grid (default {DEFAULT_GRID})")
+    p.add_argument("--memory", type=size, metavar="SIZE",
+                   help="the subdivider's own working memory, besides one chunk being written "
+                        "(about 1.5x --budget): sets how much of the scene is read at a time "
+                        "(default: blocks of 1M triangles, about 200MiB)")
     p.add_argument("--out", required=True, metavar="DIR", help="the chunk store directory to write")
     p.set_defaults(func=run)
 
@@ -39,6 +43,7 @@ def add_parser(sub) -> None:
 def run(args) -> int:
     try:
         budget = parse_bytes(args.budget, "--budget")
+        memory = parse_bytes(args.memory, "--memory")
     except ValueError as e:
         return fail(str(e))
     if budget is None and args.chunks is None:
@@ -47,7 +52,8 @@ def run(args) -> int:
     try:
         source = load_source(args.scene)
         loaded = time.perf_counter() - t
-        report = subdivide(source, args.out, budget_bytes=budget, grid=args.grid, chunks=args.chunks)
+        report = subdivide(source, args.out, budget_bytes=budget, grid=args.grid, chunks=args.chunks,
+                           memory_bytes=memory)
     except (SceneError, ValueError, OSError) as e:
         return fail(str(e))
     _print_report(report, loaded, budget)
