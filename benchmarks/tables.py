@@ -25,7 +25,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
 
-DOCS = ("README.md", "docs/performance.md", "docs/accuracy.md", "docs/reliability.md")
+DOCS = ("README.md", "docs/performance.md", "docs/accuracy.md", "docs/reliability.md", "docs/out-of-core.md")
 MARKED = re.compile(r"(<!-- table:([\w-]+) -->\n)(.*?)(<!-- /table:\2 -->)", re.S)
 
 
@@ -85,6 +85,20 @@ def _reliability_short(doc: dict) -> str:
         key = next((k for k in t if k.startswith(name)), None)
         if key is not None:
             lines.append(f"| {key} | {say(t[key])} |")
+    return "\n".join(lines)
+
+
+def _subdivide_memory(doc: dict) -> str:
+    """Peak RSS of the subdivider against the scene's size (issue 17)."""
+    lines = ["| triangles | scene | peak RSS | growth while subdividing | chunks |", "|---|---|---|---|---|"]
+    for r in doc["rows"]:
+        lines.append(f"| {r['triangles'] / 1e6:g}M | {r['scene_bytes'] / 2**20:,.0f} MiB "
+                     f"| {r['peak_bytes'] / 2**20:,.0f} MiB | {r['working_bytes'] / 2**20:,.0f} MiB "
+                     f"| {r['chunks']} |")
+    before = doc.get("before")
+    if before:
+        was = ", ".join(f"{r['peak_bytes'] / 2**20:,.0f} MiB at {r['triangles'] / 1e6:g}M" for r in before["rows"])
+        lines += ["", f"Before (memory-mapped reads, commit {before['commit']}, measured the same way): peak {was}."]
     return "\n".join(lines)
 
 
@@ -151,6 +165,7 @@ TABLES = {
     "render-default": ("benchmarks/results/render-default.json", _render_default),
     "reliability": ("benchmarks/results/reliability.json", _reliability),
     "reliability-short": ("benchmarks/results/reliability.json", _reliability_short),
+    "subdivide-memory": ("benchmarks/results/subdivide-memory.json", _subdivide_memory),
     "pbrt-side-by-side": ("benchmarks/results/pbrt-side-by-side.json", _pbrt_side_by_side),
 }
 
