@@ -25,12 +25,15 @@ import time
 from collections import deque
 from dataclasses import dataclass
 
+import numpy as np
+
 from dosppm_core.film import encode_png, tonemap_srgb8, write_exr, write_png
 from dosppm_core.jobs import PhotonDeposits
 from dosppm_core.settings import Progress, RenderSettings
 from services import config, transport, wire
 from services.ledger import Ledger
 from services.server import checkpoint
+from services.server.history import StatusHistory, progress
 from services.server.http import StatusServer
 from services.server.state import ServerState, Update
 from services.server.statistics import ServerStatistics
@@ -104,6 +107,8 @@ class ServerProcess:
         self._boxes: queue.Queue = queue.Queue()
         self._status: dict = {}
         self._status_lock = threading.Lock()
+        self.history = StatusHistory(origin_s=time.monotonic())
+        self._mean_radius: float | None = None     # set on the statistics thread
         self._preview: tuple[float, bytes | None] = (-1e30, None)
         self._signals = 0
         self.watch = None          # () -> error text or None, checked with the status
@@ -349,6 +354,17 @@ class ServerProcess:
                 self._boxes.put(None)
             finally:
                 self._updates.task_done()
+            if u.kind != "checkpoint":
+                self._measure_radius()
+
+    def _measure_radius(self) -> None:
+        """The mean pixel radius for the status page's convergence chart.
+        Radii change only here, so one pass after each update (far cheaper
+        than the update) keeps it exact without scanning them per request."""
+        stats = self.statistics.stats
+        with self.statistics.lock:
+            mean = float(np.mean(stats.radius)) if stats.has_radius else None
+        self._mean_radius = mean
 
     # -- output ----------------------------------------------------------------------
     def _write_image(self) -> None:
@@ -380,25 +396,32 @@ class ServerProcess:
     def _publish_status(self, now: float, phase: str) -> None:
         st = self.state.status()
         seconds = now - self.started_at if self.started_at else 0.0
+        at = self._progress(seconds, st)
         st.update(phase=phase, seconds=round(seconds, 3), endpoint=self.endpoint,
                   photons_per_s=st["photons_emitted"] / seconds if seconds > 0 else 0.0,
                   hit_points_per_s=st["hit_points"] / seconds if seconds > 0 else 0.0,
-                  eta_s=self._eta(seconds, st), update_seconds=round(self.statistics.update_seconds, 3),
+                  eta_s=at["eta_s"], progress=at, update_seconds=round(self.statistics.update_seconds, 3),
                   updates_queued=self._updates.qsize(), bytes_out=self.bytes_out,
                   cpu_s=round(time.process_time(), 3),
-                  undeliverable=self.undeliverable)
+                  undeliverable=self.undeliverable, emission_paused=self.state.paused,
+                  failure=self.failure)
+        self.history.update(st, now, self.state, seconds if self.started_at else None, self._mean_radius,
+                            dict(self.state.counters, undeliverable=self.undeliverable),
+                            notes=(self.state.start_note, self.failure))
         with self._status_lock:
             self._status = st
 
-    def _eta(self, seconds: float, st: dict) -> float | None:
-        lim = self.limits
-        if lim.seconds is not None:
-            return max(0.0, lim.seconds - seconds)
-        if lim.photons is not None and st["photons_emitted"] > 0:
-            return max(0.0, (lim.photons - st["photons_emitted"]) * seconds / st["photons_emitted"])
-        if lim.iterations is not None and st["iteration"] > 0:
-            return max(0.0, (lim.iterations - st["iteration"]) * seconds / st["iteration"])
-        return None
+    def _progress(self, seconds: float, st: dict) -> dict:
+        """Towards the limit that stops the render first; photons and
+        iterations count the whole render, resumed part included, as the
+        limits do (`_limit_reached`)."""
+        lim, s = self.limits, self.state
+        per_s = 1 / seconds if seconds > 0 else 0.0
+        return progress(seconds, {"time": lim.seconds, "photons": lim.photons, "iterations": lim.iterations},
+                        {"time": seconds, "photons": s.photons_before + st["photons_emitted"],
+                         "iterations": s.iterations_before + st["iteration"]},
+                        {"time": 1.0, "photons": st["photons_emitted"] * per_s,
+                         "iterations": st["iteration"] * per_s})
 
     def _status_snapshot(self) -> dict:
         with self._status_lock:

@@ -182,6 +182,7 @@ class ServerState:
         self._now = 0.0
         self.discarded: set[int] = set()          # job ids whose late results are ignored
         self.evicted: list[dict] = []
+        self.rejoined: dict[str, float] = {}      # tracer id -> when it last registered again (status page)
         self.eps_abs = header.spawn_epsilon()
         self.n_pixels = int(header.camera.width) * int(header.camera.height)
         self.tracers: dict[str, TracerInfo] = {}
@@ -249,6 +250,7 @@ class ServerState:
             t.public_key = msg.public_key
             t.queued = t.sent_since_report = 0
             self.counters["tracers_rejoined"] += 1
+            self.rejoined[tid] = now
             self._discard_jobs_in_flight()
         self._welcomed(t, now)
         self._reassign()
