@@ -158,7 +158,8 @@ def test_page_is_self_contained(server):
     code, headers, body = get(server.url)
     page = body.decode()
     assert code == 200 and headers["Content-Type"].startswith("text/html")
-    for element_id in ("iteration", "photons", "committed", "tracers", "preview"):
+    for element_id in ("iteration", "photons", "committed", "tracers", "preview",
+                       "progress", "chart_photons"):
         assert f'id="{element_id}"' in page
     assert "http://" not in page and "https://" not in page
 
@@ -236,10 +237,14 @@ def test_page_in_headless_chromium(server, tmp_path):
     page = TextById()
     page.feed(dom)
     assert page.texts["iteration"].strip() == "7"
-    assert page.texts["photons"].strip() == "123456"
-    assert page.texts["committed"].strip() == "120000"
+    # Thousands separators (issue 16); the raw counters keep every key.
+    assert page.texts["photons"].strip() == "123,456"
+    assert page.texts["committed"].strip() == "120,000"
+    assert page.texts["photons_per_s"].strip() == "98,765"
     assert page.texts["jobs_in_flight"].strip() == "3"
     assert page.texts["eta"].strip() == "42 s"
     tracers = page.texts["tracers"].split()
-    assert {"id", "chunks", "queue", "load", "tracer-a", "tracer-b", "0.75"} <= set(tracers)
+    assert {"Tracer", "Chunks", "Queue", "tracer-a", "tracer-b"} <= set(tracers)
+    raw = page.texts["tracers_raw"].split()
+    assert {"id", "chunks", "queue", "load", "tracer-a", "tracer-b", "0.75"} <= set(raw)
     assert any(img.get("src", "").startswith("/preview.png") for img in page.imgs)

@@ -1,4 +1,4 @@
-"""The status page at a glance (issue 16): what the server adds to /status.
+"""The status page at a glance (issue 16).
 
 - The server's history is bounded: never more than its capacity, every
   other sample dropped when full (the interval doubling), the whole render
@@ -8,10 +8,19 @@
   registration, heartbeats, eviction, rejoin in place and after an
   eviction, refused results.
 - The server process puts them in /status (over HTTP, on real sockets).
+- In headless Chromium at 1280x900 the page has no horizontal scrollbar,
+  shows the progress bar and three SVG charts with data, and its numbers
+  change between two loads; a screenshot is taken (and, for a real render
+  of cornell-caustic, copied to $DOSPPM_STATUS_SCREENSHOT: the README's).
 """
 from __future__ import annotations
 
+import itertools
 import json
+import os
+import shutil
+import struct
+import subprocess
 import threading
 import time
 import urllib.request
@@ -19,8 +28,10 @@ import urllib.request
 import numpy as np
 import pytest
 
+from dosppm_core.film import encode_png
 from dosppm_core.settings import RenderSettings
 from services import transport, wire
+from services.server import http as status_http
 from services.server.history import (
     REJOINED_SHOW_S,
     History,
@@ -28,10 +39,13 @@ from services.server.history import (
     TracerRates,
     progress,
 )
+from services.server.http import StatusServer
 from services.server.node import Limits, ServerProcess
 from services.server.state import ServerState
 from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
+from tests.helpers.cli import free_port, start_dosppm
 from tests.helpers.scenes import small_scene
+from tests.test_http import TextById
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -242,3 +256,201 @@ def test_the_server_process_serves_what_the_page_needs():
         server._signals = 2
         thread.join(30)
     assert not thread.is_alive()
+
+
+# -- the page in Chromium ----------------------------------------------------------------------
+# Appended to the page under test only: after the page has polled /status
+# a few times, record the layout's width with every <details> closed and
+# then open, where --dump-dom can read it.
+PROBE = """<script>
+setTimeout(() => {
+  const root = document.documentElement, out = document.body.dataset;
+  out.innerWidth = window.innerWidth;
+  out.clientWidth = root.clientWidth;
+  out.scrollWidthClosed = root.scrollWidth;
+  for (const d of document.querySelectorAll("details")) d.open = true;
+  out.scrollWidthOpen = root.scrollWidth;
+}, 4500);
+</script>
+"""
+
+
+def _chromium():
+    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
+    if chromium is None:
+        pytest.skip("chromium not installed (apt-get install chromium)")
+    return chromium
+
+
+def _browse(url: str, profile, *extra: str) -> str:
+    """Chromium headless at 1280x900, 5 s of page time; its stdout."""
+    return subprocess.run(
+        [_chromium(), "--headless", "--no-sandbox", "--disable-gpu", f"--user-data-dir={profile}",
+         "--window-size=1280,900", "--virtual-time-budget=5000", *extra, url],
+        capture_output=True, text=True, timeout=90, check=True).stdout
+
+
+def _png_size(path) -> tuple[int, int]:
+    with open(path, "rb") as f:
+        head = f.read(24)
+    assert head[:8] == b"\x89PNG\r\n\x1a\n"
+    return struct.unpack(">II", head[16:24])
+
+
+class Page(TextById):
+    """Also the body's data attributes, the bar's style and every polyline
+    per chart."""
+
+    def __init__(self):
+        super().__init__()
+        self.body: dict = {}
+        self.attrs_by_id: dict[str, dict] = {}
+        self.polylines: dict[str, list[str]] = {}
+
+    def handle_starttag(self, tag, attrs):
+        super().handle_starttag(tag, attrs)
+        a = dict(attrs)
+        if tag == "body":
+            self.body = a
+        if a.get("id"):
+            self.attrs_by_id[a["id"]] = a
+        if tag == "polyline":
+            chart = next((i for i in reversed(self.open) if i and i.startswith("chart_")), None)
+            self.polylines.setdefault(chart, []).append(a.get("points", ""))
+
+
+def _load(url, profile) -> Page:
+    page = Page()
+    page.feed(_browse(url, profile, "--dump-dom"))
+    return page
+
+
+def _fake_farm():
+    """A status source for a farm of 12 tracers and 24 chunks whose numbers
+    move on every call, as a real render's do."""
+    calls = itertools.count()
+
+    def status():
+        n = next(calls)
+        t = list(range(1, 30 + n))
+        ids = [f"render-node-{i:02d}.farm.example.org" for i in range(12)]
+        return {
+            "iteration": 7 + n, "photons_emitted": 3_811_093 + 250_000 * n, "photons_committed": 3_700_000,
+            "photons_per_s": 152_443.7 + n, "hit_points_per_s": 16_384.0, "jobs_in_flight": 212,
+            "eta_s": 15.0 - n,
+            "phase": "render", "waiting_for": None, "seconds": 10.0 + n, "server_s": 14.0 + n, "chunks": 24,
+            "progress": {"elapsed_s": 10.0 + n, "stop": "time", "limit": 25.0, "value": 10.0 + n,
+                         "fraction": (10.0 + n) / 25, "eta_s": 15.0 - n},
+            "history": {"t": t, "photons_per_s": [150_000 - (50_000 if 8 < x < 12 else 0) for x in t],
+                        "hit_points_per_s": [16_000 + 1000 * (x % 3) for x in t],
+                        "mean_radius": [0.02 * x ** -0.15 for x in t]},
+            "warnings": [{"t_s": 9.5, "kind": "evicted",
+                          "text": "tracer render-node-99 evicted: silent for 10.2 s"}],
+            "evictions": [{"id": "render-node-99", "reason": "silent for 10.2 s", "t_s": 9.5}],
+            "chunk_table": [{"chunk": k, "tracers": [ids[k % 12]], "resident": [ids[k % 12]] if k % 3 else [],
+                             "portal_rays_in": 123_456, "portal_rays_out": 654_321} for k in range(24)],
+            "path_ends": {"absorbed": 1_234_567, "escaped": 2345},
+            "tracers": [{"id": tid, "endpoint": f"tcp://{tid}:5600",
+                         "chunks": list(range(i, 24, 12)) + [40, 41, 42],
+                         "queue": 65_536 * (i % 2), "rays_sent": 3_811_093, "results": 812, "resident": [i],
+                         "busy_s": 9.1, "steps": 400, "rays_traced": 5_123_456 + 1000 * n,
+                         "portal_rays_out": 654_321, "portal_rays_in": 123_456, "forwarded_rays": 0,
+                         "cpu_s": 18.25, "bytes_to_server": 123_456_789, "bytes_to_peers": 23_456_789,
+                         "heartbeat_age_s": 0.4, "busy": 0.93 if i % 2 else 0.1, "rays_per_s": 512_345.6 + n,
+                         "state": "active" if i % 2 else "starved"} for i, tid in enumerate(ids)],
+        }
+    return status
+
+
+@pytest.mark.browser
+def test_page_in_chromium_at_1280x900(tmp_path, monkeypatch):
+    _chromium()
+    monkeypatch.setattr(status_http, "PAGE", status_http.PAGE.replace("</body>", PROBE + "</body>"))
+    png = encode_png(np.full((64, 64, 3), 90, np.uint8))
+    with StatusServer(_fake_farm(), lambda: png) as srv:
+        first, second = _load(srv.url, tmp_path / "a"), _load(srv.url, tmp_path / "b")
+        shot = tmp_path / "status-page.png"
+        _browse(srv.url, tmp_path / "c", f"--screenshot={shot}")
+    assert _png_size(shot) == (1280, 900)
+    for page in (first, second):
+        assert "status unavailable" not in page.texts["state"]
+        width = int(page.body["data-inner-width"])
+        assert width == 1280
+        # No horizontal scrollbar, with every <details> closed or open
+        # (the client width leaves out a vertical scrollbar, if drawn).
+        client = int(page.body["data-client-width"])
+        assert 1200 < client <= width
+        assert int(page.body["data-scroll-width-closed"]) <= client
+        assert int(page.body["data-scroll-width-open"]) <= client
+        fill = page.attrs_by_id["bar_fill"]["style"]
+        assert "width:" in fill.replace(" ", "") and not fill.replace(" ", "").startswith("width:0%")
+        assert page.texts["bar_text"].strip().endswith("%")
+        assert "ETA" in page.texts["progress_line"] and "time limit" in page.texts["progress_line"]
+        assert set(page.polylines) == {"chart_photons", "chart_hit_points", "chart_radius"}
+        for points in page.polylines.values():
+            assert len(points) == 1 and len(points[0].split()) >= 29
+        assert page.texts["phase"].strip() == "Rendering"
+        assert "render-node-99 evicted" in page.texts["warnings"]
+        tracers = page.texts["tracers"]
+        assert "65,536" in tracers and "starved" in tracers and "evicted" in tracers
+        assert "3,811,093" in page.texts["tracers_raw"], "raw counters, with separators"
+        assert "654,321" in page.texts["chunks"]
+    # The page polls: numbers move between two loads (and within each).
+    assert first.texts["photons"] != second.texts["photons"]
+    assert first.texts["iteration"] != second.texts["iteration"]
+    assert first.polylines["chart_photons"] != second.polylines["chart_photons"]
+
+
+@pytest.mark.browser
+def test_the_probe_sees_a_page_too_wide(tmp_path, monkeypatch):
+    """The negative control of the scrollbar check: one element 2000 px wide."""
+    _chromium()
+    wide = '<div style="width: 2000px">wide</div>'
+    monkeypatch.setattr(status_http, "PAGE", status_http.PAGE.replace("</body>", wide + PROBE + "</body>"))
+    with StatusServer(_fake_farm(), lambda: None) as srv:
+        page = _load(srv.url, tmp_path / "a")
+    assert int(page.body["data-scroll-width-closed"]) > int(page.body["data-client-width"])
+
+
+@pytest.mark.slow
+@pytest.mark.browser
+def test_page_of_a_real_render(tmp_path):
+    """`dosppm render cornell-caustic` with 4 chunks on 2 tracers for 25 s,
+    the page opened mid-render: charts with real samples, a chunk table,
+    no horizontal overflow in the screenshot's window. The screenshot is
+    copied to $DOSPPM_STATUS_SCREENSHOT if set (docs/status-page.png)."""
+    _chromium()
+    port = free_port()
+    url = f"http://127.0.0.1:{port}/"
+    proc = start_dosppm("render", "cornell-caustic", "--width", "256", "--height", "256", "--chunks", "4",
+                        "--tracers", "2", "--time", "25", "--out", tmp_path / "img.exr", "--http",
+                        f"127.0.0.1:{port}", "--store-cache", tmp_path / "stores", "--quiet",
+                        stderr=subprocess.PIPE, text=True)
+    try:
+        st = _wait_for_render(url, proc, lambda s: len(s.get("history", {}).get("t", [])) >= 10)
+        shot = tmp_path / "status-page.png"
+        _browse(url, tmp_path / "a", f"--screenshot={shot}")
+        page = _load(url, tmp_path / "b")
+        assert proc.wait(120) == 0, proc.stderr.read()[-2000:]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert _png_size(shot) == (1280, 900)
+    assert set(page.polylines) == {"chart_photons", "chart_hit_points", "chart_radius"}
+    assert len(st["chunk_table"]) == 4 and max(st["history"]["photons_per_s"]) > 0
+    assert "Rendering" in page.texts["phase"] and page.texts["chunks"].split()[:2] == ["Chunk", "Tracers"]
+    if os.environ.get("DOSPPM_STATUS_SCREENSHOT"):
+        shutil.copyfile(shot, os.environ["DOSPPM_STATUS_SCREENSHOT"])
+
+
+def _wait_for_render(url: str, proc, ok, timeout_s: float = 240.0) -> dict:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and proc.poll() is None:
+        try:
+            st = _get_status(url)
+            if st.get("phase") == "render" and ok(st):
+                return st
+        except OSError:
+            pass
+        time.sleep(0.5)
+    raise AssertionError(f"the render never got there (exit {proc.poll()})")

@@ -19,12 +19,10 @@ server's state. Every other method gets 405 (with `Allow: GET, HEAD`) and
 the callables are not even called. It binds to loopback by default; expose
 it with an SSH tunnel rather than `host="0.0.0.0"`.
 
-Status keys the page knows by name (others are listed generically):
-`iteration`, `photons_emitted` (or `photons`), `photons_committed`,
-`photons_per_s`, `hit_points_per_s`, `jobs_in_flight`, `eta_s`, and
-`tracers`: a list of dicts (e.g. `id`, `chunks`, `queue`, `load`), shown as
-a table with one column per key found. Non-finite floats (an unknown ETA)
-are sent as null, because JSON has no Infinity and browsers refuse it.
+The page itself is services/server/page.py (the keys it reads are listed
+there; services/server/history.py adds the derived ones to the server's
+status). Non-finite floats (an unknown ETA) are sent as null, because JSON
+has no Infinity and browsers refuse it.
 
 API
 ---
@@ -40,6 +38,8 @@ import threading
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Callable
 from urllib.parse import urlsplit
+
+from services.server.page import PAGE
 
 log = logging.getLogger("dosppm.http")
 
@@ -185,123 +185,3 @@ def _jsonable(value):
     if hasattr(value, "tolist"):
         return _jsonable(value.tolist())
     return value
-
-
-PAGE = """<!DOCTYPE html>
-<html lang="en">
-<head>
-<meta charset="utf-8">
-<title>dosppm render</title>
-<style>
-  body { font: 14px system-ui, sans-serif; margin: 1.5em; color: #222; }
-  #preview { max-width: 100%; image-rendering: pixelated; background: #000; }
-  dl { display: grid; grid-template-columns: max-content auto; gap: .2em 1em; }
-  dt { color: #666; } dd { margin: 0; font-variant-numeric: tabular-nums; }
-  table { border-collapse: collapse; margin-top: .5em; }
-  th, td { border: 1px solid #ccc; padding: .15em .6em; text-align: right; }
-  #state { color: #a00; }
-</style>
-</head>
-<body>
-<h1>dosppm render</h1>
-<p id="state"></p>
-<img id="preview" src="/preview.png" alt="preview (no image yet)">
-<dl>
-  <dt>Iteration</dt><dd id="iteration">-</dd>
-  <dt>Photons emitted</dt><dd id="photons">-</dd>
-  <dt>Photons committed</dt><dd id="committed">-</dd>
-  <dt>Photons/s</dt><dd id="photons_per_s">-</dd>
-  <dt>Hit points/s</dt><dd id="hit_points_per_s">-</dd>
-  <dt>Jobs in flight</dt><dd id="jobs_in_flight">-</dd>
-  <dt>ETA</dt><dd id="eta">-</dd>
-</dl>
-<h2>Tracers</h2>
-<table id="tracers"></table>
-<h2>All fields</h2>
-<dl id="fields"></dl>
-<script>
-"use strict";
-// element id -> status keys, first present wins
-const FIELDS = {
-  iteration: ["iteration"], photons: ["photons_emitted", "photons"],
-  committed: ["photons_committed"], photons_per_s: ["photons_per_s"],
-  hit_points_per_s: ["hit_points_per_s"], jobs_in_flight: ["jobs_in_flight"],
-  eta: ["eta_s"],
-};
-
-function fmt(v) {
-  if (v === null || v === undefined) return "-";
-  if (typeof v !== "number") return typeof v === "object" ? JSON.stringify(v) : String(v);
-  if (Number.isInteger(v)) return String(v);
-  return Math.abs(v) >= 100 ? v.toFixed(0) : String(Number(v.toPrecision(3)));
-}
-
-function fmtEta(s) {
-  if (s === null || s === undefined) return "unknown";
-  if (s < 90) return s.toFixed(0) + " s";
-  if (s < 5400) return (s / 60).toFixed(1) + " min";
-  return (s / 3600).toFixed(1) + " h";
-}
-
-function pick(status, keys) {
-  for (const k of keys) if (k in status) return status[k];
-  return null;
-}
-
-function showFields(status) {
-  for (const [id, keys] of Object.entries(FIELDS)) {
-    const v = pick(status, keys);
-    document.getElementById(id).textContent = id === "eta" ? fmtEta(v) : fmt(v);
-  }
-  const dl = document.getElementById("fields");
-  dl.replaceChildren();
-  for (const [k, v] of Object.entries(status)) {
-    if (k === "tracers") continue;
-    dl.append(el("dt", k), el("dd", fmt(v)));
-  }
-}
-
-function showTracers(tracers) {
-  const columns = [];
-  for (const t of tracers) for (const k of Object.keys(t)) if (!columns.includes(k)) columns.push(k);
-  const table = document.getElementById("tracers");
-  table.replaceChildren();
-  const head = table.insertRow();
-  for (const c of columns) head.append(el("th", c));
-  for (const t of tracers) {
-    const row = table.insertRow();
-    for (const c of columns) row.append(el("td", fmt(t[c])));
-  }
-}
-
-function el(tag, text) {
-  const e = document.createElement(tag);
-  e.textContent = text;
-  return e;
-}
-
-function reloadPreview() {
-  document.getElementById("preview").src = "/preview.png?t=" + Date.now();
-}
-
-async function refresh() {
-  const state = document.getElementById("state");
-  try {
-    const response = await fetch("/status", {cache: "no-store"});
-    const status = await response.json();
-    if (!response.ok) throw new Error(status.error || response.statusText);
-    showFields(status);
-    showTracers(Array.isArray(status.tracers) ? status.tracers : []);
-    state.textContent = "";
-  } catch (e) {
-    state.textContent = "status unavailable: " + e.message;
-  }
-  reloadPreview();
-  setTimeout(refresh, 2000);
-}
-
-refresh();
-</script>
-</body>
-</html>
-"""
