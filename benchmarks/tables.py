@@ -170,9 +170,11 @@ TABLES = {
 }
 
 
-def source_line(path: str, doc: dict, doc_dir: str = "") -> str:
+def source_line(path: str, doc: dict, doc_dir: str = "", command: bool = True) -> str:
     """Where the table came from, linked from a document in `doc_dir`;
-    files written before provenance was recorded say so rather than guess."""
+    files written before provenance was recorded say so rather than guess.
+    `command` False leaves out the command (the README's short tables,
+    whose full versions in docs/ give it)."""
     link = os.path.relpath(path, doc_dir or ".")
     p = doc.get("provenance") if isinstance(doc, dict) else None
     if not p and isinstance(doc, dict) and doc.get("commit"):     # an evaluation before provenance
@@ -181,7 +183,7 @@ def source_line(path: str, doc: dict, doc_dir: str = "") -> str:
         return f"Source: [{path}]({link}) (written before commit and machine were recorded)."
     m = p.get("machine") or {}
     cpu = f"{m['cpu']} x{m.get('cpu_count', '?')}" if m.get("cpu") else f"{m.get('cpus', '?')} CPUs"
-    command = f", `{p['command']}`" if p.get("command") else ""
+    command = f", `{p['command']}`" if p.get("command") and command else ""
     return f"Source: [{path}]({link}), commit {p['commit'][:10]}, {p['date'][:10]}, {cpu}{command}."
 
 
@@ -189,7 +191,7 @@ def render(name: str, root: str = ROOT, doc_dir: str = "") -> str:
     path, fn = TABLES[name]
     with open(os.path.join(root, path), encoding="utf-8") as f:
         doc = json.load(f)
-    return fn(doc).rstrip("\n") + "\n\n" + source_line(path, doc, doc_dir) + "\n"
+    return fn(doc).rstrip("\n") + "\n\n" + source_line(path, doc, doc_dir, not name.endswith("-short")) + "\n"
 
 
 def fill(text: str, root: str = ROOT, doc_dir: str = "") -> str:
