@@ -98,13 +98,13 @@ def test_history_rates_are_exact_whatever_was_dropped():
 
 def test_tracer_rates_over_the_last_heartbeats():
     r = TracerRates(window_s=5.0)
-    for i in range(10):            # busy 0.5 s of each second, 1000 rays a second
-        r.observe("a", float(i), {"busy_s": 0.5 * i, "rays_traced": 1000 * i})
-    busy, rays = r.rates("a")
-    assert busy == pytest.approx(0.5) and rays == pytest.approx(1000.0)
+    for i in range(10):            # busy 0.5 s of each second, 1000 rays a second, 300 photon rays
+        r.observe("a", float(i), {"busy_s": 0.5 * i, "rays_traced": 1000 * i, "photons_traced": 300 * i})
+    busy, rays, photons = r.rates("a")
+    assert busy == pytest.approx(0.5) and rays == pytest.approx(1000.0) and photons == pytest.approx(300.0)
     assert len(r.beats["a"]) <= 7
     r.observe("a", 10.0, {"busy_s": 0.0, "rays_traced": 0})     # a new process: counts from zero
-    assert r.rates("a") == (None, None)
+    assert r.rates("a") == (None, None, None)
     r.keep_only(["b"])
     assert r.beats == {}
 
@@ -135,9 +135,13 @@ def _register(state, tid, now):
 
 
 def _heartbeat(state, tid, now, busy_s, rays, queue=0, resident=()):
-    state.on_message(tid, _msg("heartbeat", status={"busy_s": busy_s, "rays_traced": rays, "queue": queue,
-                                                    "resident": list(resident), "portal_rays_in": 10,
-                                                    "portal_rays_out": 20}), now)
+    # Per chunk [chunk, in, out]: tracer a's chunk 0 and the chunk 2 it
+    # served before b joined; b's chunk 2.
+    portal = [[0, 10, 20], [2, 1, 2]] if tid == "a" else [[2, 3, 4]]
+    state.on_message(tid, _msg("heartbeat", status={"busy_s": busy_s, "rays_traced": rays,
+                                                    "photons_traced": rays // 2, "queue": queue,
+                                                    "resident": list(resident), "portal_by_chunk": portal,
+                                                    "portal_rays_in": 10, "portal_rays_out": 20}), now)
 
 
 @pytest.fixture()
@@ -170,10 +174,13 @@ def test_tracer_states_and_warnings(state):
     rows = {t["id"]: t for t in st["tracers"]}
     assert rows["a"]["state"] == "active" and rows["a"]["busy"] == pytest.approx(0.8)
     assert rows["a"]["rays_per_s"] == pytest.approx(5000)
+    assert rows["a"]["photons_per_s"] == pytest.approx(2500)
     assert rows["a"]["heartbeat_age_s"] == pytest.approx(0.2)
     assert rows["b"]["state"] == "starved" and rows["b"]["busy"] == pytest.approx(0.05)
     assert st["chunk_table"][0] == {"chunk": 0, "tracers": ["a"], "resident": ["a"],
                                     "portal_rays_in": 10, "portal_rays_out": 20}
+    assert st["chunk_table"][2]["portal_rays_in"] == 4 and st["chunk_table"][2]["portal_rays_out"] == 6
+    assert st["chunk_table"][1]["portal_rays_in"] == 0      # nobody reported chunk 1
     assert st["chunk_table"][1]["resident"] == [] and st["warnings"] == []
 
     assert _update(h, state, 9.0)["tracers"][1]["state"] == "silent", "no heartbeat from b for 4 s"
@@ -357,6 +364,7 @@ def _fake_farm():
                          "portal_rays_out": 654_321, "portal_rays_in": 123_456, "forwarded_rays": 0,
                          "cpu_s": 18.25, "bytes_to_server": 123_456_789, "bytes_to_peers": 23_456_789,
                          "heartbeat_age_s": 0.4, "busy": 0.93 if i % 2 else 0.1, "rays_per_s": 512_345.6 + n,
+                         "photons_per_s": 256_172.8 + n,
                          "state": "active" if i % 2 else "starved"} for i, tid in enumerate(ids)],
         }
     return status

@@ -98,8 +98,9 @@ class History:
 
 
 class TracerRates:
-    """Per tracer, its heartbeats of the last `window_s`: the busy share and
-    rays traced per second over them (heartbeats carry running totals)."""
+    """Per tracer, its heartbeats of the last `window_s`: the busy share,
+    rays and photon rays traced per second over them (heartbeats carry
+    running totals)."""
 
     def __init__(self, window_s: float = RATE_WINDOW_S):
         self.window_s = window_s
@@ -107,26 +108,28 @@ class TracerRates:
 
     def observe(self, tid: str, at_s: float, status: dict) -> None:
         busy, rays = status.get("busy_s"), status.get("rays_traced")
+        photons = int(status.get("photons_traced", 0))
         if busy is None or rays is None:
             return
         beats = self.beats.setdefault(tid, deque())
         if beats and at_s <= beats[-1][0]:
             return                      # the heartbeat seen last time
-        if beats and (busy < beats[-1][1] or rays < beats[-1][2]):
+        if beats and (busy < beats[-1][1] or rays < beats[-1][2] or photons < beats[-1][3]):
             beats.clear()               # a restarted tracer process counts from zero
-        beats.append((at_s, float(busy), int(rays)))
+        beats.append((at_s, float(busy), int(rays), photons))
         while len(beats) > 2 and at_s - beats[1][0] >= self.window_s:
             beats.popleft()
 
-    def rates(self, tid: str) -> tuple[float | None, float | None]:
-        """(busy share 0..1, rays/s), None until two heartbeats came."""
+    def rates(self, tid: str) -> tuple[float | None, float | None, float | None]:
+        """(busy share 0..1, rays/s, photon rays/s), None until two
+        heartbeats came."""
         beats = self.beats.get(tid)
         if not beats or len(beats) < 2:
-            return None, None
-        (t0, b0, r0), (t1, b1, r1) = beats[0], beats[-1]
+            return None, None, None
+        (t0, b0, r0, p0), (t1, b1, r1, p1) = beats[0], beats[-1]
         dt = t1 - t0
         # Its clock times the busy seconds, ours the heartbeats: clamp the jitter.
-        return min(1.0, max(0.0, (b1 - b0) / dt)), (r1 - r0) / dt
+        return min(1.0, max(0.0, (b1 - b0) / dt)), (r1 - r0) / dt, (p1 - p0) / dt
 
     def keep_only(self, ids) -> None:
         for tid in set(self.beats) - set(ids):
@@ -159,17 +162,22 @@ def progress(elapsed_s: float, limits: dict, done: dict, rates: dict) -> dict:
 
 def chunk_table(state, most: int = CHUNK_ROWS) -> list[dict]:
     """Per chunk (the first `most`): the tracers serving it, those that hold
-    it in memory, and their portal rays in and out. Tracers count portal
-    rays over all the chunks they serve, so a tracer of several chunks
-    shows its totals on each of its rows."""
+    it in memory, and the portal rays into and out of it, summed over the
+    tracers' heartbeats (`portal_by_chunk`: [chunk, in, out] rows; a tracer
+    counts what it traced, also of chunks it served earlier)."""
     resident = {t.id: set(t.status.get("resident", ())) for t in state.tracers.values()}
+    portal: dict[int, list[int]] = {}
+    for t in state.tracers.values():
+        for k, rays_in, rays_out in t.status.get("portal_by_chunk", ()):
+            c = portal.setdefault(int(k), [0, 0])
+            c[0], c[1] = c[0] + int(rays_in), c[1] + int(rays_out)
     rows = []
     for k, owners in enumerate(state.owners[:most]):
         serving = [state.tracers[i] for i in owners if i in state.tracers]
+        rays_in, rays_out = portal.get(k, (0, 0))
         rows.append({"chunk": k, "tracers": list(owners),
                      "resident": [t.id for t in serving if k in resident[t.id]],
-                     "portal_rays_in": sum(int(t.status.get("portal_rays_in", 0)) for t in serving),
-                     "portal_rays_out": sum(int(t.status.get("portal_rays_out", 0)) for t in serving)})
+                     "portal_rays_in": rays_in, "portal_rays_out": rays_out})
     return rows
 
 
@@ -216,11 +224,12 @@ class StatusHistory:
         out = {}
         for t in state.tracers.values():
             self.rates.observe(t.id, t.status_s, t.status)
-            busy, rays = self.rates.rates(t.id)
+            busy, rays, photons = self.rates.rates(t.id)
             heard = max(t.status_s, t.welcomed_s)
             out[t.id] = {"heartbeat_age_s": round(now - t.status_s, 2) if t.status_s > -1e29 else None,
                          "busy": None if busy is None else round(busy, 3),
                          "rays_per_s": None if rays is None else round(rays, 1),
+                         "photons_per_s": None if photons is None else round(photons, 1),
                          "state": self._tracer_state(now, t, phase, busy, heard)}
         self.rates.keep_only(state.tracers)
         return out

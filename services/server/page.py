@@ -22,7 +22,7 @@ hit_points_per_s, jobs_in_flight, eta_s, phase, waiting_for, failure,
 emission_paused, progress {fraction, elapsed_s, eta_s, stop, limit, value},
 history {t, photons_per_s, hit_points_per_s, mean_radius}, server_s,
 warnings [{t_s, kind, text}], evictions [{id, reason, t_s}], tracers [{id,
-state, chunks, resident, busy, queue, rays_per_s, heartbeat_age_s, ...}],
+state, chunks, resident, busy, queue, photons_per_s, rays_per_s, heartbeat_age_s, ...}],
 chunk_table [{chunk, tracers, resident, portal_rays_in, portal_rays_out}]
 (services/server/history.py makes the derived ones). Text from the status
 is only ever set as textContent, never parsed as HTML.
@@ -132,8 +132,7 @@ PAGE = """<!DOCTYPE html>
   <div class="scroll"><table id="tracers_raw"></table></div></details>
 <section id="chunks_section" hidden>
   <h2>Chunks</h2>
-  <p class="sub">Portal rays are counted per tracer: a tracer serving several chunks shows its totals
-    on each of them.</p>
+  <p class="sub">Rays that crossed a portal into and out of each chunk, since the render started.</p>
   <div class="scroll tall"><table id="chunks"></table></div>
 </section>
 <details><summary>All fields (/status)</summary><pre id="fields"></pre></details>
@@ -316,7 +315,7 @@ function busyCell(busy) {
 function showTracers(s) {
   const table = document.getElementById("tracers"), tracers = s.tracers || [];
   table.replaceChildren();
-  row(table, ["Tracer", "State", "Chunks", "In memory", "Busy", "Queue", "Rays/s", "Heartbeat"]
+  row(table, ["Tracer", "State", "Chunks", "In memory", "Busy", "Queue", "Photons/s", "Heartbeat"]
     .map((h, i) => el("th", h, i < 3 ? "l" : "")));
   for (const t of tracers) {
     const chunks = el("td", ranges(t.chunks), "l");
@@ -326,7 +325,7 @@ function showTracers(s) {
     const age = el("td", present(t.heartbeat_age_s) ? t.heartbeat_age_s.toFixed(1) + " s ago" : "-");
     if (t.heartbeat_age_s > SILENT_S) age.className = "late";
     row(table, [el("td", t.id, "l"), badge(t.state || "-"), chunks, el("td", mem), busyCell(t.busy),
-                el("td", num(t.queue)), el("td", num(t.rays_per_s)), age]);
+                el("td", num(t.queue)), el("td", num(t.photons_per_s)), age]);
   }
   const here = new Set(tracers.map(t => t.id)), shown = new Set();
   for (const e of (s.evictions || []).slice().reverse()) {

@@ -57,7 +57,8 @@ JOB_MESSAGE_LOST_S = 4.0
 # A job untouched this long while every tracer is idle is lost (`_watchdog`).
 STALL_S = 4.0
 # Tracer heartbeat fields the server passes on in its status.
-STATUS_KEYS = ("load", "resident", "busy_s", "steps", "rays_traced", "portal_rays_out", "portal_rays_in",
+STATUS_KEYS = ("load", "resident", "busy_s", "steps", "rays_traced", "photons_traced", "portal_by_chunk",
+               "portal_rays_out", "portal_rays_in",
                "forwarded_rays", "cpu_s", "bytes_to_server", "bytes_to_peers", "outbox", "outbox_rays")
 
 

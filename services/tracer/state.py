@@ -99,8 +99,9 @@ class TracerState:
         # Portal packages for chunks no tracer serves yet (a table still
         # being built); retried when the next table arrives.
         self.unroutable: list = []
-        self.counters = {"steps": 0, "rays_traced": 0, "portal_rays_out": 0, "portal_rays_in": 0,
-                         "forwarded_rays": 0, "busy_s": 0.0}
+        self.counters = {"steps": 0, "rays_traced": 0, "photons_traced": 0, "portal_rays_out": 0,
+                         "portal_rays_in": 0, "forwarded_rays": 0, "busy_s": 0.0}
+        self.portal_by_chunk: dict[int, list[int]] = {}     # chunk -> [rays in, rays out] (status page)
 
     # -- the peer table ----------------------------------------------------------
     def set_peers(self, table_version: int, owners: list[list[str]]) -> list[Out]:
@@ -178,6 +179,7 @@ class TracerState:
         if msg.type == "portal_rays":
             rays = msg.shadows if msg.kind == "shadow" else msg.batch
             self.counters["portal_rays_in"] += len(rays)
+            self._count_portal(msg.chunk, len(rays), 0)
             return self.receive(msg.kind, msg.chunk, rays, cull_box=msg.cull_box,
                                 eye_iteration=msg.eye_iteration, credit=credit)
         return []
@@ -273,6 +275,7 @@ class TracerState:
         taken = self._take(q.photons)
         batch = RayBatch.concat([p.batch for p in taken])
         q.rays -= len(batch)
+        self.counters["photons_traced"] += len(batch)
         box = union_box([p.cull_box for p in taken])
         deposits, ends, culled, outgoing = trace_photons_in_chunk(view, batch, box, self.max_depth,
                                                                   self.deposit_from)
@@ -294,7 +297,9 @@ class TracerState:
             *credit, [b.job for _kind, _chunk, b in leaving])
         portal = []
         for (kind, chunk, merged), share in zip(leaving, shares):
+            self._count_portal(fields["chunk"], 0, len(merged))
             if self.serves(chunk):
+                self._count_portal(chunk, len(merged), 0)
                 portal += self.receive(kind, chunk, merged, credit=share, **extra)
             else:
                 self.counters["portal_rays_out"] += len(merged)
@@ -331,8 +336,14 @@ class TracerState:
                 if self.serves(chunk) else [o for o in [self._portal(chunk, kind, batch, credit, box, e)] if o]
         return out
 
+    def _count_portal(self, chunk: int, rays_in: int, rays_out: int) -> None:
+        c = self.portal_by_chunk.setdefault(int(chunk), [0, 0])
+        c[0] += rays_in
+        c[1] += rays_out
+
     def status(self) -> dict:
         return {"queue": self.queued_rays, "chunks": self.chunks,
+                "portal_by_chunk": [[k, i, o] for k, (i, o) in sorted(self.portal_by_chunk.items())],
                 "resident": sorted(self.cache.resident), **{k: (round(v, 3) if isinstance(v, float) else v)
                                                             for k, v in self.counters.items()}}
 
