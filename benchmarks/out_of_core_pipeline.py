@@ -1,0 +1,116 @@
+"""Out of core end to end (issue 17, part 2): a generated building whose
+chunk store is at least twice a per-process memory limit is generated,
+subdivided, and rendered in OSPPM and in DOSPPM (a server and two
+tracers), and every process's peak resident memory is set against the
+limit. The peak is each child's `ru_maxrss` from wait4 (the kernel's
+high-water mark, interpreter and kernels included).
+
+    python benchmarks/out_of_core_pipeline.py --triangles 34e6 --limit 400MiB \\
+        --json benchmarks/results/out-of-core-pipeline.json
+
+The target is every process under the limit; the file records which are
+not. About 10 minutes on 2 cores, and 2.5 GB of disk in --work.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+MiB = 1 << 20
+
+
+def _dosppm(*args: str) -> subprocess.Popen:
+    env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    return subprocess.Popen([sys.executable, "-m", "services.cli", *args], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True, env=env)
+
+
+def _peak(p: subprocess.Popen, timeout_s: float) -> tuple[int, float]:
+    """Wait for `p` (its exit status checked): (peak RSS bytes, seconds)."""
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout_s:
+        pid, status, usage = os.wait4(p.pid, os.WNOHANG)
+        if pid:
+            code = os.waitstatus_to_exitcode(status)
+            if code != 0:
+                raise RuntimeError(f"{p.args[3:5]} exited {code}: {p.stderr.read()[-2000:]}")
+            return usage.ru_maxrss * 1024, time.monotonic() - t0
+        time.sleep(0.2)
+    p.kill()
+    raise RuntimeError(f"{p.args[3:5]} did not finish in {timeout_s} s")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _mean_luminance(path: str) -> float:
+    from dosppm_core.film import read_exr
+    img = read_exr(path)[0]
+    return float((img @ np.array([0.2126, 0.7152, 0.0722])).mean()) if np.isfinite(img).all() else float("nan")
+
+
+def run(work: str, triangles: int, seconds: float, memory: str) -> dict:
+    from dosppm_core.scene.generate import generate_building
+    soup, store = os.path.join(work, "building"), os.path.join(work, "building.chunks")
+    shutil.rmtree(work, ignore_errors=True)
+    generate_building(soup, triangles=triangles, lights=64)
+    procs = {"subdivide": _peak(_dosppm("subdivide", soup, "--budget", "64MiB", "--memory", "64MiB",
+                                        "--grid", "262144", "--out", store), 1200)}
+    store_bytes = sum(os.path.getsize(os.path.join(store, f)) for f in os.listdir(store) if f.endswith(".bin"))
+    shutil.rmtree(soup)
+    procs["osppm"] = _peak(_dosppm("render", store, "--mode", "osppm", "--memory", memory, "--time", str(seconds),
+                                   "--out", os.path.join(work, "osppm.exr")), seconds + 600)
+    port = _free_port()
+    server = _dosppm("server", store, "--bind", f"tcp://127.0.0.1:{port}", "--http", "off", "--min-tracers", "2",
+                     "--time", str(seconds), "--threads", "1", "--out", os.path.join(work, "dosppm.exr"))
+    tracers = [_dosppm("worker", "--server", f"tcp://127.0.0.1:{port}", "--store", store, "--memory", memory,
+                       "--threads", "1", "--id", f"t{i}", "--cache-dir", os.path.join(work, f"cache{i}"))
+               for i in range(2)]
+    procs["server"] = _peak(server, seconds + 600)
+    for i, t in enumerate(tracers):
+        procs[f"tracer {i}"] = _peak(t, 120)
+    return {"store_bytes": store_bytes, "triangles": triangles, "render_s": seconds, "chunk_memory": memory,
+            "processes": {k: {"peak_bytes": v[0], "seconds": round(v[1], 1)} for k, v in procs.items()},
+            "mean_luminance": {m: _mean_luminance(os.path.join(work, f"{m}.exr")) for m in ("osppm", "dosppm")}}
+
+
+def main(argv=None) -> int:
+    from services.config import parse_bytes
+    from services.evaluation.provenance import write_results
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--triangles", type=float, default=34e6)
+    p.add_argument("--limit", default="400MiB", help="the per-process memory limit the store is twice of")
+    p.add_argument("--memory", default="128MiB", help="resident chunks per rendering process (--memory)")
+    p.add_argument("--seconds", type=float, default=25)
+    p.add_argument("--work", default="/tmp/dosppm-out-of-core")
+    p.add_argument("--json", default=None)
+    args = p.parse_args(argv)
+    limit = parse_bytes(args.limit, "--limit")
+    doc = run(args.work, int(args.triangles), args.seconds, args.memory)
+    doc["limit_bytes"] = limit
+    doc["over_limit"] = sorted(k for k, v in doc["processes"].items() if v["peak_bytes"] > limit)
+    doc["store_over_limit"] = round(doc["store_bytes"] / limit, 2)
+    for k, v in doc["processes"].items():
+        print(f"{k:10s} peak {v['peak_bytes'] / MiB:6.0f} MiB  {v['seconds']:6.1f} s")
+    print(f"store {doc['store_bytes'] / MiB:,.0f} MiB = {doc['store_over_limit']}x the limit; over it: "
+          f"{doc['over_limit'] or 'none'}; mean luminance {doc['mean_luminance']}")
+    if args.json:
+        write_results(args.json, doc)
+    shutil.rmtree(args.work, ignore_errors=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
