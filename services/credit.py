@@ -76,9 +76,16 @@ def split(job: np.ndarray, exp: np.ndarray, outgoing: list[np.ndarray]):
     return (np.concatenate(r_job), np.concatenate(r_exp)), shares
 
 
-def whole(job: int) -> tuple[np.ndarray, np.ndarray]:
-    """A new job's credit: one term 2**0."""
-    return np.array([job], np.int64), np.zeros(1, np.int64)
+def new_job(parts: int) -> tuple[int, list[int]]:
+    """A new job's credit 1 divided among `parts` packages, as `split`
+    divides it, in closed form (the server does this once per job, where
+    `split`'s array work would cost more than the job's routing):
+    (each package's exponent, the exponents the server keeps)."""
+    if parts == 0:
+        return 0, [0]                                # nothing sent: all of it kept
+    b = parts.bit_length()
+    rem = (1 << b) - parts
+    return b, [b - i for i in range(b) if rem >> i & 1]
 
 
 class Account:

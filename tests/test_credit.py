@@ -42,6 +42,14 @@ def test_a_split_conserves_credit_exactly_and_returns_some_of_every_job(seed):
     assert set(returned) == set(before) and all(v > 0 for v in returned.values())
 
 
+@pytest.mark.parametrize("parts", range(0, 13))
+def test_a_new_jobs_closed_form_division_is_splits(parts):
+    exp, kept = credit.new_job(parts)
+    (r_job, r_exp), shares = credit.split([5], [0], [np.full(3, 5)] * parts)
+    assert sorted(kept) == sorted(r_exp.tolist())
+    assert all(s_exp.tolist() == [exp] for _, s_exp in shares)
+
+
 def test_rays_leaving_for_a_job_without_credit_are_refused():
     with pytest.raises(ValueError, match="no credit"):
         credit.split(np.array([1]), np.array([0]), [np.array([1, 2])])

@@ -43,7 +43,7 @@ from dosppm_core.jobs import END_NAMES, HitPoints, PhotonDeposits, RayBatch
 from dosppm_core.settings import RenderSettings
 from dosppm_core.sppm.iteration import EyePass
 from dosppm_core.trace import NO_CULL, emit_photon_jobs, eye_ray_job
-from services.credit import Account, by_job, split as split_credit, whole
+from services.credit import Account, by_job, new_job
 from services.wire import JOB_MESSAGES, PROTOCOL_VERSION, Out
 
 MESSAGE_RAYS = 32_768         # rays per job message the server aims for
@@ -368,8 +368,9 @@ class ServerState:
                 c["deposits_received"] += len(deposits)
         if msg.hits is not None and self.eye is not None and msg.eye_iteration == self.eye.index:
             self.eye.results.add(msg.hits, msg.emitted_pixels, msg.emitted_rgb)
-        live = np.isin(msg.job_ids, np.fromiter(self.jobs, np.int64, len(self.jobs)))
-        c["stale_paths"] += int((msg.job_fed - msg.job_left)[~live].sum())   # never counted twice
+        for j, fed, left in zip(msg.job_ids.tolist(), msg.job_fed.tolist(), msg.job_left.tolist()):
+            if j not in self.jobs:
+                c["stale_paths"] += fed - left      # a finished or unknown job: never counted twice
         for j, exps in by_job(msg.credit_job, msg.credit_exp).items():
             self._credit(j, exps)
         self._maybe_batch()
@@ -651,9 +652,10 @@ class ServerState:
         the scene end here. Returns the tracers."""
         routed, lost = start_chunks(self.tree, batch)
         self.path_ends[1] += lost           # ESCAPED, before any tracer saw them
-        (_, kept), shares = split_credit(*whole(j), [part.job for part in routed.values()])
+        exp, kept = new_job(len(routed))
+        share = (np.array([j], np.int64), np.array([exp], np.int64))
         receivers = set()
-        for (k, part), share in zip(routed.items(), shares):
+        for k, part in routed.items():
             t = self._least_loaded(k)
             t.sent_since_report += len(part)
             t.rays_sent += len(part)
@@ -661,7 +663,7 @@ class ServerState:
             receivers.add(t.id)
         self.jobs[j].sent = True
         self.jobs[j].progress_s = self._now
-        self._credit(j, kept.tolist())      # the server's own share: all of it when none was sent
+        self._credit(j, kept)               # the server's own share: all of it when none was sent
         return receivers
 
     def _send_photon_jobs(self) -> list[Out]:
