@@ -56,12 +56,16 @@ def mean_luminance_bias(a, ref) -> float:
 def blurred_relmse(a, ref, sigma: float, eps: float = 1e-2, where=None) -> float:
     """relMSE of both images after a Gaussian blur of `sigma` pixels: what
     remains after noise is averaged away is mostly bias. `where` (H, W)
-    bool: score only those pixels (the blur still sees the whole image)."""
+    bool: score only those pixels, and blur only over them (normalised
+    convolution), so that unscored pixels, such as a mirror whose limit
+    differs, cannot leak a constant error into their scored neighbours."""
     a, ref = _pair(a, ref, ("a", "ref"))
-    a, ref = gaussian_blur(a, sigma), gaussian_blur(ref, sigma)
-    if where is not None:
-        a, ref = a[where], ref[where]
-    return relmse(a, ref, eps)
+    if where is None:
+        return relmse(gaussian_blur(a, sigma), gaussian_blur(ref, sigma), eps)
+    w = np.asarray(where, dtype=np.float64).reshape(where.shape + (1,) * (a.ndim - 2))
+    norm = np.maximum(gaussian_blur(w, sigma), 1e-12)
+    a, ref = gaussian_blur(a * w, sigma) / norm, gaussian_blur(ref * w, sigma) / norm
+    return relmse(a[where], ref[where], eps)
 
 
 def gaussian_blur(img, sigma: float) -> np.ndarray:

@@ -53,6 +53,21 @@ def test_blurred_relmse_separates_noise_from_bias():
     assert metrics.blurred_relmse(noisy, ref, 0.0) == metrics.relmse(noisy, ref)
 
 
+def test_blurred_relmse_over_a_mask_ignores_the_pixels_outside_it():
+    """A mirror the reference renders differently (unscored) must not leak
+    its error into the scored pixels beside it through the blur."""
+    ref = np.full((32, 32, 3), 0.5)
+    img = ref.copy()
+    img[:, 14:18] = 5.0                               # the unscored stripe: far off
+    where = np.ones((32, 32), bool)
+    where[:, 14:18] = False
+    assert metrics.blurred_relmse(img, ref, 2.0, where=where) == pytest.approx(0.0, abs=1e-20)
+    biased = ref * 1.05
+    biased[:, 14:18] = 5.0
+    assert metrics.blurred_relmse(biased, ref, 2.0, where=where) == pytest.approx(
+        metrics.relmse(biased[where], ref[where]))
+
+
 def test_gaussian_blur_preserves_constants_and_mass():
     img = np.zeros((31, 33, 3))
     img[15, 16] = 1.0
