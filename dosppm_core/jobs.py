@@ -21,7 +21,14 @@ class _Record:
     """Struct-of-arrays helpers shared by all records."""
 
     def __len__(self) -> int:
-        return int(getattr(self, fields(self)[0].name).shape[0])
+        # The first field's name, looked up once per class: dataclasses.fields
+        # costs microseconds, and the server takes len() of every part it routes.
+        cls = type(self)
+        name = cls.__dict__.get("_first_field")
+        if name is None:
+            name = fields(self)[0].name
+            setattr(cls, "_first_field", name)
+        return int(getattr(self, name).shape[0])
 
     def take(self, index, replace: dict | None = None) -> "_Record":
         """Rows at `index` (an integer array or a boolean mask), with the

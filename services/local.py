@@ -59,7 +59,7 @@ def run_server(scene: str, v: dict, quiet: bool = False, spawn_tracers: int = 0)
     say(f"scene {store.header.name}: {store.source_triangles:,} triangles in {store.chunk_count} "
         f"chunk(s), {len(store.header.lights.kind)} lights, {cam.width}x{cam.height}")
     say(f"server {server.endpoint}" + (f", status {server.status_url}" if server.status_url else ""))
-    tracers = _spawn_tracers(spawn_tracers, server.endpoint, store.path, v["threads"])
+    tracers = _spawn_tracers(spawn_tracers, server.endpoint, store.path, v["threads"], v.get("memory"))
     server.watch = lambda: _early_exit(tracers)
     try:
         summary = server.run()
@@ -133,10 +133,11 @@ def _write_summary(out: str, summary: dict) -> None:
         json.dump(summary, f, indent=1, default=str)
 
 
-def _spawn_tracers(n: int, endpoint: str, store_path: str, threads: int) -> list:
+def _spawn_tracers(n: int, endpoint: str, store_path: str, threads: int, memory: str | None = None) -> list:
+    """`n` tracer processes; `memory` (--memory) bounds each one's chunks."""
     per = max(1, threads // max(n, 1))
     cmd = [sys.executable, "-m", "services.cli", "worker", "--server", endpoint, "--store", store_path,
-           "--threads", str(per), "--quiet"]
+           "--threads", str(per), "--quiet", *(["--memory", str(memory)] if memory else [])]
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [ROOT, os.environ.get("PYTHONPATH")])))
     return [subprocess.Popen(cmd + ["--id", f"local-{i}"], env=env) for i in range(n)]
 

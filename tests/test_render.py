@@ -129,3 +129,21 @@ def test_cli_bad_scene_is_one_line_error(tmp_path, capsys):
     assert main(["render", str(tmp_path / "missing.toml"), "--mode", "sppm", "--quiet"]) == 2
     err = capsys.readouterr().err.strip()
     assert "missing.toml" in err and "\n" not in err
+
+
+def test_dosppm_render_gives_each_local_tracer_its_memory(monkeypatch):
+    """`dosppm render --memory` bounds every tracer process it starts, as
+    `dosppm worker --memory` does (it used to reach only --mode osppm)."""
+    from services import local
+    from services.cli import render as render_cli
+    from services.cli.main import main
+    seen = {}
+    monkeypatch.setattr(render_cli, "run_server", lambda scene, v, **kw: seen.update(v) or 0)
+    assert main(["render", "cornell-box", "--tracers", "2", "--memory", "200MiB", "--time", "1"]) == 0
+    assert seen["memory"] == "200MiB"
+    started = []
+    monkeypatch.setattr(local.subprocess, "Popen", lambda cmd, env: started.append(cmd))
+    local._spawn_tracers(2, "tcp://127.0.0.1:5555", "/store", 2, seen["memory"])
+    assert len(started) == 2 and all(c[c.index("--memory") + 1] == "200MiB" for c in started)
+    local._spawn_tracers(1, "tcp://127.0.0.1:5555", "/store", 2, None)
+    assert "--memory" not in started[-1]

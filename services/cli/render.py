@@ -57,7 +57,8 @@ def add_parser(sub) -> None:
     ooc = p.add_argument_group("chunks (--mode osppm and dosppm)")
     config.add_options(ooc, config.CHUNKING)
     ooc.add_argument("--memory", metavar="SIZE", type=config.size,
-                     help="osppm: resident chunks at most this much (default: twice the budget or all)")
+                     help="resident chunks at most this much: osppm's one process (default: twice the "
+                          "budget or all), each dosppm tracer (default: all its chunks)")
     ooc.add_argument("--schedule", choices=("pipelined", "drained"), default="pipelined",
                      help="osppm: pipelined: one sweep over the chunks per iteration, portal rays "
                           "carried over (§3.3); drained: every ray ends within its iteration, which "
@@ -83,7 +84,7 @@ def _run_service(args) -> int:
     n = args.tracers or os.cpu_count() or 1
     values = {o.name: o.default for o in config.SERVER}
     values.update({o.name: getattr(args, o.name) for o in _SERVER_FLAGS})
-    values.update(bind="tcp://127.0.0.1:*", min_tracers=n)
+    values.update(bind="tcp://127.0.0.1:*", min_tracers=n, memory=args.memory)
     return run_server(args.scene, values, quiet=args.quiet, spawn_tracers=n)
 
 

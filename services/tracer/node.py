@@ -83,6 +83,9 @@ class TracerProcess:
         self._last_register = 0.0
         self.bytes_to_server = self.bytes_to_peers = 0
         self._outbox_rays = 0
+        # Where the loop's time goes (status page, issue 17): waiting for
+        # work, decoding what arrived, and tracing plus sending.
+        self.loop_s = {"idle_s": 0.0, "receive_s": 0.0, "step_send_s": 0.0}
         self._poller: transport.Poller | None = None
 
     # -- sockets -------------------------------------------------------------------
@@ -252,16 +255,21 @@ class TracerProcess:
         last_beat = last_heard = time.monotonic()
         while self.stopped is None:
             busy = self.state.has_work() or bool(self.outbox)
+            t0 = time.monotonic()
             events = poller.poll(0 if busy else 50)
             now = time.monotonic()
+            self.loop_s["idle_s"] += now - t0
             if self.dealer in events or self._pending_server:
                 last_heard = now
             self._drain_server(self.dealer in events)
             if self.router in events:
                 self._drain_peers()
+            t1 = time.monotonic()
+            self.loop_s["receive_s"] += t1 - now
             if self.state.has_work():
                 self._send(self.state.step())
             self._flush_outbox()
+            self.loop_s["step_send_s"] += time.monotonic() - t1
             if now - last_beat >= HEARTBEAT_INTERVAL_S:
                 last_beat = now
                 # Read what arrived during a long step first: the heartbeat
@@ -277,7 +285,7 @@ class TracerProcess:
     def _status(self) -> dict:
         s = self.state.status()
         s.update(session=self.session, jobs_received=self.jobs_received, outbox=len(self.outbox),
-                 outbox_rays=self._outbox_rays,
+                 outbox_rays=self._outbox_rays, **{k: round(v, 3) for k, v in self.loop_s.items()},
                  cpu_s=round(time.process_time(), 3),
                  bytes_to_server=self.bytes_to_server, bytes_to_peers=self.bytes_to_peers)
         return s

@@ -342,7 +342,10 @@ class TracerState:
         c[1] += rays_out
 
     def status(self) -> dict:
-        return {"queue": self.queued_rays, "chunks": self.chunks,
+        cc = self.cache.counters
+        loads = {"chunk_loads": cc.loads, "load_s": round(cc.load_seconds, 3),
+                 "load_wait_s": round(cc.wait_seconds, 3)}
+        return {"queue": self.queued_rays, "chunks": self.chunks, **loads,
                 "portal_by_chunk": [[k, i, o] for k, (i, o) in sorted(self.portal_by_chunk.items())],
                 "resident": sorted(self.cache.resident), **{k: (round(v, 3) if isinstance(v, float) else v)
                                                             for k, v in self.counters.items()}}
