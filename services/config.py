@@ -186,6 +186,8 @@ TRACER = (
     _opt("store", str, None, "a local copy of the chunk store (else chunks are fetched)"),
     _opt("cache_dir", str, None, "where fetched chunks are kept"),
     _opt("memory", str, None, "resident chunk memory, e.g. 4GiB (default: all its chunks)", rule="size"),
+    _opt("queue_memory", str, None, "rays queued here at most this much, when more chunks than fit make "
+         "it queue more to hide their loads (default 256MiB)", rule="size"),
     _opt("threads", int, THREADS, "tracing threads", rule="count"),
     _opt("id", str, None, "tracer id (default host-pid-random)"),
     _opt("retry", float, 60.0, "keep trying to reach the server this long, in seconds", rule="non_negative"),

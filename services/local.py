@@ -59,7 +59,8 @@ def run_server(scene: str, v: dict, quiet: bool = False, spawn_tracers: int = 0)
     say(f"scene {store.header.name}: {store.source_triangles:,} triangles in {store.chunk_count} "
         f"chunk(s), {len(store.header.lights.kind)} lights, {cam.width}x{cam.height}")
     say(f"server {server.endpoint}" + (f", status {server.status_url}" if server.status_url else ""))
-    tracers = _spawn_tracers(spawn_tracers, server.endpoint, store.path, v["threads"], v.get("memory"))
+    tracers = _spawn_tracers(spawn_tracers, server.endpoint, store.path, v["threads"],
+                             {"--memory": v.get("memory"), "--queue-memory": v.get("queue_memory")})
     server.watch = lambda: _early_exit(tracers)
     try:
         summary = server.run()
@@ -133,11 +134,13 @@ def _write_summary(out: str, summary: dict) -> None:
         json.dump(summary, f, indent=1, default=str)
 
 
-def _spawn_tracers(n: int, endpoint: str, store_path: str, threads: int, memory: str | None = None) -> list:
-    """`n` tracer processes; `memory` (--memory) bounds each one's chunks."""
+def _spawn_tracers(n: int, endpoint: str, store_path: str, threads: int, limits: dict | None = None) -> list:
+    """`n` tracer processes; `limits` ({"--memory": size, "--queue-memory":
+    size}, None for the default) bound each one's memory."""
     per = max(1, threads // max(n, 1))
+    flags = [x for flag, size in (limits or {}).items() if size for x in (flag, str(size))]
     cmd = [sys.executable, "-m", "services.cli", "worker", "--server", endpoint, "--store", store_path,
-           "--threads", str(per), "--quiet", *(["--memory", str(memory)] if memory else [])]
+           "--threads", str(per), "--quiet", *flags]
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [ROOT, os.environ.get("PYTHONPATH")])))
     return [subprocess.Popen(cmd + ["--id", f"local-{i}"], env=env) for i in range(n)]
 
@@ -167,6 +170,7 @@ def run_tracer(v: dict, quiet: bool = False) -> int:
     say = stderr_lines(quiet)
     try:
         memory = config.parse_bytes(v["memory"], "--memory")
+        queue_memory = config.parse_bytes(v["queue_memory"], "--queue-memory")
     except ValueError as e:
         return fail(str(e))
     # Kernels are compiled before the tracer registers: a tracer busy
@@ -178,6 +182,7 @@ def run_tracer(v: dict, quiet: bool = False) -> int:
     try:
         tp = TracerProcess(v["server"], bind=v["bind"], advertise=v["advertise"], store=v["store"],
                            cache_dir=v["cache_dir"], memory_bytes=memory, threads=v["threads"],
+                           queue_memory_bytes=queue_memory,
                            tracer_id=v["id"], connect_timeout_s=v["retry"], curve_secret=v["curve_secret"],
                            curve_server_key=v["curve_server_key"], curve_clients=v["curve_clients"],
                            say=say)

@@ -65,7 +65,8 @@ Messages
                      (its peer ROUTER), has_store, store_key|None,
                      public_key|None (its CURVE key, for its peers)
       heartbeat      status {} (informational: queue, load, resident chunks)
-      results        chunk, culled, queued, eye_iteration|None, ends i64 (5,),
+      results        chunk, culled, queued, queue_target (rays it asks to
+                     have queued; 0: the server's default), eye_iteration|None, ends i64 (5,),
                      job_ids + job_fed + job_left i64 (k,), credit
                      returned (credit_job + credit_exp i64); optional
                      deposits: PhotonDeposits, hits: HitPoints,
@@ -402,7 +403,8 @@ _SPECS = (
                             "public_key": _Nullable(STR)},
          defaults={"store_key": None, "public_key": None}),
     Spec("heartbeat", "both", {"status": DATA}, defaults={"status": {}}),
-    Spec("results", _T2S, {"chunk": INT, "culled": INT, "queued": INT, "eye_iteration": _Nullable(INT)},
+    Spec("results", _T2S, {"chunk": INT, "culled": INT, "queued": INT, "queue_target": INT,
+                           "eye_iteration": _Nullable(INT)},
          (plain("ends", ("ends", np.int64, (), None), rows=len(END_NAMES)),
           plain("job_paths", ("job_ids", np.int64, (), None), ("job_fed", np.int64, (), None),
                 ("job_left", np.int64, (), None)),
@@ -411,7 +413,7 @@ _SPECS = (
           record("hits", HitPoints, optional=True),
           plain("emitted", ("emitted_pixels", np.int32, (), None),
                  ("emitted_rgb", np.float32, (3,), FINITE), optional=True)),
-         check=_check_results, defaults={"culled": 0, "queued": 0, "eye_iteration": None}),
+         check=_check_results, defaults={"culled": 0, "queued": 0, "queue_target": 0, "eye_iteration": None}),
     Spec("chunk_request", _T2S, {"chunk": INT}),
     Spec("error", _ANY, {"reason": STR, "about": _Nullable(STR)}, any_version=True,
          defaults={"about": None}),

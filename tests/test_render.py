@@ -143,7 +143,7 @@ def test_dosppm_render_gives_each_local_tracer_its_memory(monkeypatch):
     assert seen["memory"] == "200MiB"
     started = []
     monkeypatch.setattr(local.subprocess, "Popen", lambda cmd, env: started.append(cmd))
-    local._spawn_tracers(2, "tcp://127.0.0.1:5555", "/store", 2, seen["memory"])
+    local._spawn_tracers(2, "tcp://127.0.0.1:5555", "/store", 2, {"--memory": seen["memory"]})
     assert len(started) == 2 and all(c[c.index("--memory") + 1] == "200MiB" for c in started)
-    local._spawn_tracers(1, "tcp://127.0.0.1:5555", "/store", 2, None)
+    local._spawn_tracers(1, "tcp://127.0.0.1:5555", "/store", 2, {"--memory": None})
     assert "--memory" not in started[-1]

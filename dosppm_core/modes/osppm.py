@@ -20,6 +20,7 @@ import time
 
 import numpy as np
 
+from dosppm_core.chunks import pacing
 from dosppm_core.chunks.cache import ChunkCache, next_with_work, release_freed_memory_to_the_os
 from dosppm_core.chunks.view import (start_chunks, trace_eye_in_chunk, trace_photons_in_chunk,
                                      trace_shadows_in_chunk)
@@ -51,11 +52,19 @@ class OutOfCoreRenderer:
     """
 
     def __init__(self, provider, settings: RenderSettings | None = None,
-                 memory_bytes: float | None = None, pipelined: bool = True):
+                 memory_bytes: float | None = None, pipelined: bool = True,
+                 queue_memory_bytes: float | None = None):
         self.provider = provider
         self.header, self.tree = provider.header, provider.tree
         cam = provider.header.camera
-        self.settings = (settings or RenderSettings()).for_image(cam.width * cam.height)
+        settings = settings or RenderSettings()
+        # Photons per iteration not given: grown while chunk loads are not
+        # hidden by the sweep's tracing (`_pace`), within the queue memory.
+        self.paced = settings.photons_per_iteration is None and pipelined
+        # Every photon of an iteration is queued at its start, and its
+        # deposits are held until the update: half the limit for the rays.
+        self.max_photons_per_iteration = pacing.queue_cap_rays(queue_memory_bytes) // 2
+        self.settings = settings.for_image(cam.width * cam.height)
         self.settings.validate()
         self.pipelined = pipelined
         s = self.settings
@@ -67,6 +76,7 @@ class OutOfCoreRenderer:
                              f"({cost.max():.0f} B)")
         release_freed_memory_to_the_os()
         self.cache = ChunkCache(provider, memory_bytes, threads=s.threads)
+        self.paced = self.paced and memory_bytes < cost.sum()     # all resident: nothing to hide
         self.sppm = SPPMIteration(self.header, s)
         self.eps_abs = self.header.spawn_epsilon()
         self.lights = light_arrays(self.header.lights) if s.direct == "nee" else None
@@ -105,7 +115,7 @@ class OutOfCoreRenderer:
             if self._eye is None:
                 self._start_eye_iteration()
             self._emit_photons()
-            self._sweep(until_empty=False)
+            swept = self._sweep_paced()
             if self._eye is not None and not self._eye_paths_queued():
                 self._finish_eye_iteration()
         else:
@@ -114,7 +124,26 @@ class OutOfCoreRenderer:
         self._apply()
         self.iteration += 1
         self.seconds += time.perf_counter() - t0
+        if self.pipelined:
+            self._pace(*swept)
         return self.progress()
+
+    def _sweep_paced(self) -> tuple[float, float]:
+        """One pipelined sweep: (seconds loading chunks, seconds tracing)."""
+        load0, trace0 = self.cache.counters.load_seconds, self.phase_seconds["eye"] + self.phase_seconds["photon"]
+        self._sweep(until_empty=False)
+        return (self.cache.counters.load_seconds - load0,
+                self.phase_seconds["eye"] + self.phase_seconds["photon"] - trace0)
+
+    def _pace(self, load_s: float, trace_s: float) -> None:
+        """Grow the photons per iteration (not set by the user) until the
+        sweep's chunk loads are at most pacing.LOAD_SHARE of its time."""
+        if not self.paced:
+            return
+        s = self.settings
+        want = pacing.work_to_hide_loads(load_s, trace_s, s.photons_per_iteration)
+        s.photons_per_iteration = pacing.grown(s.photons_per_iteration, want,
+                                               max(s.photons_per_iteration, self.max_photons_per_iteration))
 
     def finish(self) -> None:
         """Trace every queued ray to its end and apply its photons, so the

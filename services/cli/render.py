@@ -59,6 +59,9 @@ def add_parser(sub) -> None:
     ooc.add_argument("--memory", metavar="SIZE", type=config.size,
                      help="resident chunks at most this much: osppm's one process (default: twice the "
                           "budget or all), each dosppm tracer (default: all its chunks)")
+    ooc.add_argument("--queue-memory", metavar="SIZE", type=config.size,
+                     help="queued rays at most this much when more chunks than fit make the renderer "
+                          "queue more to hide their loads (default 256MiB)")
     ooc.add_argument("--schedule", choices=("pipelined", "drained"), default="pipelined",
                      help="osppm: pipelined: one sweep over the chunks per iteration, portal rays "
                           "carried over (§3.3); drained: every ray ends within its iteration, which "
@@ -84,7 +87,7 @@ def _run_service(args) -> int:
     n = args.tracers or os.cpu_count() or 1
     values = {o.name: o.default for o in config.SERVER}
     values.update({o.name: getattr(args, o.name) for o in _SERVER_FLAGS})
-    values.update(bind="tcp://127.0.0.1:*", min_tracers=n, memory=args.memory)
+    values.update(bind="tcp://127.0.0.1:*", min_tracers=n, memory=args.memory, queue_memory=args.queue_memory)
     return run_server(args.scene, values, quiet=args.quiet, spawn_tracers=n)
 
 
@@ -137,7 +140,8 @@ def _make_renderer(args, settings):
     if memory is None and store.budget_bytes:
         memory = max(2 * store.budget_bytes, store.chunk_memory.max())
     cam = store.header.camera
-    return OutOfCoreRenderer(store, settings, memory_bytes=memory,
+    queue_memory = config.parse_bytes(args.queue_memory, "--queue-memory")
+    return OutOfCoreRenderer(store, settings, memory_bytes=memory, queue_memory_bytes=queue_memory,
                              pipelined=args.schedule == "pipelined"), (
         f"scene {store.header.name}: {store.source_triangles:,} triangles in {store.chunk_count} chunks "
         f"({store.path}), {len(store.header.lights.kind)} lights, {cam.width}x{cam.height}")

@@ -232,7 +232,11 @@ class ServerProcess:
         c = self.state.counters
         # Photon and iteration limits count the whole render, resumed part included.
         st = self.state
-        return self.limits.reached(now - self.started_at, st.photons_before + c["photons_emitted"],
+        # A time limit is met by the time the last job is in, not when
+        # emission stops: the rays queued at the tracers (long queues when
+        # chunk loads must be hidden) are traced first.
+        return self.limits.reached(now - self.started_at + st.drain_estimate_s(),
+                                   st.photons_before + c["photons_emitted"],
                                    st.iterations_before + st.eye_completed)
 
     def _receive(self, now: float) -> None:

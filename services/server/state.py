@@ -9,11 +9,12 @@ statistics updates it hands over. What it does:
   (c >= n: tracer i serves chunks i, i + n, ...; c < n: chunk k is shared
   by tracers k, k + c, ...), and every tracer gets the table of who serves
   which chunk whenever it changes.
-- Emission: photon jobs are created while fewer than `min_photon_jobs` are
-  in flight (§3.3) and sent, as they fit, to the tracers serving the chunks
-  their photons start in; a tracer whose reported queue plus what was sent
-  since passes `queue_target_rays` gets nothing more until it reports
-  again (back-pressure by credit, so a slow tracer slows only its share).
+- Emission: photon jobs are created while fewer than `min_photon_jobs`
+  (§3.3), or than the tracers' credit holds, are in flight, and sent as they
+  fit to the tracers serving the chunks their photons start in; a tracer
+  whose reported queue plus what was sent since passes its credit (the
+  server's, or the longer queue it asks for to hide chunk loads) gets
+  nothing more until it reports again (back-pressure).
   Eye iterations are split into tiles (§5.6) and run at the same time as
   photons: the next starts once the last is complete and
   `photons_per_iteration` photons have been emitted since it started.
@@ -48,6 +49,7 @@ from services.wire import JOB_MESSAGES, PROTOCOL_VERSION, Out
 
 MESSAGE_RAYS = 32_768         # rays per job message the server aims for
 TOTAL_CREDIT_RAYS = 1 << 20   # rays queued at all tracers together, at most (see `credit`)
+EMIT_PHOTONS_PER_TICK = 1 << 17   # so long queues (`credit_of`) do not hold the loop from heartbeats
 MAX_TRACERS = 1024            # registrations beyond this are refused (memory stays bounded)
 UNKNOWN, IN_FLIGHT, COMPLETE, DISCARDED = 0, 1, 2, 3     # photon job status
 HEARTBEAT_INTERVAL_S = 1.0
@@ -58,9 +60,9 @@ JOB_MESSAGE_LOST_S = 4.0
 STALL_S = 4.0
 # Tracer heartbeat fields the server passes on in its status.
 STATUS_KEYS = ("load", "resident", "busy_s", "steps", "rays_traced", "photons_traced", "portal_by_chunk",
-               "portal_rays_out", "portal_rays_in", "chunk_loads", "load_s", "load_wait_s",
-               "idle_s", "receive_s", "step_send_s",
-               "forwarded_rays", "cpu_s", "bytes_to_server", "bytes_to_peers", "outbox", "outbox_rays")
+               "portal_rays_out", "portal_rays_in", "chunk_loads", "load_s", "load_wait_s", "wasted_prefetches",
+               "queue_target", "idle_s", "receive_s", "step_send_s", "forwarded_rays", "cpu_s", "bytes_to_server",
+               "bytes_to_peers", "outbox", "outbox_rays")
 
 
 @dataclass
@@ -79,6 +81,7 @@ class TracerInfo:
     jobs_sent: int = 0              # job messages sent since the welcome...
     unacked: deque = field(default_factory=deque)   # ...and when, for those not yet acknowledged
     queued: int = 0                 # rays waiting at the tracer, as last reported
+    queue_target: int = 0           # rays it asks to have queued (0: the server's credit)
     sent_since_report: int = 0      # rays sent to it since
     status: dict = field(default_factory=dict)
     rays_sent: int = 0
@@ -368,7 +371,7 @@ class ServerState:
         if problem:
             self.counters["refused"] += 1
             return [Out(t.id, "error", dict(reason=f"results: {problem}", about="results"))]
-        t.queued, t.sent_since_report = msg.queued, 0
+        t.queued, t.sent_since_report, t.queue_target = msg.queued, 0, msg.queue_target
         t.results += 1
         c = self.counters
         c["results"] += 1
@@ -500,7 +503,8 @@ class ServerState:
             return out + self._alternate()
         out += self._maybe_start_eye_iteration()
         if self.cull_box is not None and not self.paused:
-            while self.photon_jobs_in_flight < self.min_photon_jobs:
+            wanted = self._photon_jobs_wanted()
+            while self.photon_jobs_in_flight < wanted:
                 self._photon_pending.append(self._new_job("photon", self.settings.photons_per_job))
             out += self._send_photon_jobs()
         return out
@@ -620,6 +624,15 @@ class ServerState:
         share = TOTAL_CREDIT_RAYS // max(len(self.tracers), 1)
         return min(self.queue_target, max(MESSAGE_RAYS, share))
 
+    def credit_of(self, t: TracerInfo) -> int:
+        """The server's credit, or the longer queue the tracer asks for to hide its chunk loads."""
+        return max(self.credit, t.queue_target)
+
+    def _photon_jobs_wanted(self) -> int:
+        """`min_photon_jobs` (the paper's 1k), or as many as the queues tracers ask for hold."""
+        credit = sum(t.queue_target for t in self.tracers.values())
+        return max(self.min_photon_jobs, -(-credit // self.settings.photons_per_job))
+
     def _job_status(self, ids: np.ndarray) -> np.ndarray:
         """Status of each photon job id (UNKNOWN for ids never made)."""
         ok = (ids >= 0) & (ids < len(self._status))
@@ -689,13 +702,13 @@ class ServerState:
         return receivers
 
     def _send_photon_jobs(self) -> list[Out]:
-        s, out, parts = self.settings, [], _Parts()
+        s, out, parts, emitted = self.settings, [], _Parts(), 0
         box = self.cull_box      # NO_CULL when culling is off (`SPPMIteration.cull_box`)
         # Photon jobs start where the lights are: the tracers that got the
         # last job's photons gate the next one, so a slow one is never
         # sent more than one job past its credit.
-        while self._photon_pending and not any(
-                self.tracers[t].load_estimate >= self.credit
+        while self._photon_pending and emitted < EMIT_PHOTONS_PER_TICK and not any(
+                self.tracers[t].load_estimate >= self.credit_of(self.tracers[t])
                 for t in self._photon_receivers if t in self.tracers):
             j = self._photon_pending.popleft()
             count = self.jobs[j].paths
@@ -703,6 +716,7 @@ class ServerState:
             batch.job[:] = j
             self.jobs[j].cull_box = box          # for the ledger: the box it is sent with
             self.counters["photons_emitted"] += count
+            emitted += count
             self._photon_receivers = self._route(j, batch, parts)
             out += self._flush(parts, box, full_only=True)
         return out + self._flush(parts, box, full_only=False)
@@ -746,6 +760,16 @@ class ServerState:
             self._set_status(j, DISCARDED)
             self.photon_jobs_in_flight -= 1
         self._photon_pending.clear()
+
+    def drain_estimate_s(self) -> float:
+        """Seconds the slowest tracer needs to trace what waits for it, at
+        its rate so far (chunk loads included)."""
+        worst = 0.0
+        for t in self.tracers.values():
+            busy, rays = t.status.get("busy_s", 0), t.status.get("rays_traced", 0)
+            if busy > 0 and rays > 0:
+                worst = max(worst, t.load_estimate * busy / rays)
+        return worst
 
     @property
     def drained(self) -> bool:

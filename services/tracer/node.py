@@ -57,12 +57,14 @@ class TracerProcess:
                  store: str | None = None, cache_dir: str | None = None, memory_bytes: float | None = None,
                  threads: int = 1, tracer_id: str | None = None, context: transport.Context | None = None,
                  connect_timeout_s: float = SERVER_TIMEOUT_S, curve_secret: str | None = None,
-                 curve_server_key: str | None = None, curve_clients: str | None = None, say=None):
+                 curve_server_key: str | None = None, curve_clients: str | None = None, say=None,
+                 queue_memory_bytes: float | None = None):
         """`say` prints a line for the user: the server joined, rejoins."""
         self.say = say or (lambda *parts: None)
         self.server_url, self.bind, self.advertise = server, bind, advertise
         self.store_path, self.cache_dir = store, cache_dir
         self.memory_bytes, self.threads = memory_bytes, threads
+        self.queue_memory_bytes = queue_memory_bytes
         self.tracer_id = tracer_id or default_tracer_id()
         self.connect_timeout_s = connect_timeout_s
         self.curve = (curve_secret, curve_server_key, curve_clients) if curve_secret else None
@@ -240,7 +242,8 @@ class TracerProcess:
             self.state = self.state_class(self.endpoint, provider, welcome.settings["max_depth"],
                                      memory_bytes=self.memory_bytes, threads=self.threads,
                                      step_rays=STEP_RAYS if batching else 0,
-                                     direct=welcome.settings.get("direct", "nee"))
+                                     direct=welcome.settings.get("direct", "nee"),
+                                     queue_memory_bytes=self.queue_memory_bytes)
             log.info("tracer %s joined as %d at %s, chunks %s", self.tracer_id, welcome.tracer_index,
                      self.endpoint, welcome.chunks)
             self.say(f"tracer {self.tracer_id}: registered with server {self.server_url} as tracer "

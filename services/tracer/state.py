@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dosppm_core.chunks import pacing
 from dosppm_core.chunks.cache import ChunkCache, next_with_work
 from dosppm_core.chunks.view import trace_eye_in_chunk, trace_photons_in_chunk, trace_shadows_in_chunk
 from dosppm_core.jobs import HitPoints, RayBatch, ShadowRays, paths_per_job
@@ -80,7 +81,8 @@ class TracerState:
     """Queues, chunk cache and routing of one tracer."""
 
     def __init__(self, endpoint: str, provider, max_depth: int, memory_bytes: float | None = None,
-                 threads: int = 1, step_rays: int = STEP_RAYS, direct: str = "nee"):
+                 threads: int = 1, step_rays: int = STEP_RAYS, direct: str = "nee",
+                 queue_memory_bytes: float | None = None):
         self.endpoint, self.provider, self.max_depth = endpoint, provider, int(max_depth)
         # Direct light by shadow rays ('nee'): photons deposit from their
         # second surface on. 'photons': the paper's pure estimator.
@@ -90,6 +92,8 @@ class TracerState:
         cost = np.asarray(provider.chunk_memory, np.float64)
         self.cache = ChunkCache(provider, float(cost.sum()) if memory_bytes is None else memory_bytes,
                                 threads=threads)
+        self.queue_cap = pacing.queue_cap_rays(queue_memory_bytes)
+        self._queue_target, self._loads_at_pace = 0, 0
         self.queues: dict[int, ChunkQueue] = {}
         self.owners: list[list[str]] = [[] for _ in range(provider.tree.chunk_count)]
         self.table_version = -1
@@ -191,6 +195,32 @@ class TracerState:
     def has_work(self) -> bool:
         return any(self.queues.values())
 
+    def all_fit(self) -> bool:
+        return sum(self.cache.cost[k] for k in self.chunks) <= self.cache.memory
+
+    def queue_target(self) -> int:
+        """Rays this tracer asks the server to keep queued here (0: the
+        server's default credit). See `_pace`."""
+        return self._queue_target
+
+    def _pace(self) -> None:
+        """With more chunks than fit, every chunk is loaded again each
+        sweep over them: the queue must hold enough rays for a sweep's
+        tracing to hide its loads (dosppm_core.chunks.pacing), within
+        `queue_cap` (--queue-memory). Re-measured after each sweep's worth
+        of loads, and at most doubled then, so one slow load cannot flood
+        the server's emission."""
+        cc = self.cache.counters
+        if self.all_fit() or cc.loads - self._loads_at_pace < max(2, len(self.chunks)):
+            return
+        self._loads_at_pace = cc.loads
+        load_s = len(self.chunks) * cc.load_seconds / cc.loads       # one sweep's loads
+        trace_s = self.counters["busy_s"] - cc.wait_seconds
+        wanted = pacing.work_to_hide_loads(load_s, trace_s, self.counters["rays_traced"])
+        start = max(self._queue_target, pacing.FIRST_QUEUE_RAYS)
+        if wanted > start:
+            self._queue_target = pacing.grown(start, wanted, self.queue_cap)
+
     # -- tracing -----------------------------------------------------------------
     def step(self) -> list[Out]:
         """Trace one coalesced batch in one chunk; eye and shadow rays
@@ -212,6 +242,7 @@ class TracerState:
             del self.queues[k]
         self.counters["steps"] += 1
         self.counters["busy_s"] += time.perf_counter() - t0
+        self._pace()
         return out
 
     def _pick_chunk(self) -> int | None:
@@ -220,8 +251,7 @@ class TracerState:
         DWELL_STEPS (the paper's 'load the next chunk when all its jobs are
         processed', without starving the others while work keeps coming)."""
         a = self._active
-        all_fit = len(self.cache.resident) >= len(self.chunks)
-        if a is not None and self.queues.get(a) and not all_fit and self._dwell < DWELL_STEPS:
+        if a is not None and self.queues.get(a) and self._dwell < DWELL_STEPS and not self.all_fit():
             self._dwell += 1
             return a
         k = self._next_with_work(-1 if a is None else a)
@@ -305,7 +335,7 @@ class TracerState:
                 self.counters["portal_rays_out"] += len(merged)
                 o = self._portal(chunk, kind, merged, share, **extra)
                 portal += [] if o is None else [o]
-        fields["queued"] = self.queued_rays
+        fields["queued"], fields["queue_target"] = self.queued_rays, self.queue_target()
         return [Out(SERVER, "results", fields), *portal]
 
     def _portal(self, chunk: int, kind: str, batch: RayBatch, credit: tuple, cull_box=None,
@@ -344,7 +374,8 @@ class TracerState:
     def status(self) -> dict:
         cc = self.cache.counters
         loads = {"chunk_loads": cc.loads, "load_s": round(cc.load_seconds, 3),
-                 "load_wait_s": round(cc.wait_seconds, 3)}
+                 "load_wait_s": round(cc.wait_seconds, 3), "wasted_prefetches": cc.wasted_prefetches,
+                 "queue_target": self.queue_target()}
         return {"queue": self.queued_rays, "chunks": self.chunks, **loads,
                 "portal_by_chunk": [[k, i, o] for k, (i, o) in sorted(self.portal_by_chunk.items())],
                 "resident": sorted(self.cache.resident), **{k: (round(v, 3) if isinstance(v, float) else v)

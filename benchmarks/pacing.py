@@ -1,0 +1,153 @@
+"""Issue 17, parts 3 and 4: work chosen by the renderer to hide chunk loads.
+
+On a generated building (5M triangles, 8 chunks of about 85 MiB) with
+memory for two chunks (`--memory 200MiB`), in one run on one machine:
+
+- OSPPM with the photons per iteration it chooses itself, beside every
+  hand-tuned setting in `--ppi`: the target is the default at 90% or more
+  of the best hand-tuned one. Peak RSS of each run beside it.
+- DOSPPM (a server and two tracers, each holding half the chunks, two of
+  them resident) at 8 and 16 chunks: photons/s, and each tracer's time
+  busy, waiting for chunk loads, and idle; against OSPPM and DOSPPM with
+  every chunk resident. The targets: tracers busy 85% of the render, and
+  photons/s within 10% of OSPPM with every chunk resident.
+
+photons/s is photons applied over the render's seconds, the drain of the
+queues at the end included. Medians of `--repeats` runs, every sample kept.
+
+    python benchmarks/pacing.py --seconds 30 --repeats 3 --json benchmarks/results/pacing.json
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+
+from services.evaluation.provenance import median_of, write_results  # noqa: E402
+
+MiB = 1 << 20
+
+
+def _dosppm(args: list[str], timeout_s: float) -> tuple[float, float]:
+    """Run `dosppm ARGS`: (peak RSS in bytes, wall seconds). The peak is
+    wait4's high-water mark: the largest of the command and its children
+    (local tracers), interpreter and kernels included."""
+    env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    t0 = time.monotonic()
+    with tempfile.TemporaryFile("w+") as err:
+        p = subprocess.Popen([sys.executable, "-m", "services.cli", *args], env=env,
+                             stdout=subprocess.DEVNULL, stderr=err, text=True)
+        while time.monotonic() - t0 < timeout_s:
+            pid, status, usage = os.wait4(p.pid, os.WNOHANG)
+            if pid:
+                p.returncode = os.waitstatus_to_exitcode(status)
+                break
+            time.sleep(0.2)
+        else:
+            p.kill()
+            raise RuntimeError(f"dosppm {' '.join(args[:3])} did not finish in {timeout_s} s")
+        if p.returncode:
+            err.seek(0)
+            raise RuntimeError(f"dosppm {' '.join(args[:3])} exited {p.returncode}: {err.read()[-1500:]}")
+    return usage.ru_maxrss * 1024, time.monotonic() - t0
+
+
+def _store(work: str, triangles: float, chunks: int | None) -> str:
+    soup, store = os.path.join(work, "building"), os.path.join(work, f"building-{chunks or 'budget'}.chunks")
+    if not os.path.exists(soup):
+        _dosppm(["scenes", "generate", "building", "--triangles", str(int(triangles)), "--out", soup], 600)
+    if not os.path.exists(store):
+        split = ["--chunks", str(chunks)] if chunks else ["--budget", "128MiB"]
+        _dosppm(["subdivide", soup, *split, "--out", store], 1200)
+    return store
+
+
+def _osppm(store: str, seconds: float, memory: str | None, ppi: int | None, work: str) -> dict:
+    out, log = os.path.join(work, "osppm.exr"), os.path.join(work, "osppm.log")
+    if os.path.exists(log):
+        os.remove(log)
+    args = ["render", store, "--mode", "osppm", "--time", str(seconds), "--out", out, "--log", log, "--quiet"]
+    args += ["--memory", memory] if memory else []
+    args += ["--photons-per-iteration", str(ppi)] if ppi else []
+    rss, wall = _dosppm(args, 10 * seconds + 300)
+    with open(log, encoding="utf-8") as f:
+        last = json.loads(f.read().splitlines()[-1])
+    return {"photons_per_s": last["photons"] / last["seconds"], "photons": last["photons"],
+            "iterations": last["iteration"], "seconds": last["seconds"], "peak_rss_mib": rss / MiB,
+            "wall_s": wall}
+
+
+def _dosppm_render(store: str, seconds: float, memory: str | None, work: str) -> dict:
+    out = os.path.join(work, "dosppm.exr")
+    args = ["render", store, "--time", str(seconds), "--out", out, "--quiet"]
+    args += ["--memory", memory] if memory else []
+    rss, wall = _dosppm(args, 10 * seconds + 300)
+    with open(os.path.join(work, "dosppm.json"), encoding="utf-8") as f:
+        doc = json.load(f)
+    secs = doc["seconds"]
+    tracers = [{k: t.get(k) for k in ("id", "chunks", "busy_s", "idle_s", "chunk_loads", "load_s", "load_wait_s",
+                                      "wasted_prefetches", "queue_target", "rays_traced")} for t in doc["tracers"]]
+    busy = [t["busy_s"] / secs for t in tracers]
+    tracing = [(t["busy_s"] - t["load_wait_s"]) / secs for t in tracers]
+    return {"photons_per_s": doc["photons_applied"] / secs, "hit_points_per_s": doc["hit_points_per_s"],
+            "seconds": secs, "wall_s": wall, "busy_share": min(busy), "tracing_share": min(tracing),
+            "chunk_loads": sum(t["chunk_loads"] for t in tracers), "peak_rss_mib": rss / MiB,
+            "tracers": tracers}
+
+
+def _repeat(fn, repeats: int) -> dict:
+    return median_of([fn() for _ in range(repeats)])
+
+
+def run(args) -> dict:
+    os.makedirs(args.work, exist_ok=True)
+    store = _store(args.work, args.triangles, None)
+    s, r, m = args.seconds, args.repeats, args.memory
+    osppm = {"auto": _repeat(lambda: _osppm(store, s, m, None, args.work), r)}
+    for ppi in args.ppi:
+        osppm[str(ppi)] = _repeat(lambda: _osppm(store, s, m, ppi, args.work), r)
+    best = max((k for k in osppm if k != "auto"), key=lambda k: osppm[k]["photons_per_s"])
+    resident = _repeat(lambda: _osppm(store, s, None, None, args.work), r)
+    dosppm = {}
+    for chunks in args.chunks:
+        st = store if chunks == 8 else _store(args.work, args.triangles, chunks)
+        dosppm[str(chunks)] = _repeat(lambda: _dosppm_render(st, s, m, args.work), r)
+    dosppm["8 resident"] = _repeat(lambda: _dosppm_render(store, s, None, args.work), r)
+    auto = osppm["auto"]["photons_per_s"]
+    return {"triangles": args.triangles, "memory": m, "seconds": s, "osppm": osppm, "osppm_resident": resident,
+            "dosppm": dosppm, "best_hand_tuned": best,
+            "auto_over_best": auto / osppm[best]["photons_per_s"],
+            "dosppm_over_osppm_resident": {c: d["photons_per_s"] / resident["photons_per_s"]
+                                           for c, d in dosppm.items()}}
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--triangles", type=float, default=5e6)
+    p.add_argument("--memory", default="200MiB", help="per process: two chunks of the 8")
+    p.add_argument("--seconds", type=float, default=30)
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--ppi", type=int, nargs="+", default=[250_000, 500_000, 1_000_000, 2_000_000, 4_000_000])
+    p.add_argument("--chunks", type=int, nargs="+", default=[8, 16])
+    p.add_argument("--work", default="/tmp/dosppm-pacing")
+    p.add_argument("--json", default=os.path.join(ROOT, "benchmarks", "results", "pacing.json"))
+    args = p.parse_args()
+    doc = run(args)
+    write_results(args.json, doc)
+    print(f"OSPPM auto {doc['osppm']['auto']['photons_per_s'] / 1e3:.0f}k photons/s = "
+          f"{doc['auto_over_best']:.2f} of the best hand-tuned ({doc['best_hand_tuned']})")
+    for c, d in doc["dosppm"].items():
+        print(f"DOSPPM c={c}: {d['photons_per_s'] / 1e3:.0f}k photons/s "
+              f"({doc['dosppm_over_osppm_resident'][c]:.2f} of OSPPM resident), "
+              f"busy {d['busy_share']:.0%}, tracing {d['tracing_share']:.0%}")
+
+
+if __name__ == "__main__":
+    main()

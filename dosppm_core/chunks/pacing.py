@@ -1,0 +1,44 @@
+"""How much work to gather before sweeping the chunks, so that tracing
+hides the chunk loads (issue 17).
+
+When not every chunk fits in memory, each sweep over the chunks loads
+them again: the loads cost a fixed time per sweep, the tracing grows with
+the work the sweep carries. OSPPM's photons per iteration and a DOSPPM
+tracer's queue of rays are that work. Both grow until the loads are at
+most `LOAD_SHARE` of a sweep, within a memory limit for the queued rays
+(`--queue-memory`): the paper's "load the next chunk when all its jobs
+are processed" pays off only when there are enough jobs.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from dosppm_core.jobs import RayBatch
+
+LOAD_SHARE = 0.1                 # chunk loads at most this share of a sweep's time
+QUEUE_MEMORY_BYTES = 256 << 20   # default limit on queued rays (--queue-memory)
+FIRST_QUEUE_RAYS = 262_144      # where a tracer's queue target starts growing (the server's credit)
+RAY_BYTES = sum(np.dtype(dt).itemsize * int(np.prod(shape, dtype=np.int64))
+                for dt, shape in RayBatch.SCHEMA.values())
+
+
+def work_to_hide_loads(load_s: float, trace_s: float, work: float, share: float = LOAD_SHARE) -> float:
+    """The work per sweep for which the loads are `share` of the sweep's
+    time, from a sweep that loaded for `load_s` and traced `work` (rays,
+    photons) in `trace_s`. Loads per sweep do not grow with the work, the
+    tracing does. 0 when nothing was measured."""
+    if load_s <= 0 or trace_s <= 0 or work <= 0:
+        return 0.0
+    return work / trace_s * load_s * (1.0 - share) / share
+
+
+def grown(current: int, wanted: float, cap: int) -> int:
+    """`current` grown towards `wanted`, at most doubled per step (one
+    noisy sweep must not jump it) and never past `cap`; never shrunk."""
+    return int(min(cap, max(current, min(2 * current, wanted))))
+
+
+def queue_cap_rays(queue_memory_bytes: float | None) -> int:
+    """Rays that fit in the queue memory limit."""
+    limit = QUEUE_MEMORY_BYTES if queue_memory_bytes is None else queue_memory_bytes
+    return max(1, int(limit // RAY_BYTES))

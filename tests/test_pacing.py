@@ -1,0 +1,148 @@
+"""Work chosen to hide chunk loads (issue 17): the pacing rule, a tracer's
+queue target, the server's credit that follows it, and OSPPM's photons per
+iteration growing only when chunks do not all fit."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from dosppm_core.chunks import pacing
+from dosppm_core.modes.osppm import OutOfCoreRenderer
+from dosppm_core.settings import RenderSettings
+from services.server.state import EMIT_PHOTONS_PER_TICK, ServerState
+from services.tracer.state import TracerState
+from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
+from tests.helpers.scenes import small_scene
+from tests.test_scheduler import _msg, _register, _results
+
+
+@pytest.fixture(scope="module")
+def four_chunks():
+    scene = small_scene("cornell-box", 32)
+    return MemoryChunks(scene, uniform_tree(root_box(scene), (2, 2, 1)))
+
+
+def test_work_grows_until_loads_are_a_tenth_of_a_sweep():
+    # 1 s of loads a sweep, 100k rays traced in 1 s: 900k rays trace for
+    # 9 s, so the loads are 1 s of 10.
+    assert pacing.work_to_hide_loads(1.0, 1.0, 100_000) == pytest.approx(900_000)
+    assert pacing.work_to_hide_loads(0.5, 1.0, 100_000) == pytest.approx(450_000)
+    assert pacing.work_to_hide_loads(0.0, 1.0, 100_000) == 0.0      # nothing loaded: nothing to hide
+    assert pacing.work_to_hide_loads(1.0, 0.0, 0) == 0.0
+
+
+def test_growth_is_at_most_a_doubling_capped_and_never_a_shrink():
+    assert pacing.grown(1000, 10_000, 1_000_000) == 2000
+    assert pacing.grown(1000, 1500, 1_000_000) == 1500
+    assert pacing.grown(1000, 10, 1_000_000) == 1000
+    assert pacing.grown(1000, 10_000, 1200) == 1200
+    assert pacing.queue_cap_rays(pacing.RAY_BYTES * 1000) == 1000
+    assert pacing.queue_cap_rays(None) == pacing.QUEUE_MEMORY_BYTES // pacing.RAY_BYTES
+
+
+def _tracer(provider, memory, queue_memory=None):
+    t = TracerState("inproc://t", provider, 10, memory_bytes=memory, queue_memory_bytes=queue_memory)
+    t.set_peers(1, [["inproc://t"]] * provider.tree.chunk_count)
+    return t
+
+
+def _measured(t, loads, load_s, busy_s, rays):
+    cc = t.cache.counters
+    cc.loads, cc.load_seconds, cc.wait_seconds = loads, load_s, 0.0
+    t.counters["busy_s"], t.counters["rays_traced"] = busy_s, rays
+    t._pace()
+    return t.queue_target()
+
+
+def test_a_tracer_whose_chunks_do_not_fit_asks_for_a_queue_that_hides_its_loads(four_chunks):
+    t = _tracer(four_chunks, 1.5 * max(four_chunks.chunk_memory))
+    try:
+        assert t.queue_target() == 0
+        # 4 chunks at 0.25 s a load: 1 s of loads a sweep; 1M rays/s traced
+        # wants 9M rays queued, reached by doublings from the first target,
+        # re-measured once per sweep's worth of loads.
+        first = pacing.FIRST_QUEUE_RAYS
+        assert _measured(t, 4, 1.0, 1.0, 1_000_000) == 2 * first
+        assert _measured(t, 5, 1.25, 2.0, 2_000_000) == 2 * first       # not a sweep since
+        assert _measured(t, 8, 2.0, 2.0, 2_000_000) == 4 * first
+        # Bounded by --queue-memory.
+        small = _tracer(four_chunks, 1.5 * max(four_chunks.chunk_memory), queue_memory=pacing.RAY_BYTES * 600_000)
+        assert _measured(small, 4, 1.0, 1.0, 1_000_000) == 524_288
+        assert _measured(small, 8, 2.0, 2.0, 2_000_000) == 600_000
+        small.close()
+    finally:
+        t.close()
+
+
+def test_a_tracer_holding_all_its_chunks_leaves_the_credit_to_the_server(four_chunks):
+    t = _tracer(four_chunks, None)
+    try:
+        assert _measured(t, 4, 1.0, 1.0, 1_000_000) == 0
+    finally:
+        t.close()
+
+
+def test_the_server_sends_what_a_tracer_asks_for_a_tick_at_a_time():
+    scene = small_scene("cornell-box", 32)
+    provider = MemoryChunks(scene, uniform_tree(root_box(scene), (1, 1, 1)))
+    state = ServerState(provider.header, provider.tree,
+                        RenderSettings(photons_per_job=1024, tile_pixels=256, photons_per_iteration=10_000),
+                        "k", min_photon_jobs=50, queue_target_rays=4096)
+    _register(state, "a")
+    state.cull_box = np.array([[-1e9] * 3, [1e9] * 3])
+    state.eye_completed = 1
+
+    def photons_sent(now):
+        return sum(len(o.fields["batch"]) for o in state.tick(now) if o.type == "photon_job")
+
+    assert photons_sent(0.0) <= 4096 + 1024            # the server's credit
+    asked = 3 * EMIT_PHOTONS_PER_TICK
+    msg = _results([], [])
+    msg.queue_target = asked
+    state.on_message("a", msg, 0.05)
+    assert state.credit_of(state.tracers["a"]) == asked
+    assert state.photon_jobs_in_flight <= state.min_photon_jobs + 5
+    ticks = [photons_sent(0.1 * i) for i in range(1, 6)]
+    assert max(ticks) <= EMIT_PHOTONS_PER_TICK             # the loop stays responsive
+    # Then it stops at the new credit (photons leaving the scene box at
+    # once are never sent, so a little short of it).
+    assert 0.95 * asked <= sum(ticks) <= asked + 1024
+    assert state.photon_jobs_in_flight >= asked // 1024
+    # The time limit counts the queue's drain: its rays at the tracer's rate.
+    t = state.tracers["a"]
+    t.status = {"busy_s": 10.0, "rays_traced": 1_000_000}
+    assert t.load_estimate > 0 and state.drain_estimate_s() == pytest.approx(t.load_estimate * 1e-5)
+
+
+def _osppm(provider, memory, **kw):
+    settings = RenderSettings(seed=3, photons_per_job=1024, **kw)
+    return OutOfCoreRenderer(provider, settings, memory_bytes=memory)
+
+
+def test_osppm_grows_photons_per_iteration_only_when_chunks_do_not_fit(four_chunks):
+    tight = 1.5 * max(four_chunks.chunk_memory)
+    o = _osppm(four_chunks, tight)
+    try:
+        assert o.paced
+        first = o.settings.photons_per_iteration
+        o.run_iteration()                                 # measured loads: it may grow, never shrink
+        assert o.progress().photons_emitted >= first and o.settings.photons_per_iteration >= first
+        first = o.settings.photons_per_iteration
+        o._pace(load_s=1.0, trace_s=0.1)                  # loads dominate: double
+        assert o.settings.photons_per_iteration == 2 * first
+        o._pace(load_s=0.001, trace_s=10.0)               # hidden already: never shrink
+        assert o.settings.photons_per_iteration == 2 * first
+        for _ in range(40):
+            o._pace(load_s=1.0, trace_s=0.1)
+        assert o.settings.photons_per_iteration == o.max_photons_per_iteration
+    finally:
+        o.close()
+    for memory, kw in ((None, {}), (tight, {"photons_per_iteration": 20_000})):
+        o = _osppm(four_chunks, memory, **kw)
+        try:
+            assert not o.paced
+            before = o.settings.photons_per_iteration
+            o._pace(load_s=1.0, trace_s=0.1)
+            assert o.settings.photons_per_iteration == before
+        finally:
+            o.close()
