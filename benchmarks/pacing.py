@@ -128,6 +128,29 @@ def run(args) -> dict:
                                            for c, d in dosppm.items()}}
 
 
+def report(doc: dict) -> str:
+    """The Markdown tables docs/out-of-core.md quotes (benchmarks/tables.py)."""
+    def k(x):
+        return f"{x / 1e3:,.0f}k"
+    lines = ["| OSPPM, photons per iteration | photons/s | mean per iteration | peak RSS |", "|---|---|---|---|"]
+    rows = [("chosen by the renderer (default)", doc["osppm"]["auto"])]
+    rows += [(f"{int(p):,} (hand-tuned)", d) for p, d in doc["osppm"].items() if p != "auto"]
+    rows += [("every chunk resident, default", doc["osppm_resident"])]
+    for name, d in rows:
+        lines.append(f"| {name} | {k(d['photons_per_s'])} | {k(d['photons'] / d['iterations'])} "
+                     f"| {d['peak_rss_mib']:,.0f} MiB |")
+    lines += ["", f"The default reaches {doc['auto_over_best']:.0%} of the best hand-tuned setting "
+              f"({int(doc['best_hand_tuned']):,}).", "",
+              "| DOSPPM, 2 tracers | photons/s | of OSPPM, all resident | tracers busy | tracing "
+              "| chunk loads | peak RSS, largest process |", "|---|---|---|---|---|---|---|"]
+    for c, d in doc["dosppm"].items():
+        name = f"{c} chunks, {doc['memory']} each" if "resident" not in c else f"{c.split()[0]} chunks, all resident"
+        lines.append(f"| {name} | {k(d['photons_per_s'])} | {doc['dosppm_over_osppm_resident'][c]:.2f} "
+                     f"| {d['busy_share']:.0%} | {d['tracing_share']:.0%} | {d['chunk_loads']:.0f} "
+                     f"| {d['peak_rss_mib']:,.0f} MiB |")
+    return "\n".join(lines) + "\n"
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--triangles", type=float, default=5e6)
@@ -141,6 +164,7 @@ def main() -> None:
     args = p.parse_args()
     doc = run(args)
     write_results(args.json, doc)
+    print(report(doc))
     print(f"OSPPM auto {doc['osppm']['auto']['photons_per_s'] / 1e3:.0f}k photons/s = "
           f"{doc['auto_over_best']:.2f} of the best hand-tuned ({doc['best_hand_tuned']})")
     for c, d in doc["dosppm"].items():

@@ -102,6 +102,11 @@ def _subdivide_memory(doc: dict) -> str:
     return "\n".join(lines)
 
 
+def _pacing(doc: dict) -> str:
+    import pacing
+    return pacing.report(doc)
+
+
 def _render_default(doc: dict) -> str:
     import render_default
     return render_default.report(doc)
@@ -166,6 +171,7 @@ TABLES = {
     "reliability": ("benchmarks/results/reliability.json", _reliability),
     "reliability-short": ("benchmarks/results/reliability.json", _reliability_short),
     "subdivide-memory": ("benchmarks/results/subdivide-memory.json", _subdivide_memory),
+    "pacing": ("benchmarks/results/pacing.json", _pacing),
     "pbrt-side-by-side": ("benchmarks/results/pbrt-side-by-side.json", _pbrt_side_by_side),
 }
 

@@ -31,8 +31,9 @@ def test_work_grows_until_loads_are_a_tenth_of_a_sweep():
     assert pacing.work_to_hide_loads(1.0, 0.0, 0) == 0.0
 
 
-def test_growth_is_at_most_a_doubling_capped_and_never_a_shrink():
-    assert pacing.grown(1000, 10_000, 1_000_000) == 2000
+def test_growth_is_bounded_capped_and_never_a_shrink():
+    assert pacing.grown(1000, 10_000, 1_000_000) == 4000
+    assert pacing.grown(1000, 10_000, 1_000_000, first=True) == 10_000     # the first measurement may jump
     assert pacing.grown(1000, 1500, 1_000_000) == 1500
     assert pacing.grown(1000, 10, 1_000_000) == 1000
     assert pacing.grown(1000, 10_000, 1200) == 1200
@@ -58,16 +59,16 @@ def test_a_tracer_whose_chunks_do_not_fit_asks_for_a_queue_that_hides_its_loads(
     t = _tracer(four_chunks, 1.5 * max(four_chunks.chunk_memory))
     try:
         assert t.queue_target() == 0
-        # 4 chunks at 0.25 s a load: 1 s of loads a sweep; 1M rays/s traced
-        # wants 9M rays queued, reached by doublings from the first target,
-        # re-measured once per sweep's worth of loads.
-        first = pacing.FIRST_QUEUE_RAYS
-        assert _measured(t, 4, 1.0, 1.0, 1_000_000) == 2 * first
-        assert _measured(t, 5, 1.25, 2.0, 2_000_000) == 2 * first       # not a sweep since
-        assert _measured(t, 8, 2.0, 2.0, 2_000_000) == 4 * first
+        # 4 chunks at 0.25 s a load: 1 s of loads a sweep; 100k rays/s
+        # traced wants 900k rays queued, asked for at once; then 4M wanted,
+        # re-measured once per sweep's worth of loads, at most 4x a step.
+        assert _measured(t, 4, 1.0, 1.0, 100_000) == 900_000
+        assert _measured(t, 5, 1.25, 1.0, 1_000_000) == 900_000         # not a sweep since
+        assert _measured(t, 8, 2.0, 2.0, 900_000) == 3_600_000
+        assert _measured(t, 12, 3.0, 2.0, 2_000_000) == pacing.queue_cap_rays(None)
         # Bounded by --queue-memory.
         small = _tracer(four_chunks, 1.5 * max(four_chunks.chunk_memory), queue_memory=pacing.RAY_BYTES * 600_000)
-        assert _measured(small, 4, 1.0, 1.0, 1_000_000) == 524_288
+        assert _measured(small, 4, 1.0, 1.0, 50_000) == 450_000
         assert _measured(small, 8, 2.0, 2.0, 2_000_000) == 600_000
         small.close()
     finally:
@@ -116,25 +117,27 @@ def test_the_server_sends_what_a_tracer_asks_for_a_tick_at_a_time():
 
 def _osppm(provider, memory, **kw):
     settings = RenderSettings(seed=3, photons_per_job=1024, **kw)
-    return OutOfCoreRenderer(provider, settings, memory_bytes=memory)
+    # Queued rays for 400k photons: paced runs start at 50k photons per
+    # iteration (a quarter of the 200k the limit allows them).
+    return OutOfCoreRenderer(provider, settings, memory_bytes=memory, queue_memory_bytes=pacing.RAY_BYTES * 400_000)
 
 
 def test_osppm_grows_photons_per_iteration_only_when_chunks_do_not_fit(four_chunks):
     tight = 1.5 * max(four_chunks.chunk_memory)
     o = _osppm(four_chunks, tight)
     try:
-        assert o.paced
-        first = o.settings.photons_per_iteration
+        assert o.paced and o.max_photons_per_iteration == 200_000
+        assert o.settings.photons_per_iteration == 50_000
         o.run_iteration()                                 # measured loads: it may grow, never shrink
-        assert o.progress().photons_emitted >= first and o.settings.photons_per_iteration >= first
-        first = o.settings.photons_per_iteration
-        o._pace(load_s=1.0, trace_s=0.1)                  # loads dominate: double
-        assert o.settings.photons_per_iteration == 2 * first
+        assert o.progress().photons_emitted >= 50_000 and o.settings.photons_per_iteration >= 50_000
+        o.settings.photons_per_iteration, o.iteration = 10_000, 2     # a later iteration's measurement
+        o._pace(load_s=1.0, trace_s=0.1)                  # loads dominate: at most 4x after the first
+        assert o.settings.photons_per_iteration == 4 * 10_000
         o._pace(load_s=0.001, trace_s=10.0)               # hidden already: never shrink
-        assert o.settings.photons_per_iteration == 2 * first
-        for _ in range(40):
+        assert o.settings.photons_per_iteration == 4 * 10_000
+        for _ in range(10):
             o._pace(load_s=1.0, trace_s=0.1)
-        assert o.settings.photons_per_iteration == o.max_photons_per_iteration
+        assert o.settings.photons_per_iteration == 200_000
     finally:
         o.close()
     for memory, kw in ((None, {}), (tight, {"photons_per_iteration": 20_000})):
@@ -142,6 +145,7 @@ def test_osppm_grows_photons_per_iteration_only_when_chunks_do_not_fit(four_chun
         try:
             assert not o.paced
             before = o.settings.photons_per_iteration
+            assert before == (20_000 if kw else 10_000)   # 1.5 per pixel, at least 10k; or as given
             o._pace(load_s=1.0, trace_s=0.1)
             assert o.settings.photons_per_iteration == before
         finally:

@@ -15,6 +15,7 @@ import numpy as np
 
 from dosppm_core.jobs import RayBatch
 
+GROWTH = 4                       # at most this factor per sweep
 LOAD_SHARE = 0.1                 # chunk loads at most this share of a sweep's time
 QUEUE_MEMORY_BYTES = 256 << 20   # default limit on queued rays (--queue-memory)
 FIRST_QUEUE_RAYS = 262_144      # where a tracer's queue target starts growing (the server's credit)
@@ -32,10 +33,13 @@ def work_to_hide_loads(load_s: float, trace_s: float, work: float, share: float 
     return work / trace_s * load_s * (1.0 - share) / share
 
 
-def grown(current: int, wanted: float, cap: int) -> int:
-    """`current` grown towards `wanted`, at most doubled per step (one
-    noisy sweep must not jump it) and never past `cap`; never shrunk."""
-    return int(min(cap, max(current, min(2 * current, wanted))))
+def grown(current: int, wanted: float, cap: int, first: bool = False) -> int:
+    """`current` grown towards `wanted`, at most GROWTH times per step (one
+    noisy sweep must not jump it; the first measurement may, since the
+    ramp's small sweeps are the slow ones) and never past `cap`; never
+    shrunk."""
+    step = wanted if first else min(GROWTH * current, wanted)
+    return int(min(cap, max(current, step)))
 
 
 def queue_cap_rays(queue_memory_bytes: float | None) -> int:

@@ -77,6 +77,8 @@ class OutOfCoreRenderer:
         release_freed_memory_to_the_os()
         self.cache = ChunkCache(provider, memory_bytes, threads=s.threads)
         self.paced = self.paced and memory_bytes < cost.sum()     # all resident: nothing to hide
+        if self.paced:      # chunks will be loaded every sweep: start at a quarter of the limit
+            s.photons_per_iteration = max(s.photons_per_iteration, self.max_photons_per_iteration // 4)
         self.sppm = SPPMIteration(self.header, s)
         self.eps_abs = self.header.spawn_epsilon()
         self.lights = light_arrays(self.header.lights) if s.direct == "nee" else None
@@ -143,7 +145,8 @@ class OutOfCoreRenderer:
         s = self.settings
         want = pacing.work_to_hide_loads(load_s, trace_s, s.photons_per_iteration)
         s.photons_per_iteration = pacing.grown(s.photons_per_iteration, want,
-                                               max(s.photons_per_iteration, self.max_photons_per_iteration))
+                                               max(s.photons_per_iteration, self.max_photons_per_iteration),
+                                               first=self.iteration == 1)
 
     def finish(self) -> None:
         """Trace every queued ray to its end and apply its photons, so the
