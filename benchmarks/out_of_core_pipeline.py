@@ -49,6 +49,12 @@ def _peak(p: subprocess.Popen, timeout_s: float) -> tuple[int, float]:
     raise RuntimeError(f"{p.args[3:5]} did not finish in {timeout_s} s")
 
 
+def _own_peak() -> int:
+    """This process's peak RSS: a lower bound of every child's ru_maxrss."""
+    import resource
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -61,29 +67,53 @@ def _mean_luminance(path: str) -> float:
     return float((img @ np.array([0.2126, 0.7152, 0.0722])).mean()) if np.isfinite(img).all() else float("nan")
 
 
-def run(work: str, triangles: int, seconds: float, memory: str) -> dict:
-    from dosppm_core.scene.generate import generate_building
+def run(work: str, triangles: int, seconds: float, memory: str, queue_memory: str) -> dict:
     soup, store = os.path.join(work, "building"), os.path.join(work, "building.chunks")
     shutil.rmtree(work, ignore_errors=True)
-    generate_building(soup, triangles=triangles, lights=64)
-    procs = {"subdivide": _peak(_dosppm("subdivide", soup, "--budget", "64MiB", "--memory", "64MiB",
-                                        "--grid", "262144", "--out", store), 1200)}
+    # Every step in a child process: a child's ru_maxrss starts from its
+    # parent's RSS at the fork, so this process must stay small.
+    procs = {"generate": _peak(_dosppm("scenes", "generate", "building", "--triangles", str(triangles),
+                                       "--lights", "64", "--out", soup), 1200)}
+    procs["subdivide"] = _peak(_dosppm("subdivide", soup, "--budget", "64MiB", "--memory", "64MiB",
+                                       "--grid", "262144", "--out", store), 1200)
     store_bytes = sum(os.path.getsize(os.path.join(store, f)) for f in os.listdir(store) if f.endswith(".bin"))
     shutil.rmtree(soup)
     procs["osppm"] = _peak(_dosppm("render", store, "--mode", "osppm", "--memory", memory, "--time", str(seconds),
-                                   "--out", os.path.join(work, "osppm.exr")), seconds + 600)
+                                   "--queue-memory", queue_memory, "--out", os.path.join(work, "osppm.exr")),
+                           seconds + 600)
     port = _free_port()
     server = _dosppm("server", store, "--bind", f"tcp://127.0.0.1:{port}", "--http", "off", "--min-tracers", "2",
                      "--time", str(seconds), "--threads", "1", "--out", os.path.join(work, "dosppm.exr"))
     tracers = [_dosppm("worker", "--server", f"tcp://127.0.0.1:{port}", "--store", store, "--memory", memory,
-                       "--threads", "1", "--id", f"t{i}", "--cache-dir", os.path.join(work, f"cache{i}"))
-               for i in range(2)]
+                       "--queue-memory", queue_memory, "--threads", "1", "--id", f"t{i}",
+                       "--cache-dir", os.path.join(work, f"cache{i}")) for i in range(2)]
     procs["server"] = _peak(server, seconds + 600)
     for i, t in enumerate(tracers):
         procs[f"tracer {i}"] = _peak(t, 120)
+    from dosppm_core.chunks.store import ChunkStore      # after the children: this process stays small for them
+    chunk_memory = ChunkStore.open(store).chunk_memory
     return {"store_bytes": store_bytes, "triangles": triangles, "render_s": seconds, "chunk_memory": memory,
+            "queue_memory": queue_memory, "parent_peak_bytes": _own_peak(), "chunks": len(chunk_memory),
+            "chunk_memory_bytes": float(sum(chunk_memory)),
             "processes": {k: {"peak_bytes": v[0], "seconds": round(v[1], 1)} for k, v in procs.items()},
             "mean_luminance": {m: _mean_luminance(os.path.join(work, f"{m}.exr")) for m in ("osppm", "dosppm")}}
+
+
+def report(doc: dict) -> str:
+    """The table docs/out-of-core.md quotes (benchmarks/tables.py)."""
+    limit = doc["limit_bytes"]
+    lines = [f"{doc['triangles'] / 1e6:g}M triangles in {doc['chunks']} chunks: the store is "
+             f"{doc['store_bytes'] / MiB:,.0f} MiB on disk ({doc['store_over_limit']}x the limit) and "
+             f"{doc['chunk_memory_bytes'] / MiB:,.0f} MiB loaded ({doc['chunk_memory_over_limit']}x); "
+             f"limit {limit / MiB:,.0f} MiB a process; rendering processes hold {doc['chunk_memory']} of "
+             f"chunks and {doc.get('queue_memory', '?')} of queued rays; {doc['render_s']:g} s renders.", "",
+             "| process | peak RSS | under the limit | seconds |", "|---|---|---|---|"]
+    for k, v in doc["processes"].items():
+        ok = "yes" if v["peak_bytes"] <= limit else "**no**"
+        lines.append(f"| {k} | {v['peak_bytes'] / MiB:,.0f} MiB | {ok} | {v['seconds']:,.1f} |")
+    lum = doc["mean_luminance"]
+    lines += ["", f"Mean luminance: OSPPM {lum['osppm']:.4g}, DOSPPM {lum['dosppm']:.4g}."]
+    return "\n".join(lines) + "\n"
 
 
 def main(argv=None) -> int:
@@ -93,18 +123,21 @@ def main(argv=None) -> int:
     p.add_argument("--triangles", type=float, default=34e6)
     p.add_argument("--limit", default="400MiB", help="the per-process memory limit the store is twice of")
     p.add_argument("--memory", default="128MiB", help="resident chunks per rendering process (--memory)")
+    p.add_argument("--queue-memory", default="64MiB", help="queued rays per rendering process (--queue-memory)")
     p.add_argument("--seconds", type=float, default=25)
     p.add_argument("--work", default="/tmp/dosppm-out-of-core")
     p.add_argument("--json", default=None)
     args = p.parse_args(argv)
     limit = parse_bytes(args.limit, "--limit")
-    doc = run(args.work, int(args.triangles), args.seconds, args.memory)
+    doc = run(args.work, int(args.triangles), args.seconds, args.memory, args.queue_memory)
     doc["limit_bytes"] = limit
     doc["over_limit"] = sorted(k for k, v in doc["processes"].items() if v["peak_bytes"] > limit)
     doc["store_over_limit"] = round(doc["store_bytes"] / limit, 2)
+    doc["chunk_memory_over_limit"] = round(doc["chunk_memory_bytes"] / limit, 2)
     for k, v in doc["processes"].items():
         print(f"{k:10s} peak {v['peak_bytes'] / MiB:6.0f} MiB  {v['seconds']:6.1f} s")
-    print(f"store {doc['store_bytes'] / MiB:,.0f} MiB = {doc['store_over_limit']}x the limit; over it: "
+    print(f"store {doc['store_bytes'] / MiB:,.0f} MiB = {doc['store_over_limit']}x the limit on disk, "
+          f"{doc['chunk_memory_over_limit']}x loaded ({doc['chunks']} chunks); over the limit: "
           f"{doc['over_limit'] or 'none'}; mean luminance {doc['mean_luminance']}")
     if args.json:
         write_results(args.json, doc)

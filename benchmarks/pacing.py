@@ -114,7 +114,8 @@ def run(args) -> dict:
     for ppi in args.ppi:
         osppm[str(ppi)] = _repeat(lambda: _osppm(store, s, m, ppi, args.work), r)
     best = max((k for k in osppm if k != "auto"), key=lambda k: osppm[k]["photons_per_s"])
-    resident = _repeat(lambda: _osppm(store, s, None, None, args.work), r)
+    # OSPPM's --memory defaults to two chunk budgets: every chunk resident takes a limit above the store.
+    resident = _repeat(lambda: _osppm(store, s, "64GiB", None, args.work), r)
     dosppm = {}
     for chunks in args.chunks:
         st = store if chunks == 8 else _store(args.work, args.triangles, chunks)

@@ -107,6 +107,11 @@ def _pacing(doc: dict) -> str:
     return pacing.report(doc)
 
 
+def _out_of_core_pipeline(doc: dict) -> str:
+    import out_of_core_pipeline
+    return out_of_core_pipeline.report(doc)
+
+
 def _render_default(doc: dict) -> str:
     import render_default
     return render_default.report(doc)
@@ -172,6 +177,7 @@ TABLES = {
     "reliability-short": ("benchmarks/results/reliability.json", _reliability_short),
     "subdivide-memory": ("benchmarks/results/subdivide-memory.json", _subdivide_memory),
     "pacing": ("benchmarks/results/pacing.json", _pacing),
+    "out-of-core-pipeline": ("benchmarks/results/out-of-core-pipeline.json", _out_of_core_pipeline),
     "pbrt-side-by-side": ("benchmarks/results/pbrt-side-by-side.json", _pbrt_side_by_side),
 }
 

@@ -219,7 +219,7 @@ class TracerState:
         wanted = pacing.work_to_hide_loads(load_s, trace_s, self.counters["rays_traced"])
         start = max(self._queue_target, pacing.FIRST_QUEUE_RAYS)
         if wanted > start:
-            self._queue_target = pacing.grown(start, wanted, self.queue_cap)
+            self._queue_target = pacing.grown(start, wanted, self.queue_cap, first=not self._queue_target)
 
     # -- tracing -----------------------------------------------------------------
     def step(self) -> list[Out]:
