@@ -45,6 +45,7 @@ from dosppm_core.settings import RenderSettings
 from dosppm_core.sppm.iteration import EyePass
 from dosppm_core.trace import NO_CULL, emit_photon_jobs, eye_ray_job
 from services.credit import Account, by_job, new_job
+from services.server.job_messages import JobMessages
 from services.wire import JOB_MESSAGES, PROTOCOL_VERSION, Out
 
 MESSAGE_RAYS = 32_768         # rays per job message the server aims for
@@ -144,34 +145,6 @@ def _within_own_boxes(deposits: PhotonDeposits, jobs: tuple) -> PhotonDeposits:
     p = deposits.position
     inside = np.all((p >= box[:, 0]) & (p <= box[:, 1]), axis=1) | (ids[at] != deposits.job)
     return deposits if inside.all() else deposits.take(inside)
-
-
-class _Parts(dict):
-    """(tracer id, chunk) -> [(batch, credit share)] of job messages being
-    filled, with running ray counts (summing the parts again after every
-    job made flushing quadratic: half the server's time at 300k photons/s)."""
-
-    def __init__(self):
-        super().__init__()
-        self.rays: dict = {}
-
-    def add(self, key: tuple, part: RayBatch, share: tuple) -> None:
-        self.setdefault(key, []).append((part, share))
-        self.rays[key] = self.rays.get(key, 0) + len(part)
-
-    def keys_at(self, rays: int) -> list:
-        return [k for k, n in self.rays.items() if n >= rays]
-
-    def take(self, key: tuple) -> dict:
-        del self.rays[key]
-        return _package(self.pop(key))
-
-
-def _package(parts: list) -> dict:
-    """A job message's batch and credit from its (batch, credit share) parts."""
-    return dict(batch=RayBatch.concat([b for b, _ in parts]),
-                credit_job=np.concatenate([c[0] for _, c in parts]),
-                credit_exp=np.concatenate([c[1] for _, c in parts]))
 
 
 def assign_chunks(chunk_count: int, endpoints: list[str]) -> list[list[str]]:
@@ -442,18 +415,30 @@ class ServerState:
         held (server batching); deposits of jobs still in flight wait."""
         if self.eye_completed == 0 or not (final or self._held_rows >= self._next_batch_at):
             return
-        held = PhotonDeposits.concat(self._held)
-        status = self._job_status(held.job)
-        commit, keep = held.take(status == COMPLETE), held.take(status == IN_FLIGHT)
-        self.counters["deposits_discarded"] += int(np.sum(status == DISCARDED))   # lost with a tracer
+        commit, keep = self._split_held()
         jobs = self._ready_job_columns()
-        commit = _within_own_boxes(commit, jobs)
+        commit = _within_own_boxes(PhotonDeposits.concat(commit), jobs)
         self.updates.append(Update("photons", deposits=commit, photons_emitted=self._ready_emitted,
                                    jobs=jobs[1:]))
         self.counters["photons_committed"] += self._ready_emitted
         self._ready_emitted, self._ready_jobs = 0, []
-        self._held, self._held_rows = ([keep] if len(keep) else []), len(keep)
+        self._held, self._held_rows = keep, sum(len(k) for k in keep)
         self._next_batch_at = self._held_rows + self.settings.photon_batch
+
+    def _split_held(self) -> tuple[list, list]:
+        """The held deposits of complete jobs and of jobs in flight, part by
+        part: concatenating every held part first would copy them all, and
+        with long queues at the tracers most of them are still in flight."""
+        commit, keep = [], []
+        for part in self._held:
+            status = self._job_status(part.job)
+            self.counters["deposits_discarded"] += int(np.sum(status == DISCARDED))   # lost with a tracer
+            for out, mask in ((commit, status == COMPLETE), (keep, status == IN_FLIGHT)):
+                if mask.all():
+                    out.append(part)
+                elif mask.any():
+                    out.append(part.take(mask))
+        return commit, keep
 
     def _ready_job_columns(self) -> tuple:
         """(ids, rng keys, paths, cull boxes (n, 2, 3)) of the photon jobs
@@ -673,7 +658,7 @@ class ServerState:
         # miss the scene completes at once, and must not close the iteration.
         jobs = [self._new_job("eye", count, eye_iteration=e.index) for _, count in tiles]
         e.open_jobs = len(jobs)
-        parts = _Parts()
+        parts = JobMessages()
         for j, (start, count) in zip(jobs, tiles):
             batch = eye_ray_job(self.header, s.seed, e.index, start, count)
             batch.job[:] = j
@@ -681,7 +666,7 @@ class ServerState:
         return [Out(tid, "eye_job", dict(eye_iteration=e.index, chunk=k, **parts.take((tid, k))))
                 for tid, k in list(parts)]
 
-    def _route(self, j: int, batch: RayBatch, parts: _Parts) -> set:
+    def _route(self, j: int, batch: RayBatch, parts: JobMessages) -> set:
         """Split a new job's paths by start chunk into `parts` per (tracer,
         chunk), each with its share of the job's credit; paths that miss
         the scene end here. Returns the tracers."""
@@ -702,7 +687,7 @@ class ServerState:
         return receivers
 
     def _send_photon_jobs(self) -> list[Out]:
-        s, out, parts, emitted = self.settings, [], _Parts(), 0
+        s, out, parts, emitted = self.settings, [], JobMessages(), 0
         box = self.cull_box      # NO_CULL when culling is off (`SPPMIteration.cull_box`)
         # Photon jobs start where the lights are: the tracers that got the
         # last job's photons gate the next one, so a slow one is never
@@ -721,7 +706,7 @@ class ServerState:
             out += self._flush(parts, box, full_only=True)
         return out + self._flush(parts, box, full_only=False)
 
-    def _flush(self, parts: _Parts, box, full_only: bool) -> list[Out]:
+    def _flush(self, parts: JobMessages, box, full_only: bool) -> list[Out]:
         out = []
         for tid, k in parts.keys_at(MESSAGE_RAYS if full_only else 0):
             out.append(Out(tid, "photon_job", dict(chunk=k, cull_box=box, **parts.take((tid, k)))))

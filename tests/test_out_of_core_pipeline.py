@@ -1,0 +1,56 @@
+"""Out of core end to end, CI-sized (issue 17, part 2): a building whose
+chunks, loaded, need at least twice the memory allowed to any one process
+is generated, subdivided and rendered in OSPPM and DOSPPM (a server and two
+`dosppm worker`s), each step its own process; every process's peak RSS
+stays under the limit but the server's (bounded here at twice the limit:
+a known shortfall), and both images are finite and agree.
+
+It runs `benchmarks/out_of_core_pipeline.py` as a child, not in this
+process: a child's ru_maxrss starts from its parent's RSS at the fork, and
+the test process is large by now (see tests/test_memory.py). The full-size
+run (34M triangles, a store on disk twice the limit) is that script's
+results file, benchmarks/results/out-of-core-pipeline.json.
+"""
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+
+from tests.helpers.cli import run_python
+from tests.helpers.paths import REPO
+
+pytestmark = pytest.mark.slow
+
+LIMIT_MIB = 400
+
+
+def test_a_scene_twice_the_memory_of_each_process_renders_within_the_limits(tmp_path):
+    out = tmp_path / "pipeline.json"
+    r = run_python(f"{REPO}/benchmarks/out_of_core_pipeline.py", "--triangles", "6e6",
+                   "--limit", f"{LIMIT_MIB}MiB", "--memory", "96MiB", "--queue-memory", "16MiB",
+                   "--seconds", "8", "--work", tmp_path / "work", "--json", out, timeout=900)
+    assert r.returncode == 0, r.stderr[-3000:]
+    doc = json.loads(out.read_text())
+    print(r.stdout)
+    # The scene is larger than any process may hold: loading every chunk
+    # at once would break the limit twice over.
+    assert doc["chunk_memory_over_limit"] >= 2.0
+    assert doc["chunks"] >= 8
+    assert set(doc["processes"]) == {"generate", "subdivide", "osppm", "server", "tracer 0", "tracer 1"}
+    # Each process's own peak (the parent stays far smaller, so wait4's
+    # high-water marks are the children's).
+    assert doc["parent_peak_bytes"] < 0.5 * LIMIT_MIB * 2 ** 20
+    peaks = {k: v["peak_bytes"] >> 20 for k, v in doc["processes"].items()}
+    # Known shortfall (issue 17, open): the server holds the deposits of
+    # the 1k photon jobs in flight until each completes, and its last
+    # update takes them all at once; with the default 1M-deposit batch it
+    # peaks at about 1.7x the limit here. Every other process is under it.
+    assert set(doc["over_limit"]) <= {"server"}, peaks
+    assert peaks["server"] < 2 * LIMIT_MIB, peaks
+    lum = doc["mean_luminance"]
+    assert all(math.isfinite(v) and v > 0 for v in lum.values()), lum
+    # Two renders of the same scene by different modes, a few seconds each:
+    # the same mean within their noise.
+    assert abs(lum["osppm"] - lum["dosppm"]) < 0.15 * lum["osppm"], lum
