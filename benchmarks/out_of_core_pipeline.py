@@ -49,10 +49,11 @@ def _peak(p: subprocess.Popen, timeout_s: float) -> tuple[int, float]:
     raise RuntimeError(f"{p.args[3:5]} did not finish in {timeout_s} s")
 
 
-def _own_peak() -> int:
-    """This process's peak RSS: a lower bound of every child's ru_maxrss."""
-    import resource
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+def _own_rss() -> int:
+    """This process's RSS now, which a child forked now starts from (its own
+    ru_maxrss may be its parent's, carried across exec)."""
+    with open("/proc/self/status", encoding="utf-8") as f:
+        return next(int(line.split()[1]) * 1024 for line in f if line.startswith("VmRSS"))
 
 
 def _free_port() -> int:
@@ -93,7 +94,7 @@ def run(work: str, triangles: int, seconds: float, memory: str, queue_memory: st
     from dosppm_core.chunks.store import ChunkStore      # after the children: this process stays small for them
     chunk_memory = ChunkStore.open(store).chunk_memory
     return {"store_bytes": store_bytes, "triangles": triangles, "render_s": seconds, "chunk_memory": memory,
-            "queue_memory": queue_memory, "parent_peak_bytes": _own_peak(), "chunks": len(chunk_memory),
+            "queue_memory": queue_memory, "parent_rss_bytes": _own_rss(), "chunks": len(chunk_memory),
             "chunk_memory_bytes": float(sum(chunk_memory)),
             "processes": {k: {"peak_bytes": v[0], "seconds": round(v[1], 1)} for k, v in procs.items()},
             "mean_luminance": {m: _mean_luminance(os.path.join(work, f"{m}.exr")) for m in ("osppm", "dosppm")}}

@@ -23,12 +23,12 @@ from tests.helpers.paths import REPO
 
 pytestmark = pytest.mark.slow
 
-LIMIT_MIB = 400
+LIMIT_MIB = 450
 
 
 def test_a_scene_twice_the_memory_of_each_process_renders_within_the_limits(tmp_path):
     out = tmp_path / "pipeline.json"
-    r = run_python(f"{REPO}/benchmarks/out_of_core_pipeline.py", "--triangles", "6e6",
+    r = run_python(f"{REPO}/benchmarks/out_of_core_pipeline.py", "--triangles", "7.5e6",
                    "--limit", f"{LIMIT_MIB}MiB", "--memory", "96MiB", "--queue-memory", "16MiB",
                    "--seconds", "8", "--work", tmp_path / "work", "--json", out, timeout=900)
     assert r.returncode == 0, r.stderr[-3000:]
@@ -39,9 +39,9 @@ def test_a_scene_twice_the_memory_of_each_process_renders_within_the_limits(tmp_
     assert doc["chunk_memory_over_limit"] >= 2.0
     assert doc["chunks"] >= 8
     assert set(doc["processes"]) == {"generate", "subdivide", "osppm", "server", "tracer 0", "tracer 1"}
-    # Each process's own peak (the parent stays far smaller, so wait4's
-    # high-water marks are the children's).
-    assert doc["parent_peak_bytes"] < 0.5 * LIMIT_MIB * 2 ** 20
+    # Each process's own peak: the parent, which they are forked from, is
+    # far smaller (measured last, when it is largest).
+    assert doc["parent_rss_bytes"] < 0.5 * LIMIT_MIB * 2 ** 20
     peaks = {k: v["peak_bytes"] >> 20 for k, v in doc["processes"].items()}
     # Known shortfall (issue 17, open): the server holds the deposits of
     # the 1k photon jobs in flight until each completes, and its last
