@@ -132,7 +132,8 @@ RENDER = (
     _opt("direct", str, _LIBRARY.direct, "direct light at hit points: nee (a shadow ray each) or "
          "photons (the paper's pure estimator)", DIRECT_MODES),
     _opt("photons_per_iteration", int, _LIBRARY.photons_per_iteration, "photons between eye iterations "
-         "(default: 1.5 per pixel, at least 10,000)", rule="count"),
+         "(default: 1.5 per pixel, at least 10,000; osppm with more chunks than fit: grown until "
+         "their loads are hidden, within --queue-memory)", rule="count"),
     _opt("photons_per_job", int, SERVICE_JOB_SIZES["photons_per_job"], "photons per photon job", rule="count"),
     _opt("photon_batch", int, _LIBRARY.photon_batch, "deposits per statistics update (server batching)", rule="count"),
     _opt("width", int, None, "image width override", rule="count"),

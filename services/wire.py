@@ -66,7 +66,8 @@ Messages
                      public_key|None (its CURVE key, for its peers)
       heartbeat      status {} (informational: queue, load, resident chunks)
       results        chunk, culled, queued, queue_target (rays it asks to
-                     have queued; 0: the server's default), eye_iteration|None, ends i64 (5,),
+                     have queued; 0: the server's default),
+                     eye_iteration|None, ends i64 (5,),
                      job_ids + job_fed + job_left i64 (k,), credit
                      returned (credit_job + credit_exp i64); optional
                      deposits: PhotonDeposits, hits: HitPoints,

@@ -9,11 +9,11 @@ import pytest
 from dosppm_core.chunks import pacing
 from dosppm_core.modes.osppm import OutOfCoreRenderer
 from dosppm_core.settings import RenderSettings
-from services.server.state import EMIT_PHOTONS_PER_TICK, ServerState
+from services.server.state import EMIT_PHOTONS_PER_TICK
 from services.tracer.state import TracerState
 from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
 from tests.helpers.scenes import small_scene
-from tests.test_scheduler import _msg, _register, _results
+from tests.test_scheduler import _register, _results, new_state
 
 
 @pytest.fixture(scope="module")
@@ -84,11 +84,7 @@ def test_a_tracer_holding_all_its_chunks_leaves_the_credit_to_the_server(four_ch
 
 
 def test_the_server_sends_what_a_tracer_asks_for_a_tick_at_a_time():
-    scene = small_scene("cornell-box", 32)
-    provider = MemoryChunks(scene, uniform_tree(root_box(scene), (1, 1, 1)))
-    state = ServerState(provider.header, provider.tree,
-                        RenderSettings(photons_per_job=1024, tile_pixels=256, photons_per_iteration=10_000),
-                        "k", min_photon_jobs=50, queue_target_rays=4096)
+    state = new_state((1, 1, 1), photons_per_job=1024)
     _register(state, "a")
     state.cull_box = np.array([[-1e9] * 3, [1e9] * 3])
     state.eye_completed = 1

@@ -22,14 +22,19 @@ def _register(state, tid, now=0.0):
                                        endpoint=f"tcp://{tid}:1", has_store=True, store_key="k"), now)
 
 
+def new_state(cells=(2, 2, 1), photons_per_job=512):
+    """A server state for the small Cornell box in `cells` chunks."""
+    scene = small_scene("cornell-box", 32)
+    provider = MemoryChunks(scene, uniform_tree(root_box(scene), cells))
+    return ServerState(provider.header, provider.tree,
+                       RenderSettings(photons_per_job=photons_per_job, tile_pixels=256,
+                                      photons_per_iteration=10_000),
+                       "k", min_photon_jobs=50, queue_target_rays=4096)
+
+
 @pytest.fixture()
 def state():
-    scene = small_scene("cornell-box", 32)
-    provider = MemoryChunks(scene, uniform_tree(root_box(scene), (2, 2, 1)))
-    s = ServerState(provider.header, provider.tree,
-                    RenderSettings(photons_per_job=512, tile_pixels=256, photons_per_iteration=10_000),
-                    "k", min_photon_jobs=50, queue_target_rays=4096)
-    return s
+    return new_state()
 
 
 @pytest.mark.parametrize("c, n, expected", [

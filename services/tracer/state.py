@@ -208,8 +208,9 @@ class TracerState:
         sweep over them: the queue must hold enough rays for a sweep's
         tracing to hide its loads (dosppm_core.chunks.pacing), within
         `queue_cap` (--queue-memory). Re-measured after each sweep's worth
-        of loads, and at most doubled then, so one slow load cannot flood
-        the server's emission."""
+        of loads; after the first measurement it grows at most
+        pacing.GROWTH times a sweep, so one slow load cannot flood the
+        server's emission."""
         cc = self.cache.counters
         if self.all_fit() or cc.loads - self._loads_at_pace < max(2, len(self.chunks)):
             return
