@@ -41,6 +41,7 @@ def run_server(scene: str, v: dict, quiet: bool = False, spawn_tracers: int = 0)
         resume = checkpoint.read(v["resume"], store.key) if v["resume"] else None
         if resume is not None:
             settings = _resumed_settings(settings, resume)
+            resume["claimed_first_job"] = checkpoint.claim_job_ids(v["resume"], resume)
     except (SceneError, ValueError, OSError) as e:
         return fail(str(e))
     # Kernels loaded (compiled, the first time) before any clock starts

@@ -8,6 +8,7 @@ import pytest
 from dosppm_core.jobs import PhotonDeposits
 from dosppm_core.settings import RenderSettings
 from services import wire
+from services.server import checkpoint
 from services.server.state import ServerState, assign_chunks
 from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
 from tests.helpers.scenes import small_scene
@@ -292,3 +293,42 @@ def test_a_chunk_left_without_a_tracer_is_what_the_render_waits_for(state):
     assert state.waiting_for() is None
     state.owners[1] = []          # as after its only tracer was evicted
     assert state.waiting_for() == {"chunk_owners": [1]}
+
+
+def test_a_resumed_server_never_takes_the_killed_servers_jobs_for_its_own(tmp_path):
+    """The killed server made jobs after its last checkpoint, and the
+    tracers go on sending their deposits and credit: under the resumed
+    server's own block of ids they are stale, never its jobs'. (With the
+    checkpoint's next_job as the first id, as before, they were taken for
+    new jobs: CI's server-kill test saw 200 deposits arrive late.)"""
+    killed = new_state()
+    _register(killed, "a")
+    killed.cull_box, killed.eye_completed = np.array([[-1e9] * 3, [1e9] * 3]), 1
+    doc = dict(killed.checkpoint_meta(), next_job=killed.next_job)   # written before its jobs
+    out = killed.tick(0.0)
+    old = next(j for j, job in killed.jobs.items() if job.kind == "photon")
+    ckpt = tmp_path / "ckpt"
+    ckpt.mkdir()
+    resumed = new_state()
+    resumed.resume(doc, first_job=checkpoint.claim_job_ids(str(ckpt), doc))
+    _register(resumed, "a")
+    resumed.cull_box, resumed.eye_completed = killed.cull_box, 1
+    resumed.tick(0.0)
+    assert resumed.first_job == checkpoint.ID_BLOCK and old not in resumed.jobs
+    resumed.on_message("a", _results([old], [killed.jobs[old].paths], deposits_job=[old] * 3,
+                                      credit=_shares(out, old)), 0.1)
+    k = resumed.counters
+    assert k["deposits_stale"] == 3 and k["deposits_received"] == 0 and k["deposits_late"] == 0
+    assert k["photons_completed"] == 0 and k["over_credited_jobs"] == 0
+
+
+def test_each_resume_from_one_checkpoint_claims_a_block_of_its_own(tmp_path):
+    doc = {"first_job": 0, "next_job": 123}
+    firsts = [checkpoint.claim_job_ids(str(tmp_path), doc) for _ in range(3)]
+    assert firsts == [checkpoint.ID_BLOCK, 2 * checkpoint.ID_BLOCK, 3 * checkpoint.ID_BLOCK]
+    # A checkpoint written by the third server: the next block is past it.
+    assert checkpoint.claim_job_ids(str(tmp_path), {"first_job": firsts[2], "next_job": firsts[2] + 9}) \
+        == 4 * checkpoint.ID_BLOCK
+    (tmp_path / checkpoint.IDS_FILE).write_bytes(b"\xc1garbage")
+    with pytest.raises(checkpoint.CheckpointError, match="job-ids.msgpack: unreadable"):
+        checkpoint.claim_job_ids(str(tmp_path), doc)

@@ -13,6 +13,14 @@ saved is what the statistics hold (photons applied, N_e, N, R, tau, the
 emission seen), never jobs in flight: on resume those are simply not
 there, and the job and eye-iteration counters go on past every id ever
 used, so no photon is traced twice into the same image.
+
+    DIR/job-ids.msgpack      format "dosppm-job-ids", claimed: the first
+        job id of the last server resumed from DIR
+
+Each server run makes job ids in a block of its own (ID_BLOCK ids from
+its first): the tracers may still hold, and go on sending, messages of
+jobs the killed server made after its last checkpoint, and those must
+never be taken for the resumed server's jobs (claim_job_ids).
 """
 from __future__ import annotations
 
@@ -24,6 +32,8 @@ import numpy as np
 
 FORMAT, VERSION = "dosppm-checkpoint", 1
 FILE = "checkpoint.msgpack"
+IDS_FILE, IDS_FORMAT = "job-ids.msgpack", "dosppm-job-ids"
+ID_BLOCK = 1 << 40       # job ids per server run: 10^12 jobs of 1024 photons
 ARRAYS = ("photon_count", "radius", "tau", "emission")
 
 
@@ -50,9 +60,15 @@ def write(directory: str, stats, meta: dict) -> str:
                arrays={n: {"dtype": a.dtype.str, "shape": list(a.shape), "data": a.tobytes()}
                        for n, a in arrays.items()})
     path = os.path.join(directory, FILE)
+    _write_atomically(directory, path, msgpack.packb(doc, use_bin_type=True))
+    return path
+
+
+def _write_atomically(directory: str, path: str, data: bytes) -> None:
+    """A temporary file, fsync, rename over `path`, fsync of the directory."""
     tmp = f"{path}.tmp-{os.getpid()}"
     with open(tmp, "wb") as f:
-        f.write(msgpack.packb(doc, use_bin_type=True))
+        f.write(data)
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)
@@ -61,7 +77,6 @@ def write(directory: str, stats, meta: dict) -> str:
         os.fsync(fd)
     finally:
         os.close(fd)
-    return path
 
 
 def read(directory: str, store_key: str | None = None) -> dict:
@@ -116,3 +131,28 @@ def restore(stats, doc: dict) -> None:
     stats.alpha = float(doc["alpha"])
     stats.eye_iterations = int(doc["eye_iterations"])
     stats.photons_emitted = int(doc["photons_emitted"])
+
+
+def claim_job_ids(directory: str, doc: dict) -> int:
+    """The first job id of a server resuming from the checkpoint `doc` in
+    `directory`: the block after those of the server that wrote it and of
+    every server resumed from this directory before, recorded (atomically)
+    before any job is made, so a second resume from the same checkpoint
+    gets a block of its own too."""
+    path = os.path.join(directory, IDS_FILE)
+    claimed = int(doc.get("first_job", 0))
+    try:
+        with open(path, "rb") as f:
+            ids = msgpack.unpackb(f.read(), raw=False)
+        if type(ids) is not dict or ids.get("format") != IDS_FORMAT or type(ids.get("claimed")) is not int:
+            raise CheckpointError(f"{path}: field 'claimed' missing or not an integer (not a dosppm job-id claim)")
+        claimed = max(claimed, ids["claimed"])
+    except FileNotFoundError:
+        pass
+    except CheckpointError:
+        raise
+    except Exception as e:
+        raise CheckpointError(f"{path}: unreadable (corrupt or truncated): {type(e).__name__}") from None
+    first = (claimed // ID_BLOCK + 1) * ID_BLOCK
+    _write_atomically(directory, path, msgpack.packb({"format": IDS_FORMAT, "claimed": first}))
+    return first

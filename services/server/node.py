@@ -91,7 +91,7 @@ class ServerProcess:
             checkpoint.restore(self.statistics.stats, resume)
             if "ledger_totals" in resume:
                 self.statistics.sppm.restore_totals(resume["ledger_totals"])
-            self.state.resume(resume)
+            self.state.resume(resume, first_job=resume.get("claimed_first_job"))
         self.router = transport.router(context)
         self.auth = None
         if curve_secret:   # CURVE: encrypted, and only listed tracers get in

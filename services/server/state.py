@@ -193,7 +193,7 @@ class ServerState:
         self.started = False
         self.cull_box: np.ndarray | None = None
         self.jobs: dict[int, Job] = {}
-        self.next_job = 0                          # job ids are never reused
+        self.next_job = self.first_job = 0         # job ids are never reused (checkpoint.claim_job_ids)
         self._status = np.zeros(1024, np.int8)     # per photon job id: UNKNOWN, IN_FLIGHT, ...
         self._photon_pending: deque = deque()         # job ids created, not yet sent
         self._photon_receivers: set = set()
@@ -619,14 +619,17 @@ class ServerState:
         return max(self.min_photon_jobs, -(-credit // self.settings.photons_per_job))
 
     def _job_status(self, ids: np.ndarray) -> np.ndarray:
-        """Status of each photon job id (UNKNOWN for ids never made)."""
-        ok = (ids >= 0) & (ids < len(self._status))
-        return np.where(ok, self._status[np.where(ok, ids, 0)], UNKNOWN)
+        """Status of each photon job id (UNKNOWN for ids never made, and
+        for those of the server this one resumed from)."""
+        i = ids - self.first_job
+        ok = (i >= 0) & (i < len(self._status))
+        return np.where(ok, self._status[np.where(ok, i, 0)], UNKNOWN)
 
     def _set_status(self, j: int, status: int) -> None:
-        if j >= len(self._status):
-            self._status = np.concatenate([self._status, np.zeros(max(j + 1, len(self._status)), np.int8)])
-        self._status[j] = status
+        i = j - self.first_job
+        if i >= len(self._status):
+            self._status = np.concatenate([self._status, np.zeros(max(i + 1, len(self._status)), np.int8)])
+        self._status[i] = status
 
     def _new_job(self, kind: str, paths: int, eye_iteration: int | None = None,
                  rng_key: int | None = None) -> int:
@@ -717,7 +720,8 @@ class ServerState:
         """What a checkpoint needs besides the statistics: ids go on past
         every one used, so a resumed render never traces a photon twice."""
         return {"store_key": self.store_key, "settings": self.settings_dict(),
-                "next_job": self.next_job, "next_eye_iteration": self.eye_started,
+                "next_job": self.next_job, "first_job": self.first_job,
+                "next_eye_iteration": self.eye_started,
                 "counters": {"photons": self.photons_before + self.counters["photons_committed"],
                              "eye_iterations": self.iterations_before + self.eye_completed}}
 
@@ -727,9 +731,13 @@ class ServerState:
                                            "photons_per_iteration", "photons_per_job", "photon_batch",
                                            "tile_pixels", "reorder", "cull")}
 
-    def resume(self, doc: dict) -> None:
-        """Continue after a checkpoint: new ids start past the old ones."""
-        self.next_job = int(doc["next_job"])
+    def resume(self, doc: dict, first_job: int | None = None) -> None:
+        """Continue after a checkpoint: new job ids start at `first_job`,
+        past every id the servers before may have used (the checkpoint's
+        next_job is only past those it had used when it was written: the
+        tracers may still hold jobs made after it, and their messages must
+        not be taken for this server's; checkpoint.claim_job_ids)."""
+        self.next_job = self.first_job = int(doc["next_job"] if first_job is None else first_job)
         self.eye_started = int(doc["next_eye_iteration"])
         self.photons_before = int(doc["counters"]["photons"])
         self.iterations_before = int(doc["counters"]["eye_iterations"])
