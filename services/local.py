@@ -44,11 +44,16 @@ def run_server(scene: str, v: dict, quiet: bool = False, spawn_tracers: int = 0)
             resume["claimed_first_job"] = checkpoint.claim_job_ids(v["resume"], resume)
     except (SceneError, ValueError, OSError) as e:
         return fail(str(e))
-    # Kernels loaded (compiled, the first time) before any clock starts
-    # and before tracers are started, which then find them in the cache.
+    # Kernels compiled, the first time, before any clock starts and before
+    # tracers are started, which then find them in the cache. In a child:
+    # warming loads every kernel of every role (tracing, Embree), 70 MiB
+    # the server would keep; it loads its own from the cache as it goes.
     if not kernels_cached():
         say(COMPILING)
-    warm_kernels()
+        try:
+            warm_kernels_apart()
+        except RuntimeError as e:
+            return fail(str(e))
     limits = _limits(v)
     reporter = ProgressReporter(config.stop_limit(limits.seconds, limits.photons, limits.iterations),
                                 v["log"], quiet=quiet)
@@ -194,6 +199,16 @@ def run_tracer(v: dict, quiet: bool = False) -> int:
         return EXIT_INTERRUPTED
     say(f"tracer {tp.tracer_id}: {reason}")
     return EXIT_OK
+
+
+def warm_kernels_apart() -> None:
+    """`warm_kernels` in a child process: the cache is written, and this
+    process loads only the kernels it calls."""
+    code = "from services.local import warm_kernels; warm_kernels()"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    if done.returncode != 0:       # the render compiles as it goes instead
+        lines = (done.stderr or "").strip().splitlines()
+        raise RuntimeError(f"compiling the kernels failed: {lines[-1] if lines else done.returncode}")
 
 
 def warm_kernels() -> None:
