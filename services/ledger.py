@@ -112,7 +112,7 @@ def retrace(provider, records: list[dict], threads: int = 1) -> dict:
     the tracers' (Embree's BVH depends on the threads that built it, and a
     tie between two triangles at one distance may then fall otherwise)."""
     from dosppm_core.sppm.iteration import SPPMIteration
-    from services.server.state import _within_own_boxes
+    from services.server.held import within_own_boxes
     from services.tracer.state import TracerState
     settings = RenderSettings(**records[0]["settings"])
     header = copy.deepcopy(provider.header)
@@ -128,7 +128,7 @@ def retrace(provider, records: list[dict], threads: int = 1) -> dict:
                 keys, paths, boxes = _from(rec["keys"]), _from(rec["paths"]), _from(rec["boxes"])
                 deposits = _photons(tracer, provider.tree, header, settings, keys, paths, boxes)
                 ids = np.arange(len(keys), dtype=np.int64)
-                sppm.apply_photon_batch(_within_own_boxes(deposits, (ids, keys, paths, boxes)), rec["emitted"])
+                sppm.apply_photon_batch(within_own_boxes(deposits, (ids, keys, paths, boxes)), rec["emitted"])
     finally:
         tracer.close()
     return sppm.totals()

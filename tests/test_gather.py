@@ -13,7 +13,8 @@ from dosppm_core.kernels.bsdf import eval_bsdf
 from dosppm_core.scene.model import Material, MaterialTable
 from dosppm_core.sppm.grid import gather_grid, grid_layout
 from dosppm_core.sppm.hash import build_photon_hash, gather_hash, hash_layout, hash_statistics
-from dosppm_core.sppm.statistics import PixelStatistics, reorder_deposits
+from dosppm_core.sppm import statistics as sppm_statistics
+from dosppm_core.sppm.statistics import PixelStatistics, reorder_deposits, reorder_parts
 
 MATERIALS = MaterialTable.from_materials([
     Material("matte", reflectance=(0.8, 0.5, 0.3)),
@@ -371,6 +372,20 @@ def test_gathers_take_the_reordered_columns_as_deposits(case):
     np.testing.assert_allclose(gphi, phi, rtol=1e-9, atol=0)
 
 
+def test_reordering_parts_gives_the_rows_of_reordering_their_concatenation(case):
+    """The server hands a batch over as the parts it arrived in; reordered
+    from the parts, the gather reads exactly the rows it reads of the
+    concatenation (order included, so the sums are bit for bit the same)."""
+    ph = case[0]
+    cuts = [0, 1, 7, 7, len(ph) // 2, len(ph)]
+    parts = [ph.slice(a, b) for a, b in zip(cuts, cuts[1:])]
+    box = np.stack([ph.position.min(0) - 0.1, ph.position.max(0) + 0.1]).astype(np.float64)
+    whole, split = reorder_deposits(ph, box, threads=1), reorder_parts(parts, box)
+    for name in ("position", "incoming", "flux"):
+        np.testing.assert_array_equal(getattr(split, name), getattr(whole, name))
+    assert not np.array_equal(whole.position, ph.position)      # it did reorder
+
+
 # -- through the pixel statistics ------------------------------------------------------
 def _pixel_setup(seed=11, width=8, height=6):
     """One hit point per pixel on a floor (mixed materials), photons on the
@@ -391,6 +406,32 @@ def _render(hp, deposits, size, gather, **hash_options):
     stats.apply_photons(deposits, 5000, MATERIALS, gather=gather, threads=2,
                         hash_options=hash_options or None)
     return stats.radiance(), stats.photon_count
+
+
+@pytest.mark.parametrize("gather", ["grid", "hash"])
+def test_a_batch_in_parts_is_the_same_update(gather):
+    """A batch applied as a list of parts (the server's way) is the update
+    of the whole batch at once: the same N and image."""
+    hp, deposits, size = _pixel_setup()
+    image, count = _render(hp, deposits, size, gather, seed=3)
+    parts = [deposits.slice(a, min(a + 700, len(deposits))) for a in range(0, len(deposits), 700)]
+    image_parts, count_parts = _render(hp, parts, size, gather, seed=3)
+    np.testing.assert_allclose(count_parts, count, rtol=1e-12)
+    np.testing.assert_allclose(image_parts, image, rtol=1e-9)
+
+
+def test_a_batch_gathered_in_slices_is_the_same_update(monkeypatch):
+    """A batch larger than GATHER_SLICE (a server's last) is gathered in
+    slices and applied once: the grid's exact sums are the whole batch's.
+    (The hash keeps a photon per slot, so its sliced estimate is another
+    unbiased one, not the same.)"""
+    hp, deposits, size = _pixel_setup()
+    image, count = _render(hp, deposits, size, "grid")
+    monkeypatch.setattr(sppm_statistics, "GATHER_SLICE", 1000)
+    assert len(deposits) > 2 * 1000
+    image_sliced, count_sliced = _render(hp, deposits, size, "grid")
+    np.testing.assert_allclose(count_sliced, count, rtol=1e-12)
+    np.testing.assert_allclose(image_sliced, image, rtol=1e-9)
 
 
 def test_pixel_statistics_hash_and_grid_agree_in_expectation(one_numba_thread):

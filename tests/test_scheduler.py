@@ -109,7 +109,7 @@ def test_a_job_counts_once_when_all_its_paths_have_ended(state):
     state.finish()
     photons = [u for u in state.updates if u.kind == "photons"]
     assert sum(u.photons_emitted for u in photons) == paths
-    assert sum(len(u.deposits) for u in photons) == 2
+    assert sum(len(p) for u in photons for p in u.deposits) == 2
 
 
 def test_deposits_of_unfinished_jobs_wait_for_their_job(state):
@@ -121,7 +121,7 @@ def test_deposits_of_unfinished_jobs_wait_for_their_job(state):
     j1, j2 = [j for j, job in state.jobs.items() if job.kind == "photon"][:2]
     state.on_message("a", _results([j1], [512], deposits_job=[j1, j2, j2], credit=_shares(out, j1)), 0.1)
     u = [u for u in state.updates if u.kind == "photons"]
-    assert len(u) == 1 and u[0].deposits.job.tolist() == [j1]
+    assert len(u) == 1 and PhotonDeposits.concat(u[0].deposits).job.tolist() == [j1]
     assert u[0].photons_emitted == 512
 
 

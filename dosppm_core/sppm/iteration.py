@@ -123,17 +123,21 @@ class SPPMIteration:
             part = deposits.slice(start, min(start + step, len(deposits)))
             self.apply_photon_batch(part, emitted if start == 0 else 0)
 
-    def apply_photon_batch(self, deposits: PhotonDeposits, emitted: int) -> None:
-        """One statistics update (eqs. 1-4). The server calls this directly:
-        its state cuts batches itself, since only complete jobs count."""
+    def apply_photon_batch(self, deposits: PhotonDeposits | list, emitted: int) -> None:
+        """One statistics update (eqs. 1-4) of a PhotonDeposits or a list
+        of parts. The server calls this directly: its state cuts batches
+        itself, since only complete jobs count, and hands them over as the
+        parts they arrived in (no copy)."""
         t0 = time.perf_counter()
         s = self.settings
         self.stats.apply_photons(deposits, emitted, self.header.materials, gather=s.gather,
                                  threads=self.threads, reorder=s.reorder,
                                  hash_options=s.hash_options)
+        parts = deposits if isinstance(deposits, list) else [deposits]
         self.photons_applied += int(emitted)
-        self.deposits_applied += len(deposits)
-        self.flux_applied += deposits.flux.sum(axis=0, dtype=np.float64)
+        self.deposits_applied += sum(len(p) for p in parts)
+        for p in parts:
+            self.flux_applied += p.flux.sum(axis=0, dtype=np.float64)
         self.update_seconds += time.perf_counter() - t0
 
     def restore_totals(self, totals: dict) -> None:

@@ -93,6 +93,63 @@ def _bucket_columns(pos, inc, flux, lo, scale, bits, threads, code, out):
                 out[d, 6 + k] = flux[i, k]
 
 
+def gather_slices(parts: list):
+    """The deposits of `parts` in slices of about GATHER_SLICE rows, each a
+    list of parts (a large part cut into views): the gather's reordered
+    copy (36 bytes a deposit) is a slice's, whatever the batch."""
+    group, rows = [], 0
+    for part in parts:
+        for start in range(0, len(part), GATHER_SLICE):
+            piece = part.slice(start, min(len(part), start + GATHER_SLICE))
+            group.append(piece)
+            rows += len(piece)
+            if rows >= GATHER_SLICE:
+                yield group
+                group, rows = [], 0
+    if group:
+        yield group
+
+
+@nb.njit(cache=True, nogil=True)
+def _bucket_count(pos, lo, scale, bits, code, counts):
+    """`_bucket_columns`'s histogram, for one part of a batch."""
+    for i in range(pos.shape[0]):
+        code[i] = _morton_code(pos[i, 0], pos[i, 1], pos[i, 2], lo, scale, 10 - bits)
+        counts[code[i]] += 1
+
+
+@nb.njit(cache=True, nogil=True)
+def _bucket_scatter(pos, inc, flux, code, where, out):
+    """`_bucket_columns`'s scatter, for one part, from where the parts
+    before it left each bucket."""
+    for i in range(pos.shape[0]):
+        d = where[code[i]]
+        where[code[i]] = d + 1
+        for k in range(3):
+            out[d, k] = pos[i, k]
+            out[d, 3 + k] = inc[i, k]
+            out[d, 6 + k] = flux[i, k]
+
+
+def reorder_parts(parts: list, box: np.ndarray) -> "GatherPhotons":
+    """`reorder_deposits` (one thread) of the parts' concatenation, read
+    from the parts themselves: the same rows in the same order, without
+    the concatenated copy (the server hands its batches over as parts)."""
+    scale = 1023.999 / np.maximum(box[1] - box[0], 1e-30)
+    lo, scale = tuple(map(float, box[0])), tuple(map(float, scale))
+    counts = np.zeros(1 << (3 * BUCKET_BITS), np.int64)
+    codes = []
+    for p in parts:
+        codes.append(np.empty(len(p), np.int32))
+        _bucket_count(p.position, lo, scale, BUCKET_BITS, codes[-1], counts)
+    where = np.zeros_like(counts)
+    np.cumsum(counts[:-1], out=where[1:])
+    out = np.empty((int(counts.sum()), 9), np.float32)
+    for p, code in zip(parts, codes):
+        _bucket_scatter(p.position, p.incoming, p.flux, code, where, out)
+    return GatherPhotons(out[:, 0:3], out[:, 3:6], None, out[:, 6:9])
+
+
 class GatherPhotons(NamedTuple):
     """What a gather reads of photon deposits (PhotonDeposits has the same
     attributes, so either can be gathered). No gather reads the deposit's
@@ -104,6 +161,12 @@ class GatherPhotons(NamedTuple):
     flux: np.ndarray
 
 
+# Deposits gathered at once (`gather_slices`): a batch of 1M is one slice,
+# a larger one (a server's last, or merged, update) is cut, so the
+# reordered copy stays 36 MiB. Smaller slices cost time: at 256k, each
+# slice's per-hit-point sums made an update 24% slower at 60k hit points
+# and 63% slower at 640k (`dosppm bench`, medians of 5).
+GATHER_SLICE = 1 << 20
 BUCKET_BITS = 5   # 32^3 buckets: of the order of the grid's cells, so a bucket's cells stay in cache
 
 
@@ -178,20 +241,28 @@ def pilot_radius(hits: HitPoints) -> float:
     return max(diag * PILOT_DIAGONAL, 1e-6)
 
 
-def subsample(deposits, most: int) -> GatherPhotons:
-    """About `most` of the deposits, chosen by a hash of their position
-    bits: the same deposits whatever order a batch arrived in, so a pilot
-    gather (and the radii it fits) depends on the batch alone (a render's
-    ledger re-traces the batch in another order, services/ledger.py)."""
-    n = len(deposits.position)
-    if n <= most:
-        return GatherPhotons(deposits.position, deposits.incoming, None, deposits.flux)
-    bits = np.ascontiguousarray(deposits.position, np.float32).view(np.uint32).astype(np.uint64)
-    h = (bits[:, 0] * 0x9E3779B1 ^ bits[:, 1] * 0x85EBCA77 ^ bits[:, 2] * 0xC2B2AE3D) & 0xFFFFFFFF
-    rows = np.flatnonzero(h < np.uint64(most / n * 2.0 ** 32))
-    if len(rows) == 0:          # all hashed alike (a batch of one repeated position)
-        rows = np.arange(most)
-    return GatherPhotons(deposits.position[rows], deposits.incoming[rows], None, deposits.flux[rows])
+def subsample(deposits: PhotonDeposits | list, most: int) -> GatherPhotons:
+    """About `most` of the deposits (a PhotonDeposits or a list of parts),
+    chosen by a hash of their position bits: the same deposits whatever
+    order a batch arrived in, so a pilot gather (and the radii it fits)
+    depends on the batch alone (a render's ledger re-traces the batch in
+    another order, services/ledger.py). Parts are read where they are: the
+    batch is never copied whole."""
+    parts = deposits if isinstance(deposits, list) else [deposits]
+    n = sum(len(p) for p in parts)
+    if n > most:
+        cut = np.uint64(most / n * 2.0 ** 32)
+        chosen = PhotonDeposits.concat([p.take(np.flatnonzero(_position_hash(p.position) < cut)) for p in parts])
+        if len(chosen) == 0:        # all hashed alike (a batch of one repeated position)
+            chosen = PhotonDeposits.concat([p.slice(0, min(len(p), most)) for p in parts]).slice(0, most)
+    else:
+        chosen = PhotonDeposits.concat(parts)
+    return GatherPhotons(chosen.position, chosen.incoming, None, chosen.flux)
+
+
+def _position_hash(position: np.ndarray) -> np.ndarray:
+    bits = np.ascontiguousarray(position, np.float32).view(np.uint32).astype(np.uint64)
+    return (bits[:, 0] * 0x9E3779B1 ^ bits[:, 1] * 0x85EBCA77 ^ bits[:, 2] * 0xC2B2AE3D) & 0xFFFFFFFF
 
 
 class PixelStatistics:
@@ -252,7 +323,7 @@ class PixelStatistics:
         radius and is tried again with the next batch, on a subsample as
         much smaller as such pixels are few (the Cornell box's lamp: 5%)."""
         fresh = np.flatnonzero(self._unfitted(hp.pixel))
-        if len(fresh) == 0 or len(deposits) == 0:
+        if len(fresh) == 0:
             return
         few = min(1.0, max(0.1, 4.0 * len(fresh) / len(hp)))
         pilot = subsample(deposits, int(PILOT_DEPOSITS * few))
@@ -284,29 +355,34 @@ class PixelStatistics:
         return reach_box(self.hit_points.position, self.radius[self.hit_points.pixel])
 
     # -- photon batches -----------------------------------------------------
-    def apply_photons(self, deposits: PhotonDeposits, emitted: int, materials,
+    def apply_photons(self, deposits: PhotonDeposits | list, emitted: int, materials,
                       gather: str = "grid", threads: int = 2, reorder: bool = True,
                       hash_options: dict | None = None) -> None:
-        """One statistics update for a batch of deposits from `emitted`
-        photon paths (eqs. 1-4)."""
+        """One statistics update for a batch of deposits (a PhotonDeposits,
+        or a list of the parts it arrived in) from `emitted` photon paths
+        (eqs. 1-4). M and Phi are summed over slices of the batch, then
+        applied once: the same update, with temporaries of a slice's size."""
         hp = self.hit_points
+        parts = deposits if isinstance(deposits, list) else [deposits]
         self.photons_emitted += int(emitted)
-        if len(hp) == 0 or len(deposits) == 0:
+        if len(hp) == 0 or not any(len(p) for p in parts):
             return
         if gather not in GATHERS:
             raise ValueError(f"unknown gather {gather!r} (known: {', '.join(GATHERS)})")
         if self.fit:
-            self._fit_to_density(deposits, hp, materials, threads)
+            self._fit_to_density(parts, hp, materials, threads)
         radius = self.radius[hp.pixel]
         # Registering the hit points in the grid and sorting the photons are
         # both mostly serial: do them at once, on two cores.
         grid = _PREP.submit(build_hit_point_grid, hp, radius, materials) if gather == "grid" else None
-        if reorder:
-            deposits = reorder_deposits(deposits, self.gather_box(), threads=1)
-        if grid is not None:
-            m, phi = gather_grid(deposits, hp, radius, materials, threads, grid.result())
-        else:
-            m, phi = gather_hash(deposits, hp, radius, materials, threads, **(hash_options or {}))
+        m = phi = 0
+        for group in gather_slices(parts):
+            piece = reorder_parts(group, self.gather_box()) if reorder else PhotonDeposits.concat(group)
+            if grid is not None:
+                dm, dphi = gather_grid(piece, hp, radius, materials, threads, grid.result())
+            else:
+                dm, dphi = gather_hash(piece, hp, radius, materials, threads, **(hash_options or {}))
+            m, phi = m + dm, phi + dphi
         self._update(hp.pixel, m, phi)
 
     def _update(self, pixel: np.ndarray, m: np.ndarray, phi: np.ndarray) -> None:

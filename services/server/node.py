@@ -28,7 +28,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from dosppm_core.film import encode_png, tonemap_srgb8, write_exr, write_png
-from dosppm_core.jobs import PhotonDeposits
 from dosppm_core.settings import Progress, RenderSettings
 from services import config, transport, wire
 from services.ledger import Ledger
@@ -339,8 +338,9 @@ class ServerProcess:
         for u in queued:
             if merged and u.kind == "photons" and merged[-1].kind == "photons":
                 last = merged[-1]
-                merged[-1] = Update("photons", deposits=PhotonDeposits.concat([last.deposits, u.deposits]),
-                                    photons_emitted=last.photons_emitted + u.photons_emitted)
+                merged[-1] = Update("photons", deposits=last.deposits + u.deposits,
+                                    photons_emitted=last.photons_emitted + u.photons_emitted,
+                                    jobs=_joined_jobs(last.jobs, u.jobs))
             else:
                 merged.append(u)
         for u in merged:
@@ -464,3 +464,11 @@ class ServerProcess:
             log.warning("signal %d: %s", signum, "stopping" if self._signals == 1 else "stopping now")
         old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
         return lambda: [signal.signal(s, h) for s, h in old.items()]
+
+
+def _joined_jobs(a: tuple | None, b: tuple | None) -> tuple | None:
+    """The committed jobs of two merged photon updates, for the ledger:
+    (rng keys, paths, cull boxes), one after the other."""
+    if a is None or b is None:
+        return a if b is None else b
+    return tuple(np.concatenate([x, y]) for x, y in zip(a, b))

@@ -45,6 +45,7 @@ from dosppm_core.settings import RenderSettings
 from dosppm_core.sppm.iteration import EyePass
 from dosppm_core.trace import NO_CULL, emit_photon_jobs, eye_ray_job
 from services.credit import Account, by_job, new_job
+from services.server.held import COMPLETE, DISCARDED, IN_FLIGHT, UNKNOWN, split_held
 from services.server.job_messages import JobMessages
 from services.wire import JOB_MESSAGES, PROTOCOL_VERSION, Out
 
@@ -52,7 +53,6 @@ MESSAGE_RAYS = 32_768         # rays per job message the server aims for
 TOTAL_CREDIT_RAYS = 1 << 20   # rays queued at all tracers together, at most (see `credit`)
 EMIT_PHOTONS_PER_TICK = 1 << 17   # so long queues (`credit_of`) do not hold the loop from heartbeats
 MAX_TRACERS = 1024            # registrations beyond this are refused (memory stays bounded)
-UNKNOWN, IN_FLIGHT, COMPLETE, DISCARDED = 0, 1, 2, 3     # photon job status
 HEARTBEAT_INTERVAL_S = 1.0
 # A job message an idle tracer has not acknowledged this long after it was
 # sent is lost (see `_check_delivery`).
@@ -121,7 +121,7 @@ class Update:
     kind: str                        # "hits", "photons" or "checkpoint"
     hits: HitPoints | None = None
     emitted_light: tuple | None = None
-    deposits: PhotonDeposits | None = None
+    deposits: list | None = None     # "photons": the batch, as the parts it arrived in
     photons_emitted: int = 0
     directory: str | None = None     # "checkpoint": where, and what besides the statistics
     meta: dict | None = None
@@ -130,21 +130,6 @@ class Update:
     # paths, cull boxes (n, 2, 3)).
     eye_iteration: int | None = None
     jobs: tuple | None = None
-
-
-def _within_own_boxes(deposits: PhotonDeposits, jobs: tuple) -> PhotonDeposits:
-    """The deposits inside the cull box their own job was sent with. A
-    tracer culls a coalesced package against the union of its jobs' boxes,
-    which keeps more; culling again here makes what a job adds a function
-    of the job alone, so the ledger can re-trace it (services/ledger.py)."""
-    ids, _keys, _paths, boxes = jobs
-    if len(deposits) == 0 or len(ids) == 0 or np.isinf(boxes).all():
-        return deposits
-    at = np.minimum(np.searchsorted(ids, deposits.job), len(ids) - 1)
-    box = boxes[at]
-    p = deposits.position
-    inside = np.all((p >= box[:, 0]) & (p <= box[:, 1]), axis=1) | (ids[at] != deposits.job)
-    return deposits if inside.all() else deposits.take(inside)
 
 
 def assign_chunks(chunk_count: int, endpoints: list[str]) -> list[list[str]]:
@@ -415,30 +400,16 @@ class ServerState:
         held (server batching); deposits of jobs still in flight wait."""
         if self.eye_completed == 0 or not (final or self._held_rows >= self._next_batch_at):
             return
-        commit, keep = self._split_held()
         jobs = self._ready_job_columns()
-        commit = _within_own_boxes(PhotonDeposits.concat(commit), jobs)
+        held, self._held = self._held, []
+        commit, keep, discarded = split_held(held, self._job_status, jobs)
+        self.counters["deposits_discarded"] += discarded      # lost with a tracer
+        self._held, self._held_rows = keep, sum(len(k) for k in keep)
         self.updates.append(Update("photons", deposits=commit, photons_emitted=self._ready_emitted,
                                    jobs=jobs[1:]))
         self.counters["photons_committed"] += self._ready_emitted
         self._ready_emitted, self._ready_jobs = 0, []
-        self._held, self._held_rows = keep, sum(len(k) for k in keep)
         self._next_batch_at = self._held_rows + self.settings.photon_batch
-
-    def _split_held(self) -> tuple[list, list]:
-        """The held deposits of complete jobs and of jobs in flight, part by
-        part: concatenating every held part first would copy them all, and
-        with long queues at the tracers most of them are still in flight."""
-        commit, keep = [], []
-        for part in self._held:
-            status = self._job_status(part.job)
-            self.counters["deposits_discarded"] += int(np.sum(status == DISCARDED))   # lost with a tracer
-            for out, mask in ((commit, status == COMPLETE), (keep, status == IN_FLIGHT)):
-                if mask.all():
-                    out.append(part)
-                elif mask.any():
-                    out.append(part.take(mask))
-        return commit, keep
 
     def _ready_job_columns(self) -> tuple:
         """(ids, rng keys, paths, cull boxes (n, 2, 3)) of the photon jobs
