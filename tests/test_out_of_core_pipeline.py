@@ -2,8 +2,7 @@
 chunks, loaded, need at least twice the memory allowed to any one process
 is generated, subdivided and rendered in OSPPM and DOSPPM (a server and two
 `dosppm worker`s), each step its own process; every process's peak RSS
-stays under the limit but the server's (bounded here at twice the limit:
-a known shortfall), and both images are finite and agree.
+stays under the limit, and both images are finite and agree.
 
 It runs `benchmarks/out_of_core_pipeline.py` as a child, not in this
 process: a child's ru_maxrss starts from its parent's RSS at the fork, and
@@ -23,7 +22,10 @@ from tests.helpers.paths import REPO
 
 pytestmark = pytest.mark.slow
 
-LIMIT_MIB = 450
+# 7.5M triangles load as 1017 MiB of chunks: 2.03x this limit. Measured
+# here: generate 143, subdivide 276, OSPPM 292, server 371, tracers 313 and
+# 306 MiB; CI's machine has measured about 60 MiB more a process.
+LIMIT_MIB = 500
 
 
 def test_a_scene_twice_the_memory_of_each_process_renders_within_the_limits(tmp_path):
@@ -43,12 +45,7 @@ def test_a_scene_twice_the_memory_of_each_process_renders_within_the_limits(tmp_
     # far smaller (measured last, when it is largest).
     assert doc["parent_rss_bytes"] < 0.5 * LIMIT_MIB * 2 ** 20
     peaks = {k: v["peak_bytes"] >> 20 for k, v in doc["processes"].items()}
-    # Known shortfall (issue 17, open): the server holds the deposits of
-    # the 1k photon jobs in flight until each completes, and its last
-    # update takes them all at once; with the default 1M-deposit batch it
-    # peaks at about 1.7x the limit here. Every other process is under it.
-    assert set(doc["over_limit"]) <= {"server"}, peaks
-    assert peaks["server"] < 2 * LIMIT_MIB, peaks
+    assert doc["over_limit"] == [], peaks
     lum = doc["mean_luminance"]
     assert all(math.isfinite(v) and v > 0 for v in lum.values()), lum
     # Two renders of the same scene by different modes, a few seconds each:
