@@ -18,7 +18,9 @@ from dosppm_core.jobs import RayBatch
 GROWTH = 4                       # at most this factor per sweep
 LOAD_SHARE = 0.1                 # chunk loads at most this share of a sweep's time
 QUEUE_MEMORY_BYTES = 256 << 20   # default limit on queued rays (--queue-memory)
-FIRST_QUEUE_RAYS = 262_144      # where a tracer's queue target starts growing (the server's credit)
+# A tracer's queued rays before any pacing: the server's default credit per
+# tracer, and where a tracer's queue target starts growing.
+FIRST_QUEUE_RAYS = 262_144
 RAY_BYTES = sum(np.dtype(dt).itemsize * int(np.prod(shape, dtype=np.int64))
                 for dt, shape in RayBatch.SCHEMA.values())
 

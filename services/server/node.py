@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dosppm_core.chunks.pacing import FIRST_QUEUE_RAYS
 from dosppm_core.film import encode_png, tonemap_srgb8, write_exr, write_png
 from dosppm_core.settings import Progress, RenderSettings
 from services import config, transport, wire
@@ -61,7 +62,7 @@ class ServerProcess:
                  http: tuple[str, int] | None = ("127.0.0.1", 8080), out: str = "out.exr",
                  limits: Limits | None = None, snapshot_interval_s: float = 60.0,
                  min_photon_jobs: int = 1000, min_tracers: int = 1,
-                 queue_target_rays: int = 262_144, threads: int = 2, exposure: float = 0.0,
+                 queue_target_rays: int = FIRST_QUEUE_RAYS, threads: int = 2, exposure: float = 0.0,
                  drain_timeout_s: float = 60.0, reporter=None, context: transport.Context | None = None,
                  concurrent: bool = True, client_batching: bool = True, tracer_timeout_s: float = 10.0,
                  checkpoint_dir: str | None = None, checkpoint_interval_s: float = 60.0,

@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dosppm_core.chunks.pacing import FIRST_QUEUE_RAYS
 from dosppm_core.chunks.view import start_chunks
 from dosppm_core.jobs import END_NAMES, HitPoints, PhotonDeposits, RayBatch
 from dosppm_core.settings import RenderSettings
@@ -145,7 +146,7 @@ def assign_chunks(chunk_count: int, endpoints: list[str]) -> list[list[str]]:
 class ServerState:
     def __init__(self, header, tree, settings: RenderSettings, store_key: str,
                  manifest: dict | None = None, min_photon_jobs: int = 1000,
-                 queue_target_rays: int = 262_144, min_tracers: int = 1,
+                 queue_target_rays: int = FIRST_QUEUE_RAYS, min_tracers: int = 1,
                  concurrent: bool = True, client_batching: bool = True,
                  tracer_timeout_s: float = 10.0, min_tracers_timeout_s: float | None = None):
         """`concurrent` False and `client_batching` False switch off two of
