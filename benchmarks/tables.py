@@ -178,6 +178,7 @@ TABLES = {
     "subdivide-memory": ("benchmarks/results/subdivide-memory.json", _subdivide_memory),
     "pacing": ("benchmarks/results/pacing.json", _pacing),
     "out-of-core-pipeline": ("benchmarks/results/out-of-core-pipeline.json", _out_of_core_pipeline),
+    "out-of-core-pipeline-34m": ("benchmarks/results/out-of-core-pipeline-34m.json", _out_of_core_pipeline),
     "pbrt-side-by-side": ("benchmarks/results/pbrt-side-by-side.json", _pbrt_side_by_side),
 }
 
