@@ -140,19 +140,21 @@ def claim_job_ids(directory: str, doc: dict) -> int:
     before any job is made, so a second resume from the same checkpoint
     gets a block of its own too."""
     path = os.path.join(directory, IDS_FILE)
-    claimed = int(doc.get("first_job", 0))
-    try:
-        with open(path, "rb") as f:
-            ids = msgpack.unpackb(f.read(), raw=False)
-        if type(ids) is not dict or ids.get("format") != IDS_FORMAT or type(ids.get("claimed")) is not int:
-            raise CheckpointError(f"{path}: field 'claimed' missing or not an integer (not a dosppm job-id claim)")
-        claimed = max(claimed, ids["claimed"])
-    except FileNotFoundError:
-        pass
-    except CheckpointError:
-        raise
-    except Exception as e:
-        raise CheckpointError(f"{path}: unreadable (corrupt or truncated): {type(e).__name__}") from None
+    claimed = max(int(doc.get("first_job", 0)), _last_claim(path))
     first = (claimed // ID_BLOCK + 1) * ID_BLOCK
     _write_atomically(directory, path, msgpack.packb({"format": IDS_FORMAT, "claimed": first}))
     return first
+
+
+def _last_claim(path: str) -> int:
+    """The first job id the job-id file at `path` records (0 if none)."""
+    try:
+        with open(path, "rb") as f:
+            ids = msgpack.unpackb(f.read(), raw=False)
+    except FileNotFoundError:
+        return 0
+    except Exception as e:   # msgpack raises many types on garbage: all mean corrupt
+        raise CheckpointError(f"{path}: unreadable (corrupt or truncated): {type(e).__name__}") from None
+    if type(ids) is not dict or ids.get("format") != IDS_FORMAT or type(ids.get("claimed")) is not int:
+        raise CheckpointError(f"{path}: field 'claimed' missing or not an integer (not a dosppm job-id claim)")
+    return ids["claimed"]
