@@ -186,3 +186,43 @@ def test_pipelined_schedule_converges_to_the_same_image(caustic):
     rel = np.sum((ta - tb) ** 2) / np.sum(ta ** 2)
     assert rel < 0.01, f"tile relMSE {rel:.4f}"
     assert abs(a.mean() / b.mean() - 1) < 0.03
+
+
+def test_a_pipelined_iteration_applies_its_deposits_a_batch_at_a_time(caustic):
+    """Issue 17: a paced iteration's deposits used to wait for its end, all
+    of them (491 MiB against a 400 MiB limit at 119 chunks). Now each
+    chunk's deposits go to the statistics as they are made, a batch once
+    `photon_batch` wait: every batch but an iteration's last is exactly
+    one batch, nothing waits past it, and every deposit is applied once."""
+    scene, _, _ = caustic
+    batch = 3_000
+    o = OutOfCoreRenderer(MemoryChunks(scene, uniform_tree(root_box(scene), (2, 2, 2))),
+                          _settings(photon_batch=batch), pipelined=True)
+    sizes, waiting, during = [], [], []
+    apply, add = o.sppm.apply_photon_batch, o.sppm.add_photons
+
+    def spy_apply(deposits, emitted):
+        sizes.append(sum(len(p) for p in (deposits if isinstance(deposits, list) else [deposits])))
+        during.append(o.cache.counters.activations)      # how far the sweep had got
+        apply(deposits, emitted)
+
+    def spy_add(deposits, emitted):
+        add(deposits, emitted)
+        waiting.append(o.sppm._pending_rows)
+    o.sppm.apply_photon_batch, o.sppm.add_photons = spy_apply, spy_add
+    try:
+        o.run_iteration()
+        per_iteration, sweep_points = [], []
+        for _ in range(3):
+            before = len(sizes)
+            o.run_iteration()
+            per_iteration.append(sizes[before:])
+            sweep_points.append(set(during[before:]))
+        o.finish()
+    finally:
+        o.close()
+    assert all(len(p) > 2 for p in per_iteration), "an iteration's deposits came as one batch"
+    assert all(len(p) > 1 for p in sweep_points), "the deposits waited for the end of the sweep"
+    assert all(s == batch for p in per_iteration for s in p[:-1])
+    assert max(sizes) <= batch and max(waiting) < batch
+    assert sum(sizes) == o.sppm.deposits_applied > 0

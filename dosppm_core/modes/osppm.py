@@ -61,8 +61,9 @@ class OutOfCoreRenderer:
         # Photons per iteration not given: grown while chunk loads are not
         # hidden by the sweep's tracing (`_pace`), within the queue memory.
         self.paced = settings.photons_per_iteration is None and pipelined
-        # Every photon of an iteration is queued at its start, and its
-        # deposits are held until the update: half the limit for the rays.
+        # Every photon of an iteration is queued at its start; beside them
+        # wait up to a batch of deposits and the update's temporaries, about
+        # as much again (at the default limit): half the limit for the rays.
         self.max_photons_per_iteration = pacing.queue_cap_rays(queue_memory_bytes) // 2
         self.settings = settings.for_image(cam.width * cam.height)
         self.settings.validate()
@@ -93,7 +94,6 @@ class OutOfCoreRenderer:
         self._photon_queues = [[] for _ in range(c)]
         self._shadow_queues = [[] for _ in range(c)]   # of the eye iteration in flight
         self._eye: EyePass | None = None          # the eye iteration in flight
-        self._deposits: list[PhotonDeposits] = []
         self._emitted_unapplied = 0
         self._cull = NO_CULL
 
@@ -206,13 +206,21 @@ class OutOfCoreRenderer:
         self._emitted_unapplied += s.photons_per_iteration
 
     def _apply(self) -> None:
-        """The iteration's deposits, applied in batches of `photon_batch`;
-        the photons emitted this iteration count with them."""
+        """The deposits still waiting, applied; the photons emitted this
+        iteration count with them. Most were applied during the sweep, a
+        batch at a time (`_add_deposits`)."""
         t0 = time.perf_counter()
-        deposits, emitted = PhotonDeposits.concat(self._deposits), self._emitted_unapplied
-        self._deposits, self._emitted_unapplied = [], 0
-        self.sppm.add_photons(deposits, emitted)
+        emitted, self._emitted_unapplied = self._emitted_unapplied, 0
+        self.sppm.add_photons(PhotonDeposits.empty(), emitted)
         self.sppm.flush()
+        self.phase_seconds["update"] += time.perf_counter() - t0
+
+    def _add_deposits(self, deposits: PhotonDeposits) -> None:
+        """A chunk's deposits, applied each time `photon_batch` wait: a
+        paced iteration's deposits would otherwise all wait for its end
+        (issue 17: 491 MiB against a 400 MiB limit at 119 chunks)."""
+        t0 = time.perf_counter()
+        self.sppm.add_photons(deposits, 0)
         self.phase_seconds["update"] += time.perf_counter() - t0
 
     # -- chunk queues --------------------------------------------------------
@@ -276,9 +284,9 @@ class OutOfCoreRenderer:
             self._photon_queues[k] = []
             dep, ends, _culled, out = trace_photons_in_chunk(view, batch, self._cull, s.max_depth,
                                                              s.deposit_from)
-            self._deposits.append(dep)
             self._account(ends, out, self._photon_queues)
             self.phase_seconds["photon"] += time.perf_counter() - t0
+            self._add_deposits(dep)
 
     def _account(self, ends, outgoing, queues) -> None:
         self.sppm.count_path_ends(ends)

@@ -103,25 +103,32 @@ class SPPMIteration:
 
     # -- photon batches ----------------------------------------------------------
     def add_photons(self, deposits: PhotonDeposits, emitted: int) -> None:
-        """Deposits of `emitted` photon paths that have all ended. They are
-        applied once `photon_batch` deposits wait (server batching)."""
+        """Deposits of `emitted` photon paths that have all ended. Each time
+        `photon_batch` deposits wait, they are applied (server batching), so
+        a caller may hand them over as they are made: what waits is at most
+        one batch, never an iteration's worth."""
         self._pending.append(deposits)
         self._pending_rows += len(deposits)
         self._pending_emitted += int(emitted)
-        if self._pending_rows >= self.settings.photon_batch:
-            self.flush()
+        while self._pending_rows >= self.settings.photon_batch:
+            self._apply_pending(self.settings.photon_batch)
 
     def flush(self) -> None:
         """Apply every waiting deposit, in batches of at most `photon_batch`."""
         if not self._pending_emitted and not self._pending_rows:
             return
-        deposits = PhotonDeposits.concat(self._pending)
-        emitted = self._pending_emitted
-        self._pending, self._pending_rows, self._pending_emitted = [], 0, 0
-        step = self.settings.photon_batch
-        for start in range(0, max(len(deposits), 1), step):
-            part = deposits.slice(start, min(start + step, len(deposits)))
-            self.apply_photon_batch(part, emitted if start == 0 else 0)
+        while True:     # once at least: photons emitted with no deposit count too
+            self._apply_pending(min(self._pending_rows, self.settings.photon_batch))
+            if not self._pending_rows:
+                return
+
+    def _apply_pending(self, rows: int) -> None:
+        """The first `rows` waiting deposits as one batch, as the parts they
+        came in (no copy), counted with every photon emitted since the last."""
+        batch, self._pending = cut_parts(self._pending, rows)
+        self._pending_rows -= rows
+        emitted, self._pending_emitted = self._pending_emitted, 0
+        self.apply_photon_batch(batch or [PhotonDeposits.empty()], emitted)
 
     def apply_photon_batch(self, deposits: PhotonDeposits | list, emitted: int) -> None:
         """One statistics update (eqs. 1-4) of a PhotonDeposits or a list
@@ -175,3 +182,17 @@ class SPPMIteration:
         h, w = self.stats.height, self.stats.width
         return {"radius": self.stats.radius.reshape(h, w).astype(np.float32),
                 "photon_count": self.stats.photon_count.reshape(h, w).astype(np.float32)}
+
+
+def cut_parts(parts: list, rows: int) -> tuple[list, list]:
+    """`parts` (records) cut after `rows` rows: (the first rows' parts, the
+    rest), a part straddling the cut sliced (views, no copy)."""
+    head, n = [], 0
+    for i, part in enumerate(parts):
+        if n + len(part) > rows:
+            cut = rows - n
+            rest = ([part.slice(cut, len(part))] if cut else [part]) + parts[i + 1:]
+            return head + ([part.slice(0, cut)] if cut else []), rest
+        head.append(part)
+        n += len(part)
+    return head, []
