@@ -176,6 +176,8 @@ SERVER = LIMITS + RENDER + CHUNKING + OPTIMISATIONS + SERVICE + (
     _opt("min_tracers_timeout", float, None, "start with the tracers there are (at least one) after "
          "waiting this many seconds for --min-tracers (default: wait for ever)", rule="positive"),
     _opt("drain_timeout", float, 60.0, "at the end, wait this long for jobs in flight", rule="non_negative"),
+    _opt("queue_memory", str, None, "deposits held for photon jobs in flight at most this much; past it "
+         "no photon job goes out until jobs complete (default 256MiB)", rule="size"),
     _opt("curve_secret", str, None, "this server's CURVE key file (dosppm keys): encrypt and authenticate"),
     _opt("curve_clients", str, None, "directory of the public key files of the tracers to admit"),
 )

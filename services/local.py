@@ -130,7 +130,8 @@ def _server(store, settings, v: dict, http, limits: Limits, reporter, resume, sa
                          tracer_timeout_s=v["tracer_timeout"], checkpoint_dir=ckpt,
                          checkpoint_interval_s=v["checkpoint_interval"], resume=resume,
                          curve_secret=v["curve_secret"], curve_clients=v["curve_clients"],
-                         min_tracers_timeout_s=v["min_tracers_timeout"], ledger=v["ledger"], say=say)
+                         min_tracers_timeout_s=v["min_tracers_timeout"], ledger=v["ledger"], say=say,
+                         held_bytes=config.parse_bytes(v.get("queue_memory"), "--queue-memory"))
 
 
 def _write_summary(out: str, summary: dict) -> None:

@@ -9,6 +9,7 @@ from dosppm_core.jobs import PhotonDeposits
 from dosppm_core.settings import RenderSettings
 from services import wire
 from services.server import checkpoint
+from services.server.held import DEPOSIT_BYTES, HeldDeposits
 from services.server.state import ServerState, assign_chunks
 from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
 from tests.helpers.scenes import small_scene
@@ -116,7 +117,8 @@ def test_deposits_of_unfinished_jobs_wait_for_their_job(state):
     _register(state, "a")
     state.cull_box = np.array([[-1e9] * 3, [1e9] * 3])
     state.eye_completed = 1
-    state.settings.photon_batch = state._next_batch_at = 3
+    state.settings.photon_batch = 3
+    state.held = HeldDeposits(3, 1 << 30)
     out = state.tick(0.0)
     j1, j2 = [j for j, job in state.jobs.items() if job.kind == "photon"][:2]
     state.on_message("a", _results([j1], [512], deposits_job=[j1, j2, j2], credit=_shares(out, j1)), 0.1)
@@ -140,6 +142,34 @@ def test_a_tracer_that_does_not_report_gets_no_more_than_its_credit(state):
     assert 0 < sent["eye_job"] <= 32 * 32        # rays missing the scene box are not sent
     assert 4096 <= sum(sent.values()) <= 4096 + 512
     assert state.photon_jobs_in_flight >= state.min_photon_jobs
+
+
+def _photons_sent(out) -> int:
+    return sum(len(o.fields["batch"]) for o in out if o.type == "photon_job")
+
+
+@pytest.mark.parametrize("limit_rows, full", [(10, True), (1 << 20, False)])
+def test_held_deposits_past_their_memory_stop_photon_jobs_until_a_job_completes(limit_rows, full):
+    """Issue 17: deposits wait at the server until their job completes, and
+    the tracers' queues decide how many jobs are in flight. Past its
+    --queue-memory the server sends no photon job; once the job completes,
+    a batch hands its deposits over and photon jobs go out again. The
+    control, with room, goes on sending."""
+    state = new_state()
+    state.held = HeldDeposits(1 << 20, limit_rows * DEPOSIT_BYTES)
+    _register(state, "a")
+    state.cull_box = np.array([[-1e9] * 3, [1e9] * 3])
+    state.eye_completed = 1
+    out = state.tick(0.0)
+    j = next(j for j, job in state.jobs.items() if job.kind == "photon")
+    state.on_message("a", _results([j], [1], deposits_job=[j] * 10), 0.1)    # no credit back: in flight
+    assert state.held.full == full
+    assert (_photons_sent(state.tick(0.2)) == 0) == full
+    if full:
+        state.on_message("a", _results([j], [state.jobs[j].paths - 1], credit=_shares(out, j)), 0.3)
+        assert not state.held.full
+        assert [len(p) for u in state.updates if u.kind == "photons" for p in u.deposits] == [10]
+        assert _photons_sent(state.tick(0.4)) > 0
 
 
 def test_no_photons_before_the_first_hit_points(state):

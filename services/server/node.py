@@ -68,7 +68,7 @@ class ServerProcess:
                  checkpoint_dir: str | None = None, checkpoint_interval_s: float = 60.0,
                  resume: dict | None = None, curve_secret: str | None = None,
                  curve_clients: str | None = None, min_tracers_timeout_s: float | None = None,
-                 ledger: str | None = None, say=None):
+                 ledger: str | None = None, say=None, held_bytes: float | None = None):
         """`say` prints a line for the user (what the server waits for);
         `ledger`: a file to record every update applied in (services/ledger.py)."""
         self.store, self.settings = store, settings
@@ -81,7 +81,7 @@ class ServerProcess:
                                  min_photon_jobs=min_photon_jobs, queue_target_rays=queue_target_rays,
                                  min_tracers=min_tracers, concurrent=concurrent,
                                  client_batching=client_batching, tracer_timeout_s=tracer_timeout_s,
-                                 min_tracers_timeout_s=min_tracers_timeout_s)
+                                 min_tracers_timeout_s=min_tracers_timeout_s, held_bytes=held_bytes)
         book = None if ledger is None else Ledger(
             settings, (store.header.camera.width, store.header.camera.height), ledger,
             resume_at=None if resume is None else resume.get("ledger_records"))

@@ -39,14 +39,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from dosppm_core.chunks.pacing import FIRST_QUEUE_RAYS
+from dosppm_core.chunks.pacing import FIRST_QUEUE_RAYS, QUEUE_MEMORY_BYTES
 from dosppm_core.chunks.view import start_chunks
 from dosppm_core.jobs import END_NAMES, HitPoints, PhotonDeposits, RayBatch
 from dosppm_core.settings import RenderSettings
 from dosppm_core.sppm.iteration import EyePass
 from dosppm_core.trace import NO_CULL, emit_photon_jobs, eye_ray_job
 from services.credit import Account, by_job, new_job
-from services.server.held import COMPLETE, DISCARDED, IN_FLIGHT, UNKNOWN, split_held
+from services.server.held import COMPLETE, DISCARDED, IN_FLIGHT, UNKNOWN, HeldDeposits
 from services.server.job_messages import JobMessages
 from services.wire import JOB_MESSAGES, PROTOCOL_VERSION, Out
 
@@ -148,11 +148,12 @@ class ServerState:
                  manifest: dict | None = None, min_photon_jobs: int = 1000,
                  queue_target_rays: int = FIRST_QUEUE_RAYS, min_tracers: int = 1,
                  concurrent: bool = True, client_batching: bool = True,
-                 tracer_timeout_s: float = 10.0, min_tracers_timeout_s: float | None = None):
-        """`concurrent` False and `client_batching` False switch off two of
-        the paper's optimisations, for the Figure 15 benchmark. The render
-        starts once `min_tracers` have registered or, with at least one,
-        `min_tracers_timeout_s` after the first tick (None: never)."""
+                 tracer_timeout_s: float = 10.0, min_tracers_timeout_s: float | None = None,
+                 held_bytes: float | None = None):
+        """`concurrent`, `client_batching` False: two of the paper's
+        optimisations off (Figure 15). The render starts once `min_tracers`
+        have registered or, with one, `min_tracers_timeout_s` after the first
+        tick (None: never). `held_bytes`: --queue-memory (`HeldDeposits`)."""
         settings = settings.for_image(int(header.camera.width) * int(header.camera.height))
         settings.validate()
         self.header, self.tree, self.settings = header, tree, settings
@@ -190,8 +191,7 @@ class ServerState:
         self.eye_started = 0
         self.eye_completed = 0
         self._photons_at_eye_start = 0
-        self._held: list[PhotonDeposits] = []
-        self._held_rows, self._next_batch_at = 0, settings.photon_batch
+        self.held = HeldDeposits(settings.photon_batch, held_bytes or QUEUE_MEMORY_BYTES)
         self._ready_emitted, self._ready_jobs = 0, []    # photon paths and jobs complete since the last batch
         self.updates: deque[Update] = deque()
         self._last_heartbeat = -1e30
@@ -347,8 +347,7 @@ class ServerState:
             # message would do it); counted, and the ledger's check fails.
             c["deposits_late"] += int(np.sum(status == COMPLETE))
             if len(deposits):
-                self._held.append(deposits)
-                self._held_rows += len(deposits)
+                self.held.add(deposits)
                 c["deposits_received"] += len(deposits)
         if msg.hits is not None and self.eye is not None and msg.eye_iteration == self.eye.index:
             self.eye.results.add(msg.hits, msg.emitted_pixels, msg.emitted_rgb)
@@ -399,18 +398,15 @@ class ServerState:
     def _maybe_batch(self, final: bool = False) -> None:
         """Hand over the deposits of complete jobs once `photon_batch` are
         held (server batching); deposits of jobs still in flight wait."""
-        if self.eye_completed == 0 or not (final or self._held_rows >= self._next_batch_at):
+        if self.eye_completed == 0 or not (final or self.held.due(self._now, bool(self._ready_jobs))):
             return
         jobs = self._ready_job_columns()
-        held, self._held = self._held, []
-        commit, keep, discarded = split_held(held, self._job_status, jobs)
+        commit, discarded = self.held.split(self._job_status, jobs, self._now)
         self.counters["deposits_discarded"] += discarded      # lost with a tracer
-        self._held, self._held_rows = keep, sum(len(k) for k in keep)
         self.updates.append(Update("photons", deposits=commit, photons_emitted=self._ready_emitted,
                                    jobs=jobs[1:]))
         self.counters["photons_committed"] += self._ready_emitted
         self._ready_emitted, self._ready_jobs = 0, []
-        self._next_batch_at = self._held_rows + self.settings.photon_batch
 
     def _ready_job_columns(self) -> tuple:
         """(ids, rng keys, paths, cull boxes (n, 2, 3)) of the photon jobs
@@ -459,6 +455,7 @@ class ServerState:
         if not self.concurrent:
             return out + self._alternate()
         out += self._maybe_start_eye_iteration()
+        self._maybe_batch()     # held full: jobs may have completed since the last batch
         if self.cull_box is not None and not self.paused:
             wanted = self._photon_jobs_wanted()
             while self.photon_jobs_in_flight < wanted:
@@ -667,7 +664,7 @@ class ServerState:
         # Photon jobs start where the lights are: the tracers that got the
         # last job's photons gate the next one, so a slow one is never
         # sent more than one job past its credit.
-        while self._photon_pending and emitted < EMIT_PHOTONS_PER_TICK and not any(
+        while self._photon_pending and emitted < EMIT_PHOTONS_PER_TICK and not self.held.full and not any(
                 self.tracers[t].load_estimate >= self.credit_of(self.tracers[t])
                 for t in self._photon_receivers if t in self.tracers):
             j = self._photon_pending.popleft()
@@ -742,7 +739,7 @@ class ServerState:
 
     def finish(self) -> None:
         """Hand over the last, partial batch (call once drained)."""
-        if self._held_rows or self._ready_emitted:
+        if self.held.rows or self._ready_emitted:
             self._maybe_batch(final=True)
 
     def shutdown_messages(self, reason: str) -> list[Out]:
