@@ -84,7 +84,8 @@ def run(work: str, triangles: int, seconds: float, memory: str, queue_memory: st
                            seconds + 600)
     port = _free_port()
     server = _dosppm("server", store, "--bind", f"tcp://127.0.0.1:{port}", "--http", "off", "--min-tracers", "2",
-                     "--time", str(seconds), "--threads", "1", "--out", os.path.join(work, "dosppm.exr"))
+                     "--time", str(seconds), "--threads", "1", "--queue-memory", queue_memory,
+                     "--out", os.path.join(work, "dosppm.exr"))
     tracers = [_dosppm("worker", "--server", f"tcp://127.0.0.1:{port}", "--store", store, "--memory", memory,
                        "--queue-memory", queue_memory, "--threads", "1", "--id", f"t{i}",
                        "--cache-dir", os.path.join(work, f"cache{i}")) for i in range(2)]
@@ -125,7 +126,8 @@ def main(argv=None) -> int:
     p.add_argument("--triangles", type=float, default=34e6)
     p.add_argument("--limit", default="400MiB", help="the per-process memory limit the store is twice of")
     p.add_argument("--memory", default="128MiB", help="resident chunks per rendering process (--memory)")
-    p.add_argument("--queue-memory", default="64MiB", help="queued rays per rendering process (--queue-memory)")
+    p.add_argument("--queue-memory", default="64MiB",
+                   help="queued rays per rendering process, deposits held by the server (--queue-memory)")
     p.add_argument("--seconds", type=float, default=25)
     p.add_argument("--work", default="/tmp/dosppm-out-of-core")
     p.add_argument("--json", default=None)

@@ -169,8 +169,12 @@ def test_pipelined_schedule_converges_to_the_same_image(caustic):
                 assert o.rays_queued > 0     # work really was carried over
                 # then one sweep per iteration: each chunk activated at most once
                 assert o.cache.counters.activations - first <= 7 * tree.chunk_count
-            o.finish()
+            drain = []
+            o.finish(report=lambda rays, sweeps: drain.append((rays, sweeps)))
             assert o.rays_queued == 0
+            # The drain reports each sweep, down to no ray queued.
+            assert [s for _, s in drain] == list(range(1, len(drain) + 1))
+            assert bool(drain) == pipelined and (not drain or drain[-1][0] == 0)
             results[pipelined] = (o.image(), o.progress())
             # Every path ended exactly once: each photon emitted and each
             # eye path of every eye iteration (a pipelined eye iteration,

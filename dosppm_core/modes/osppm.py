@@ -148,11 +148,18 @@ class OutOfCoreRenderer:
                                                max(s.photons_per_iteration, self.max_photons_per_iteration),
                                                first=self.iteration == 1)
 
-    def finish(self) -> None:
+    def finish(self, report=None) -> None:
         """Trace every queued ray to its end and apply its photons, so the
-        image holds every photon counted as emitted."""
+        image holds every photon counted as emitted. Out of core this takes
+        sweeps, each loading the chunks with work: `report(rays still
+        queued, sweeps so far)` after each one."""
         t0 = time.perf_counter()
-        self._sweep(until_empty=True)
+        sweeps = 0
+        while self.rays_queued:
+            self._sweep(until_empty=False)
+            sweeps += 1
+            if report is not None:
+                report(self.rays_queued, sweeps)
         if self._eye is not None:
             self._finish_eye_iteration()
         self._apply()

@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
+import time
 
 from dosppm_core.chunks.store import is_store
 from dosppm_core.chunks.subdivide import open_render_store
@@ -114,7 +115,7 @@ def _run_here(args) -> int:
         while not _done(renderer, limit):
             reporter(renderer.run_iteration())
         if hasattr(renderer, "finish"):
-            renderer.finish()   # OSPPM: trace the photons still queued at portals
+            renderer.finish(_drain_lines(say))   # OSPPM: trace the photons still queued at portals
     except KeyboardInterrupt:
         interrupted = True
     finally:
@@ -125,6 +126,20 @@ def _run_here(args) -> int:
     say(f"{'interrupted: ' if interrupted else ''}wrote {args.out} after {p.iteration} iterations, "
         f"{p.photons_emitted:,} photons, {p.seconds:.1f} s")
     return EXIT_INTERRUPTED if interrupted else EXIT_OK
+
+
+def _drain_lines(say, every_s: float = 10.0):
+    """OSPPM's drain report: out of core it can take many sweeps past the
+    limit, so a line every `every_s` says what is left rather than nothing."""
+    t0 = last = time.monotonic()
+
+    def report(rays: int, sweeps: int) -> None:
+        nonlocal last
+        now = time.monotonic()
+        if now - last >= every_s and rays:
+            last = now
+            say(f"draining: {rays:,} rays still queued at portals after {sweeps} sweeps, {now - t0:.0f} s")
+    return report
 
 
 def _make_renderer(args, settings):
