@@ -172,6 +172,28 @@ def test_held_deposits_past_their_memory_stop_photon_jobs_until_a_job_completes(
         assert _photons_sent(state.tick(0.4)) > 0
 
 
+def test_photon_jobs_in_flight_are_as_many_as_their_held_deposits_fit():
+    """Out of core a job completes only when its last path ends, sweeps
+    later, so the server holds every deposit of every job in flight. It
+    makes no more jobs than half its --queue-memory holds, at the deposits
+    per photon path ended so far (4 guessed before any end); the control
+    with room keeps the paper's minimum in flight (50 here)."""
+    state, roomy = new_state(), new_state()
+    state.held = HeldDeposits(1 << 20, 40 * 512 * DEPOSIT_BYTES)
+    for s in (state, roomy):
+        _register(s, "a")
+        s.cull_box = np.array([[-1e9] * 3, [1e9] * 3])
+        s.eye_completed = 1
+        s.tick(0.0)
+    assert roomy.photon_jobs_in_flight == 50
+    assert state.photon_jobs_in_flight == 40 * 512 // 2 // (512 * 4)
+    j = next(j for j, job in state.jobs.items() if job.kind == "photon")
+    # Every path of one job ends, with a deposit each (its credit not back yet).
+    state.on_message("a", _results([j], [512], deposits_job=[j] * 512), 0.1)
+    state.tick(0.2)
+    assert state.photon_jobs_in_flight == 40 * 512 // 2 // 512
+
+
 def test_no_photons_before_the_first_hit_points(state):
     _register(state, "a")
     out = state.tick(0.0)

@@ -10,6 +10,7 @@ from dosppm_core.jobs import PhotonDeposits
 UNKNOWN, IN_FLIGHT, COMPLETE, DISCARDED = 0, 1, 2, 3     # photon job status
 DEPOSIT_BYTES = sum(np.dtype(dt).itemsize * int(np.prod(shape, dtype=np.int64))
                     for dt, shape in PhotonDeposits.SCHEMA.values())
+DEPOSITS_PER_PHOTON_GUESS = 4.0   # before any photon path has ended
 FULL_BATCH_INTERVAL_S = 1.0     # while full, a batch at most this often (each one reads all held)
 
 
@@ -26,6 +27,16 @@ class HeldDeposits:
         self.rows, self.photon_batch = 0, int(photon_batch)
         self.limit_rows = max(1, int(limit_bytes // DEPOSIT_BYTES))
         self._next_at, self._last_split_s = self.photon_batch, float("-inf")
+
+    def jobs_that_fit(self, photons_per_job: int, deposits_per_photon: float | None) -> int:
+        """Photon jobs in flight whose deposits fit half the limit (the other
+        half: jobs complete, not yet batched). A job's deposits are held
+        until its last path ends, and out of core that is many sweeps
+        later: what is held is every deposit of every job in flight.
+        `deposits_per_photon`: deposits received per photon path ended (high
+        while paths are young, so it errs safe); GUESS before any end."""
+        per_job = photons_per_job * (deposits_per_photon or DEPOSITS_PER_PHOTON_GUESS)
+        return max(1, int(self.limit_rows / 2 / max(per_job, 1.0)))
 
     @property
     def full(self) -> bool:

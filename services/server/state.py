@@ -46,7 +46,7 @@ from dosppm_core.settings import RenderSettings
 from dosppm_core.sppm.iteration import EyePass
 from dosppm_core.trace import NO_CULL, emit_photon_jobs, eye_ray_job
 from services.credit import Account, by_job, new_job
-from services.server.held import COMPLETE, DISCARDED, IN_FLIGHT, UNKNOWN, HeldDeposits
+from services.server.held import COMPLETE, DEPOSIT_BYTES, DISCARDED, IN_FLIGHT, UNKNOWN, HeldDeposits
 from services.server.job_messages import JobMessages
 from services.wire import JOB_MESSAGES, PROTOCOL_VERSION, Out
 
@@ -197,7 +197,7 @@ class ServerState:
         self._last_heartbeat = -1e30
         self.counters = {"photons_emitted": 0, "photons_completed": 0, "photons_committed": 0,
                          "photon_jobs_completed": 0, "eye_jobs_completed": 0, "hit_points": 0,
-                         "deposits_received": 0, "culled": 0, "stale_paths": 0,
+                         "deposits_received": 0, "photon_paths_ended": 0, "culled": 0, "stale_paths": 0,
                          "over_credited_jobs": 0, "results": 0, "updates": 0,
                          "photons_discarded": 0, "jobs_discarded": 0, "tracers_evicted": 0,
                          "eye_iterations_restarted": 0, "deposits_discarded": 0, "deposits_stale": 0,
@@ -352,8 +352,11 @@ class ServerState:
         if msg.hits is not None and self.eye is not None and msg.eye_iteration == self.eye.index:
             self.eye.results.add(msg.hits, msg.emitted_pixels, msg.emitted_rgb)
         for j, fed, left in zip(msg.job_ids.tolist(), msg.job_fed.tolist(), msg.job_left.tolist()):
-            if j not in self.jobs:
+            job = self.jobs.get(j)
+            if job is None:
                 c["stale_paths"] += fed - left      # a finished or unknown job: never counted twice
+            elif job.kind == "photon":
+                c["photon_paths_ended"] += fed - left
         for j, exps in by_job(msg.credit_job, msg.credit_exp).items():
             self._credit(j, exps)
         self._maybe_batch()
@@ -583,9 +586,13 @@ class ServerState:
         return max(self.credit, t.queue_target)
 
     def _photon_jobs_wanted(self) -> int:
-        """`min_photon_jobs` (the paper's 1k), or as many as the queues tracers ask for hold."""
+        """`min_photon_jobs` (the paper's 1k), or as many as the queues tracers
+        ask for hold; but no more than the deposits held fit (`HeldDeposits`)."""
         credit = sum(t.queue_target for t in self.tracers.values())
-        return max(self.min_photon_jobs, -(-credit // self.settings.photons_per_job))
+        wanted = max(self.min_photon_jobs, -(-credit // self.settings.photons_per_job))
+        c = self.counters
+        per_photon = c["deposits_received"] / c["photon_paths_ended"] if c["photon_paths_ended"] else None
+        return min(wanted, self.held.jobs_that_fit(self.settings.photons_per_job, per_photon))
 
     def _job_status(self, ids: np.ndarray) -> np.ndarray:
         """Status of each photon job id (UNKNOWN for ids never made, and
@@ -752,6 +759,7 @@ class ServerState:
                 "waiting_for": self.waiting_for(),
                 "photons_emitted": c["photons_emitted"], "photons_committed": c["photons_committed"],
                 "jobs_in_flight": len(self.jobs), "photon_jobs_in_flight": self.photon_jobs_in_flight,
+                "held_bytes": self.held.rows * DEPOSIT_BYTES, "held_full": self.held.full,
                 "hit_points": c["hit_points"], "chunks": self.tree.chunk_count,
                 "path_ends": {n: int(v) for n, v in zip(END_NAMES, self.path_ends) if n != "continues"},
                 "counters": dict(c),
