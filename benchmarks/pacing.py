@@ -97,7 +97,7 @@ def _dosppm_render(store: str, seconds: float, memory: str | None, work: str) ->
     busy = [t["busy_s"] / secs for t in tracers]
     tracing = [(t["busy_s"] - t["load_wait_s"]) / secs for t in tracers]
     return {"photons_per_s": doc["photons_applied"] / secs, "hit_points_per_s": doc["hit_points_per_s"],
-            "seconds": secs, "wall_s": wall, "busy_share": min(busy), "tracing_share": min(tracing),
+            "photons_per_eye_iteration": doc["photons_applied"] / max(doc["iteration"], 1), "seconds": secs, "wall_s": wall, "busy_share": min(busy), "tracing_share": min(tracing),
             "chunk_loads": sum(t["chunk_loads"] for t in tracers), "peak_rss_mib": rss / MiB,
             "tracers": tracers}
 
@@ -121,12 +121,19 @@ def run(args) -> dict:
         st = store if chunks == 8 else _store(args.work, args.triangles, chunks)
         dosppm[str(chunks)] = _repeat(lambda: _dosppm_render(st, s, m, args.work), r)
     dosppm["8 resident"] = _repeat(lambda: _dosppm_render(store, s, None, args.work), r)
+    # Equal work: OSPPM, every chunk resident, with as many photons per eye
+    # iteration as DOSPPM at 8 chunks made (its eye iterations run beside
+    # the photons, so it makes far fewer than OSPPM's default 1.5 a pixel).
+    equal_ppi = int(dosppm["8"]["photons_per_eye_iteration"])
+    equal = _repeat(lambda: _osppm(store, s, "64GiB", equal_ppi, args.work), r)
     auto = osppm["auto"]["photons_per_s"]
     return {"triangles": args.triangles, "memory": m, "seconds": s, "osppm": osppm, "osppm_resident": resident,
-            "dosppm": dosppm, "best_hand_tuned": best,
+            "osppm_resident_equal_work": equal, "dosppm": dosppm, "best_hand_tuned": best,
             "auto_over_best": auto / osppm[best]["photons_per_s"],
             "dosppm_over_osppm_resident": {c: d["photons_per_s"] / resident["photons_per_s"]
-                                           for c, d in dosppm.items()}}
+                                           for c, d in dosppm.items()},
+            "dosppm_over_osppm_resident_equal_work": {c: d["photons_per_s"] / equal["photons_per_s"]
+                                                      for c, d in dosppm.items()}}
 
 
 def report(doc: dict) -> str:
@@ -137,16 +144,20 @@ def report(doc: dict) -> str:
     rows = [("chosen by the renderer (default)", doc["osppm"]["auto"])]
     rows += [(f"{int(p):,} (hand-tuned)", d) for p, d in doc["osppm"].items() if p != "auto"]
     rows += [("every chunk resident, default", doc["osppm_resident"])]
+    if "osppm_resident_equal_work" in doc:
+        rows += [("every chunk resident, DOSPPM's (8 chunks) per eye iteration", doc["osppm_resident_equal_work"])]
     for name, d in rows:
         lines.append(f"| {name} | {k(d['photons_per_s'])} | {k(d['photons'] / d['iterations'])} "
                      f"| {d['peak_rss_mib']:,.0f} MiB |")
     lines += ["", f"The default reaches {doc['auto_over_best']:.0%} of the best hand-tuned setting "
               f"({int(doc['best_hand_tuned']):,}).", "",
-              "| DOSPPM, 2 tracers | photons/s | of OSPPM, all resident | tracers busy | tracing "
-              "| chunk loads | peak RSS, largest process |", "|---|---|---|---|---|---|---|"]
+              "| DOSPPM, 2 tracers | photons/s | of OSPPM, all resident | at equal work | tracers busy "
+              "| tracing | chunk loads | peak RSS, largest process |", "|---|---|---|---|---|---|---|---|"]
+    equal = doc.get("dosppm_over_osppm_resident_equal_work", {})
     for c, d in doc["dosppm"].items():
         name = f"{c} chunks, {doc['memory']} each" if "resident" not in c else f"{c.split()[0]} chunks, all resident"
-        lines.append(f"| {name} | {k(d['photons_per_s'])} | {doc['dosppm_over_osppm_resident'][c]:.2f} "
+        eq = f"{equal[c]:.2f}" if c in equal else "–"
+        lines.append(f"| {name} | {k(d['photons_per_s'])} | {doc['dosppm_over_osppm_resident'][c]:.2f} | {eq} "
                      f"| {d['busy_share']:.0%} | {d['tracing_share']:.0%} | {d['chunk_loads']:.0f} "
                      f"| {d['peak_rss_mib']:,.0f} MiB |")
     return "\n".join(lines) + "\n"
@@ -170,7 +181,8 @@ def main() -> None:
           f"{doc['auto_over_best']:.2f} of the best hand-tuned ({doc['best_hand_tuned']})")
     for c, d in doc["dosppm"].items():
         print(f"DOSPPM c={c}: {d['photons_per_s'] / 1e3:.0f}k photons/s "
-              f"({doc['dosppm_over_osppm_resident'][c]:.2f} of OSPPM resident), "
+              f"({doc['dosppm_over_osppm_resident'][c]:.2f} of OSPPM resident, "
+              f"{doc.get('dosppm_over_osppm_resident_equal_work', {}).get(c, float('nan')):.2f} at equal work), "
               f"busy {d['busy_share']:.0%}, tracing {d['tracing_share']:.0%}")
 
 

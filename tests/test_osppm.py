@@ -230,3 +230,23 @@ def test_a_pipelined_iteration_applies_its_deposits_a_batch_at_a_time(caustic):
     assert all(s == batch for p in per_iteration for s in p[:-1])
     assert max(sizes) <= batch and max(waiting) < batch
     assert sum(sizes) == o.sppm.deposits_applied > 0
+
+
+def test_a_chunk_queue_is_traced_in_steps_with_the_same_image(caustic, monkeypatch):
+    """A photon iteration starts all in the chunks with lights; their queues
+    are traced TRACE_STEP_RAYS at a time (rays are independent), not in one
+    concatenation three times the queue's size, and the image is unchanged."""
+    from dosppm_core.modes import osppm
+    scene, ref, _ = caustic
+    sizes = []
+    trace = osppm.trace_photons_in_chunk
+
+    def spy(view, batch, *args):
+        sizes.append(len(batch))
+        return trace(view, batch, *args)
+    monkeypatch.setattr(osppm, "TRACE_STEP_RAYS", 4096)
+    monkeypatch.setattr(osppm, "trace_photons_in_chunk", spy)
+    img, _, _, _ = _osppm(scene, uniform_tree(root_box(scene), (2, 2, 2)))
+    _assert_equal_images(img, ref)
+    jobs = _settings().photons_per_job
+    assert max(sizes) <= 4096 + jobs and sum(s > 4096 - jobs for s in sizes) > 3

@@ -175,7 +175,8 @@ def test_held_deposits_past_their_memory_stop_photon_jobs_until_a_job_completes(
 def test_photon_jobs_in_flight_are_as_many_as_their_held_deposits_fit():
     """Out of core a job completes only when its last path ends, sweeps
     later, so the server holds every deposit of every job in flight. It
-    makes no more jobs than half its --queue-memory holds, at the deposits
+    makes no more jobs than its --queue-memory holds (less a batch, half
+    at most), at the deposits
     per photon path ended so far (4 guessed before any end); the control
     with room keeps the paper's minimum in flight (50 here)."""
     state, roomy = new_state(), new_state()

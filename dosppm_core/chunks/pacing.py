@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dosppm_core.jobs import RayBatch
+from dosppm_core.jobs import PhotonDeposits, RayBatch
 
 GROWTH = 4                       # at most this factor per sweep
 LOAD_SHARE = 0.1                 # chunk loads at most this share of a sweep's time
@@ -23,6 +23,8 @@ QUEUE_MEMORY_BYTES = 256 << 20   # default limit on queued rays (--queue-memory)
 FIRST_QUEUE_RAYS = 262_144
 RAY_BYTES = sum(np.dtype(dt).itemsize * int(np.prod(shape, dtype=np.int64))
                 for dt, shape in RayBatch.SCHEMA.values())
+DEPOSIT_BYTES = sum(np.dtype(dt).itemsize * int(np.prod(shape, dtype=np.int64))
+                    for dt, shape in PhotonDeposits.SCHEMA.values())
 
 
 def work_to_hide_loads(load_s: float, trace_s: float, work: float, share: float = LOAD_SHARE) -> float:
@@ -48,3 +50,12 @@ def queue_cap_rays(queue_memory_bytes: float | None) -> int:
     """Rays that fit in the queue memory limit."""
     limit = QUEUE_MEMORY_BYTES if queue_memory_bytes is None else queue_memory_bytes
     return max(1, int(limit // RAY_BYTES))
+
+
+def deposit_batch_cap(queue_memory_bytes: float | None) -> int:
+    """Deposits per statistics update that a quarter of the queue memory
+    limit holds (OSPPM: the update's temporaries take about as much again).
+    At the default limit that is above the paper's 1M, so only a smaller
+    limit set by the user makes batches smaller."""
+    limit = QUEUE_MEMORY_BYTES if queue_memory_bytes is None else queue_memory_bytes
+    return max(1, int(limit // 4 // DEPOSIT_BYTES))

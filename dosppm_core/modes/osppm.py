@@ -30,6 +30,9 @@ from dosppm_core.sppm.iteration import EyePass, SPPMIteration
 from dosppm_core.trace import NO_CULL, emit_photon_job, eye_ray_job, light_arrays
 
 
+TRACE_STEP_RAYS = 262_144      # photon rays traced at once in a chunk (client batching up to this)
+
+
 class OutOfCoreRenderer:
     """Drives OSPPM iterations over a chunked scene in this process.
 
@@ -61,11 +64,12 @@ class OutOfCoreRenderer:
         # Photons per iteration not given: grown while chunk loads are not
         # hidden by the sweep's tracing (`_pace`), within the queue memory.
         self.paced = settings.photons_per_iteration is None and pipelined
-        # Every photon of an iteration is queued at its start; beside them
-        # wait up to a batch of deposits and the update's temporaries, about
-        # as much again (at the default limit): half the limit for the rays.
+        # Every photon of an iteration is queued at its start: half the
+        # limit for the rays; a quarter for a batch of deposits waiting, a
+        # quarter for the update's temporaries.
         self.max_photons_per_iteration = pacing.queue_cap_rays(queue_memory_bytes) // 2
         self.settings = settings.for_image(cam.width * cam.height)
+        self.settings.photon_batch = min(self.settings.photon_batch, pacing.deposit_batch_cap(queue_memory_bytes))
         self.settings.validate()
         self.pipelined = pipelined
         s = self.settings
@@ -285,15 +289,26 @@ class OutOfCoreRenderer:
             self._eye.add(HitPoints.empty(), pixels, rgb)
             self._account(ends, {j: [part] for j, part in out.items()}, self._shadow_queues)
             self.phase_seconds["eye"] += time.perf_counter() - t0
-        if self._photon_queues[k]:
+        while self._photon_queues[k]:      # in steps (`_take`); rays leaving k queue at other chunks
             t0 = time.perf_counter()
-            batch = RayBatch.concat(self._photon_queues[k])
-            self._photon_queues[k] = []
+            batch = RayBatch.concat(self._take(self._photon_queues[k]))
             dep, ends, _culled, out = trace_photons_in_chunk(view, batch, self._cull, s.max_depth,
                                                              s.deposit_from)
             self._account(ends, out, self._photon_queues)
             self.phase_seconds["photon"] += time.perf_counter() - t0
             self._add_deposits(dep)
+
+    @staticmethod
+    def _take(queue: list) -> list:
+        """Batches from the front of a chunk's queue, up to TRACE_STEP_RAYS
+        rays (one at least): a photon iteration starts all in the chunks
+        with lights, and one concatenation of it all, with the rays leaving
+        it, would take three times the queue's memory at once."""
+        taken, rays = [], 0
+        while queue and (not taken or rays + len(queue[0]) <= TRACE_STEP_RAYS):
+            taken.append(queue.pop(0))
+            rays += len(taken[-1])
+        return taken
 
     def _account(self, ends, outgoing, queues) -> None:
         self.sppm.count_path_ends(ends)

@@ -29,14 +29,16 @@ class HeldDeposits:
         self._next_at, self._last_split_s = self.photon_batch, float("-inf")
 
     def jobs_that_fit(self, photons_per_job: int, deposits_per_photon: float | None) -> int:
-        """Photon jobs in flight whose deposits fit half the limit (the other
-        half: jobs complete, not yet batched). A job's deposits are held
+        """Photon jobs in flight whose deposits fit the limit less a batch of
+        complete jobs' not yet handed over (half the limit at most). A
+        job's deposits are held
         until its last path ends, and out of core that is many sweeps
         later: what is held is every deposit of every job in flight.
         `deposits_per_photon`: deposits received per photon path ended (high
         while paths are young, so it errs safe); GUESS before any end."""
         per_job = photons_per_job * (deposits_per_photon or DEPOSITS_PER_PHOTON_GUESS)
-        return max(1, int(self.limit_rows / 2 / max(per_job, 1.0)))
+        room = max(self.limit_rows / 2, self.limit_rows - self.photon_batch)
+        return max(1, int(room / max(per_job, 1.0)))
 
     @property
     def full(self) -> bool:
