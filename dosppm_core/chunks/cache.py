@@ -47,6 +47,18 @@ class ChunkCounters:
     per_chunk_load: dict = field(default_factory=dict)
 
 
+def _trim() -> None:
+    """Return what an evicted chunk left in glibc's arenas (the loading
+    thread's among them) to the system. Measured cycling the 34M-triangle
+    building's chunks, two resident: 86 MiB kept after 30 loads without,
+    26 with; OSPPM's sampled peak on it 401 -> 360 MiB, no slower. No-op
+    off glibc."""
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
 def release_freed_memory_to_the_os() -> None:
     """glibc raises its mmap threshold after big frees (up to 32 MiB), so
     evicted chunk arrays are kept in the heap for reuse and the process
@@ -90,6 +102,7 @@ class ChunkCache:
             if victim is None:
                 return False
             self.resident.pop(victim).close()
+            _trim()
         return True
 
     def activate(self, k: int, ahead: int | None = None) -> ChunkView:
