@@ -19,11 +19,13 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 def commit() -> str:
     """HEAD's hash, with '+dirty' when tracked files differ from it (the
-    figure then measured code no commit holds)."""
+    figure then measured code no commit holds). Results files do not count:
+    one script regenerating several writes each in turn."""
     def git(*args):
         return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True).stdout.strip()
     head = git("rev-parse", "HEAD") or "unknown"
-    return head + ("+dirty" if git("status", "--porcelain", "--untracked-files=no") else "")
+    changed = git("status", "--porcelain", "--untracked-files=no", "--", ".", ":(exclude)benchmarks/results")
+    return head + ("+dirty" if changed else "")
 
 
 def machine() -> dict:
