@@ -150,12 +150,14 @@ def test_osppm_grows_photons_per_iteration_only_when_chunks_do_not_fit(four_chun
 
 def test_a_smaller_queue_memory_makes_osppm_batches_smaller(four_chunks):
     """OSPPM's --queue-memory: half for the queued rays, a quarter for the
-    deposits waiting for an update. At the default the paper's 1M batch
-    fits; at 64 MiB a batch is 16 MiB of deposits."""
+    deposits waiting for an update, an eighth for a tracing step's rays. At
+    the default the paper's 1M batch fits; at 64 MiB a batch is 16 MiB of
+    deposits and a step 131k rays."""
     for queue_memory, batch in ((None, 1_000_000), (64 << 20, (16 << 20) // pacing.DEPOSIT_BYTES)):
         o = OutOfCoreRenderer(four_chunks, RenderSettings(seed=1), queue_memory_bytes=queue_memory)
         try:
             assert o.settings.photon_batch == batch
+            assert o.trace_step_rays == min(262_144, pacing.queue_cap_rays(queue_memory) // 8)
             assert o.max_photons_per_iteration == pacing.queue_cap_rays(queue_memory) // 2
         finally:
             o.close()

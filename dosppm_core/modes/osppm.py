@@ -30,7 +30,7 @@ from dosppm_core.sppm.iteration import EyePass, SPPMIteration
 from dosppm_core.trace import NO_CULL, emit_photon_job, eye_ray_job, light_arrays
 
 
-TRACE_STEP_RAYS = 262_144      # photon rays traced at once in a chunk (client batching up to this)
+TRACE_STEP_RAYS = 262_144      # photon rays traced at once in a chunk, at most (client batching up to this)
 
 
 class OutOfCoreRenderer:
@@ -70,6 +70,8 @@ class OutOfCoreRenderer:
         self.max_photons_per_iteration = pacing.queue_cap_rays(queue_memory_bytes) // 2
         self.settings = settings.for_image(cam.width * cam.height)
         self.settings.photon_batch = min(self.settings.photon_batch, pacing.deposit_batch_cap(queue_memory_bytes))
+        # A step's rays, the rays leaving it and its deposits: an eighth of the limit each, at most.
+        self.trace_step_rays = min(TRACE_STEP_RAYS, max(1, pacing.queue_cap_rays(queue_memory_bytes) // 8))
         self.settings.validate()
         self.pipelined = pipelined
         s = self.settings
@@ -291,7 +293,7 @@ class OutOfCoreRenderer:
             self.phase_seconds["eye"] += time.perf_counter() - t0
         while self._photon_queues[k]:      # in steps (`_take`); rays leaving k queue at other chunks
             t0 = time.perf_counter()
-            batch = RayBatch.concat(self._take(self._photon_queues[k]))
+            batch = RayBatch.concat(self._take(self._photon_queues[k], self.trace_step_rays))
             dep, ends, _culled, out = trace_photons_in_chunk(view, batch, self._cull, s.max_depth,
                                                              s.deposit_from)
             self._account(ends, out, self._photon_queues)
@@ -299,13 +301,13 @@ class OutOfCoreRenderer:
             self._add_deposits(dep)
 
     @staticmethod
-    def _take(queue: list) -> list:
-        """Batches from the front of a chunk's queue, up to TRACE_STEP_RAYS
-        rays (one at least): a photon iteration starts all in the chunks
+    def _take(queue: list, step_rays: int) -> list:
+        """Batches from the front of a chunk's queue, up to `step_rays` rays
+        (one batch at least): a photon iteration starts all in the chunks
         with lights, and one concatenation of it all, with the rays leaving
         it, would take three times the queue's memory at once."""
         taken, rays = [], 0
-        while queue and (not taken or rays + len(queue[0]) <= TRACE_STEP_RAYS):
+        while queue and (not taken or rays + len(queue[0]) <= step_rays):
             taken.append(queue.pop(0))
             rays += len(taken[-1])
         return taken
