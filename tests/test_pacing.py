@@ -161,3 +161,32 @@ def test_a_smaller_queue_memory_makes_osppm_batches_smaller(four_chunks):
             assert o.max_photons_per_iteration == pacing.queue_cap_rays(queue_memory) // 2
         finally:
             o.close()
+
+
+def test_paced_osppm_emits_only_what_fits_beside_the_rays_carried_over(four_chunks):
+    """A pipelined sweep carries rays into the next iteration; a paced
+    iteration emits only as many photons as fit beside them, so what is
+    queued stays within its half of --queue-memory (a job's worth over at
+    most). Control: with the rule off, carried rays plus a full iteration
+    go over."""
+    queued = {}
+    for rule in (True, False):
+        o = _osppm(four_chunks, 1.5 * max(four_chunks.chunk_memory))
+        if not rule:
+            o._photons_to_emit = lambda: o.settings.photons_per_iteration
+        emit, after = o._emit_photons, []
+
+        def spy():
+            emit()
+            after.append(o.rays_queued)
+        o._emit_photons = spy
+        try:
+            o.run_iteration()
+            o.settings.photons_per_iteration = o.max_photons_per_iteration      # paced to its cap
+            for _ in range(3):
+                o.run_iteration()
+        finally:
+            o.close()
+        queued[rule] = max(after[1:])
+    assert queued[True] <= o.max_photons_per_iteration + o.settings.photons_per_job, queued
+    assert queued[False] > o.max_photons_per_iteration + o.settings.photons_per_job, queued
