@@ -23,8 +23,8 @@ from tests.helpers.paths import REPO
 pytestmark = pytest.mark.slow
 
 # 7.5M triangles load as 1017 MiB of chunks: 2.03x this limit. Measured
-# here: generate 143, subdivide 276, OSPPM 292, server 371, tracers 313 and
-# 306 MiB; CI's machine has measured about 60 MiB more a process.
+# here: generate 142, subdivide 276, OSPPM 284, server 271, tracers 248 and
+# 249 MiB; CI's machine has measured about 60 MiB more a process.
 LIMIT_MIB = 500
 
 
