@@ -21,10 +21,15 @@ QUEUE_MEMORY_BYTES = 256 << 20   # default limit on queued rays (--queue-memory)
 # A tracer's queued rays before any pacing: the server's default credit per
 # tracer, and where a tracer's queue target starts growing.
 FIRST_QUEUE_RAYS = 262_144
-RAY_BYTES = sum(np.dtype(dt).itemsize * int(np.prod(shape, dtype=np.int64))
-                for dt, shape in RayBatch.SCHEMA.values())
-DEPOSIT_BYTES = sum(np.dtype(dt).itemsize * int(np.prod(shape, dtype=np.int64))
-                    for dt, shape in PhotonDeposits.SCHEMA.values())
+
+
+def _row_bytes(record) -> int:
+    """Bytes per row of a job record (its SCHEMA's columns)."""
+    return sum(np.dtype(dt).itemsize * int(np.prod(shape, dtype=np.int64)) for dt, shape in record.SCHEMA.values())
+
+
+RAY_BYTES = _row_bytes(RayBatch)
+DEPOSIT_BYTES = _row_bytes(PhotonDeposits)
 
 
 def work_to_hide_loads(load_s: float, trace_s: float, work: float, share: float = LOAD_SHARE) -> float:

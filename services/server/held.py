@@ -5,11 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from dosppm_core.chunks.pacing import DEPOSIT_BYTES
 from dosppm_core.jobs import PhotonDeposits
 
 UNKNOWN, IN_FLIGHT, COMPLETE, DISCARDED = 0, 1, 2, 3     # photon job status
-DEPOSIT_BYTES = sum(np.dtype(dt).itemsize * int(np.prod(shape, dtype=np.int64))
-                    for dt, shape in PhotonDeposits.SCHEMA.values())
 DEPOSITS_PER_PHOTON_GUESS = 4.0   # before any photon path has ended
 FULL_BATCH_INTERVAL_S = 1.0     # while full, a batch at most this often (each one reads all held)
 
@@ -30,10 +29,9 @@ class HeldDeposits:
 
     def jobs_that_fit(self, photons_per_job: int, deposits_per_photon: float | None) -> int:
         """Photon jobs in flight whose deposits fit the limit less a batch of
-        complete jobs' not yet handed over (half the limit at most). A
-        job's deposits are held
-        until its last path ends, and out of core that is many sweeps
-        later: what is held is every deposit of every job in flight.
+        complete jobs' not yet handed over (half the limit at most). A job's
+        deposits are held until its last path ends, and out of core that is
+        many sweeps later: what is held is every deposit of every job in flight.
         `deposits_per_photon`: deposits received per photon path ended (high
         while paths are young, so it errs safe); GUESS before any end."""
         per_job = photons_per_job * (deposits_per_photon or DEPOSITS_PER_PHOTON_GUESS)
