@@ -177,7 +177,8 @@ SERVER = LIMITS + RENDER + CHUNKING + OPTIMISATIONS + SERVICE + (
          "waiting this many seconds for --min-tracers (default: wait for ever)", rule="positive"),
     _opt("drain_timeout", float, 60.0, "at the end, wait this long for jobs in flight", rule="non_negative"),
     _opt("queue_memory", str, None, "deposits held for photon jobs in flight at most this much; past it "
-         "no photon job goes out until jobs complete (default 256MiB)", rule="size"),
+         "no photon job goes out until jobs complete "
+         "(default: 1/16 of the machine's memory or its cgroup limit, 32MiB to 1GiB)", rule="size"),
     _opt("curve_secret", str, None, "this server's CURVE key file (dosppm keys): encrypt and authenticate"),
     _opt("curve_clients", str, None, "directory of the public key files of the tracers to admit"),
 )
@@ -190,7 +191,8 @@ TRACER = (
     _opt("cache_dir", str, None, "where fetched chunks are kept"),
     _opt("memory", str, None, "resident chunk memory, e.g. 4GiB (default: all its chunks)", rule="size"),
     _opt("queue_memory", str, None, "rays queued here at most this much, when more chunks than fit make "
-         "it queue more to hide their loads (default 256MiB)", rule="size"),
+         "it queue more to hide their loads "
+         "(default: 1/16 of the machine's memory or its cgroup limit, 32MiB to 1GiB)", rule="size"),
     _opt("threads", int, THREADS, "tracing threads", rule="count"),
     _opt("id", str, None, "tracer id (default host-pid-random)"),
     _opt("retry", float, 60.0, "keep trying to reach the server this long, in seconds", rule="non_negative"),

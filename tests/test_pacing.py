@@ -38,7 +38,39 @@ def test_growth_is_bounded_capped_and_never_a_shrink():
     assert pacing.grown(1000, 10, 1_000_000) == 1000
     assert pacing.grown(1000, 10_000, 1200) == 1200
     assert pacing.queue_cap_rays(pacing.RAY_BYTES * 1000) == 1000
-    assert pacing.queue_cap_rays(None) == pacing.QUEUE_MEMORY_BYTES // pacing.RAY_BYTES
+    assert pacing.queue_cap_rays(None) == pacing.default_queue_memory() // pacing.RAY_BYTES
+
+
+def _cgroup(tmp_path, lines: str, limits: dict[str, str]):
+    proc = tmp_path / "proc"
+    proc.mkdir(parents=True)
+    (proc / "cgroup").write_text(lines)
+    for path, text in limits.items():
+        f = tmp_path / "cg" / path
+        f.parent.mkdir(parents=True, exist_ok=True)
+        f.write_text(text + "\n")
+    return pacing.cgroup_memory_limit(str(proc), str(tmp_path / "cg"))
+
+
+def test_the_cgroup_limit_is_the_tightest_of_the_process_group_and_its_ancestors(tmp_path):
+    v2 = "0::/kubepods/pod1/box\n"
+    assert _cgroup(tmp_path / "a", v2, {"kubepods/memory.max": "max", "kubepods/pod1/memory.max": "419430400",
+                                         "kubepods/pod1/box/memory.max": "max"}) == 400 << 20
+    # No file says a number: no limit, and the machine's memory counts.
+    assert _cgroup(tmp_path / "b", v2, {"memory.max": "max", "kubepods/pod1/box/memory.max": "max"}) is None
+    # cgroup v1: the memory controller's file; its "unlimited" is a page-rounded 2^63.
+    v1 = "4:memory:/docker/abc\n3:cpu:/\n"
+    assert _cgroup(tmp_path / "c", v1, {"memory/docker/abc/memory.limit_in_bytes": "268435456"}) == 256 << 20
+    assert _cgroup(tmp_path / "d", v1, {"memory/docker/abc/memory.limit_in_bytes": "9223372036854771712"}) is None
+    assert pacing.cgroup_memory_limit(str(tmp_path / "absent"), str(tmp_path)) is None
+
+
+def test_the_default_queue_memory_follows_the_machine_within_its_bounds():
+    GiB = 1 << 30
+    assert pacing.default_queue_memory(8 * GiB) == 512 << 20
+    assert pacing.default_queue_memory(24 * GiB) == pacing.QUEUE_MEMORY_MAX       # a workstation: the cap
+    assert pacing.default_queue_memory(400 << 20) == pacing.QUEUE_MEMORY_MIN      # a small container: the floor
+    assert pacing.QUEUE_MEMORY_MIN <= pacing.default_queue_memory() <= pacing.QUEUE_MEMORY_MAX
 
 
 def _tracer(provider, memory, queue_memory=None):
@@ -56,7 +88,7 @@ def _measured(t, loads, load_s, busy_s, rays):
 
 
 def test_a_tracer_whose_chunks_do_not_fit_asks_for_a_queue_that_hides_its_loads(four_chunks):
-    t = _tracer(four_chunks, 1.5 * max(four_chunks.chunk_memory))
+    t = _tracer(four_chunks, 1.5 * max(four_chunks.chunk_memory), queue_memory=256 << 20)
     try:
         assert t.queue_target() == 0
         # 4 chunks at 0.25 s a load: 1 s of loads a sweep; 100k rays/s
@@ -65,7 +97,7 @@ def test_a_tracer_whose_chunks_do_not_fit_asks_for_a_queue_that_hides_its_loads(
         assert _measured(t, 4, 1.0, 1.0, 100_000) == 900_000
         assert _measured(t, 5, 1.25, 1.0, 1_000_000) == 900_000         # not a sweep since
         assert _measured(t, 8, 2.0, 2.0, 900_000) == 3_600_000
-        assert _measured(t, 12, 3.0, 2.0, 2_000_000) == pacing.queue_cap_rays(None)
+        assert _measured(t, 12, 3.0, 2.0, 2_000_000) == pacing.queue_cap_rays(256 << 20)
         # Bounded by --queue-memory.
         small = _tracer(four_chunks, 1.5 * max(four_chunks.chunk_memory), queue_memory=pacing.RAY_BYTES * 600_000)
         assert _measured(small, 4, 1.0, 1.0, 50_000) == 450_000

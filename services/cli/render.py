@@ -63,7 +63,8 @@ def add_parser(sub) -> None:
     ooc.add_argument("--queue-memory", metavar="SIZE", type=config.size,
                      help="queued rays at most this much when more chunks than fit make the renderer "
                           "queue more to hide their loads; the server's deposits held for photon jobs "
-                          "in flight too (default 256MiB)")
+                          "in flight too (default: 1/16 of the machine's memory or its cgroup "
+                          "limit, 32MiB to 1GiB)")
     ooc.add_argument("--schedule", choices=("pipelined", "drained"), default="pipelined",
                      help="osppm: pipelined: one sweep over the chunks per iteration, portal rays "
                           "carried over (§3.3); drained: every ray ends within its iteration, which "

@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from dosppm_core.chunks.pacing import FIRST_QUEUE_RAYS, QUEUE_MEMORY_BYTES
+from dosppm_core.chunks.pacing import FIRST_QUEUE_RAYS, default_queue_memory
 from dosppm_core.chunks.view import start_chunks
 from dosppm_core.jobs import END_NAMES, HitPoints, PhotonDeposits, RayBatch
 from dosppm_core.settings import RenderSettings
@@ -191,7 +191,7 @@ class ServerState:
         self.eye_started = 0
         self.eye_completed = 0
         self._photons_at_eye_start = 0
-        self.held = HeldDeposits(settings.photon_batch, held_bytes or QUEUE_MEMORY_BYTES)
+        self.held = HeldDeposits(settings.photon_batch, held_bytes or default_queue_memory())
         self._ready_emitted, self._ready_jobs = 0, []    # photon paths and jobs complete since the last batch
         self.updates: deque[Update] = deque()
         self._last_heartbeat = -1e30
