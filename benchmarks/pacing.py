@@ -13,7 +13,8 @@ memory for two chunks (`--memory 200MiB`), in one run on one machine:
   photons/s within 10% of OSPPM with every chunk resident.
 
 photons/s is photons applied over the render's seconds, the drain of the
-queues at the end included. Medians of `--repeats` runs, every sample kept.
+queues at the end included. Medians of `--repeats` runs, every sample kept;
+the settings run in rounds, one run of each per round, after a warm-up.
 
     python benchmarks/pacing.py --seconds 30 --repeats 3 --json benchmarks/results/pacing.json
 """
@@ -102,30 +103,42 @@ def _dosppm_render(store: str, seconds: float, memory: str | None, work: str) ->
             "tracers": tracers}
 
 
-def _repeat(fn, repeats: int) -> dict:
-    return median_of([fn() for _ in range(repeats)])
+def _interleaved(runs: dict, repeats: int) -> dict:
+    """Each of `runs` (name: zero-argument function) `repeats` times, in
+    rounds of one run each, so that drift on a shared machine (the page
+    cache after a store is written, another tenant) falls on every setting
+    alike rather than on whichever ran first; the median of each, every
+    sample kept."""
+    samples = {name: [] for name in runs}
+    for _ in range(repeats):
+        for name, fn in runs.items():
+            samples[name].append(fn())
+    return {name: median_of(got) for name, got in samples.items()}
 
 
 def run(args) -> dict:
     os.makedirs(args.work, exist_ok=True)
     store = _store(args.work, args.triangles, None)
+    stores = {c: store if c == 8 else _store(args.work, args.triangles, c) for c in args.chunks}
     s, r, m = args.seconds, args.repeats, args.memory
-    osppm = {"auto": _repeat(lambda: _osppm(store, s, m, None, args.work), r)}
-    for ppi in args.ppi:
-        osppm[str(ppi)] = _repeat(lambda: _osppm(store, s, m, ppi, args.work), r)
-    best = max((k for k in osppm if k != "auto"), key=lambda k: osppm[k]["photons_per_s"])
+    _osppm(store, min(s, 5), m, None, args.work)    # warm-up, not counted: kernels cached, store read
+    runs = {"osppm auto": lambda: _osppm(store, s, m, None, args.work)}
+    runs.update({f"osppm {ppi}": (lambda ppi=ppi: _osppm(store, s, m, ppi, args.work)) for ppi in args.ppi})
     # OSPPM's --memory defaults to two chunk budgets: every chunk resident takes a limit above the store.
-    resident = _repeat(lambda: _osppm(store, s, "64GiB", None, args.work), r)
-    dosppm = {}
-    for chunks in args.chunks:
-        st = store if chunks == 8 else _store(args.work, args.triangles, chunks)
-        dosppm[str(chunks)] = _repeat(lambda: _dosppm_render(st, s, m, args.work), r)
-    dosppm["8 resident"] = _repeat(lambda: _dosppm_render(store, s, None, args.work), r)
+    runs["osppm resident"] = lambda: _osppm(store, s, "64GiB", None, args.work)
+    runs.update({f"dosppm {c}": (lambda st=st: _dosppm_render(st, s, m, args.work)) for c, st in stores.items()})
+    runs["dosppm 8 resident"] = lambda: _dosppm_render(store, s, None, args.work)
+    got = _interleaved(runs, r)
+    osppm = {"auto": got["osppm auto"], **{str(ppi): got[f"osppm {ppi}"] for ppi in args.ppi}}
+    best = max((k for k in osppm if k != "auto"), key=lambda k: osppm[k]["photons_per_s"])
+    resident = got["osppm resident"]
+    dosppm = {str(c): got[f"dosppm {c}"] for c in stores}
+    dosppm["8 resident"] = got["dosppm 8 resident"]
     # Equal work: OSPPM, every chunk resident, with as many photons per eye
     # iteration as DOSPPM at 8 chunks made (its eye iterations run beside
     # the photons, so it makes far fewer than OSPPM's default 1.5 a pixel).
     equal_ppi = int(dosppm["8"]["photons_per_eye_iteration"])
-    equal = _repeat(lambda: _osppm(store, s, "64GiB", equal_ppi, args.work), r)
+    equal = _interleaved({"equal": lambda: _osppm(store, s, "64GiB", equal_ppi, args.work)}, r)["equal"]
     auto = osppm["auto"]["photons_per_s"]
     return {"triangles": args.triangles, "memory": m, "seconds": s, "osppm": osppm, "osppm_resident": resident,
             "osppm_resident_equal_work": equal, "dosppm": dosppm, "best_hand_tuned": best,
