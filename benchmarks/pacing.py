@@ -134,18 +134,20 @@ def run(args) -> dict:
     resident = got["osppm resident"]
     dosppm = {str(c): got[f"dosppm {c}"] for c in stores}
     dosppm["8 resident"] = got["dosppm 8 resident"]
-    # Equal work: OSPPM, every chunk resident, with as many photons per eye
-    # iteration as DOSPPM at 8 chunks made (its eye iterations run beside
-    # the photons, so it makes far fewer than OSPPM's default 1.5 a pixel).
-    equal_ppi = int(dosppm["8"]["photons_per_eye_iteration"])
-    equal = _interleaved({"equal": lambda: _osppm(store, s, "64GiB", equal_ppi, args.work)}, r)["equal"]
+    # Equal work: OSPPM, every chunk resident, on the same store, with as
+    # many photons per eye iteration as each DOSPPM row made (its eye
+    # iterations run beside the photons: far fewer than OSPPM's default 1.5
+    # a pixel out of core, more with every chunk resident).
+    equal = _interleaved({c: (lambda c=c: _osppm(stores[int(c.split()[0])], s, "64GiB",
+                                                 int(dosppm[c]["photons_per_eye_iteration"]), args.work))
+                          for c in dosppm}, r)
     auto = osppm["auto"]["photons_per_s"]
     return {"triangles": args.triangles, "memory": m, "seconds": s, "osppm": osppm, "osppm_resident": resident,
             "osppm_resident_equal_work": equal, "dosppm": dosppm, "best_hand_tuned": best,
             "auto_over_best": auto / osppm[best]["photons_per_s"],
             "dosppm_over_osppm_resident": {c: d["photons_per_s"] / resident["photons_per_s"]
                                            for c, d in dosppm.items()},
-            "dosppm_over_osppm_resident_equal_work": {c: d["photons_per_s"] / equal["photons_per_s"]
+            "dosppm_over_osppm_resident_equal_work": {c: d["photons_per_s"] / equal[c]["photons_per_s"]
                                                       for c, d in dosppm.items()}}
 
 
@@ -157,8 +159,10 @@ def report(doc: dict) -> str:
     rows = [("chosen by the renderer (default)", doc["osppm"]["auto"])]
     rows += [(f"{int(p):,} (hand-tuned)", d) for p, d in doc["osppm"].items() if p != "auto"]
     rows += [("every chunk resident, default", doc["osppm_resident"])]
-    if "osppm_resident_equal_work" in doc:
-        rows += [("every chunk resident, DOSPPM's (8 chunks) per eye iteration", doc["osppm_resident_equal_work"])]
+    equal_work = doc["osppm_resident_equal_work"]
+    if "photons_per_s" in equal_work:      # files before each DOSPPM row had its own
+        equal_work = {"8": equal_work}
+    rows += [(f"every chunk resident, DOSPPM's ({c} chunks) per eye iteration", d) for c, d in equal_work.items()]
     for name, d in rows:
         lines.append(f"| {name} | {k(d['photons_per_s'])} | {k(d['photons'] / d['iterations'])} "
                      f"| {d['peak_rss_mib']:,.0f} MiB |")
