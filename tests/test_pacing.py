@@ -143,6 +143,42 @@ def test_the_server_sends_what_a_tracer_asks_for_a_tick_at_a_time():
     assert t.load_estimate > 0 and state.drain_estimate_s() == pytest.approx(t.load_estimate * 1e-5)
 
 
+
+def _queue_filled(asked: int):
+    """A server whose one tracer asked for `asked` queued rays, sent them."""
+    state = new_state((1, 1, 1), photons_per_job=1024)
+    _register(state, "a")
+    state.cull_box = np.array([[-1e9] * 3, [1e9] * 3])
+    state.eye_completed = 1
+    msg = _results([], [])
+    msg.queue_target = asked
+    state.on_message("a", msg, 0.0)
+    for i in range(1, 8):
+        state.tick(0.1 * i)
+    return state
+
+
+def _sent_after_report(state, queued: int, t0: float) -> int:
+    msg = _results([], [])
+    msg.queue_target, msg.queued = state.tracers["a"].queue_target, queued
+    state.on_message("a", msg, t0)
+    return sum(len(o.fields["batch"]) for i in range(1, 8) for o in state.tick(t0 + 0.1 * i)
+               if o.type == "photon_job")
+
+
+def test_jobs_whose_rays_left_the_queue_do_not_hold_the_queue_short():
+    """Out of core a photon job stays in flight until its last path ends,
+    sweeps after most of its rays were traced. The tracer reports its
+    queue empty, no job complete: the server refills the queue. The
+    control, its queue still full, gets nothing more."""
+    asked = 2 * EMIT_PHOTONS_PER_TICK
+    drained, full = _queue_filled(asked), _queue_filled(asked)
+    jobs = drained.photon_jobs_in_flight
+    assert jobs >= 0.95 * asked // 1024
+    assert _sent_after_report(drained, 0, 1.0) >= 0.9 * asked
+    assert drained.photon_jobs_in_flight >= jobs + 0.9 * asked // 1024
+    assert _sent_after_report(full, asked, 1.0) <= 1024
+
 def _osppm(provider, memory, **kw):
     settings = RenderSettings(seed=3, photons_per_job=1024, **kw)
     # Queued rays for 400k photons: paced runs start at 50k photons per

@@ -588,8 +588,16 @@ class ServerState:
     def _photon_jobs_wanted(self) -> int:
         """`min_photon_jobs` (the paper's 1k), or as many as the queues tracers
         ask for hold; but no more than the deposits held fit (`HeldDeposits`)."""
+        ppj = self.settings.photons_per_job
         credit = sum(t.queue_target for t in self.tracers.values())
-        wanted = max(self.min_photon_jobs, -(-credit // self.settings.photons_per_job))
+        # Out of core a job stays in flight until its last path ends, sweeps
+        # after most of its rays have left the queues: such jobs take no
+        # queue room, so they do not count against the queues asked for.
+        # (Counted, they left the tracers' queues at a fifth of their target.)
+        sent = self.photon_jobs_in_flight - len(self._photon_pending)
+        queued = sum(t.load_estimate for t in self.tracers.values())
+        spent = max(0, sent - -(-queued // ppj)) if credit else 0
+        wanted = max(self.min_photon_jobs, -(-credit // ppj) + spent)
         c = self.counters
         per_photon = c["deposits_received"] / c["photon_paths_ended"] if c["photon_paths_ended"] else None
         return min(wanted, self.held.jobs_that_fit(self.settings.photons_per_job, per_photon))
