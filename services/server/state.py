@@ -600,7 +600,7 @@ class ServerState:
         wanted = max(self.min_photon_jobs, -(-credit // ppj) + spent)
         c = self.counters
         per_photon = c["deposits_received"] / c["photon_paths_ended"] if c["photon_paths_ended"] else None
-        return min(wanted, self.held.jobs_that_fit(self.settings.photons_per_job, per_photon))
+        return min(wanted, self.held.jobs_that_fit(ppj, per_photon))
 
     def _job_status(self, ids: np.ndarray) -> np.ndarray:
         """Status of each photon job id (UNKNOWN for ids never made, and
