@@ -20,7 +20,7 @@ from dosppm_core.chunks.tree import ChunkTree
 from dosppm_core.jobs import ESCAPED, STORED, HitPoints, PhotonDeposits, RayBatch, ShadowRays
 from dosppm_core.kernels.paths import ELSEWHERE
 from dosppm_core.scene.model import SceneHeader
-from dosppm_core.trace import END_KINDS, SurfaceData, advance_eye, scatter_photons, shadow_results
+from dosppm_core.trace import END_KINDS, SurfaceData, advance_eye, emit_photon_jobs, scatter_photons, shadow_results
 
 
 class ChunkView:
@@ -72,6 +72,17 @@ def start_chunks(tree: ChunkTree, batch: RayBatch, keep_lost: bool = False):
     if keep_lost:
         return routed, lost
     return routed, 0 if lost is None else len(lost)
+
+
+def located_photons(scene, tree: ChunkTree, seed: int, keys, counts, eps_abs: float):
+    """The photons of several jobs (`trace.emit_photon_jobs`, job after
+    job), each with its tmin set and the chunk it starts in (-1: it misses
+    the scene): the server emits jobs in groups, since a kernel call per
+    1,024-photon job costs more than its photons. Returns (batch, chunk)."""
+    batch = emit_photon_jobs(scene, seed, keys, counts, eps_abs)
+    chunk, tmin = enter(tree, batch.origin, batch.direction)
+    batch.tmin = np.maximum(batch.tmin, tmin)
+    return batch, chunk
 
 
 def _find_hits(view: ChunkView, batch: RayBatch):

@@ -13,6 +13,25 @@ DEPOSITS_PER_PHOTON_GUESS = 4.0   # before any photon path has ended
 FULL_BATCH_INTERVAL_S = 1.0     # while full, a batch at most this often
 
 
+class JobStatus:
+    """Each photon job's status by id, from `first` on (UNKNOWN for ids
+    never made, and for those of the server this one resumed from)."""
+
+    def __init__(self, first: int):
+        self.first, self.codes = int(first), np.zeros(1024, np.int8)
+
+    def __call__(self, ids: np.ndarray) -> np.ndarray:
+        i = ids - self.first
+        ok = (i >= 0) & (i < len(self.codes))
+        return np.where(ok, self.codes[np.where(ok, i, 0)], UNKNOWN)
+
+    def set(self, j: int, status: int) -> None:
+        i = j - self.first
+        if i >= len(self.codes):
+            self.codes = np.concatenate([self.codes, np.zeros(max(i + 1, len(self.codes)), np.int8)])
+        self.codes[i] = status
+
+
 class HeldDeposits:
     """The held deposits and when to hand a batch over: once `photon_batch`
     more are held than after the last (server batching, §4.3), or, once

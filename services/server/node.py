@@ -29,6 +29,7 @@ import numpy as np
 
 from dosppm_core.chunks.pacing import FIRST_QUEUE_RAYS
 from dosppm_core.film import encode_png, tonemap_srgb8, write_exr, write_png
+from dosppm_core.kernels import run_serially
 from dosppm_core.settings import Progress, RenderSettings
 from services import config, transport, wire
 from services.ledger import Ledger
@@ -155,6 +156,9 @@ class ServerProcess:
         return self.summary()
 
     def _serve(self) -> None:
+        # This loop's kernels (emission, start chunks, eye tiles) run on
+        # small batches beside tracers that hold every core.
+        run_serially()
         phase, drain_deadline = "render", None
         last_status = last_progress = last_snapshot = 0.0
         last_checkpoint = time.monotonic()

@@ -40,19 +40,20 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dosppm_core.chunks.pacing import FIRST_QUEUE_RAYS, default_queue_memory
-from dosppm_core.chunks.view import start_chunks
+from dosppm_core.chunks.view import located_photons, route, start_chunks
 from dosppm_core.jobs import END_NAMES, HitPoints, PhotonDeposits, RayBatch
 from dosppm_core.settings import RenderSettings
 from dosppm_core.sppm.iteration import EyePass
-from dosppm_core.trace import NO_CULL, emit_photon_jobs, eye_ray_job
+from dosppm_core.trace import NO_CULL, eye_ray_job
 from services.credit import Account, by_job, new_job
-from services.server.held import COMPLETE, DEPOSIT_BYTES, DISCARDED, IN_FLIGHT, UNKNOWN, HeldDeposits
+from services.server.held import COMPLETE, DEPOSIT_BYTES, DISCARDED, IN_FLIGHT, HeldDeposits, JobStatus
 from services.server.job_messages import JobMessages
 from services.wire import JOB_MESSAGES, PROTOCOL_VERSION, Out
 
 MESSAGE_RAYS = 32_768         # rays per job message the server aims for
 TOTAL_CREDIT_RAYS = 1 << 20   # rays queued at all tracers together, at most (see `credit`)
 EMIT_PHOTONS_PER_TICK = 1 << 17   # so long queues (`credit_of`) do not hold the loop from heartbeats
+EMIT_JOBS_PER_CALL = 16           # photon jobs emitted and located by one kernel call
 MAX_TRACERS = 1024            # registrations beyond this are refused (memory stays bounded)
 HEARTBEAT_INTERVAL_S = 1.0
 # A job message an idle tracer has not acknowledged this long after it was
@@ -181,7 +182,7 @@ class ServerState:
         self.cull_box: np.ndarray | None = None
         self.jobs: dict[int, Job] = {}
         self.next_job = self.first_job = 0         # job ids are never reused (checkpoint.claim_job_ids)
-        self._status = np.zeros(1024, np.int8)     # per photon job id: UNKNOWN, IN_FLIGHT, ...
+        self._job_status = JobStatus(0)            # per photon job id: UNKNOWN, IN_FLIGHT, ...
         self._photon_pending: deque = deque()         # job ids created, not yet sent
         self._photon_receivers: set = set()
         self.photon_jobs_in_flight = 0
@@ -380,7 +381,7 @@ class ServerState:
         del self.jobs[j]
         if job.kind == "photon":
             self.photon_jobs_in_flight -= 1
-            self._set_status(j, COMPLETE)
+            self._job_status.set(j, COMPLETE)
             self.counters["photons_completed"] += job.paths
             self.counters["photon_jobs_completed"] += 1
             self._ready_emitted += job.paths
@@ -557,7 +558,7 @@ class ServerState:
                 continue                      # still at the server: nothing lost
             del self.jobs[j]
             self.discarded.add(j)
-            self._set_status(j, DISCARDED)
+            self._job_status.set(j, DISCARDED)
             self.counters["jobs_discarded"] += 1
             if job.kind == "photon":
                 self.photon_jobs_in_flight -= 1
@@ -602,25 +603,12 @@ class ServerState:
         per_photon = c["deposits_received"] / c["photon_paths_ended"] if c["photon_paths_ended"] else None
         return min(wanted, self.held.jobs_that_fit(ppj, per_photon))
 
-    def _job_status(self, ids: np.ndarray) -> np.ndarray:
-        """Status of each photon job id (UNKNOWN for ids never made, and
-        for those of the server this one resumed from)."""
-        i = ids - self.first_job
-        ok = (i >= 0) & (i < len(self._status))
-        return np.where(ok, self._status[np.where(ok, i, 0)], UNKNOWN)
-
-    def _set_status(self, j: int, status: int) -> None:
-        i = j - self.first_job
-        if i >= len(self._status):
-            self._status = np.concatenate([self._status, np.zeros(max(i + 1, len(self._status)), np.int8)])
-        self._status[i] = status
-
     def _new_job(self, kind: str, paths: int, eye_iteration: int | None = None,
                  rng_key: int | None = None) -> int:
         j = self.next_job
         self.next_job += 1
         if kind == "photon":
-            self._set_status(j, IN_FLIGHT)
+            self._job_status.set(j, IN_FLIGHT)
         self.jobs[j] = Job(kind, paths, eye_iteration=eye_iteration, rng_key=j if rng_key is None else rng_key)
         if kind == "photon":
             self.photon_jobs_in_flight += 1
@@ -653,11 +641,17 @@ class ServerState:
         return [Out(tid, "eye_job", dict(eye_iteration=e.index, chunk=k, **parts.take((tid, k))))
                 for tid, k in list(parts)]
 
-    def _route(self, j: int, batch: RayBatch, parts: JobMessages) -> set:
+    def _route(self, j: int, batch: RayBatch, parts: JobMessages, chunk: np.ndarray | None = None) -> set:
         """Split a new job's paths by start chunk into `parts` per (tracer,
         chunk), each with its share of the job's credit; paths that miss
-        the scene end here. Returns the tracers."""
-        routed, lost = start_chunks(self.tree, batch)
+        the scene end here. `chunk`: each path's start chunk where known
+        (`located_photons`). Returns the tracers."""
+        if chunk is None:
+            routed, lost = start_chunks(self.tree, batch)
+        else:
+            routed = route(batch, chunk)
+            missed = routed.pop(-1, None)
+            lost = 0 if missed is None else len(missed)
         self.path_ends[1] += lost           # ESCAPED, before any tracer saw them
         exp, kept = new_job(len(routed))
         share = (np.array([j], np.int64), np.array([exp], np.int64))
@@ -674,24 +668,40 @@ class ServerState:
         return receivers
 
     def _send_photon_jobs(self) -> list[Out]:
-        s, out, parts, emitted = self.settings, [], JobMessages(), 0
+        out, parts, emitted = [], JobMessages(), 0
         box = self.cull_box      # NO_CULL when culling is off (`SPPMIteration.cull_box`)
         # Photon jobs start where the lights are: the tracers that got the
-        # last job's photons gate the next one, so a slow one is never
-        # sent more than one job past its credit.
-        while self._photon_pending and emitted < EMIT_PHOTONS_PER_TICK and not self.held.full and not any(
-                self.tracers[t].load_estimate >= self.credit_of(self.tracers[t])
-                for t in self._photon_receivers if t in self.tracers):
-            j = self._photon_pending.popleft()
-            count = self.jobs[j].paths
-            batch = emit_photon_jobs(self.header, s.seed, [self.jobs[j].rng_key], [count], self.eps_abs)
-            batch.job[:] = j
-            self.jobs[j].cull_box = box          # for the ledger: the box it is sent with
-            self.counters["photons_emitted"] += count
-            emitted += count
-            self._photon_receivers = self._route(j, batch, parts)
-            out += self._flush(parts, box, full_only=True)
+        # last group's photons gate the next one, and a group is no larger
+        # than their credit left, so a slow one is never sent more than one
+        # job past its credit.
+        while self._photon_pending and emitted < EMIT_PHOTONS_PER_TICK and not self.held.full:
+            gates = [self.tracers[t] for t in self._photon_receivers if t in self.tracers]
+            room = min((self.credit_of(t) - t.load_estimate for t in gates or self.tracers.values()),
+                       default=0)
+            if room <= 0 and gates:
+                break
+            n = max(1, -(-room // self.settings.photons_per_job))
+            group = [self._photon_pending.popleft()
+                     for _ in range(min(n, EMIT_JOBS_PER_CALL, len(self._photon_pending)))]
+            emitted += self._emit_group(group, box, parts, out)
         return out + self._flush(parts, box, full_only=False)
+
+    def _emit_group(self, group: list[int], box, parts: JobMessages, out: list[Out]) -> int:
+        """Emit and route the photon jobs `group`; full messages go to `out`."""
+        jobs = [self.jobs[j] for j in group]
+        counts = np.array([job.paths for job in jobs], np.int64)
+        batch, chunk = located_photons(self.header, self.tree, self.settings.seed,
+                                       [job.rng_key for job in jobs], counts, self.eps_abs)
+        batch.job[:] = np.repeat(np.asarray(group, np.int64), counts)
+        ends = np.cumsum(counts)
+        receivers: set = set()
+        for j, job, a, b in zip(group, jobs, (ends - counts).tolist(), ends.tolist()):
+            job.cull_box = box                  # for the ledger: the box it is sent with
+            receivers |= self._route(j, batch.slice(a, b), parts, chunk[a:b])
+            out += self._flush(parts, box, full_only=True)
+        self.counters["photons_emitted"] += int(ends[-1])
+        self._photon_receivers = receivers
+        return int(ends[-1])
 
     def _flush(self, parts: JobMessages, box, full_only: bool) -> list[Out]:
         out = []
@@ -722,6 +732,7 @@ class ServerState:
         tracers may still hold jobs made after it, and their messages must
         not be taken for this server's; checkpoint.claim_job_ids)."""
         self.next_job = self.first_job = int(doc["next_job"] if first_job is None else first_job)
+        self._job_status = JobStatus(self.first_job)
         self.eye_started = int(doc["next_eye_iteration"])
         self.photons_before = int(doc["counters"]["photons"])
         self.iterations_before = int(doc["counters"]["eye_iterations"])
@@ -734,7 +745,7 @@ class ServerState:
         self.emitting = False
         for j in self._photon_pending:
             del self.jobs[j]
-            self._set_status(j, DISCARDED)
+            self._job_status.set(j, DISCARDED)
             self.photon_jobs_in_flight -= 1
         self._photon_pending.clear()
 
