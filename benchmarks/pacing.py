@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -144,11 +145,27 @@ def run(args) -> dict:
     auto = osppm["auto"]["photons_per_s"]
     return {"triangles": args.triangles, "memory": m, "seconds": s, "osppm": osppm, "osppm_resident": resident,
             "osppm_resident_equal_work": equal, "dosppm": dosppm, "best_hand_tuned": best,
+            "long": _long_renders(store, args) if args.long_seconds > 0 else None,
             "auto_over_best": auto / osppm[best]["photons_per_s"],
             "dosppm_over_osppm_resident": {c: d["photons_per_s"] / resident["photons_per_s"]
                                            for c, d in dosppm.items()},
             "dosppm_over_osppm_resident_equal_work": {c: d["photons_per_s"] / equal[c]["photons_per_s"]
                                                       for c, d in dosppm.items()}}
+
+
+def _long_renders(store: str, args) -> dict:
+    """DOSPPM at 8 chunks beside OSPPM with every chunk resident at the
+    same photons per eye iteration, for `--long-seconds`, in pairs: the
+    queues' ramp at the start and their drain at the end (every chunk
+    loaded again for fewer and fewer rays) are a fixed cost, a sixth of
+    a 30 s render, that a long render spreads thin. Ratio per pair; medians."""
+    s, pairs = args.long_seconds, []
+    for _ in range(args.long_repeats):
+        d = _dosppm_render(store, s, args.memory, args.work)
+        o = _osppm(store, s, "64GiB", int(d["photons_per_eye_iteration"]), args.work)
+        pairs.append({"dosppm": d, "osppm_resident_equal_work": o,
+                      "ratio": d["photons_per_s"] / o["photons_per_s"]})
+    return {"seconds": s, "pairs": pairs, "ratio_median": statistics.median(p["ratio"] for p in pairs)}
 
 
 def report(doc: dict) -> str:
@@ -177,6 +194,14 @@ def report(doc: dict) -> str:
         lines.append(f"| {name} | {k(d['photons_per_s'])} | {doc['dosppm_over_osppm_resident'][c]:.2f} | {eq} "
                      f"| {d['busy_share']:.0%} | {d['tracing_share']:.0%} | {d['chunk_loads']:.0f} "
                      f"| {d['peak_rss_mib']:,.0f} MiB |")
+    long = doc.get("long")
+    if long:
+        lines += ["", f"| {long['seconds']:.0f} s renders, in pairs | DOSPPM, 8 chunks | OSPPM, all resident, "
+                  "equal work | ratio |", "|---|---|---|---|"]
+        for i, p in enumerate(long["pairs"], 1):
+            lines.append(f"| pair {i} | {k(p['dosppm']['photons_per_s'])} "
+                         f"| {k(p['osppm_resident_equal_work']['photons_per_s'])} | {p['ratio']:.2f} |")
+        lines.append(f"| median | | | {long['ratio_median']:.2f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -188,6 +213,9 @@ def main() -> None:
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--ppi", type=int, nargs="+", default=[250_000, 500_000, 1_000_000, 2_000_000, 4_000_000])
     p.add_argument("--chunks", type=int, nargs="+", default=[8, 16])
+    p.add_argument("--long-seconds", type=float, default=120,
+                   help="also DOSPPM beside OSPPM resident at equal work this long, in pairs (0: not)")
+    p.add_argument("--long-repeats", type=int, default=2)
     p.add_argument("--work", default="/tmp/dosppm-pacing")
     p.add_argument("--json", default=os.path.join(ROOT, "benchmarks", "results", "pacing.json"))
     args = p.parse_args()
