@@ -189,7 +189,8 @@ TRACER = (
          "this host's address on the route to the server"),
     _opt("store", str, None, "a local copy of the chunk store (else chunks are fetched)"),
     _opt("cache_dir", str, None, "where fetched chunks are kept"),
-    _opt("memory", str, None, "resident chunk memory, e.g. 4GiB (default: all its chunks)", rule="size"),
+    _opt("memory", str, None, "resident chunk memory, e.g. 4GiB (default: the machine's memory or its "
+         "cgroup limit, less ~200MiB and the queue; at least one chunk)", rule="size"),
     _opt("queue_memory", str, None, "rays queued here at most this much, when more chunks than fit make "
          "it queue more to hide their loads "
          "(default: 1/16 of the machine's memory or its cgroup limit, 32MiB to 1GiB)", rule="size"),

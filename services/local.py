@@ -12,6 +12,7 @@ import sys
 import tempfile
 import time
 
+from dosppm_core.chunks.pacing import default_chunk_memory
 from dosppm_core.chunks.store import ChunkStore
 from dosppm_core.chunks.subdivide import open_render_store, subdivide
 from dosppm_core.scene import builtin
@@ -67,8 +68,11 @@ def run_server(scene: str, v: dict, quiet: bool = False, spawn_tracers: int = 0)
     say(f"scene {store.header.name}: {store.source_triangles:,} triangles in {store.chunk_count} "
         f"chunk(s), {len(store.header.lights.kind)} lights, {cam.width}x{cam.height}")
     say(f"server {server.endpoint}" + (f", status {server.status_url}" if server.status_url else ""))
+    # The tracers and this server share the machine: each tracer's chunks
+    # get a share of it unless --memory says.
+    memory = v.get("memory") or max(default_chunk_memory(spawn_tracers + 1), int(store.chunk_memory.max()))
     tracers = _spawn_tracers(spawn_tracers, server.endpoint, store.path, v["threads"],
-                             {"--memory": v.get("memory"), "--queue-memory": v.get("queue_memory")})
+                             {"--memory": memory, "--queue-memory": v.get("queue_memory")})
     server.watch = lambda: _early_exit(tracers)
     try:
         summary = server.run()

@@ -73,6 +73,36 @@ def test_the_default_queue_memory_follows_the_machine_within_its_bounds():
     assert pacing.QUEUE_MEMORY_MIN <= pacing.default_queue_memory() <= pacing.QUEUE_MEMORY_MAX
 
 
+def test_the_default_chunk_memory_is_a_share_of_the_machine_less_what_a_process_holds():
+    GiB, MiB = 1 << 30, 1 << 20
+    base, q = pacing.PROCESS_BASE_BYTES, pacing.default_queue_memory
+    # A local render on a 24 GiB workstation: a server and two tracers.
+    assert pacing.default_chunk_memory(3, 24 * GiB) == int(8 * GiB - base - 1.5 * q(24 * GiB))
+    # One worker alone in a 400 MiB container: what is left for chunks.
+    assert pacing.default_chunk_memory(1, 400 * MiB) == int(400 * MiB - base - 1.5 * 32 * MiB)
+    assert pacing.default_chunk_memory(4, 400 * MiB) == 0          # nothing left: never negative
+    assert pacing.default_chunk_memory(1) > pacing.default_chunk_memory(3)
+
+
+def test_a_tracer_on_a_machine_smaller_than_its_chunks_keeps_a_share_of_it(four_chunks, monkeypatch):
+    """Its chunks' memory when given none: what the machine (or cgroup)
+    leaves it, not all its chunks; at least one chunk, so it can render."""
+    largest = max(four_chunks.chunk_memory)
+    room = pacing.PROCESS_BASE_BYTES + 1.5 * pacing.QUEUE_MEMORY_MIN
+    monkeypatch.setattr(pacing, "machine_memory_bytes", lambda: int(room + 2.5 * largest))
+    t = _tracer(four_chunks, None)
+    try:
+        assert t.cache.memory == pytest.approx(2.5 * largest, abs=2) and not t.all_fit()
+    finally:
+        t.close()
+    monkeypatch.setattr(pacing, "machine_memory_bytes", lambda: int(room))
+    t = _tracer(four_chunks, None)
+    try:
+        assert t.cache.memory == largest
+    finally:
+        t.close()
+
+
 def _tracer(provider, memory, queue_memory=None):
     t = TracerState("inproc://t", provider, 10, memory_bytes=memory, queue_memory_bytes=queue_memory)
     t.set_peers(1, [["inproc://t"]] * provider.tree.chunk_count)

@@ -27,6 +27,9 @@ LOAD_SHARE = 0.1                 # chunk loads at most this share of a sweep's t
 # lower one.
 QUEUE_MEMORY_SHARE = 1 / 16
 QUEUE_MEMORY_MIN, QUEUE_MEMORY_MAX = 32 << 20, 1 << 30
+# What a dosppm process holds before any chunk: the interpreter, numpy,
+# numba's kernels and Embree (measured 170-185 MiB in issue 17's runs).
+PROCESS_BASE_BYTES = 192 << 20
 # A tracer's queued rays before any pacing: the server's default credit per
 # tracer, and where a tracer's queue target starts growing.
 FIRST_QUEUE_RAYS = 262_144
@@ -105,6 +108,19 @@ def default_queue_memory(machine_bytes: int | None = None) -> int:
     memory, within [QUEUE_MEMORY_MIN, QUEUE_MEMORY_MAX]."""
     machine = machine_memory_bytes() if machine_bytes is None else machine_bytes
     return int(min(QUEUE_MEMORY_MAX, max(QUEUE_MEMORY_MIN, machine * QUEUE_MEMORY_SHARE)))
+
+
+def default_chunk_memory(processes: int = 1, machine_bytes: int | None = None) -> int:
+    """--memory (resident chunks) when not given, for one of `processes`
+    dosppm processes sharing this machine (a local render's server and
+    tracers): its share of the memory a process may use, less what a
+    process holds before any chunk (PROCESS_BASE_BYTES) and 1.5x its
+    queue limit's default (the queue and the batch in hand). Before, a
+    tracer held all its chunks, so on a scene larger than the machine two
+    tracers asked for more than there is."""
+    machine = machine_memory_bytes() if machine_bytes is None else machine_bytes
+    share = machine / max(1, processes)
+    return max(0, int(share - PROCESS_BASE_BYTES - 1.5 * default_queue_memory(machine)))
 
 
 def queue_cap_rays(queue_memory_bytes: float | None) -> int:

@@ -59,7 +59,8 @@ def add_parser(sub) -> None:
     config.add_options(ooc, config.CHUNKING)
     ooc.add_argument("--memory", metavar="SIZE", type=config.size,
                      help="resident chunks at most this much: osppm's one process (default: twice the "
-                          "budget or all), each dosppm tracer (default: all its chunks)")
+                          "budget or all), each dosppm tracer (default: its share of the machine's "
+                          "memory or its cgroup limit, less the queue: all its chunks when they fit)")
     ooc.add_argument("--queue-memory", metavar="SIZE", type=config.size,
                      help="queued rays at most this much when more chunks than fit make the renderer "
                           "queue more to hide their loads; the server's deposits held for photon jobs "
