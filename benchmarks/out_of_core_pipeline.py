@@ -10,6 +10,12 @@ high-water mark, interpreter and kernels included).
 
 The target is every process under the limit; the file records which are
 not. About 10 minutes on 2 cores, and 2.5 GB of disk in --work.
+
+With no tuning: `--memory default --queue-memory default --cgroup` leaves
+the rendering processes' memory flags out and runs each step in its own
+memory cgroup of `--limit` (root only): the limit is enforced, a step past
+it is killed, and the processes choose their chunk and queue memory from
+it as in a container.
 """
 from __future__ import annotations
 
@@ -28,10 +34,64 @@ sys.path.insert(0, ROOT)
 MiB = 1 << 20
 
 
-def _dosppm(*args: str) -> subprocess.Popen:
+class MemoryCgroups:
+    """One memory cgroup per step, each limited to `limit` bytes (cgroup v1
+    memory.limit_in_bytes or v2 memory.max; this machine has no swap, so
+    a step past it is killed): the limit enforced, not only measured, and
+    seen by dosppm's defaults (`pacing.machine_memory_bytes`) as a
+    container's would be. `procs_file(name)` is None where this process
+    may not make cgroups (not root, no memory controller)."""
+
+    KNOBS = (("/sys/fs/cgroup/memory", "memory.limit_in_bytes", "memory.max_usage_in_bytes"),
+             ("/sys/fs/cgroup", "memory.max", "memory.peak"))
+
+    def __init__(self, limit: int):
+        self.limit, self.made = limit, {}
+
+    def procs_file(self, name: str) -> str | None:
+        for base, knob, peak in self.KNOBS:
+            path = os.path.join(base, f"dosppm-{os.getpid()}-{name.replace(' ', '-')}")
+            try:
+                os.makedirs(path, exist_ok=True)
+                with open(os.path.join(path, knob), "w", encoding="utf-8") as f:
+                    f.write(str(self.limit))
+            except OSError:
+                try:
+                    os.rmdir(path)
+                except OSError:
+                    pass
+                continue
+            self.made[name] = (path, peak)
+            return os.path.join(path, "cgroup.procs")
+        return None
+
+    def peak(self, name: str) -> int | None:
+        """The cgroup's own high-water mark (page cache included)."""
+        path, peak = self.made[name]
+        try:
+            with open(os.path.join(path, peak), encoding="utf-8") as f:
+                return int(f.read().strip())
+        except (OSError, ValueError):
+            return None
+
+    def close(self) -> None:
+        for path, _peak in self.made.values():
+            try:
+                os.rmdir(path)
+            except OSError:
+                pass
+
+
+def _dosppm(*args: str, cgroup: str | None = None) -> subprocess.Popen:
+    """`dosppm ARGS` in a child; in the cgroup whose procs file is
+    `cgroup`, joined before exec, so every byte it maps is counted."""
     env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
+
+    def join():
+        with open(cgroup, "w", encoding="utf-8") as f:
+            f.write(str(os.getpid()))
     return subprocess.Popen([sys.executable, "-m", "services.cli", *args], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True, env=env)
+                            stderr=subprocess.PIPE, text=True, env=env, preexec_fn=join if cgroup else None)
 
 
 def _peak(p: subprocess.Popen, timeout_s: float) -> tuple[int, float]:
@@ -68,27 +128,41 @@ def _mean_luminance(path: str) -> float:
     return float((img @ np.array([0.2126, 0.7152, 0.0722])).mean()) if np.isfinite(img).all() else float("nan")
 
 
-def run(work: str, triangles: int, seconds: float, memory: str, queue_memory: str) -> dict:
+def _flags(memory: str, queue_memory: str) -> list[str]:
+    """--memory and --queue-memory for a rendering process; 'default'
+    leaves a flag out, so the process chooses (from its cgroup's limit)."""
+    return [x for flag, v in (("--memory", memory), ("--queue-memory", queue_memory)) if v != "default"
+            for x in (flag, v)]
+
+
+def run(work: str, triangles: int, seconds: float, memory: str, queue_memory: str,
+        cgroups: MemoryCgroups | None = None) -> dict:
     soup, store = os.path.join(work, "building"), os.path.join(work, "building.chunks")
     shutil.rmtree(work, ignore_errors=True)
+
+    def step(name: str, *args: str) -> subprocess.Popen:
+        cgroup = cgroups.procs_file(name) if cgroups else None
+        if cgroups and cgroup is None:
+            raise RuntimeError("--cgroup: cannot make a memory cgroup here (needs root and a memory controller)")
+        return _dosppm(*args, cgroup=cgroup)
     # Every step in a child process: a child's ru_maxrss starts from its
     # parent's RSS at the fork, so this process must stay small.
-    procs = {"generate": _peak(_dosppm("scenes", "generate", "building", "--triangles", str(triangles),
-                                       "--lights", "64", "--out", soup), 1200)}
-    procs["subdivide"] = _peak(_dosppm("subdivide", soup, "--budget", "64MiB", "--memory", "64MiB",
-                                       "--grid", "262144", "--out", store), 1200)
+    procs = {"generate": _peak(step("generate", "scenes", "generate", "building", "--triangles", str(triangles),
+                                    "--lights", "64", "--out", soup), 1200)}
+    procs["subdivide"] = _peak(step("subdivide", "subdivide", soup, "--budget", "64MiB", "--memory", "64MiB",
+                                    "--grid", "262144", "--out", store), 1200)
     store_bytes = sum(os.path.getsize(os.path.join(store, f)) for f in os.listdir(store) if f.endswith(".bin"))
     shutil.rmtree(soup)
-    procs["osppm"] = _peak(_dosppm("render", store, "--mode", "osppm", "--memory", memory, "--time", str(seconds),
-                                   "--queue-memory", queue_memory, "--out", os.path.join(work, "osppm.exr")),
-                           seconds + 600)
+    flags = _flags(memory, queue_memory)
+    procs["osppm"] = _peak(step("osppm", "render", store, "--mode", "osppm", "--time", str(seconds), *flags,
+                                "--out", os.path.join(work, "osppm.exr")), seconds + 600)
     port = _free_port()
-    server = _dosppm("server", store, "--bind", f"tcp://127.0.0.1:{port}", "--http", "off", "--min-tracers", "2",
-                     "--time", str(seconds), "--threads", "1", "--queue-memory", queue_memory,
-                     "--out", os.path.join(work, "dosppm.exr"))
-    tracers = [_dosppm("worker", "--server", f"tcp://127.0.0.1:{port}", "--store", store, "--memory", memory,
-                       "--queue-memory", queue_memory, "--threads", "1", "--id", f"t{i}",
-                       "--cache-dir", os.path.join(work, f"cache{i}")) for i in range(2)]
+    server = step("server", "server", store, "--bind", f"tcp://127.0.0.1:{port}", "--http", "off",
+                  "--min-tracers", "2", "--time", str(seconds), "--threads", "1", *_flags("default", queue_memory),
+                  "--out", os.path.join(work, "dosppm.exr"))
+    tracers = [step(f"tracer {i}", "worker", "--server", f"tcp://127.0.0.1:{port}", "--store", store, *flags,
+                    "--threads", "1", "--id", f"t{i}", "--cache-dir", os.path.join(work, f"cache{i}"))
+               for i in range(2)]
     procs["server"] = _peak(server, seconds + 600)
     for i, t in enumerate(tracers):
         procs[f"tracer {i}"] = _peak(t, 120)
@@ -97,7 +171,9 @@ def run(work: str, triangles: int, seconds: float, memory: str, queue_memory: st
     return {"store_bytes": store_bytes, "triangles": triangles, "render_s": seconds, "chunk_memory": memory,
             "queue_memory": queue_memory, "parent_rss_bytes": _own_rss(), "chunks": len(chunk_memory),
             "chunk_memory_bytes": float(sum(chunk_memory)),
-            "processes": {k: {"peak_bytes": v[0], "seconds": round(v[1], 1)} for k, v in procs.items()},
+            "processes": {k: {"peak_bytes": v[0], "seconds": round(v[1], 1),
+                              **({"cgroup_peak_bytes": cgroups.peak(k)} if cgroups else {})}
+                          for k, v in procs.items()},
             "mean_luminance": {m: _mean_luminance(os.path.join(work, f"{m}.exr")) for m in ("osppm", "dosppm")}}
 
 
@@ -125,16 +201,24 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--triangles", type=float, default=34e6)
     p.add_argument("--limit", default="400MiB", help="the per-process memory limit the store is twice of")
-    p.add_argument("--memory", default="128MiB", help="resident chunks per rendering process (--memory)")
+    p.add_argument("--memory", default="128MiB", help="resident chunks per rendering process (--memory; "
+                   "'default': the renderer's own choice)")
     p.add_argument("--queue-memory", default="64MiB",
                    help="queued rays per rendering process, deposits held by the server (--queue-memory)")
     p.add_argument("--seconds", type=float, default=25)
+    p.add_argument("--cgroup", action="store_true",
+                   help="run each step in a memory cgroup of --limit: enforced, and what the defaults see")
     p.add_argument("--work", default="/tmp/dosppm-out-of-core")
     p.add_argument("--json", default=None)
     args = p.parse_args(argv)
     limit = parse_bytes(args.limit, "--limit")
-    doc = run(args.work, int(args.triangles), args.seconds, args.memory, args.queue_memory)
-    doc["limit_bytes"] = limit
+    cgroups = MemoryCgroups(limit) if args.cgroup else None
+    try:
+        doc = run(args.work, int(args.triangles), args.seconds, args.memory, args.queue_memory, cgroups)
+    finally:
+        if cgroups:
+            cgroups.close()
+    doc["limit_bytes"], doc["limit_enforced"] = limit, bool(cgroups)
     doc["over_limit"] = sorted(k for k, v in doc["processes"].items() if v["peak_bytes"] > limit)
     doc["store_over_limit"] = round(doc["store_bytes"] / limit, 2)
     doc["chunk_memory_over_limit"] = round(doc["chunk_memory_bytes"] / limit, 2)
