@@ -179,17 +179,24 @@ def run(work: str, triangles: int, seconds: float, memory: str, queue_memory: st
 
 def report(doc: dict) -> str:
     """The table docs/out-of-core.md quotes (benchmarks/tables.py)."""
-    limit = doc["limit_bytes"]
+    limit, enforced = doc["limit_bytes"], doc.get("limit_enforced", False)
+    if doc["chunk_memory"] == "default" and doc.get("queue_memory") == "default":
+        holds = "no memory flags: the rendering processes chose their chunk and queue memory"
+    else:
+        holds = f"rendering processes hold {doc['chunk_memory']} of chunks and {doc.get('queue_memory', '?')} " \
+                "of queued rays"
     lines = [f"{doc['triangles'] / 1e6:g}M triangles in {doc['chunks']} chunks: the store is "
              f"{doc['store_bytes'] / MiB:,.0f} MiB on disk ({doc['store_over_limit']}x the limit) and "
              f"{doc['chunk_memory_bytes'] / MiB:,.0f} MiB loaded ({doc['chunk_memory_over_limit']}x); "
-             f"limit {limit / MiB:,.0f} MiB a process; rendering processes hold {doc['chunk_memory']} of "
-             f"chunks and {doc.get('queue_memory', '?')} of queued rays; {doc['render_s']:g} s renders.", "",
-             "| process | peak RSS | under the limit | seconds |", "|---|---|---|---|"]
+             f"limit {limit / MiB:,.0f} MiB a process" + (", each in a memory cgroup of it (enforced)" if enforced
+                                                          else "") + f"; {holds}; {doc['render_s']:g} s renders.",
+             "", "| process | peak RSS | under the limit | seconds |" + (" cgroup's peak |" if enforced else ""),
+             "|---|---|---|---|" + ("---|" if enforced else "")]
     for k, v in doc["processes"].items():
         ok = "yes" if v["peak_bytes"] <= limit else "**no**"
         secs = "with the server" if k.startswith("tracer") else f"{v['seconds']:,.1f}"
-        lines.append(f"| {k} | {v['peak_bytes'] / MiB:,.0f} MiB | {ok} | {secs} |")
+        cg = f" {(v.get('cgroup_peak_bytes') or 0) / MiB:,.0f} MiB |" if enforced else ""
+        lines.append(f"| {k} | {v['peak_bytes'] / MiB:,.0f} MiB | {ok} | {secs} |{cg}")
     lum = doc["mean_luminance"]
     lines += ["", f"Mean luminance: OSPPM {lum['osppm']:.4g}, DOSPPM {lum['dosppm']:.4g}."]
     return "\n".join(lines) + "\n"
