@@ -66,7 +66,10 @@ class MemoryCgroups:
         return None
 
     def peak(self, name: str) -> int | None:
-        """The cgroup's own high-water mark (page cache included)."""
+        """The cgroup's own high-water mark. It counts the page cache of
+        the files the step reads and writes (reclaimed at the limit, so a
+        step writing a store reaches it) and not the shared libraries
+        another group touched first: a record, not the process's peak."""
         path, peak = self.made[name]
         try:
             with open(os.path.join(path, peak), encoding="utf-8") as f:
@@ -190,13 +193,11 @@ def report(doc: dict) -> str:
              f"{doc['chunk_memory_bytes'] / MiB:,.0f} MiB loaded ({doc['chunk_memory_over_limit']}x); "
              f"limit {limit / MiB:,.0f} MiB a process" + (", each in a memory cgroup of it (enforced)" if enforced
                                                           else "") + f"; {holds}; {doc['render_s']:g} s renders.",
-             "", "| process | peak RSS | under the limit | seconds |" + (" cgroup's peak |" if enforced else ""),
-             "|---|---|---|---|" + ("---|" if enforced else "")]
+             "", "| process | peak RSS | under the limit | seconds |", "|---|---|---|---|"]
     for k, v in doc["processes"].items():
         ok = "yes" if v["peak_bytes"] <= limit else "**no**"
         secs = "with the server" if k.startswith("tracer") else f"{v['seconds']:,.1f}"
-        cg = f" {(v.get('cgroup_peak_bytes') or 0) / MiB:,.0f} MiB |" if enforced else ""
-        lines.append(f"| {k} | {v['peak_bytes'] / MiB:,.0f} MiB | {ok} | {secs} |{cg}")
+        lines.append(f"| {k} | {v['peak_bytes'] / MiB:,.0f} MiB | {ok} | {secs} |")
     lum = doc["mean_luminance"]
     lines += ["", f"Mean luminance: OSPPM {lum['osppm']:.4g}, DOSPPM {lum['dosppm']:.4g}."]
     return "\n".join(lines) + "\n"
