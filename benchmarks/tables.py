@@ -179,6 +179,8 @@ TABLES = {
     "pacing": ("benchmarks/results/pacing.json", _pacing),
     "out-of-core-pipeline": ("benchmarks/results/out-of-core-pipeline.json", _out_of_core_pipeline),
     "out-of-core-pipeline-34m": ("benchmarks/results/out-of-core-pipeline-34m.json", _out_of_core_pipeline),
+    "out-of-core-pipeline-defaults": ("benchmarks/results/out-of-core-pipeline-defaults.json",
+                                      _out_of_core_pipeline),
     "pbrt-side-by-side": ("benchmarks/results/pbrt-side-by-side.json", _pbrt_side_by_side),
 }
 
