@@ -61,17 +61,24 @@ def route(batch: RayBatch, chunks: np.ndarray) -> dict[int, RayBatch]:
     return batch.partition(chunks)
 
 
-def start_chunks(tree: ChunkTree, batch: RayBatch, keep_lost: bool = False):
+def start_chunks(tree: ChunkTree, batch: RayBatch, keep_lost: bool = False, chunk: np.ndarray | None = None):
     """Route new rays (tmin 0) to the chunk each starts in: ({chunk: rays},
     rays that miss the scene's box altogether (escaped), as a count, or
-    with `keep_lost` as a record, None if there are none)."""
-    chunk, tmin = enter(tree, batch.origin, batch.direction)
-    batch.tmin = np.maximum(batch.tmin, tmin)
-    routed = route(batch, chunk)
+    with `keep_lost` as a record, None if there are none). `chunk`: where
+    each starts, when already located (`located_photons`)."""
+    routed = route(batch, _entered(tree, batch) if chunk is None else chunk)
     lost = routed.pop(-1, None)
     if keep_lost:
         return routed, lost
     return routed, 0 if lost is None else len(lost)
+
+
+def _entered(tree: ChunkTree, batch: RayBatch) -> np.ndarray:
+    """The chunk each new ray starts in (-1: it misses the scene), its
+    tmin set to where it enters."""
+    chunk, tmin = enter(tree, batch.origin, batch.direction)
+    batch.tmin = np.maximum(batch.tmin, tmin)
+    return chunk
 
 
 def located_photons(scene, tree: ChunkTree, seed: int, keys, counts, eps_abs: float):
@@ -80,9 +87,7 @@ def located_photons(scene, tree: ChunkTree, seed: int, keys, counts, eps_abs: fl
     the scene): the server emits jobs in groups, since a kernel call per
     1,024-photon job costs more than its photons. Returns (batch, chunk)."""
     batch = emit_photon_jobs(scene, seed, keys, counts, eps_abs)
-    chunk, tmin = enter(tree, batch.origin, batch.direction)
-    batch.tmin = np.maximum(batch.tmin, tmin)
-    return batch, chunk
+    return batch, _entered(tree, batch)
 
 
 def _find_hits(view: ChunkView, batch: RayBatch):

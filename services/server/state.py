@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dosppm_core.chunks.pacing import FIRST_QUEUE_RAYS, default_queue_memory
-from dosppm_core.chunks.view import located_photons, route, start_chunks
+from dosppm_core.chunks.view import located_photons, start_chunks
 from dosppm_core.jobs import END_NAMES, HitPoints, PhotonDeposits, RayBatch
 from dosppm_core.settings import RenderSettings
 from dosppm_core.sppm.iteration import EyePass
@@ -646,12 +646,7 @@ class ServerState:
         chunk), each with its share of the job's credit; paths that miss
         the scene end here. `chunk`: each path's start chunk where known
         (`located_photons`). Returns the tracers."""
-        if chunk is None:
-            routed, lost = start_chunks(self.tree, batch)
-        else:
-            routed = route(batch, chunk)
-            missed = routed.pop(-1, None)
-            lost = 0 if missed is None else len(missed)
+        routed, lost = start_chunks(self.tree, batch, chunk=chunk)
         self.path_ends[1] += lost           # ESCAPED, before any tracer saw them
         exp, kept = new_job(len(routed))
         share = (np.array([j], np.int64), np.array([exp], np.int64))
