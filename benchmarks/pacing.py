@@ -8,8 +8,9 @@ memory for two chunks (`--memory 200MiB`), in one run on one machine:
   of the best hand-tuned one. Peak RSS of each run beside it.
 - DOSPPM (a server and two tracers, each holding half the chunks, two of
   them resident) at 8 and 16 chunks: photons/s, and each tracer's time
-  busy, waiting for chunk loads, and idle; against OSPPM and DOSPPM with
-  every chunk resident. The targets: tracers busy 85% of the render, and
+  busy, waiting for chunk loads, and idle; against OSPPM with every chunk
+  resident. DOSPPM at its defaults too (no --memory: every chunk resident
+  on this machine), at 8 and 16 chunks. The targets: tracers busy 85% of the render, and
   photons/s within 10% of OSPPM with every chunk resident.
 
 photons/s is photons applied over the render's seconds, the drain of the
@@ -128,13 +129,15 @@ def run(args) -> dict:
     # OSPPM's --memory defaults to two chunk budgets: every chunk resident takes a limit above the store.
     runs["osppm resident"] = lambda: _osppm(store, s, "64GiB", None, args.work)
     runs.update({f"dosppm {c}": (lambda st=st: _dosppm_render(st, s, m, args.work)) for c, st in stores.items()})
-    runs["dosppm 8 resident"] = lambda: _dosppm_render(store, s, None, args.work)
+    # No --memory: each tracer's share of the machine (24 GiB here) holds every chunk.
+    runs.update({f"dosppm {c} resident": (lambda st=st: _dosppm_render(st, s, None, args.work))
+                 for c, st in stores.items()})
     got = _interleaved(runs, r)
     osppm = {"auto": got["osppm auto"], **{str(ppi): got[f"osppm {ppi}"] for ppi in args.ppi}}
     best = max((k for k in osppm if k != "auto"), key=lambda k: osppm[k]["photons_per_s"])
     resident = got["osppm resident"]
     dosppm = {str(c): got[f"dosppm {c}"] for c in stores}
-    dosppm["8 resident"] = got["dosppm 8 resident"]
+    dosppm.update({f"{c} resident": got[f"dosppm {c} resident"] for c in stores})
     # Equal work: OSPPM, every chunk resident, on the same store, with as
     # many photons per eye iteration as each DOSPPM row made (its eye
     # iterations run beside the photons: far fewer than OSPPM's default 1.5

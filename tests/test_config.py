@@ -72,7 +72,7 @@ def test_render_defaults_are_the_library_s_but_the_service_s_job_sizes():
     library = RenderSettings()
     v = config.resolve(_args(["server"]), "server", config.SERVER, environ={})
     service = config.render_settings(v, service=True)
-    assert (service.photons_per_job, service.tile_pixels) == (1024, 4096)
+    assert (service.photons_per_job, service.tile_pixels) == (4096, 4096)
     for name in ("seed", "alpha", "radius", "max_depth", "gather", "photons_per_iteration", "photon_batch",
                  "cull"):
         assert getattr(service, name) == getattr(library, name), name

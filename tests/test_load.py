@@ -44,7 +44,10 @@ def test_sixteen_tracers_keep_the_server_bounded(tmp_path):
     server = start_dosppm(
         "server", "cornell-box", "--width", "64", "--height", "64", "--chunks", "16",
         "--bind", f"tcp://127.0.0.1:{port}", "--http", f"127.0.0.1:{http}", "--min-tracers", str(TRACERS),
-        "--photons", "3e6", "--tracer-timeout", "60", "--threads", "1", "--out", str(tmp_path / "img.exr"),
+        # 1,024-photon jobs (not the service's 4,096): 1k jobs in flight
+        # is then 1M photons, a third of the render, as the bound was set.
+        "--photons", "3e6", "--photons-per-job", "1024", "--tracer-timeout", "60", "--threads", "1",
+        "--out", str(tmp_path / "img.exr"),
         "--store-cache", str(tmp_path / "stores"), "--quiet", stderr=open(tmp_path / "server.log", "w"))
     workers = [start_dosppm("worker", "--server", f"tcp://127.0.0.1:{port}", "--threads", "1",
                             "--id", f"w{i}", "--cache-dir", str(tmp_path / f"c{i}"), "--quiet",
