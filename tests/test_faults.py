@@ -46,6 +46,9 @@ class Cluster:
                "--height", "64", "--chunks", "4", "--bind", f"tcp://127.0.0.1:{self.port}",
                "--http", f"127.0.0.1:{self.http}", "--min-tracers", str(self.n), "--photons", str(PHOTONS),
                "--photons-per-iteration", "40000", "--min-photon-jobs", "64", "--seed", str(self.seed),
+               # 1,024-photon jobs (not the service's 4,096): the render
+               # then lasts long enough for a hung tracer to wake and rejoin.
+               "--photons-per-job", "1024",
                "--tracer-timeout", str(TIMEOUT_S), "--threads", "1", "--out", str(self.tmp / "img.exr"),
                "--store-cache", str(self.tmp / "stores"), "--checkpoint", str(self.tmp / "ckpt"),
                "--checkpoint-interval", "1", "--ledger", str(self.tmp / "render.ledger"), "--quiet", *extra]
