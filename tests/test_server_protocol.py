@@ -87,6 +87,42 @@ def test_garbage_gets_an_error_and_the_server_keeps_serving(server):
     d.close(linger_ms=0)
 
 
+def test_a_snapshot_waiting_for_the_statistics_does_not_stall_the_message_loop(tmp_path):
+    """An update holds the statistics' lock for seconds when a flood of
+    deposits is applied. The image snapshot reads them under that lock:
+    it must wait on the statistics thread, not in the loop whose
+    heartbeats tell tracers the server is there (past SERVER_SILENT_S,
+    5 s, they register again and every job in flight is re-emitted)."""
+    scene = small_scene("cornell-box", 16)
+    store = MemoryChunks(scene, uniform_tree(root_box(scene), (1, 1, 1)))
+    store.key, store.manifest, store.path, store.chunk_count = "k", None, "", 1
+    s = ServerProcess(store, RenderSettings(threads=1), bind="tcp://127.0.0.1:*", http=None,
+                      out=str(tmp_path / "img.exr"), limits=Limits(seconds=600), min_tracers=5,
+                      snapshot_interval_s=0.2)
+    s.state.eye_completed = 1                        # a snapshot is due at every interval
+    t = threading.Thread(target=s.run, daemon=True)
+    t.start()
+    d = _dealer(s)
+    try:
+        d.send(wire.encode("register", tracer_id="probe", capacity={"cores": 1, "memory_bytes": 0},
+                           endpoint="tcp://127.0.0.1:1", has_store=True, store_key="k"))
+        _reply(d, want={"welcome"})
+        with s.statistics.lock:                      # a long update
+            beats, t0 = [], time.monotonic()
+            while time.monotonic() - t0 < 3.5:
+                beats.append(_reply(d, 3000, want={"heartbeat"}) and time.monotonic())
+        assert max(np.diff([t0, *beats])) < 2.0, np.diff([t0, *beats])
+        deadline = time.monotonic() + 10             # the lock free, the snapshot is written
+        while not (tmp_path / "img.exr").exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert (tmp_path / "img.exr").exists()
+    finally:
+        d.close(linger_ms=0)
+        s._signals = 2
+        t.join(30)
+    assert not t.is_alive()
+
+
 def test_chunks_are_requested_by_id_only(server):
     """A chunk request names an index; anything out of range is an error,
     and there is no field through which a path could be asked for."""

@@ -179,7 +179,7 @@ class ServerProcess:
                 self.reporter(self.progress())
             if now - last_snapshot >= self.snapshot_interval_s and self.state.eye_completed:
                 last_snapshot = now
-                self._write_image()
+                self._updates.put(Update("snapshot"))
             if self._checkpoint_due(now - last_checkpoint):
                 last_checkpoint = now
                 self._checkpoint()
@@ -349,13 +349,17 @@ class ServerProcess:
             else:
                 merged.append(u)
         for u in merged:
-            self._updates.put(u)
+            if u.kind != "snapshot":      # the final image is written anyway
+                self._updates.put(u)
 
     def _apply_updates(self) -> None:
         while True:
             u = self._updates.get()
             if u is None:
                 return
+            if u.kind == "snapshot":
+                self._snapshot()
+                continue
             try:
                 self._boxes.put(self.statistics.apply(u))
             except Exception:   # noqa: BLE001 - log and keep the render alive
@@ -376,6 +380,21 @@ class ServerProcess:
         self._mean_radius = mean
 
     # -- output ----------------------------------------------------------------------
+    def _snapshot(self) -> None:
+        """The image so far, written on the statistics thread: it reads the
+        statistics under their lock, which an update holds for seconds when
+        a flood of deposits is applied (out of core, when the first eye
+        iteration completes). Written from the message loop, it waited
+        there, without heartbeats; past the tracers' SERVER_SILENT_S they
+        register again and every job in flight is re-emitted
+        (tests/test_server_protocol.py)."""
+        try:
+            self._write_image()
+        except OSError as e:        # a full disk must not end the render
+            log.warning("snapshot not written: %s", e)
+        finally:
+            self._updates.task_done()
+
     def _write_image(self) -> None:
         if not self.state.eye_completed or not self.out:
             return

@@ -120,7 +120,7 @@ class EyeIteration:
 class Update:
     """One statistics step for the shell to run, in order: install the hit
     points of a complete eye iteration, or apply a batch of photons."""
-    kind: str                        # "hits", "photons" or "checkpoint"
+    kind: str                        # "hits", "photons", "checkpoint" or "snapshot" (the image)
     hits: HitPoints | None = None
     emitted_light: tuple | None = None
     deposits: list | None = None     # "photons": the batch, as the parts it arrived in
