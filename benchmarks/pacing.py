@@ -171,6 +171,16 @@ def _long_renders(store: str, args) -> dict:
     return {"seconds": s, "pairs": pairs, "ratio_median": statistics.median(p["ratio"] for p in pairs)}
 
 
+def _waiting(d: dict) -> float:
+    """The larger of the two tracers' share of the render spent waiting:
+    idle (for portal packages, the server's credit, eye tiles) or for a
+    chunk load. What is neither is tracing or handling messages. Median
+    over the runs."""
+    def most(s):
+        return max((t["idle_s"] + t["load_wait_s"]) / s["seconds"] for t in s["tracers"])
+    return statistics.median(most(s) for s in d.get("samples", [d]))
+
+
 def report(doc: dict) -> str:
     """The Markdown tables docs/out-of-core.md quotes (benchmarks/tables.py)."""
     def k(x):
@@ -189,13 +199,14 @@ def report(doc: dict) -> str:
     lines += ["", f"The default reaches {doc['auto_over_best']:.0%} of the best hand-tuned setting "
               f"({int(doc['best_hand_tuned']):,}).", "",
               "| DOSPPM, 2 tracers | photons/s | of OSPPM, all resident | at equal work | tracers busy "
-              "| tracing | chunk loads | peak RSS, largest process |", "|---|---|---|---|---|---|---|---|"]
+              "| tracing | waiting | chunk loads | peak RSS, largest process |",
+              "|---|---|---|---|---|---|---|---|---|"]
     equal = doc.get("dosppm_over_osppm_resident_equal_work", {})
     for c, d in doc["dosppm"].items():
         name = f"{c} chunks, {doc['memory']} each" if "resident" not in c else f"{c.split()[0]} chunks, all resident"
         eq = f"{equal[c]:.2f}" if c in equal else "–"
         lines.append(f"| {name} | {k(d['photons_per_s'])} | {doc['dosppm_over_osppm_resident'][c]:.2f} | {eq} "
-                     f"| {d['busy_share']:.0%} | {d['tracing_share']:.0%} | {d['chunk_loads']:.0f} "
+                     f"| {d['busy_share']:.0%} | {d['tracing_share']:.0%} | {_waiting(d):.0%} | {d['chunk_loads']:.0f} "
                      f"| {d['peak_rss_mib']:,.0f} MiB |")
     long = doc.get("long")
     if long:
