@@ -390,8 +390,8 @@ class ServerProcess:
         (tests/test_server_protocol.py)."""
         try:
             self._write_image()
-        except OSError as e:        # a full disk must not end the render
-            log.warning("snapshot not written: %s", e)
+        except Exception:   # noqa: BLE001 - a full disk must not end the render, nor this thread
+            log.exception("snapshot not written")
         finally:
             self._updates.task_done()
 
