@@ -70,7 +70,7 @@ def run_server(scene: str, v: dict, quiet: bool = False, spawn_tracers: int = 0)
     say(f"server {server.endpoint}" + (f", status {server.status_url}" if server.status_url else ""))
     # The tracers and this server share the machine: each tracer's chunks
     # get a share of it unless --memory says.
-    memory = v.get("memory") or max(default_chunk_memory(spawn_tracers + 1), int(store.chunk_memory.max()))
+    memory = v.get("memory") or default_chunk_memory(spawn_tracers + 1, at_least=store.chunk_memory.max())
     tracers = _spawn_tracers(spawn_tracers, server.endpoint, store.path, v["threads"],
                              {"--memory": memory, "--queue-memory": v.get("queue_memory")})
     server.watch = lambda: _early_exit(tracers)

@@ -110,17 +110,18 @@ def default_queue_memory(machine_bytes: int | None = None) -> int:
     return int(min(QUEUE_MEMORY_MAX, max(QUEUE_MEMORY_MIN, machine * QUEUE_MEMORY_SHARE)))
 
 
-def default_chunk_memory(processes: int = 1, machine_bytes: int | None = None) -> int:
+def default_chunk_memory(processes: int = 1, machine_bytes: int | None = None, at_least: int = 0) -> int:
     """--memory (resident chunks) when not given, for one of `processes`
     dosppm processes sharing this machine (a local render's server and
     tracers): its share of the memory a process may use, less what a
     process holds before any chunk (PROCESS_BASE_BYTES) and 1.5x its
-    queue limit's default (the queue and the batch in hand). Before, a
-    tracer held all its chunks, so on a scene larger than the machine two
-    tracers asked for more than there is."""
+    queue limit's default (the queue and the batch in hand); never less
+    than `at_least` (a tracer's largest chunk, so that it can render).
+    Before, a tracer held all its chunks, so on a scene larger than the
+    machine two tracers asked for more than there is."""
     machine = machine_memory_bytes() if machine_bytes is None else machine_bytes
     share = machine / max(1, processes)
-    return max(0, int(share - PROCESS_BASE_BYTES - 1.5 * default_queue_memory(machine)))
+    return max(int(at_least), int(share - PROCESS_BASE_BYTES - 1.5 * default_queue_memory(machine)))
 
 
 def queue_cap_rays(queue_memory_bytes: float | None) -> int:

@@ -60,7 +60,8 @@ def add_parser(sub) -> None:
     ooc.add_argument("--memory", metavar="SIZE", type=config.size,
                      help="resident chunks at most this much: osppm's one process (default: twice the "
                           "budget or all), each dosppm tracer (default: its share of the machine's "
-                          "memory or its cgroup limit, less the queue: all its chunks when they fit)")
+                          "memory or its cgroup limit, less ~200MiB and the queue: all its chunks when "
+                          "they fit)")
     ooc.add_argument("--queue-memory", metavar="SIZE", type=config.size,
                      help="queued rays at most this much when more chunks than fit make the renderer "
                           "queue more to hide their loads; the server's deposits held for photon jobs "

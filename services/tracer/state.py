@@ -91,7 +91,7 @@ class TracerState:
         self.step_rays = int(step_rays)
         cost = np.asarray(provider.chunk_memory, np.float64)
         if memory_bytes is None:        # its share of the machine, at least one chunk
-            memory_bytes = max(float(pacing.default_chunk_memory()), float(cost.max(initial=0.0)))
+            memory_bytes = float(pacing.default_chunk_memory(at_least=cost.max(initial=0.0)))
         self.cache = ChunkCache(provider, memory_bytes, threads=threads)
         self.queue_cap = pacing.queue_cap_rays(queue_memory_bytes)
         self._queue_target, self._loads_at_pace = 0, 0
