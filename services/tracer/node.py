@@ -19,6 +19,7 @@ import time
 import uuid
 
 from dosppm_core.chunks.store import ChunkStore, StoreError
+from dosppm_core.kernels import use_threads
 from services import transport, wire
 from services.tracer.fetch import FetchedStore
 from services.tracer.state import SERVER, STEP_RAYS, TracerState
@@ -254,6 +255,11 @@ class TracerProcess:
         return self.stopped or ""
 
     def _loop(self) -> None:
+        # The bounce kernels keep to --threads, as Embree's tracing does.
+        # numba's default is every core: beside another tracer and the
+        # server, a kernel's second OpenMP thread waits for a core while
+        # this one sleeps at the barrier.
+        use_threads(self.threads)
         self._poller = poller = transport.Poller(self.dealer, self.router)
         last_beat = last_heard = time.monotonic()
         while self.stopped is None:
