@@ -10,7 +10,8 @@ from dosppm_core.settings import RenderSettings
 from services import wire
 from services.server import checkpoint
 from services.server.held import DEPOSIT_BYTES, HeldDeposits
-from services.server.state import ServerState, assign_chunks
+from services.server.balance import assign_chunks
+from services.server.state import ServerState
 from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
 from tests.helpers.scenes import small_scene
 

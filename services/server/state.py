@@ -46,6 +46,7 @@ from dosppm_core.settings import RenderSettings
 from dosppm_core.sppm.iteration import EyePass
 from dosppm_core.trace import NO_CULL, eye_ray_job
 from services.credit import Account, by_job, new_job
+from services.server.balance import FIRST_REBALANCE_S, REBALANCE_INTERVAL_S, assign_chunks, rebalanced
 from services.server.held import COMPLETE, DEPOSIT_BYTES, DISCARDED, IN_FLIGHT, HeldDeposits, JobStatus
 from services.server.job_messages import JobMessages
 from services.wire import JOB_MESSAGES, PROTOCOL_VERSION, Out
@@ -65,7 +66,7 @@ STALL_S = 4.0
 STATUS_KEYS = ("load", "resident", "busy_s", "steps", "rays_traced", "photons_traced", "portal_by_chunk",
                "portal_rays_out", "portal_rays_in", "chunk_loads", "load_s", "load_wait_s", "wasted_prefetches",
                "queue_target", "idle_s", "receive_s", "step_send_s", "forwarded_rays", "cpu_s", "bytes_to_server",
-               "bytes_to_peers", "outbox", "outbox_rays")
+               "bytes_to_peers", "outbox", "outbox_rays", "rays_by_chunk")
 
 
 @dataclass
@@ -134,16 +135,6 @@ class Update:
     jobs: tuple | None = None
 
 
-def assign_chunks(chunk_count: int, endpoints: list[str]) -> list[list[str]]:
-    """Who serves each chunk, round robin over the tracers in join order."""
-    n = len(endpoints)
-    if n == 0:
-        return [[] for _ in range(chunk_count)]
-    if chunk_count >= n:
-        return [[endpoints[k % n]] for k in range(chunk_count)]
-    return [[endpoints[i] for i in range(n) if i % chunk_count == k] for k in range(chunk_count)]
-
-
 class ServerState:
     def __init__(self, header, tree, settings: RenderSettings, store_key: str,
                  manifest: dict | None = None, min_photon_jobs: int = 1000,
@@ -195,11 +186,11 @@ class ServerState:
         self.held = HeldDeposits(settings.photon_batch, held_bytes or default_queue_memory())
         self._ready_emitted, self._ready_jobs = 0, []    # photon paths and jobs complete since the last batch
         self.updates: deque[Update] = deque()
-        self._last_heartbeat = -1e30
+        self._last_heartbeat, self._balanced_at = -1e30, None     # _balanced_at: see _rebalance
         self.counters = {"photons_emitted": 0, "photons_completed": 0, "photons_committed": 0,
                          "photon_jobs_completed": 0, "eye_jobs_completed": 0, "hit_points": 0,
                          "deposits_received": 0, "photon_paths_ended": 0, "culled": 0, "stale_paths": 0,
-                         "over_credited_jobs": 0, "results": 0, "updates": 0,
+                         "over_credited_jobs": 0, "results": 0, "updates": 0, "rebalanced": 0,
                          "photons_discarded": 0, "jobs_discarded": 0, "tracers_evicted": 0,
                          "eye_iterations_restarted": 0, "deposits_discarded": 0, "deposits_stale": 0,
                          "deposits_late": 0, "refused": 0, "tracers_rejoined": 0,
@@ -248,6 +239,23 @@ class ServerState:
         if by_id != self.owners:
             self.owners = by_id
             self.table_version += 1
+
+    def _rebalance(self, now: float) -> list[Out]:
+        """Chunks re-assigned by the work the tracers report (balance.py)."""
+        if not (self.started and self.emitting):
+            return []
+        if self._balanced_at is None:
+            self._balanced_at = now - REBALANCE_INTERVAL_S + FIRST_REBALANCE_S
+        if now - self._balanced_at < REBALANCE_INTERVAL_S:
+            return []
+        self._balanced_at = now
+        tracers = sorted(self.tracers.values(), key=lambda t: t.index)
+        new = rebalanced(self.owners, {t.id: t.status for t in tracers}, {t.id: t.cores for t in tracers})
+        if new is None:
+            return []
+        self.owners, self.table_version = new, self.table_version + 1
+        self.counters["rebalanced"] += 1
+        return self._peer_tables()
 
     def _peer_tables(self) -> list[Out]:
         peers = [[self.tracers[i].endpoint for i in o] for o in self.owners]
@@ -445,6 +453,7 @@ class ServerState:
             out += [Out(tid, "heartbeat", dict(status={})) for tid in self.tracers]
             out += self._evict_silent(now)
             self._watchdog(now)
+            out += self._rebalance(now)
         if not self.started:
             if not self._ready_to_start(now):
                 return out

@@ -107,6 +107,7 @@ class TracerState:
         self.counters = {"steps": 0, "rays_traced": 0, "photons_traced": 0, "portal_rays_out": 0,
                          "portal_rays_in": 0, "forwarded_rays": 0, "busy_s": 0.0}
         self.portal_by_chunk: dict[int, list[int]] = {}     # chunk -> [rays in, rays out] (status page)
+        self.rays_by_chunk: dict[int, int] = {}             # chunk -> rays traced (the server balances by it)
 
     # -- the peer table ----------------------------------------------------------
     def set_peers(self, table_version: int, owners: list[list[str]]) -> list[Out]:
@@ -230,7 +231,7 @@ class TracerState:
         k = self._pick_chunk()
         if k is None:
             return []
-        t0 = time.perf_counter()
+        t0, rays = time.perf_counter(), self.counters["rays_traced"]
         view = self.cache.activate(k, ahead=self._next_with_work(k))
         q = self.queues[k]
         if q.eye:
@@ -244,6 +245,7 @@ class TracerState:
             del self.queues[k]
         self.counters["steps"] += 1
         self.counters["busy_s"] += time.perf_counter() - t0
+        self.rays_by_chunk[k] = self.rays_by_chunk.get(k, 0) + self.counters["rays_traced"] - rays
         self._pace()
         return out
 
@@ -380,6 +382,8 @@ class TracerState:
                  "queue_target": self.queue_target()}
         return {"queue": self.queued_rays, "chunks": self.chunks, **loads,
                 "portal_by_chunk": [[k, i, o] for k, (i, o) in sorted(self.portal_by_chunk.items())],
+                "rays_by_chunk": [[k, n] for k, n in sorted(self.rays_by_chunk.items())],
+                "holds_every_chunk": bool(self.cache.cost.sum() <= self.cache.memory),
                 "resident": sorted(self.cache.resident), **{k: (round(v, 3) if isinstance(v, float) else v)
                                                             for k, v in self.counters.items()}}
 
