@@ -3,8 +3,8 @@ Grosch §3.1), then by measured work.
 
 Round robin in index order gives each tracer as many chunks, whatever
 work the lights and the camera give each. On the 5M-triangle building
-(8 chunks, 2 tracers, every chunk resident) one tracer traced about 20%
-more rays than the other, which sat idle for a fifth of the render. So
+(8 and 16 chunks, 2 tracers, every chunk resident) one tracer traced
+14-24% more rays than the other, which was busy 76-82% of the render. So
 the server re-assigns by the rays the tracers report traced in each chunk:
 chunks move (or swap) off the busiest tracer while that lowers its rays
 per core, starting from the current table, so that few chunks move. A
