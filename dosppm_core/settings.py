@@ -8,6 +8,7 @@ defaults from here.
 from __future__ import annotations
 
 import dataclasses
+import os
 from dataclasses import dataclass, field
 
 
@@ -89,6 +90,14 @@ class RenderSettings:
 # photons/s out of core against 601-828k, and 822-854k with every chunk
 # resident against 728-763k; 8,192 gained nothing more (880k, 835k).
 SERVICE_JOB_SIZES = {"photons_per_job": 4_096, "tile_pixels": 4_096}
+# A scene cut into chunks on the fly (a soup directory, `--chunks`): memory
+# per chunk, and where the store is kept for the next render.
+DEFAULT_BUDGET_BYTES = 512 * 2 ** 20
+
+
+def default_store_cache() -> str:
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "dosppm", "chunks")
 
 
 @dataclass

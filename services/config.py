@@ -19,7 +19,8 @@ import re
 import tomllib
 from dataclasses import dataclass
 
-from dosppm_core.settings import DIRECT_MODES, SERVICE_JOB_SIZES, RenderSettings
+from dosppm_core.settings import (DEFAULT_BUDGET_BYTES, DIRECT_MODES, SERVICE_JOB_SIZES, RenderSettings,
+                                  default_store_cache)
 
 
 @dataclass(frozen=True)
@@ -43,12 +44,7 @@ _SETTINGS_FIELDS = tuple(f.name for f in dataclasses.fields(RenderSettings))
 # tests and callers that share the machine).
 THREADS = os.cpu_count() or 1
 SECONDS = 30.0                  # a render's length when no limit is given
-BUDGET_BYTES = 512 * 2 ** 20    # memory per chunk when a scene is subdivided on the fly
-
-
-def _default_store_cache() -> str:
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return os.path.join(base, "dosppm", "chunks")
+BUDGET_BYTES = DEFAULT_BUDGET_BYTES   # memory per chunk when a scene is subdivided on the fly
 
 
 def _opt(name, type_, default, help_, choices=None, rule=None):
@@ -147,7 +143,7 @@ CHUNKING = (
     _opt("budget", str, None, "memory per chunk, BVH included, when subdividing, e.g. 512MiB "
          f"(default {BUDGET_BYTES // 2 ** 20}MiB unless --chunks)", rule="size"),
     _opt("chunks", int, None, "force this many chunks", rule="count"),
-    _opt("store_cache", str, _default_store_cache(), "where chunk stores made on the fly are kept"),
+    _opt("store_cache", str, default_store_cache(), "where chunk stores made on the fly are kept"),
 )
 # The paper's optimisations, each of which can be switched off (Figure 15).
 OPTIMISATIONS = (

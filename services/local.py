@@ -152,10 +152,20 @@ def _spawn_tracers(n: int, endpoint: str, store_path: str, threads: int, limits:
     size}, None for the default) bound each one's memory."""
     per = max(1, threads // max(n, 1))
     flags = [x for flag, size in (limits or {}).items() if size for x in (flag, str(size))]
-    cmd = [sys.executable, "-m", "services.cli", "worker", "--server", endpoint, "--store", store_path,
-           "--threads", str(per), "--quiet", *flags]
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [ROOT, os.environ.get("PYTHONPATH")])))
+    cmd, env = _python_child("-m", "services.cli", "worker", "--server", endpoint, "--store", store_path,
+                             "--threads", str(per), "--quiet", *flags)
     return [subprocess.Popen(cmd + ["--id", f"local-{i}"], env=env) for i in range(n)]
+
+
+def _python_child(*args: str) -> tuple[list[str], dict]:
+    """A Python command line running this very copy of dosppm, and its
+    environment. `-P` keeps the working directory off `sys.path` (`-m` and
+    `-c` put it first): run in a checkout, a child would otherwise import
+    the checkout's source instead of the installed package, and compile
+    kernels numba has cached for the other copy, inside the render's clock
+    (issue 29), or run edited code beside an unedited server."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [ROOT, os.environ.get("PYTHONPATH")])))
+    return [sys.executable, "-P", *args], env
 
 
 def _early_exit(tracers: list) -> str | None:
@@ -211,8 +221,8 @@ def run_tracer(v: dict, quiet: bool = False) -> int:
 def warm_kernels_apart() -> None:
     """`warm_kernels` in a child process: the cache is written, and this
     process loads only the kernels it calls."""
-    code = "from services.local import warm_kernels; warm_kernels()"
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    cmd, env = _python_child("-c", "from services.local import warm_kernels; warm_kernels()")
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True)
     if done.returncode != 0:       # the render compiles as it goes instead
         lines = (done.stderr or "").strip().splitlines()
         raise RuntimeError(f"compiling the kernels failed: {lines[-1] if lines else done.returncode}")

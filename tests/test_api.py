@@ -4,6 +4,8 @@ the same renderer the command line and the evaluation run."""
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -14,6 +16,7 @@ from dosppm_core.chunks.subdivide import subdivide
 from dosppm_core.film import read_exr
 from dosppm_core.modes.osppm import OutOfCoreRenderer
 from dosppm_core.modes import sppm
+from dosppm_core.scene.generate import generate_building
 from dosppm_core.scene.model import SceneError
 from dosppm_core.scene.soup import SceneSource
 from dosppm_core.settings import RenderSettings
@@ -89,3 +92,42 @@ def test_write_exr_and_png(tmp_path):
     assert (tmp_path / "a.png").read_bytes().startswith(b"\x89PNG")
     with pytest.raises(ValueError, match="unknown image format '.jpg'"):
         dp.write(tmp_path / "a.jpg", image)
+
+
+def test_load_and_render_open_a_soup_and_a_chunk_store_as_the_command_does(tmp_path, monkeypatch):
+    """`dosppm render big/` renders a soup directory and a chunk store; so
+    do dp.load and dp.render, out of core (issue 29). The soup is cut once,
+    into the store cache the command uses; the image is the OSPPM renderer's
+    over that store."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    soup = tmp_path / "big"
+    generate_building(str(soup), triangles=20_000, lights=6, width=16, height=12)
+    cut = dp.load(soup)
+    assert isinstance(cut, ChunkStore) and cut.path.startswith(str(tmp_path / "cache"))
+    assert dp.load(str(soup), width=8).path == cut.path          # cut once, then reused
+    image = dp.render(cut, iterations=2, seed=4, photons_per_iteration=20_000)
+    assert image.stats["mode"] == "osppm" and image.shape == (12, 16, 3) and image.stats["photons"] == 40_000
+    store = dp.load(cut.path)             # the store itself, by its path
+    again = dp.render(store.path, iterations=2, seed=4, photons_per_iteration=20_000)
+    np.testing.assert_array_equal(again.pixels, image.pixels)
+    o = OutOfCoreRenderer(ChunkStore.open(cut.path), RenderSettings(seed=4, photons_per_iteration=20_000),
+                          memory_bytes=max(2 * store.budget_bytes, store.chunk_memory.max()))
+    for _ in range(2):
+        o.run_iteration()
+    o.finish()
+    np.testing.assert_array_equal(image.pixels, o.image().astype(np.float32))
+    o.close()
+    with pytest.raises(ValueError, match="chunk store renders chunk by chunk: mode 'osppm'"):
+        dp.render(store, iterations=1, mode="sppm")
+
+
+def test_a_path_that_is_not_a_scene_gets_the_commands_one_line_error(tmp_path):
+    (tmp_path / "empty").mkdir()
+    for path, why in ((tmp_path / "nothing", "no such file, and not a built-in scene"),
+                      (tmp_path / "empty", "a directory, but neither a chunk store nor a triangle soup")):
+        with pytest.raises(SceneError, match=why) as caught:
+            dp.load(path)
+        assert "\n" not in str(caught.value) and str(path) in str(caught.value)
+        said = subprocess.run([sys.executable, "-P", "-m", "services.cli", "render", str(path), "--time", "1"],
+                              capture_output=True, text=True, env=dict(os.environ, PYTHONPATH=REPO))
+        assert said.returncode != 0 and str(caught.value) in said.stderr, said.stderr

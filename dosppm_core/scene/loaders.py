@@ -22,6 +22,9 @@ def load_scene(spec: str, **overrides) -> Scene:
             raise SceneError(f"{spec}: no such file, and not a built-in scene "
                              f"(built-in: {', '.join(builtin.SCENES)})")
         ext = os.path.splitext(spec)[1].lower()
+        if os.path.isdir(spec):
+            raise SceneError(f"{spec}: a directory, but neither a chunk store nor a triangle soup "
+                             f"(it has no manifest)")
         if ext == ".toml":
             scene = load_toml(spec)
         elif ext == ".xml":
