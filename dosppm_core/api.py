@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from dosppm_core.film import write_exr, write_png
+from dosppm_core.modes.deadline import Deadline
 from dosppm_core.scene.loaders import load_scene
 from dosppm_core.scene.model import Scene, SceneError
 from dosppm_core.scene.tomlfile import scene_from_document
@@ -184,19 +185,23 @@ def _renderer(scene, mode: str, chunks, memory, settings: RenderSettings, work: 
 def _stops(renderer, mode: str, stops: list, photons, iterations) -> Iterator[Image]:
     """Iterations until the limits, an image at each time in `stops` (wall
     time from the first iteration, OSPPM's draining of its portal queues
-    included); `stats['stop']` is the time it was handed back for."""
+    included); `stats['stop']` is the time it was handed back for. The
+    last time is a deadline (dosppm_core/modes/deadline.py)."""
     k, t0 = 0, time.perf_counter()
+    deadline = Deadline.after(stops[-1], t0) if stops and stops[-1] is not None else None
     while True:
-        p = renderer.run_iteration()
+        p = renderer.run_iteration(deadline)
         elapsed = time.perf_counter() - t0
         done = ((photons is not None and p.photons_emitted >= photons)
                 or (iterations is not None and p.iteration >= iterations))
         due = [t for t in stops[k:] if t is not None and elapsed >= t]
+        if deadline is not None and not renderer.worth_an_iteration(deadline):
+            done, due = True, stops[k:]       # no time for another: this is the last image
         if not (due or done):
             continue
         k += len(due)
         if hasattr(renderer, "finish"):
-            renderer.finish()    # OSPPM: trace the photons still queued at portals
+            renderer.finish(None, deadline)    # OSPPM: trace the photons still queued at portals
         yield _image(renderer, mode, time.perf_counter() - t0, due[-1] if due else None)
         if done or k >= len(stops):
             return

@@ -15,6 +15,7 @@ import time
 from dosppm_core.chunks.pacing import default_chunk_memory
 from dosppm_core.chunks.store import ChunkStore
 from dosppm_core.chunks.subdivide import open_render_store, subdivide
+from dosppm_core.modes.deadline import grace_s
 from dosppm_core.scene import builtin
 from dosppm_core.scene.model import SceneError
 from dosppm_core.scene.soup import SceneSource
@@ -78,7 +79,7 @@ def run_server(scene: str, v: dict, quiet: bool = False, spawn_tracers: int = 0)
         summary = server.run()
     finally:
         reporter.close()
-        _reap(tracers)
+        _reap(tracers, _grace_left(server, limits))
     _write_summary(v["out"], summary)
     p = server.progress()
     say(f"{'interrupted: ' if server.interrupted else ''}wrote {v['out']} after {p.iteration} "
@@ -175,6 +176,23 @@ def _early_exit(tracers: list) -> str | None:
         if code is not None and code != 0:
             return f"tracer process {p.pid} exited with status {code}"
     return None
+
+
+# With a time limit: the tracers' moment to exit once told (they may be in
+# the middle of a step or a chunk load; then they are killed: the image is
+# written and they hold nothing more), and this process's own exit after
+# them (measured 0.26 s).
+REAP_S = 0.1
+EXIT_S = 0.4
+
+
+def _grace_left(server: ServerProcess, limits: Limits) -> float:
+    """Seconds the tracers get to exit: with a time limit, REAP_S or what is
+    left of its grace but EXIT_S if less (0.1 s at least); otherwise 10 s."""
+    if limits.seconds is None or server.started_at is None:
+        return 10.0
+    end = server.started_at + limits.seconds + grace_s(limits.seconds)
+    return min(REAP_S, max(0.1, end - time.monotonic() - EXIT_S))
 
 
 def _reap(tracers: list, timeout_s: float = 10.0) -> None:

@@ -47,6 +47,8 @@ class ProgressReporter:
         record = {"iteration": p.iteration, "photons": p.photons_emitted,
                   "hit_points": p.hit_points, "seconds": round(p.seconds, 4),
                   "wall_seconds": round(wall, 4), "photons_per_s": round(rate, 1),
+                  # When the render's clock started (what --time counts from), as a Unix time.
+                  "started_unix": round(time.time() - p.seconds, 3),
                   "path_ends": p.path_ends}
         if self.log:
             self.log.write(json.dumps(record) + "\n")

@@ -25,12 +25,16 @@ from dosppm_core.chunks.cache import ChunkCache, next_with_work, release_freed_m
 from dosppm_core.chunks.view import (start_chunks, trace_eye_in_chunk, trace_photons_in_chunk,
                                      trace_shadows_in_chunk)
 from dosppm_core.jobs import ESCAPED, HitPoints, PhotonDeposits, RayBatch, ShadowRays
+from dosppm_core.modes.deadline import Deadline, Rate, that_fit
 from dosppm_core.settings import Progress, RenderSettings
 from dosppm_core.sppm.iteration import EyePass, SPPMIteration
 from dosppm_core.trace import NO_CULL, emit_photon_job, eye_ray_job, light_arrays
 
 
 TRACE_STEP_RAYS = 262_144      # photon rays traced at once in a chunk, at most (client batching up to this)
+# With a deadline, besides the last update: a chunk's load or step that
+# began just before the cut, and the image written.
+FINISH_S = 0.8
 
 
 class OutOfCoreRenderer:
@@ -52,6 +56,14 @@ class OutOfCoreRenderer:
       replaces the hit points once its last path has ended. Photons count
       as emitted when emitted, so an image is short by the photons still
       in queues (under one iteration's worth); `finish()` drains them.
+
+    With a deadline (`--time`, modes/deadline.py) an iteration emits only
+    the photons its measured rate traces before it, emission stops when
+    what is queued would take past it to drain, and `finish()` drains
+    until only the time to finish is left of the grace: rays still queued
+    then are dropped and counted (`paths_cut`), an eye iteration in flight
+    too. Their photons' deposits so far are applied, so a render that must
+    cut (its drain estimate was short) is dark by their remaining bounces.
     """
 
     def __init__(self, provider, settings: RenderSettings | None = None,
@@ -102,6 +114,11 @@ class OutOfCoreRenderer:
         self._eye: EyePass | None = None          # the eye iteration in flight
         self._emitted_unapplied = 0
         self._cull = NO_CULL
+        self._deadline: Deadline | None = None
+        self.photon_rate = Rate()          # photons emitted per second of iteration
+        self.ray_rate = Rate()             # rays traced per second of sweep, chunk loads included
+        self.paths_cut = 0                 # rays dropped at a deadline
+        self._rays_traced = 0
 
     @property
     def stats(self):
@@ -112,8 +129,24 @@ class OutOfCoreRenderer:
         return self.sppm.hit_point_total
 
     # -- the loop --------------------------------------------------------
-    def run_iteration(self) -> Progress:
+    def worth_an_iteration(self, deadline: Deadline | None) -> bool:
+        """Always the first; then while the deadline has not passed and
+        what is queued drains before it (the iteration's photons are sized
+        to the time left)."""
+        if deadline is None or self.iteration == 0:
+            return True
+        return deadline.left() > self._drain_estimate_s()
+
+    def _drain_estimate_s(self) -> float:
+        r = self.ray_rate.per_s
+        return self.rays_queued / r if r else 0.0
+
+    def run_iteration(self, deadline: Deadline | None = None) -> Progress:
+        """One iteration; with a `deadline`, it emits only the photons that
+        its rate traces before it, less the time the queues need to drain."""
+        self._deadline = deadline
         t0 = time.perf_counter()
+        emitted0, traced0 = self.sppm.photons_applied + self._emitted_unapplied, self._rays_traced
         if not self.pipelined or not self.sppm.has_hit_points:
             # The first hit points must exist before any photon can count.
             self._start_eye_iteration()
@@ -131,7 +164,10 @@ class OutOfCoreRenderer:
             self._sweep(until_empty=True)
         self._apply()
         self.iteration += 1
-        self.seconds += time.perf_counter() - t0
+        took = time.perf_counter() - t0
+        self.seconds += took
+        self.photon_rate.add(self.sppm.photons_applied - emitted0, took)
+        self.ray_rate.add(self._rays_traced - traced0, took)
         if self.pipelined:
             self._pace(*swept)
         return self.progress()
@@ -154,22 +190,43 @@ class OutOfCoreRenderer:
                                                max(s.photons_per_iteration, self.max_photons_per_iteration),
                                                first=self.iteration == 1)
 
-    def finish(self, report=None) -> None:
+    def finish(self, report=None, deadline: Deadline | None = None) -> None:
         """Trace every queued ray to its end and apply its photons, so the
         image holds every photon counted as emitted. Out of core this takes
         sweeps, each loading the chunks with work: `report(rays still
-        queued, sweeps so far)` after each one."""
+        queued, sweeps so far)` after each one. With a `deadline`, only
+        until the time to finish is all that is left of its grace."""
+        self._deadline = deadline
         t0 = time.perf_counter()
         sweeps = 0
-        while self.rays_queued:
+        while self.rays_queued and not self._out_of_time():
             self._sweep(until_empty=False)
             sweeps += 1
             if report is not None:
                 report(self.rays_queued, sweeps)
+        if self.rays_queued:
+            self._cut()
         if self._eye is not None:
             self._finish_eye_iteration()
         self._apply()
         self.seconds += time.perf_counter() - t0
+
+    def _out_of_time(self) -> bool:
+        """Only the time to finish (the last update's pace and FINISH_S) is
+        left of the deadline's grace."""
+        d = self._deadline
+        update = self.sppm.update_seconds / max(1, self.sppm.updates)
+        return d is not None and d.hard_left() <= min(d.grace, FINISH_S + 2 * update)
+
+    def _cut(self) -> None:
+        """At the deadline: the rays still queued are dropped and counted,
+        and an eye iteration in flight with them (the hit points stay the
+        last complete iteration's)."""
+        self.paths_cut += sum(len(b) for q in self._photon_queues for b in q)
+        for queues in (self._photon_queues, self._eye_queues, self._shadow_queues):
+            for q in queues:
+                q.clear()
+        self._eye = None
 
     @property
     def rays_queued(self) -> int:
@@ -209,7 +266,7 @@ class OutOfCoreRenderer:
         culled where it lands, by the box of its emission time)."""
         s = self.settings
         self._cull = self.sppm.cull_box()
-        emitted = left = self._photons_to_emit()
+        emitted = left = self._photons_fitting(self._photons_to_emit())
         while left > 0:
             count = min(s.photons_per_job, left)
             self._enqueue(self._photon_queues, emit_photon_job(
@@ -217,6 +274,13 @@ class OutOfCoreRenderer:
             self.next_photon_job += 1
             left -= count
         self._emitted_unapplied += emitted
+
+    def _photons_fitting(self, wanted: int) -> int:
+        """With a deadline: as many as the iteration rate traces in the time
+        left once the queues have drained (none once that is past)."""
+        d = self._deadline
+        left = None if d is None else d.left() - self._drain_estimate_s()
+        return that_fit(left, wanted, self.photon_rate.per_s, self.settings.photons_per_job)
 
     def _photons_to_emit(self) -> int:
         """The photons per iteration; paced, only as many as fit beside the
@@ -271,6 +335,8 @@ class OutOfCoreRenderer:
         last = None if k is None else (k - 1) % c
         while k is not None:
             ahead = self._next_chunk(k, None if until_empty else last)
+            if self._out_of_time():
+                return
             view = self.cache.activate(k, ahead)
             self._trace_chunk(view)
             del view    # an evicted chunk must not outlive its eviction
@@ -289,6 +355,7 @@ class OutOfCoreRenderer:
             t0 = time.perf_counter()
             batch = RayBatch.concat(self._eye_queues[k])
             self._eye_queues[k] = []
+            self._rays_traced += len(batch)
             hits, (pixels, rgb), ends, out, shadows = trace_eye_in_chunk(view, batch, s.max_depth,
                                                                          self.lights)
             self._eye.add(hits, pixels, rgb)
@@ -299,13 +366,16 @@ class OutOfCoreRenderer:
             t0 = time.perf_counter()
             shadows = ShadowRays.concat(self._shadow_queues[k])
             self._shadow_queues[k] = []
+            self._rays_traced += len(shadows)
             (pixels, rgb), ends, out = trace_shadows_in_chunk(view, shadows)
             self._eye.add(HitPoints.empty(), pixels, rgb)
             self._account(ends, {j: [part] for j, part in out.items()}, self._shadow_queues)
             self.phase_seconds["eye"] += time.perf_counter() - t0
-        while self._photon_queues[k]:      # in steps (`_take`); rays leaving k queue at other chunks
+        while self._photon_queues[k] and not self._out_of_time():   # in steps (`_take`); rays leaving
+            # k queue at other chunks
             t0 = time.perf_counter()
             batch = RayBatch.concat(self._take(self._photon_queues[k], self.trace_step_rays))
+            self._rays_traced += len(batch)
             dep, ends, _culled, out = trace_photons_in_chunk(view, batch, self._cull, s.max_depth,
                                                              s.deposit_from)
             self._account(ends, out, self._photon_queues)

@@ -12,6 +12,7 @@ import time
 import numpy as np
 
 from dosppm_core.accel import Accelerator
+from dosppm_core.modes.deadline import Deadline, Rate, that_fit
 from dosppm_core.scene.model import Scene
 from dosppm_core.settings import Progress, RenderSettings
 from dosppm_core.sppm.iteration import EyePass, SPPMIteration
@@ -33,15 +34,27 @@ class Renderer:
         self.iteration = 0
         self.next_photon_job = 0
         self.seconds = 0.0
+        self.eye_seconds = 0.0                # the last eye pass's
+        self.photon_rate = Rate()             # photons traced and applied per second
+
+    def worth_an_iteration(self, deadline: Deadline | None) -> bool:
+        """Whether another iteration can start: always the first; then only
+        while its eye pass would end before the deadline (photons after it
+        are sized to the time left)."""
+        return deadline is None or self.iteration == 0 or deadline.left() > self.eye_seconds
 
     @property
     def stats(self):
         return self.sppm.stats
 
-    def run_iteration(self) -> Progress:
+    def run_iteration(self, deadline: Deadline | None = None) -> Progress:
+        """One iteration; with a `deadline`, its photons are only as many as
+        can be traced and applied before it (fewer, or none, near the end:
+        N_e counts the photons applied)."""
         t0 = time.perf_counter()
         self._eye_pass()
-        self._photon_pass()
+        self.eye_seconds = time.perf_counter() - t0
+        self._photon_pass(deadline)
         self.sppm.flush()
         self.iteration += 1
         self.seconds += time.perf_counter() - t0
@@ -66,18 +79,25 @@ class Renderer:
             eye.add(hits, pixels, rgb)
         self.sppm.install_eye_pass(eye)
 
-    def _photon_pass(self) -> None:
+    def _photon_pass(self, deadline: Deadline | None) -> None:
         s = self.settings
         cull = self.sppm.cull_box()
         left = s.photons_per_iteration
         while left > 0:
-            # Trace up to half a statistics batch of photons as one stream.
-            count = min(left, max(s.photon_batch // 2, s.photons_per_job))
+            # Trace up to half a statistics batch of photons as one stream,
+            # as many whole jobs as end before the deadline.
+            count = that_fit(None if deadline is None else deadline.left(),
+                             min(left, max(s.photon_batch // 2, s.photons_per_job)),
+                             self.photon_rate.per_s, s.photons_per_job)
+            if count <= 0:
+                return
+            t0 = time.perf_counter()
             deposits, ends, _culled = trace_photon_jobs(
                 self.accel, self.surf, self._jobs(count), cull, s.max_depth,
                 deposit_from=s.deposit_from)
             self.sppm.count_path_ends(ends)
             self.sppm.add_photons(deposits, count)
+            self.photon_rate.add(count, time.perf_counter() - t0)
             left -= count
 
     def _jobs(self, photons: int):

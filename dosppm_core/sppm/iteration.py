@@ -71,6 +71,7 @@ class SPPMIteration:
         self.deposits_applied = 0
         self.flux_applied = np.zeros(3)       # of every deposit applied, float64
         self.update_seconds = 0.0
+        self.updates = 0                      # photon batches applied
         self._pending: list[PhotonDeposits] = []
         self._pending_rows = 0
         self._pending_emitted = 0
@@ -146,6 +147,7 @@ class SPPMIteration:
         for p in parts:
             self.flux_applied += p.flux.sum(axis=0, dtype=np.float64)
         self.update_seconds += time.perf_counter() - t0
+        self.updates += 1
 
     def restore_totals(self, totals: dict) -> None:
         """The counts of `totals` of a checkpointed render (its statistics

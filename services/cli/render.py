@@ -18,6 +18,7 @@ import time
 from dosppm_core.chunks.store import is_store
 from dosppm_core.chunks.subdivide import open_render_store
 from dosppm_core.film import write_exr, write_png
+from dosppm_core.modes.deadline import Deadline
 from dosppm_core.modes.osppm import OutOfCoreRenderer
 from dosppm_core.modes.sppm import Renderer
 from dosppm_core.scene import builtin
@@ -114,11 +115,13 @@ def _run_here(args) -> int:
     warm_kernels()
     reporter = ProgressReporter(limit, args.log, quiet=args.quiet)
     interrupted = False
+    # A time limit is a deadline: the image is written within its grace.
+    deadline = Deadline.after(limit[1]) if limit[0] == "seconds" else None
     try:
-        while not _done(renderer, limit):
-            reporter(renderer.run_iteration())
+        while not _done(renderer, limit, deadline):
+            reporter(renderer.run_iteration(deadline))
         if hasattr(renderer, "finish"):
-            renderer.finish(_drain_lines(say))   # OSPPM: trace the photons still queued at portals
+            renderer.finish(_drain_lines(say), deadline)   # OSPPM: the photons still queued at portals
     except KeyboardInterrupt:
         interrupted = True
     finally:
@@ -166,11 +169,13 @@ def _make_renderer(args, settings):
         f"({store.path}), {len(store.header.lights.kind)} lights, {cam.width}x{cam.height}")
 
 
-def _done(renderer, limit) -> bool:
+def _done(renderer, limit, deadline) -> bool:
     kind, value = limit
     p = renderer.progress()
     if p.iteration == 0:
         return False
+    if deadline is not None:
+        return not renderer.worth_an_iteration(deadline)
     return {"seconds": p.seconds, "photons": p.photons_emitted,
             "iterations": p.iteration}[kind] >= value
 

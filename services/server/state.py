@@ -62,6 +62,7 @@ HEARTBEAT_INTERVAL_S = 1.0
 JOB_MESSAGE_LOST_S = 4.0
 # A job untouched this long while every tracer is idle is lost (`_watchdog`).
 STALL_S = 4.0
+LATENCIES_KEPT = 64           # photon jobs' latencies the deadline's estimate takes the median of
 # Tracer heartbeat fields the server passes on in its status.
 STATUS_KEYS = ("load", "resident", "busy_s", "steps", "rays_traced", "photons_traced", "portal_by_chunk",
                "portal_rays_out", "portal_rays_in", "chunk_loads", "load_s", "load_wait_s", "wasted_prefetches",
@@ -108,6 +109,7 @@ class Job:
     # job it re-emits after a tracer failure (the same photons, a new id).
     rng_key: int | None = None
     cull_box: np.ndarray | None = None    # a photon job's, as sent (§4.3)
+    made_s: float = 0.0              # when it was made (its latency, `latency_estimate_s`)
 
 
 @dataclass
@@ -194,8 +196,10 @@ class ServerState:
                          "photons_discarded": 0, "jobs_discarded": 0, "tracers_evicted": 0,
                          "eye_iterations_restarted": 0, "deposits_discarded": 0, "deposits_stale": 0,
                          "deposits_late": 0, "refused": 0, "tracers_rejoined": 0,
-                         "jobs_timed_out": 0, "welcomes_resent": 0, "job_messages_lost": 0}
+                         "jobs_timed_out": 0, "welcomes_resent": 0, "job_messages_lost": 0,
+                         "jobs_abandoned": 0, "photons_abandoned": 0}
         self.path_ends = np.zeros(len(END_NAMES), np.int64)
+        self._latencies: deque = deque(maxlen=LATENCIES_KEPT)     # of the last photon jobs complete
 
     # -- tracers -------------------------------------------------------------------
     def welcome_fields(self, t: TracerInfo) -> dict:
@@ -394,6 +398,7 @@ class ServerState:
             self.counters["photon_jobs_completed"] += 1
             self._ready_emitted += job.paths
             self._ready_jobs.append((j, job))
+            self._latencies.append(self._now - job.made_s)
             return
         self.counters["eye_jobs_completed"] += 1
         e = self.eye
@@ -618,7 +623,8 @@ class ServerState:
         self.next_job += 1
         if kind == "photon":
             self._job_status.set(j, IN_FLIGHT)
-        self.jobs[j] = Job(kind, paths, eye_iteration=eye_iteration, rng_key=j if rng_key is None else rng_key)
+        self.jobs[j] = Job(kind, paths, eye_iteration=eye_iteration, rng_key=j if rng_key is None else rng_key,
+                           made_s=self._now)
         if kind == "photon":
             self.photon_jobs_in_flight += 1
         return j
@@ -753,6 +759,16 @@ class ServerState:
             self.photon_jobs_in_flight -= 1
         self._photon_pending.clear()
 
+    def latency_estimate_s(self) -> float:
+        """Seconds from a photon job's making to its completion: the median
+        of the last ones complete, or, before any, the age of the oldest in
+        flight (it is at least that). A job made later than this before a
+        deadline is unlikely to count."""
+        if self._latencies:
+            return float(np.median(self._latencies))
+        made = [job.made_s for job in self.jobs.values() if job.kind == "photon" and job.sent]
+        return self._now - min(made) if made else 0.0
+
     def drain_estimate_s(self) -> float:
         """Seconds the slowest tracer needs to trace what waits for it, at
         its rate so far (chunk loads included)."""
@@ -766,6 +782,19 @@ class ServerState:
     @property
     def drained(self) -> bool:
         return not self.jobs
+
+    def abandon_jobs_in_flight(self) -> None:
+        """At the deadline: every job still in flight is discarded whole,
+        never re-emitted; its deposits held stay out of every batch, its
+        photons out of N_e, and a photon job's late results are stale."""
+        for j, job in list(self.jobs.items()):
+            del self.jobs[j]
+            if job.kind == "photon":
+                self._job_status.set(j, DISCARDED)
+                self.photon_jobs_in_flight -= 1
+                self.counters["photons_abandoned"] += job.paths
+                self.counters["jobs_abandoned"] += 1
+        self.eye = None
 
     def finish(self) -> None:
         """Hand over the last, partial batch (call once drained)."""

@@ -23,6 +23,7 @@ class ServerStatistics:
         self.sppm = SPPMIteration(header, settings, threads=threads)
         self.lock = threading.Lock()       # held while statistics change; snapshots take it
         self.update_seconds = 0.0
+        self.photon_update_s = 0.0         # the last batch of photons took (the deadline's reserve)
         self.ledger = ledger
 
     @property
@@ -56,7 +57,10 @@ class ServerStatistics:
             if self.ledger is not None:
                 self.ledger.record(update)
             box = self.sppm.cull_box() if self.sppm.has_hit_points else None
-        self.update_seconds += time.perf_counter() - t0
+        took = time.perf_counter() - t0
+        self.update_seconds += took
+        if update.kind == "photons":
+            self.photon_update_s = took
         return box
 
     def end_ledger(self, deposits_late: int) -> None:
