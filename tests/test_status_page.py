@@ -134,11 +134,12 @@ def _register(state, tid, now):
                                        endpoint=f"tcp://{tid}:1", has_store=True, store_key="k"), now)
 
 
-def _heartbeat(state, tid, now, busy_s, rays, queue=0, resident=()):
+def _heartbeat(state, tid, now, busy_s, rays, queue=0, resident=(), load_wait_s=0.0, idle_s=0.0):
     # Per chunk [chunk, in, out]: tracer a's chunk 0 and the chunk 2 it
     # served before b joined; b's chunk 2.
-    portal = [[0, 10, 20], [2, 1, 2]] if tid == "a" else [[2, 3, 4]]
+    portal = {"a": [[0, 10, 20], [2, 1, 2]], "b": [[2, 3, 4]]}.get(tid, [])
     state.on_message(tid, _msg("heartbeat", status={"busy_s": busy_s, "rays_traced": rays,
+                                                    "load_wait_s": load_wait_s, "idle_s": idle_s,
                                                     "photons_traced": rays // 2, "queue": queue,
                                                     "resident": list(resident), "portal_by_chunk": portal,
                                                     "portal_rays_in": 10, "portal_rays_out": 20}), now)
@@ -159,24 +160,42 @@ def _update(history, state, now, phase="render", **counters):
     return st
 
 
+def test_a_tracers_state_is_what_took_most_of_its_time(state):
+    h = StatusHistory(origin_s=0.0)
+    _register(state, "c", 0.0), _register(state, "d", 0.0)
+    for i in range(6):       # c reads and sends messages; d waits for chunk loads
+        _heartbeat(state, "c", float(i), 0.1 * i, 100 * i, load_wait_s=0.05 * i, idle_s=0.2 * i)
+        _heartbeat(state, "d", float(i), 0.7 * i, 100 * i, load_wait_s=0.6 * i, idle_s=0.1 * i)
+        st = _update(h, state, i + 0.1)
+    rows = {t["id"]: t for t in st["tracers"]}
+    assert rows["c"]["time"] == {"tracing": 0.05, "loading": 0.05, "idle": 0.2, "waiting": 0.7}
+    assert rows["d"]["time"] == {"tracing": 0.1, "loading": 0.6, "idle": 0.1, "waiting": 0.2}
+    assert (rows["c"]["state"], rows["d"]["state"]) == ("waiting", "loading")
+
+
 def test_tracer_states_and_warnings(state):
     h = StatusHistory(origin_s=0.0)
     _register(state, "a", 0.0), _register(state, "b", 0.0)
     # A heartbeat a second, a status every half second (as in the server):
-    # a works 80% of the time with rays queued, b idles with nothing queued.
+    # a is in its steps 80% of the time, a quarter of that waiting for chunk
+    # loads, with rays queued; b idles with nothing queued. Each state is
+    # what took most of its time, whatever the phase (issue 29: "idle" and
+    # "busy 98%" side by side while draining).
     for i in range(6):
-        _heartbeat(state, "a", float(i), 0.8 * i, 5000 * i, queue=4096, resident=[0, 2])
-        _heartbeat(state, "b", float(i), 0.05 * i, 100 * i)
-        st = _update(h, state, i + 0.1, phase="waiting")
-        _update(h, state, i + 0.6, phase="waiting")
-    assert {t["id"]: t["state"] for t in st["tracers"]} == {"a": "idle", "b": "idle"}
+        _heartbeat(state, "a", float(i), 0.8 * i, 5000 * i, queue=4096, resident=[0, 2], load_wait_s=0.2 * i,
+                   idle_s=0.1 * i)
+        _heartbeat(state, "b", float(i), 0.05 * i, 100 * i, idle_s=0.9 * i)
+        st = _update(h, state, i + 0.1, phase="draining")
+        _update(h, state, i + 0.6, phase="draining")
+    assert {t["id"]: t["state"] for t in st["tracers"]} == {"a": "tracing", "b": "idle"}
     st = _update(h, state, 5.2)
     rows = {t["id"]: t for t in st["tracers"]}
-    assert rows["a"]["state"] == "active" and rows["a"]["busy"] == pytest.approx(0.8)
+    assert rows["a"]["time"] == {"tracing": 0.6, "loading": 0.2, "idle": 0.1, "waiting": 0.1}
+    assert rows["a"]["state"] == "tracing" and rows["a"]["busy"] == pytest.approx(0.8)
     assert rows["a"]["rays_per_s"] == pytest.approx(5000)
     assert rows["a"]["photons_per_s"] == pytest.approx(2500)
     assert rows["a"]["heartbeat_age_s"] == pytest.approx(0.2)
-    assert rows["b"]["state"] == "starved" and rows["b"]["busy"] == pytest.approx(0.05)
+    assert rows["b"]["state"] == "idle" and rows["b"]["busy"] == pytest.approx(0.05)
     assert st["chunk_table"][0] == {"chunk": 0, "tracers": ["a"], "resident": ["a"],
                                     "portal_rays_in": 10, "portal_rays_out": 20}
     assert st["chunk_table"][2]["portal_rays_in"] == 4 and st["chunk_table"][2]["portal_rays_out"] == 6
@@ -203,7 +222,7 @@ def test_tracer_states_and_warnings(state):
     assert len(_update(h, state, 12.0)["warnings"]) == 4
     _heartbeat(state, "a", 11.5 + REJOINED_SHOW_S, 100.0, 10**6, queue=1)
     later = _update(h, state, 12.0 + REJOINED_SHOW_S)
-    assert {t["id"]: t["state"] for t in later["tracers"]}["a"] == "active"
+    assert {t["id"]: t["state"] for t in later["tracers"]}["a"] == "tracing"
 
 
 # -- the server process ------------------------------------------------------------------
@@ -248,7 +267,8 @@ def test_the_server_process_serves_what_the_page_needs():
         assert st["eta_s"] == st["progress"]["eta_s"] == 600
         assert st["history"] == {"t": [], "photons_per_s": [], "hit_points_per_s": [], "mean_radius": []}
         t = st["tracers"][0]
-        assert t["state"] == "idle" and t["busy"] == pytest.approx(0.5, abs=0.15)
+        assert t["state"] in ("tracing", "waiting") and t["busy"] == pytest.approx(0.5, abs=0.15)
+        assert sum(t["time"].values()) == pytest.approx(1.0, abs=0.01)
         assert 0 <= t["heartbeat_age_s"] < 3 and t["rays_per_s"] > 0
         assert st["chunk_table"] == [{"chunk": 0, "tracers": ["probe"], "resident": ["probe"],
                                       "portal_rays_in": 0, "portal_rays_out": 0}]
@@ -365,7 +385,9 @@ def _fake_farm():
                          "cpu_s": 18.25, "bytes_to_server": 123_456_789, "bytes_to_peers": 23_456_789,
                          "heartbeat_age_s": 0.4, "busy": 0.93 if i % 2 else 0.1, "rays_per_s": 512_345.6 + n,
                          "photons_per_s": 256_172.8 + n,
-                         "state": "active" if i % 2 else "starved"} for i, tid in enumerate(ids)],
+                         "time": {"tracing": 0.81, "loading": 0.12, "waiting": 0.04, "idle": 0.03} if i % 2
+                         else {"tracing": 0.07, "loading": 0.03, "waiting": 0.05, "idle": 0.85},
+                         "state": "tracing" if i % 2 else "idle"} for i, tid in enumerate(ids)],
         }
     return status
 
@@ -400,7 +422,8 @@ def test_page_in_chromium_at_1280x900(tmp_path, monkeypatch):
         assert page.texts["phase"].strip() == "Rendering"
         assert "render-node-99 evicted" in page.texts["warnings"]
         tracers = page.texts["tracers"]
-        assert "65,536" in tracers and "starved" in tracers and "evicted" in tracers
+        assert "65,536" in tracers and "idle" in tracers and "evicted" in tracers
+        assert "81 / 12 / 4 %" in tracers and "Tracing / loading / waiting" in tracers
         assert "3,811,093" in page.texts["tracers_raw"], "raw counters, with separators"
         assert "654,321" in page.texts["chunks"]
     # The page polls: numbers move between two loads (and within each).

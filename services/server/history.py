@@ -18,10 +18,13 @@ often tracers come and go:
   only for the tracers registered now (or rejoined in the last
   REJOINED_SHOW_S).
 
-Tracer states, as the page shows them:
-    active    rendering, and busy or with rays queued
-    starved   rendering, but idle with nothing queued (waiting for work)
-    idle      the render is not running (waiting for tracers, draining)
+Tracer states, as the page shows them: what took most of a tracer's time
+over its last RATE_WINDOW_S of heartbeats, from the time it reports
+(`TracerRates.split`), unless one of the last three applies:
+    tracing   tracing rays (its steps, less the waits for chunk loads)
+    loading   waiting for a chunk to be read and its BVH built
+    waiting   neither: reading and sending messages, or a full pipe to a peer
+    idle      nothing queued to trace (waiting for work)
     silent    no heartbeat for SILENT_S: it is evicted at --tracer-timeout
     rejoined  registered again (cut off, hung or restarted) in the last
               REJOINED_SHOW_S
@@ -37,7 +40,6 @@ SAMPLE_INTERVAL_S = 1.0
 # Rates on the charts and per tracer are taken over this window: hit points
 # arrive one eye iteration at a time, and per-second rates would be spikes.
 RATE_WINDOW_S = 5.0
-STARVED_BUSY = 0.25          # busy share below which a tracer with nothing queued is starved
 SILENT_S = 3.0               # three heartbeat intervals without one
 REJOINED_SHOW_S = 30.0
 WARNINGS_KEPT = 50
@@ -116,7 +118,8 @@ class TracerRates:
             return                      # the heartbeat seen last time
         if beats and (busy < beats[-1][1] or rays < beats[-1][2] or photons < beats[-1][3]):
             beats.clear()               # a restarted tracer process counts from zero
-        beats.append((at_s, float(busy), int(rays), photons))
+        beats.append((at_s, float(busy), int(rays), photons, float(status.get("load_wait_s", 0.0)),
+                      float(status.get("idle_s", 0.0))))
         while len(beats) > 2 and at_s - beats[1][0] >= self.window_s:
             beats.popleft()
 
@@ -126,10 +129,26 @@ class TracerRates:
         beats = self.beats.get(tid)
         if not beats or len(beats) < 2:
             return None, None, None
-        (t0, b0, r0, p0), (t1, b1, r1, p1) = beats[0], beats[-1]
+        (t0, b0, r0, p0, *_), (t1, b1, r1, p1, *_) = beats[0], beats[-1]
         dt = t1 - t0
         # Its clock times the busy seconds, ours the heartbeats: clamp the jitter.
         return min(1.0, max(0.0, (b1 - b0) / dt)), (r1 - r0) / dt, (p1 - p0) / dt
+
+    def split(self, tid: str) -> dict | None:
+        """Shares of its time over the window: tracing (its steps less the
+        waits for chunk loads), loading (those waits), idle (nothing to
+        trace) and waiting (the rest: messages, full pipes); None until
+        two heartbeats came."""
+        beats = self.beats.get(tid)
+        if not beats or len(beats) < 2:
+            return None
+        (t0, b0, _, _, w0, i0), (t1, b1, _, _, w1, i1) = beats[0], beats[-1]
+        dt = t1 - t0
+        loading = min(1.0, max(0.0, (w1 - w0) / dt))
+        tracing = min(1.0 - loading, max(0.0, (b1 - b0 - (w1 - w0)) / dt))
+        idle = min(1.0 - loading - tracing, max(0.0, (i1 - i0) / dt))
+        return {"tracing": round(tracing, 3), "loading": round(loading, 3), "idle": round(idle, 3),
+                "waiting": round(max(0.0, 1.0 - tracing - loading - idle), 3)}
 
     def keep_only(self, ids) -> None:
         for tid in set(self.beats) - set(ids):
@@ -213,37 +232,37 @@ class StatusHistory:
         if render_s is not None and self.history.add(render_s, counters["photons_emitted"],
                                                      counters["hit_points"], mean_radius):
             self._series = self.history.series()
-        per_tracer = self._tracer_fields(now, state, st.get("phase"))
+        per_tracer = self._tracer_fields(now, state)
         st["tracers"] = [dict(row, **per_tracer.get(row.get("id"), {})) for row in st.get("tracers", [])]
         st.update(server_s=round(now - self.origin_s, 2), history=self._series,
                   warnings=list(self.warnings)[::-1][:WARNINGS_SHOWN],
                   evictions=list(self.evictions), chunk_table=chunk_table(state))
 
-    def _tracer_fields(self, now: float, state, phase: str | None) -> dict[str, dict]:
-        """Per registered tracer id: heartbeat_age_s, busy, rays_per_s, state."""
+    def _tracer_fields(self, now: float, state) -> dict[str, dict]:
+        """Per registered tracer id: heartbeat_age_s, busy, time (shares), rays_per_s, state."""
         out = {}
         for t in state.tracers.values():
             self.rates.observe(t.id, t.status_s, t.status)
             busy, rays, photons = self.rates.rates(t.id)
+            split = self.rates.split(t.id)
             heard = max(t.status_s, t.welcomed_s)
             out[t.id] = {"heartbeat_age_s": round(now - t.status_s, 2) if t.status_s > -1e29 else None,
-                         "busy": None if busy is None else round(busy, 3),
+                         "busy": None if busy is None else round(busy, 3),    # tracing + loading
+                         "time": split,
                          "rays_per_s": None if rays is None else round(rays, 1),
                          "photons_per_s": None if photons is None else round(photons, 1),
-                         "state": self._tracer_state(now, t, phase, busy, heard)}
+                         "state": self._tracer_state(now, t, split, heard)}
         self.rates.keep_only(state.tracers)
         return out
 
-    def _tracer_state(self, now: float, t, phase: str | None, busy: float | None, heard: float) -> str:
+    def _tracer_state(self, now: float, t, split: dict | None, heard: float) -> str:
         if now - self.rejoined_at.get(t.id, -math.inf) < REJOINED_SHOW_S:
             return "rejoined"
         if now - heard > SILENT_S:
             return "silent"
-        if phase != "render":
+        if split is None:
             return "idle"
-        if busy is not None and busy < STARVED_BUSY and not t.status.get("queue", 0):
-            return "starved"
-        return "active"
+        return max(("tracing", "loading", "waiting", "idle"), key=lambda k: split[k])
 
     def _watch(self, now: float, state, counters: dict, notes: tuple) -> None:
         """Warnings for what changed since the last call."""

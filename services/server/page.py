@@ -11,7 +11,7 @@ works on a LAN without internet. Its script polls /status and reloads
   over the render (`history`), so a drop in throughput or the convergence
   shows at a glance;
 - recent warnings: evictions, rejoins, refusals, lost jobs;
-- a tracer table that fits 1280 px (state, chunks, busy share, queue,
+- a tracer table that fits 1280 px (state, chunks, tracing, loading and waiting shares, queue,
   rays/s, heartbeat age), its raw counters in a collapsed <details>;
 - for a chunked scene, who holds each chunk and its portal traffic;
 - every field of /status, pretty-printed, in a collapsed <details>.
@@ -22,7 +22,7 @@ hit_points_per_s, jobs_in_flight, eta_s, phase, waiting_for, failure,
 emission_paused, progress {fraction, elapsed_s, eta_s, stop, limit, value},
 history {t, photons_per_s, hit_points_per_s, mean_radius}, server_s,
 warnings [{t_s, kind, text}], evictions [{id, reason, t_s}], tracers [{id,
-state, chunks, resident, busy, queue, photons_per_s, rays_per_s, heartbeat_age_s, ...}],
+state, chunks, resident, busy, time: {tracing, loading, waiting, idle}, queue, photons_per_s, rays_per_s, heartbeat_age_s, ...}],
 chunk_table [{chunk, tracers, resident, portal_rays_in, portal_rays_out}]
 (services/server/history.py makes the derived ones). Text from the status
 is only ever set as textContent, never parsed as HTML.
@@ -72,9 +72,12 @@ PAGE = """<!DOCTYPE html>
   th { background: #ecece8; color: #444; font-weight: 600; }
   th.l, td.l { text-align: left; white-space: normal; overflow-wrap: anywhere; }
   .badge { display: inline-block; padding: 0 6px; border-radius: 8px; font-size: 12px; color: #fff; }
-  .s-active { background: #2e7d32; } .s-starved { background: #c77700; } .s-idle { background: #888; }
+  .s-tracing { background: #2e7d32; } .s-loading { background: #c77700; } .s-waiting { background: #5c6bc0; }
+  .s-idle { background: #888; }
+  .meter i.tracing { background: #2e7d32; } .meter i.loading { background: #c77700; }
+  .meter i.waiting { background: #5c6bc0; }
   .s-silent, .s-evicted { background: #b00020; } .s-rejoined { background: #3b78c3; }
-  .meter { display: inline-block; width: 60px; height: 8px; margin-right: 6px; background: #e6e6e2;
+  .meter { display: inline-flex; width: 60px; height: 8px; margin-right: 6px; background: #e6e6e2;
            border-radius: 4px; overflow: hidden; vertical-align: middle; }
   .meter i { display: block; height: 100%; background: #2e7d32; }
   .late { color: #b00020; font-weight: 600; }
@@ -224,7 +227,7 @@ function showNumbers(s) {
     const k = t.state || "registered";
     counts[k] = (counts[k] || 0) + 1;
   }
-  const order = ["active", "starved", "rejoined", "silent", "idle"];
+  const order = ["tracing", "loading", "waiting", "idle", "rejoined", "silent"];
   const parts = Object.entries(counts).sort(([a], [b]) => (order.indexOf(a) >>> 0) - (order.indexOf(b) >>> 0))
     .map(([k, n]) => n + " " + k);
   setText("tracer_summary", parts.length ? parts.join(", ") : "none");
@@ -302,20 +305,27 @@ function badge(state, title) {
   return td;
 }
 
-function busyCell(busy) {
+// Its time over the last heartbeats: tracing, loading a chunk and waiting
+// as one stacked bar (idle is the rest), the three shares as text.
+function timeCell(time) {
   const td = el("td");
-  if (!present(busy)) { td.textContent = "-"; return td; }
-  const m = el("span", null, "meter"), fill = el("i");
-  fill.style.width = (100 * busy).toFixed(0) + "%";
-  m.append(fill);
-  td.append(m, document.createTextNode((100 * busy).toFixed(0) + " %"));
+  if (!time) { td.textContent = "-"; return td; }
+  const m = el("span", null, "meter"), parts = ["tracing", "loading", "waiting"];
+  for (const k of parts) {
+    const fill = el("i", null, k);
+    fill.style.width = (100 * time[k]).toFixed(0) + "%";
+    m.append(fill);
+  }
+  m.title = parts.concat(["idle"]).map(k => k + " " + (100 * time[k]).toFixed(0) + " %").join(", ");
+  td.append(m, document.createTextNode(parts.map(k => (100 * time[k]).toFixed(0)).join(" / ") + " %"));
   return td;
 }
 
 function showTracers(s) {
   const table = document.getElementById("tracers"), tracers = s.tracers || [];
   table.replaceChildren();
-  row(table, ["Tracer", "State", "Chunks", "In memory", "Busy", "Queue", "Photons/s", "Heartbeat"]
+  row(table, ["Tracer", "State", "Chunks", "In memory", "Tracing / loading / waiting", "Queue", "Photons/s",
+              "Heartbeat"]
     .map((h, i) => el("th", h, i < 3 ? "l" : "")));
   for (const t of tracers) {
     const chunks = el("td", ranges(t.chunks), "l");
@@ -324,7 +334,7 @@ function showTracers(s) {
       ? t.chunks.filter(k => t.resident.includes(k)).length + " of " + t.chunks.length : "-";
     const age = el("td", present(t.heartbeat_age_s) ? t.heartbeat_age_s.toFixed(1) + " s ago" : "-");
     if (t.heartbeat_age_s > SILENT_S) age.className = "late";
-    row(table, [el("td", t.id, "l"), badge(t.state || "-"), chunks, el("td", mem), busyCell(t.busy),
+    row(table, [el("td", t.id, "l"), badge(t.state || "-"), chunks, el("td", mem), timeCell(t.time),
                 el("td", num(t.queue)), el("td", num(t.photons_per_s)), age]);
   }
   const here = new Set(tracers.map(t => t.id)), shown = new Set();
