@@ -35,20 +35,19 @@ from __future__ import annotations
 
 import itertools
 from collections import deque
-from dataclasses import dataclass, field
 
 import numpy as np
 
 from dosppm_core.chunks.pacing import FIRST_QUEUE_RAYS, default_queue_memory
 from dosppm_core.chunks.view import located_photons, start_chunks
-from dosppm_core.jobs import END_NAMES, HitPoints, PhotonDeposits, RayBatch
+from dosppm_core.jobs import END_NAMES, RayBatch
 from dosppm_core.settings import RenderSettings
-from dosppm_core.sppm.iteration import EyePass
 from dosppm_core.trace import NO_CULL, eye_ray_job
-from services.credit import Account, by_job, new_job
+from services.credit import by_job, new_job
 from services.server.balance import FIRST_REBALANCE_S, REBALANCE_INTERVAL_S, assign_chunks, rebalanced
 from services.server.held import COMPLETE, DEPOSIT_BYTES, DISCARDED, IN_FLIGHT, HeldDeposits, JobStatus
 from services.server.job_messages import JobMessages
+from services.server.records import EyeIteration, Job, TracerInfo, Update  # noqa: F401 (Update: the shell's)
 from services.wire import JOB_MESSAGES, PROTOCOL_VERSION, Out
 
 MESSAGE_RAYS = 32_768         # rays per job message the server aims for
@@ -62,79 +61,19 @@ HEARTBEAT_INTERVAL_S = 1.0
 JOB_MESSAGE_LOST_S = 4.0
 # A job untouched this long while every tracer is idle is lost (`_watchdog`).
 STALL_S = 4.0
+# What the state counts (status "counters", OUT.json).
+COUNTERS = ("photons_emitted", "photons_completed", "photons_committed", "photon_jobs_completed",
+            "eye_jobs_completed", "hit_points", "deposits_received", "photon_paths_ended", "culled",
+            "stale_paths", "over_credited_jobs", "results", "updates", "rebalanced", "photons_discarded",
+            "jobs_discarded", "tracers_evicted", "eye_iterations_restarted", "deposits_discarded",
+            "deposits_stale", "deposits_late", "refused", "tracers_rejoined", "jobs_timed_out",
+            "welcomes_resent", "job_messages_lost", "jobs_abandoned", "photons_abandoned")
 LATENCIES_KEPT = 64           # photon jobs' latencies the deadline's estimate takes the median of
 # Tracer heartbeat fields the server passes on in its status.
 STATUS_KEYS = ("load", "resident", "busy_s", "steps", "rays_traced", "photons_traced", "portal_by_chunk",
                "portal_rays_out", "portal_rays_in", "chunk_loads", "load_s", "load_wait_s", "wasted_prefetches",
                "queue_target", "idle_s", "receive_s", "step_send_s", "forwarded_rays", "cpu_s", "bytes_to_server",
                "bytes_to_peers", "outbox", "outbox_rays", "rays_by_chunk")
-
-
-@dataclass
-class TracerInfo:
-    id: str
-    index: int
-    endpoint: str
-    cores: int
-    memory_bytes: int
-    store_key: str | None
-    last_seen_s: float
-    public_key: str | None = None   # its CURVE key, handed to its peers
-    session: int = 0                # counts its welcomes; heartbeats echo the one it got
-    welcomed_s: float = 0.0
-    status_s: float = -1e30         # when its last heartbeat came
-    jobs_sent: int = 0              # job messages sent since the welcome...
-    unacked: deque = field(default_factory=deque)   # ...and when, for those not yet acknowledged
-    queued: int = 0                 # rays waiting at the tracer, as last reported
-    queue_target: int = 0           # rays it asks to have queued (0: the server's credit)
-    sent_since_report: int = 0      # rays sent to it since
-    status: dict = field(default_factory=dict)
-    rays_sent: int = 0
-    results: int = 0
-
-    @property
-    def load_estimate(self) -> int:
-        return self.queued + self.sent_since_report
-
-
-@dataclass
-class Job:
-    kind: str                        # "photon" or "eye"
-    paths: int                       # N_j, counted as emitted when complete
-    eye_iteration: int | None = None
-    credit: Account = field(default_factory=Account)   # returned so far (services/credit.py)
-    sent: bool = False               # all its paths have left the server
-    progress_s: float = 0.0          # when a result last touched it (the watchdog's clock)
-    # The photon job whose random streams this one traces: itself, or the
-    # job it re-emits after a tracer failure (the same photons, a new id).
-    rng_key: int | None = None
-    cull_box: np.ndarray | None = None    # a photon job's, as sent (§4.3)
-    made_s: float = 0.0              # when it was made (its latency, `latency_estimate_s`)
-
-
-@dataclass
-class EyeIteration:
-    index: int
-    open_jobs: int
-    results: EyePass = field(default_factory=EyePass)
-
-
-@dataclass
-class Update:
-    """One statistics step for the shell to run, in order: install the hit
-    points of a complete eye iteration, or apply a batch of photons."""
-    kind: str                        # "hits", "photons", "checkpoint" or "snapshot" (the image)
-    hits: HitPoints | None = None
-    emitted_light: tuple | None = None
-    deposits: list | None = None     # "photons": the batch, as the parts it arrived in
-    photons_emitted: int = 0
-    directory: str | None = None     # "checkpoint": where, and what besides the statistics
-    meta: dict | None = None
-    # What was applied, for the ledger (services/ledger.py): the eye
-    # iteration of "hits"; the committed jobs of "photons" as (rng keys,
-    # paths, cull boxes (n, 2, 3)).
-    eye_iteration: int | None = None
-    jobs: tuple | None = None
 
 
 class ServerState:
@@ -189,15 +128,7 @@ class ServerState:
         self._ready_emitted, self._ready_jobs = 0, []    # photon paths and jobs complete since the last batch
         self.updates: deque[Update] = deque()
         self._last_heartbeat, self._balanced_at = -1e30, None     # _balanced_at: see _rebalance
-        self.counters = {"photons_emitted": 0, "photons_completed": 0, "photons_committed": 0,
-                         "photon_jobs_completed": 0, "eye_jobs_completed": 0, "hit_points": 0,
-                         "deposits_received": 0, "photon_paths_ended": 0, "culled": 0, "stale_paths": 0,
-                         "over_credited_jobs": 0, "results": 0, "updates": 0, "rebalanced": 0,
-                         "photons_discarded": 0, "jobs_discarded": 0, "tracers_evicted": 0,
-                         "eye_iterations_restarted": 0, "deposits_discarded": 0, "deposits_stale": 0,
-                         "deposits_late": 0, "refused": 0, "tracers_rejoined": 0,
-                         "jobs_timed_out": 0, "welcomes_resent": 0, "job_messages_lost": 0,
-                         "jobs_abandoned": 0, "photons_abandoned": 0}
+        self.counters = dict.fromkeys(COUNTERS, 0)
         self.path_ends = np.zeros(len(END_NAMES), np.int64)
         self._latencies: deque = deque(maxlen=LATENCIES_KEPT)     # of the last photon jobs complete
 
@@ -398,7 +329,7 @@ class ServerState:
             self.counters["photon_jobs_completed"] += 1
             self._ready_emitted += job.paths
             self._ready_jobs.append((j, job))
-            self._latencies.append(self._now - job.made_s)
+            self._latencies.append(self._now - job.sent_s)
             return
         self.counters["eye_jobs_completed"] += 1
         e = self.eye
@@ -623,8 +554,7 @@ class ServerState:
         self.next_job += 1
         if kind == "photon":
             self._job_status.set(j, IN_FLIGHT)
-        self.jobs[j] = Job(kind, paths, eye_iteration=eye_iteration, rng_key=j if rng_key is None else rng_key,
-                           made_s=self._now)
+        self.jobs[j] = Job(kind, paths, eye_iteration=eye_iteration, rng_key=j if rng_key is None else rng_key)
         if kind == "photon":
             self.photon_jobs_in_flight += 1
         return j
@@ -673,7 +603,7 @@ class ServerState:
             parts.add((t.id, k), part, share)
             receivers.add(t.id)
         self.jobs[j].sent = True
-        self.jobs[j].progress_s = self._now
+        self.jobs[j].progress_s = self.jobs[j].sent_s = self._now
         self._credit(j, kept)               # the server's own share: all of it when none was sent
         return receivers
 
@@ -760,13 +690,14 @@ class ServerState:
         self._photon_pending.clear()
 
     def latency_estimate_s(self) -> float:
-        """Seconds from a photon job's making to its completion: the median
+        """Seconds from sending a photon job to its completion: the median
         of the last ones complete, or, before any, the age of the oldest in
-        flight (it is at least that). A job made later than this before a
-        deadline is unlikely to count."""
+        flight (it is at least that). A job sent later than this before a
+        deadline is unlikely to count. (Jobs made but not sent wait at the
+        server, and are dropped when emission stops.)"""
         if self._latencies:
             return float(np.median(self._latencies))
-        made = [job.made_s for job in self.jobs.values() if job.kind == "photon" and job.sent]
+        made = [job.sent_s for job in self.jobs.values() if job.kind == "photon" and job.sent]
         return self._now - min(made) if made else 0.0
 
     def drain_estimate_s(self) -> float:
