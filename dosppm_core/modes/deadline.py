@@ -4,7 +4,9 @@
 after T. A renderer meets it by not starting work it cannot finish: it
 sizes what it emits near the end by its measured rate, so what is in
 flight at T is small, and it is either applied within the grace or
-left out whole, job by job, and counted. The clock is the render's: it
+left out and counted: whole jobs in the render service, the rays still
+queued in OSPPM (their photons' deposits so far stay applied: see
+modes/osppm.py). The clock is the render's: it
 starts with the first iteration (compiling kernels and loading the scene
 come before it).
 """
