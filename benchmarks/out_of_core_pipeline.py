@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import shutil
 import socket
 import subprocess
@@ -97,8 +98,9 @@ def _dosppm(*args: str, cgroup: str | None = None) -> subprocess.Popen:
                             stderr=subprocess.PIPE, text=True, env=env, preexec_fn=join if cgroup else None)
 
 
-def _peak(p: subprocess.Popen, timeout_s: float) -> tuple[int, float]:
-    """Wait for `p` (its exit status checked): (peak RSS bytes, seconds)."""
+def _peak(p: subprocess.Popen, timeout_s: float) -> tuple[int, float, str]:
+    """Wait for `p` (its exit status checked): (peak RSS bytes, seconds,
+    the end of what it wrote to stderr)."""
     t0 = time.monotonic()
     while time.monotonic() - t0 < timeout_s:
         pid, status, usage = os.wait4(p.pid, os.WNOHANG)
@@ -106,7 +108,7 @@ def _peak(p: subprocess.Popen, timeout_s: float) -> tuple[int, float]:
             code = os.waitstatus_to_exitcode(status)
             if code != 0:
                 raise RuntimeError(f"{p.args[3:5]} exited {code}: {p.stderr.read()[-2000:]}")
-            return usage.ru_maxrss * 1024, time.monotonic() - t0
+            return usage.ru_maxrss * 1024, time.monotonic() - t0, p.stderr.read()[-4000:]
         time.sleep(0.2)
     p.kill()
     raise RuntimeError(f"{p.args[3:5]} did not finish in {timeout_s} s")
@@ -138,8 +140,21 @@ def _flags(memory: str, queue_memory: str) -> list[str]:
             for x in (flag, v)]
 
 
+def _wrote(stderr: str) -> dict:
+    """The render's own last line, "wrote OUT after K iterations, N photons,
+    S s": the photons in its image and its render clock."""
+    m = re.findall(r"wrote \S+ after (\d+) iterations?, ([\d,]+) photons, ([\d.]+) s", stderr)
+    if not m:
+        return {}
+    k, n, s = m[-1]
+    return {"iterations": int(k), "photons_applied": int(n.replace(",", "")), "render_clock_s": float(s)}
+
+
 def run(work: str, triangles: int, seconds: float, memory: str, queue_memory: str,
-        cgroups: MemoryCgroups | None = None) -> dict:
+        cgroups: MemoryCgroups | None = None, photons: int | None = None) -> dict:
+    """With `photons`, both renders stop once that many are emitted and
+    drain (the same work in each); otherwise each has `seconds` as its
+    deadline (--time)."""
     soup, store = os.path.join(work, "building"), os.path.join(work, "building.chunks")
     shutil.rmtree(work, ignore_errors=True)
 
@@ -157,11 +172,12 @@ def run(work: str, triangles: int, seconds: float, memory: str, queue_memory: st
     store_bytes = sum(os.path.getsize(os.path.join(store, f)) for f in os.listdir(store) if f.endswith(".bin"))
     shutil.rmtree(soup)
     flags = _flags(memory, queue_memory)
-    procs["osppm"] = _peak(step("osppm", "render", store, "--mode", "osppm", "--time", str(seconds), *flags,
+    stop = ["--photons", str(photons)] if photons else ["--time", str(seconds)]
+    procs["osppm"] = _peak(step("osppm", "render", store, "--mode", "osppm", *stop, *flags,
                                 "--out", os.path.join(work, "osppm.exr")), seconds + 600)
     port = _free_port()
     server = step("server", "server", store, "--bind", f"tcp://127.0.0.1:{port}", "--http", "off",
-                  "--min-tracers", "2", "--time", str(seconds), "--threads", "1", *_flags("default", queue_memory),
+                  "--min-tracers", "2", *stop, "--threads", "1", *_flags("default", queue_memory),
                   "--out", os.path.join(work, "dosppm.exr"))
     tracers = [step(f"tracer {i}", "worker", "--server", f"tcp://127.0.0.1:{port}", "--store", store, *flags,
                     "--threads", "1", "--id", f"t{i}", "--cache-dir", os.path.join(work, f"cache{i}"))
@@ -171,12 +187,14 @@ def run(work: str, triangles: int, seconds: float, memory: str, queue_memory: st
         procs[f"tracer {i}"] = _peak(t, 120)
     from dosppm_core.chunks.store import ChunkStore      # after the children: this process stays small for them
     chunk_memory = ChunkStore.open(store).chunk_memory
-    return {"store_bytes": store_bytes, "triangles": triangles, "render_s": seconds, "chunk_memory": memory,
+    return {"store_bytes": store_bytes, "triangles": triangles, "render_s": None if photons else seconds,
+            "photons": photons, "chunk_memory": memory,
             "queue_memory": queue_memory, "parent_rss_bytes": _own_rss(), "chunks": len(chunk_memory),
             "chunk_memory_bytes": float(sum(chunk_memory)),
             "processes": {k: {"peak_bytes": v[0], "seconds": round(v[1], 1),
                               **({"cgroup_peak_bytes": cgroups.peak(k)} if cgroups else {})}
                           for k, v in procs.items()},
+            "renders": {m: _wrote(procs[k][2]) for m, k in (("osppm", "osppm"), ("dosppm", "server"))},
             "mean_luminance": {m: _mean_luminance(os.path.join(work, f"{m}.exr")) for m in ("osppm", "dosppm")}}
 
 
@@ -192,15 +210,25 @@ def report(doc: dict) -> str:
              f"{doc['store_bytes'] / MiB:,.0f} MiB on disk ({doc['store_over_limit']}x the limit) and "
              f"{doc['chunk_memory_bytes'] / MiB:,.0f} MiB loaded ({doc['chunk_memory_over_limit']}x); "
              f"limit {limit / MiB:,.0f} MiB a process" + (", each in a memory cgroup of it (enforced)" if enforced
-                                                          else "") + f"; {holds}; {doc['render_s']:g} s renders.",
+                                                          else "") + f"; {holds}; {_stop(doc)}.",
              "", "| process | peak RSS | under the limit | seconds |", "|---|---|---|---|"]
     for k, v in doc["processes"].items():
         ok = "yes" if v["peak_bytes"] <= limit else "**no**"
         secs = "with the server" if k.startswith("tracer") else f"{v['seconds']:,.1f}"
         lines.append(f"| {k} | {v['peak_bytes'] / MiB:,.0f} MiB | {ok} | {secs} |")
-    lum = doc["mean_luminance"]
+    lum, renders = doc["mean_luminance"], doc.get("renders", {})
     lines += ["", f"Mean luminance: OSPPM {lum['osppm']:.4g}, DOSPPM {lum['dosppm']:.4g}."]
+    for m, r in renders.items():
+        if r:
+            lines.append(f"{m.upper()}: {r['photons_applied']:,} photons in the image after {r['iterations']} eye "
+                         f"iterations, render clock {r['render_clock_s']:.1f} s.")
     return "\n".join(lines) + "\n"
+
+
+def _stop(doc: dict) -> str:
+    if doc.get("photons"):
+        return f"each render stops at {doc['photons']:,} photons emitted and drains"
+    return f"{doc['render_s']:g} s renders (--time, a deadline)"
 
 
 def main(argv=None) -> int:
@@ -213,7 +241,9 @@ def main(argv=None) -> int:
                    "'default': the renderer's own choice)")
     p.add_argument("--queue-memory", default="64MiB",
                    help="queued rays per rendering process, deposits held by the server (--queue-memory)")
-    p.add_argument("--seconds", type=float, default=25)
+    p.add_argument("--seconds", type=float, default=25, help="each render's deadline (--time)")
+    p.add_argument("--photons", type=float, default=None,
+                   help="instead of --seconds: each render stops once N photons are emitted, and drains")
     p.add_argument("--cgroup", action="store_true",
                    help="run each step in a memory cgroup of --limit: enforced, and what the defaults see")
     p.add_argument("--work", default="/tmp/dosppm-out-of-core")
@@ -222,7 +252,8 @@ def main(argv=None) -> int:
     limit = parse_bytes(args.limit, "--limit")
     cgroups = MemoryCgroups(limit) if args.cgroup else None
     try:
-        doc = run(args.work, int(args.triangles), args.seconds, args.memory, args.queue_memory, cgroups)
+        doc = run(args.work, int(args.triangles), args.seconds, args.memory, args.queue_memory, cgroups,
+                  int(args.photons) if args.photons else None)
     finally:
         if cgroups:
             cgroups.close()
@@ -234,7 +265,7 @@ def main(argv=None) -> int:
         print(f"{k:10s} peak {v['peak_bytes'] / MiB:6.0f} MiB  {v['seconds']:6.1f} s")
     print(f"store {doc['store_bytes'] / MiB:,.0f} MiB = {doc['store_over_limit']}x the limit on disk, "
           f"{doc['chunk_memory_over_limit']}x loaded ({doc['chunks']} chunks); over the limit: "
-          f"{doc['over_limit'] or 'none'}; mean luminance {doc['mean_luminance']}")
+          f"{doc['over_limit'] or 'none'}; mean luminance {doc['mean_luminance']}; renders {doc['renders']}")
     if args.json:
         write_results(args.json, doc)
     shutil.rmtree(args.work, ignore_errors=True)

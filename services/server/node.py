@@ -198,13 +198,20 @@ class ServerProcess:
             if cut or (phase == "draining" and (self.state.drained or now > drain_deadline
                                                 or self._signals > 1)):
                 if not self.state.drained:
-                    log.warning("stopping with %d jobs in flight%s", len(self.state.jobs),
-                                ": the time limit's grace is spent" if cut else "")
+                    log.warning("stopping with %d jobs in flight%s%s", len(self.state.jobs),
+                                ": the time limit's grace is spent" if cut else "", self._none_in_time())
                 self.state.stop_emitting()
                 self.state.abandon_jobs_in_flight()
                 self.state.finish()
                 self._pump_updates()
                 return
+
+    def _none_in_time(self) -> str:
+        c = self.state.counters
+        if c["photons_committed"] or not c["photons_emitted"]:
+            return ""
+        return ("; no photon job completed in time, so the image holds no photons (out of core a job "
+                "waits for chunk loads: give --time more)")
 
     def _say_waiting(self) -> None:
         """A line whenever what the render waits for changes: tracers to
