@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 
 DIRECT_MODES = ("nee", "photons")
+LIGHT_CACHE_BYTES = 32 << 20   # RenderSettings.light_cache
 # Photons per iteration when none are given: per pixel of the image, so an
 # eye pass (hit points and their shadow rays, which carry the direct light)
 # comes as often, relative to the photons, at any image size. Measured at
@@ -49,8 +50,12 @@ class RenderSettings:
     # iteration; photons deposit from their second surface on) or
     # 'photons' (the paper's pure estimator: every photon deposits).
     direct: str = "nee"
+    # Bytes of the light cache each rendering process learns from the
+    # photons' first hits (which lights reach where; kernels/light_cache.py),
+    # counted in its memory for chunks; 0: the light tree alone.
+    light_cache: int = LIGHT_CACHE_BYTES
 
-    def for_image(self, pixels: int) -> "RenderSettings":
+    def for_image(self, pixels: int) -> RenderSettings:
         """These settings with photons per iteration fixed for an image of
         `pixels` pixels (unchanged where given)."""
         if self.photons_per_iteration is not None:

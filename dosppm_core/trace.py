@@ -7,7 +7,9 @@ import numpy as np
 
 from dosppm_core.accel import Accelerator
 from dosppm_core.jobs import STORED, HitPoints, PhotonDeposits, RayBatch, ShadowRays
-from dosppm_core.kernels import direct, emit, paths
+from dosppm_core.kernels import direct, emit, light_cache, paths
+from dosppm_core.kernels.light_cache import LightCache
+from dosppm_core.kernels.light_tree import build_light_tree
 from dosppm_core.kernels.paths import SurfaceData
 from dosppm_core.scene.model import LIGHT_TRIANGLE, LightTable, Scene
 
@@ -31,10 +33,11 @@ def emit_photon_jobs(scene: Scene, seed: int, keys, counts, eps_abs: float) -> R
     counts = np.asarray(counts, np.int64)
     starts = np.zeros(len(counts) + 1, np.int64)
     np.cumsum(counts, out=starts[1:])
-    o, d, f, st = emit.emit_photons(L.kind, L.p0, L.p1, L.p2, L.value, L.cone, L.power,
-                                    L.cdf, np.uint64(seed), keys, starts, eps_abs)
-    n = int(starts[-1])
-    return RayBatch(o, d, f, np.full(n, -1, np.int32), np.zeros(n, np.int32), st,
+    o, d, f, st, light = emit.emit_photons(L.kind, L.p0, L.p1, L.p2, L.value, L.cone, L.power,
+                                           L.cdf, np.uint64(seed), keys, starts, eps_abs)
+    # A photon path's pixel is -1 - its light: its first hit teaches the
+    # light cache (`kernels.light_cache`) which light reaches there.
+    return RayBatch(o, d, f, -1 - light, np.zeros(len(light), np.int32), st,
                     job=np.repeat(keys.astype(np.int64), counts))
 
 
@@ -48,18 +51,22 @@ def eye_ray_job(scene: Scene, seed: int, iteration: int, pixel_start: int, count
 
 
 def photon_step(accel: Accelerator, surf: SurfaceData, batch: RayBatch,
-                cull_box: np.ndarray, max_depth: int, deposit_from: int = 0):
+                cull_box: np.ndarray, max_depth: int, deposit_from: int = 0, lights: tuple | None = None):
     """One bounce. Returns (deposits, continuing batch, end counts, culled)."""
     prim, _t, u, v = accel.intersect(batch.origin, batch.direction)
-    return scatter_photons(surf, batch, prim, u, v, cull_box, max_depth, deposit_from)
+    return scatter_photons(surf, batch, prim, u, v, cull_box, max_depth, deposit_from, lights)
 
 
 def scatter_photons(surf: SurfaceData, batch: RayBatch, prim, u, v,
-                    cull_box: np.ndarray, max_depth: int, deposit_from: int = 0):
+                    cull_box: np.ndarray, max_depth: int, deposit_from: int = 0, lights: tuple | None = None):
     """The photon bounce at known hits (`prim` -1: escaped), for any
     aggregate: the whole scene or one chunk (`surf` indexes like `prim`).
     Photons deposit from their surface `deposit_from` on (0 or 1: see
-    `RenderSettings.deposit_from`)."""
+    `RenderSettings.deposit_from`). With `lights` (`light_arrays`), the
+    first hits teach its light cache."""
+    if lights is not None:
+        light_cache.learn_first_hits(lights[LEARN], batch.direction, batch.weight, batch.depth,
+                                     batch.pixel, prim, u, v, surf)
     # float64: one compiled kernel whatever the caller's box (exact for float32)
     box = np.asarray(cull_box, np.float64)
     ends, culled, dep, nxt = paths.scatter_photons(
@@ -97,10 +104,27 @@ def advance_eye(surf: SurfaceData, batch: RayBatch, prim, u, v, max_depth: int,
 
 
 # -- direct light -----------------------------------------------------------------
-def light_arrays(lights: LightTable) -> tuple:
-    """The light table as the tuple the direct-light kernel reads."""
+LIGHT_CACHE = 14      # light_arrays()[LIGHT_CACHE]: the light cache's arrays the eye passes read
+LEARN = 15            # light_arrays()[LEARN]: those the photons teach (the same, or the live ones)
+
+
+def light_arrays(lights: LightTable, cache: LightCache | None = None) -> tuple:
+    """The light table as the tuple the direct-light kernel reads: its rows,
+    its light tree's arrays (flat: numba's parallel loops refuse a tuple
+    nested in their arguments) and the arrays of the light cache that the
+    photons' first hits teach (`kernels.light_cache`; none: the tree alone)."""
     L = lights
-    return (L.kind, L.p0, L.p1, L.p2, L.value, L.cone, L.power, L.cdf)
+    cache = cache if cache is not None else LightCache.empty()
+    return (L.kind, L.p0, L.p1, L.p2, L.value, L.cone, L.power, L.cdf, *build_light_tree(L), cache.read,
+            cache.arrays())
+
+
+def freeze_light_cache(lights: tuple | None) -> None:
+    """Start an eye iteration: its choices read the table as the photons
+    have taught it so far (`LightCache` with `frozen`)."""
+    if lights is not None and lights[LIGHT_CACHE][0] is not lights[LEARN][0]:
+        for read, live in zip(lights[LIGHT_CACHE], lights[LEARN]):
+            np.copyto(read, live)
 
 
 def shadow_rays(surf: SurfaceData, lights: tuple, hits: HitPoints, states, jobs) -> ShadowRays:
@@ -111,7 +135,7 @@ def shadow_rays(surf: SurfaceData, lights: tuple, hits: HitPoints, states, jobs)
     mis = bool(np.any(lights[0] == LIGHT_TRIANGLE))
     rows, o, d, tmax, rgb, pdf = direct.sample_direct(
         (hits.position, hits.normal, hits.outgoing, hits.weight, hits.material),
-        np.ascontiguousarray(states), surf, lights, mis, EPS_REL)
+        np.ascontiguousarray(states), surf, lights[:LIGHT_CACHE], lights[LIGHT_CACHE], mis, EPS_REL)
     return ShadowRays(o, d, rgb, tmax, pdf, hits.pixel[rows], job=np.asarray(jobs)[rows])
 
 
@@ -140,20 +164,21 @@ def trace_shadows(accel: Accelerator, surf: SurfaceData, lights: tuple, shadows:
     return shadow_results(shadows, prim, t, surf, lights[6].sum()), ends
 
 
-def trace_photons(accel, surf, batch, cull_box, max_depth, deposit_from: int = 0):
+def trace_photons(accel, surf, batch, cull_box, max_depth, deposit_from: int = 0, lights: tuple | None = None):
     """Follow one photon batch until every path ends (one aggregate)."""
     return trace_photon_jobs(accel, surf, [batch], cull_box, max_depth, min_batch=1,
-                             deposit_from=deposit_from)
+                             deposit_from=deposit_from, lights=lights)
 
 
 def trace_photon_jobs(accel, surf, jobs, cull_box, max_depth, min_batch: int = 32_768,
-                      on_batch=None, deposit_from: int = 0):
+                      on_batch=None, deposit_from: int = 0, lights: tuple | None = None):
     """Trace an iterable of photon jobs (RayBatches) as one stream: new jobs
     join the continuing paths whenever fewer than `min_batch` are in flight
     (client batching, §4.3), so Russian roulette's thinning tail never
     leaves Embree and the kernels with tiny batches. Paths draw from their
     own random streams, so the photons traced do not depend on the batching.
-    `on_batch(batch)` sees every traced batch (benchmarks replay them)."""
+    `on_batch(batch)` sees every traced batch (benchmarks replay them);
+    with `lights`, first hits teach its light cache."""
     jobs = iter(jobs)
     deposits, ends, culled = [], np.zeros(END_KINDS, np.int64), 0
     active, exhausted = RayBatch.empty(), False
@@ -172,7 +197,7 @@ def trace_photon_jobs(accel, surf, jobs, cull_box, max_depth, min_batch: int = 3
             break
         if on_batch is not None:
             on_batch(active)
-        dep, active, e, c = photon_step(accel, surf, active, cull_box, max_depth, deposit_from)
+        dep, active, e, c = photon_step(accel, surf, active, cull_box, max_depth, deposit_from, lights)
         deposits.append(dep)
         ends += e
         culled += c

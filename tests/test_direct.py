@@ -115,9 +115,9 @@ def _many_lamps(rng, n):
 
 
 def test_many_lights_chosen_by_their_contribution_stay_unbiased():
-    """Forty point lamps above the plane: the light chosen among a few
-    candidates by its unoccluded contribution (RIS) gives the closed-form
-    sum of all forty, per pixel and over the image."""
+    """Forty point lamps above the plane: the light chosen by the light
+    tree and the cells the photons taught gives the closed-form sum of all
+    forty, per pixel and over the image."""
     pos, power = _many_lamps(np.random.default_rng(7), 40)
 
     def lamps(b):
@@ -132,7 +132,67 @@ def test_many_lights_chosen_by_their_contribution_stay_unbiased():
         expected += (RHO / math.pi * i * (d[..., 2] / dist) / dist ** 2).mean(-1)
     got = _render(scene, iterations=256)
     assert got.mean() == pytest.approx(expected.mean(), rel=0.01)
-    np.testing.assert_allclose(got, expected, rtol=0.08)
+    # Per 2x2 pixels: one shadow ray a pixel and iteration among forty
+    # lamps leaves about 4% noise per pixel (measured), 2% per block: 5 sigma.
+    np.testing.assert_allclose(_blocks(got), _blocks(expected), rtol=0.1)
+
+
+def _blocks(img, k=2):
+    h, w = img.shape
+    return img.reshape(h // k, k, w // k, k).mean(axis=(1, 3))
+
+
+def _walled_scene(pos, power):
+    """The plane cut by a black wall x = 0 far higher and longer than the
+    lamps' reach; the camera sees only the side x < 0."""
+    def lamps(b):
+        b.add_material(Material("wall", "diffuse", (0.0, 0.0, 0.0)))
+        b.add_mesh(np.array([[0, -100, -1], [0, 100, -1], [0, 100, 50], [0, -100, 50]], float),
+                   [(0, 1, 2), (0, 2, 3)], "wall", "wall")
+        for k in range(len(pos)):
+            b.add_point_light(pos[k], (power[k],) * 3, f"lamp{k}")
+    scene = _plane_scene(lamps)
+    scene.camera = Camera((-2, 0, 0.8), (-2, 0, 0), (0, 1, 0), 70, SIZE, SIZE)
+    return scene
+
+
+def test_lamps_behind_a_wall_are_learned_away_and_the_image_stays_exact():
+    """Eight lamps on the camera's side of an opaque wall, twenty-four
+    behind it. The light tree cannot see the wall and sends most shadow
+    rays to the hidden lamps; the photons' first hits teach each cell of
+    the floor that only the near lamps reach it, so after a few iterations
+    the hidden lamps keep only the tree's defensive share. The image is
+    the near lamps' closed form either way."""
+    from dosppm_core.kernels.direct import choice_pmf
+    from dosppm_core.modes.sppm import Renderer
+    rng = np.random.default_rng(11)
+    near = np.c_[rng.uniform(-4, -0.5, 8), rng.uniform(-4, 4, 8), rng.uniform(0.3, 3.0, 8)]
+    far = np.c_[rng.uniform(0.5, 4, 24), rng.uniform(-4, 4, 24), rng.uniform(0.3, 3.0, 24)]
+    pos, power = np.r_[near, far], rng.uniform(0.5, 3.0, 32)
+    scene = _walled_scene(pos, power)
+    x = _pixel_points(scene)
+    expected = np.zeros(x.shape[:2])
+    for p, i in zip(near, power[:8]):
+        d = p - x
+        dist = np.linalg.norm(d, axis=-1)
+        expected += (RHO / math.pi * i * (d[..., 2] / dist) / dist ** 2).mean(-1)
+    r = Renderer(scene, RenderSettings(photons_per_iteration=30_000))
+    try:
+        hidden_tree = []
+        for it in range(256):
+            r.run_iteration()
+            if it == 0:
+                at = (-2.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+                hidden_tree = [choice_pmf(r.lights[:14], r.lights[14], *at, li) for li in range(8, 32)]
+        got = r.image()[..., 0]
+        hidden = [choice_pmf(r.lights[:14], r.lights[14], *at, li) for li in range(8, 32)]
+    finally:
+        r.close()
+    assert sum(t for _, t, _ in hidden_tree) > 0.5          # the tree alone: most choices behind the wall
+    assert all(c == 0.0 for _, _, c in hidden)             # no photon from behind reached the cell
+    assert sum(m for m, _, _ in hidden) < 0.1               # the mixture: the tree's defensive share only
+    assert got.mean() == pytest.approx(expected.mean(), rel=0.01)
+    np.testing.assert_allclose(_blocks(got), _blocks(expected), rtol=0.1)    # 2% noise a block
 
 
 def test_paper_estimator_blurs_the_same_light():
@@ -181,5 +241,5 @@ def test_glossy_plane_under_an_area_light(size):
         a = _render(scene, iterations=64)
         b = _render(scene, iterations=256)
         assert a.mean() == pytest.approx(b.mean(), rel=0.02)
-        tiles = lambda img: img.reshape(4, SIZE // 4, 4, SIZE // 4).mean(axis=(1, 3))   # noqa: E731
+        tiles = lambda img: img.reshape(4, SIZE // 4, 4, SIZE // 4).mean(axis=(1, 3))
         np.testing.assert_allclose(tiles(a), tiles(b), rtol=0.15)   # tiles: 3.6% noise at 64 iterations

@@ -551,9 +551,9 @@ def _light_scene(add_lights):
 
 def _emit(scene, count, seed=3, job=0, eps=1e-4):
     L = scene.lights
-    o, d, f, _ = emit.emit_photons(L.kind, L.p0, L.p1, L.p2, L.value, L.cone, L.power, L.cdf,
-                                   np.uint64(seed), np.array([job], np.uint64),
-                                   np.array([0, count], np.int64), eps)
+    o, d, f, _, _light = emit.emit_photons(L.kind, L.p0, L.p1, L.p2, L.value, L.cone, L.power, L.cdf,
+                                           np.uint64(seed), np.array([job], np.uint64),
+                                           np.array([0, count], np.int64), eps)
     return o.astype(np.float64), d.astype(np.float64), f.astype(np.float64)
 
 

@@ -8,7 +8,8 @@ import pytest
 
 from dosppm_core.chunks import pacing
 from dosppm_core.modes.osppm import OutOfCoreRenderer
-from dosppm_core.settings import RenderSettings
+from dosppm_core.settings import LIGHT_CACHE_BYTES, RenderSettings
+from dosppm_core.trace import LEARN
 from services.server.state import EMIT_PHOTONS_PER_TICK
 from services.tracer.state import TracerState
 from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
@@ -86,13 +87,16 @@ def test_the_default_chunk_memory_is_a_share_of_the_machine_less_what_a_process_
 
 def test_a_tracer_on_a_machine_smaller_than_its_chunks_keeps_a_share_of_it(four_chunks, monkeypatch):
     """Its chunks' memory when given none: what the machine (or cgroup)
-    leaves it, not all its chunks; at least one chunk, so it can render."""
+    leaves it, less its light cache, not all its chunks; at least one
+    chunk, so it can render."""
     largest = max(four_chunks.chunk_memory)
     room = pacing.PROCESS_BASE_BYTES + 1.5 * pacing.QUEUE_MEMORY_MIN
     monkeypatch.setattr(pacing, "machine_memory_bytes", lambda: int(room + 2.5 * largest))
     t = _tracer(four_chunks, None)
     try:
-        assert t.cache.memory == pytest.approx(2.5 * largest, abs=2) and not t.all_fit()
+        cache = min(LIGHT_CACHE_BYTES, 1.5 * largest)       # the light cache counts in it, up to one chunk less
+        assert t.lights[LEARN][0].nbytes > 0
+        assert t.cache.memory == pytest.approx(2.5 * largest - cache, abs=2) and not t.all_fit()
     finally:
         t.close()
     monkeypatch.setattr(pacing, "machine_memory_bytes", lambda: int(room))

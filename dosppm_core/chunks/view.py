@@ -119,16 +119,17 @@ def _continue_here(view: ChunkView, nxt: RayBatch, outgoing: dict, counts: np.nd
 
 
 def trace_photons_in_chunk(view: ChunkView, batch: RayBatch, cull_box, max_depth: int,
-                           deposit_from: int = 0):
-    """Follow photons in this chunk. Returns (deposits, end counts, culled,
-    {chunk: [RayBatch]} of photons leaving through portals)."""
+                           deposit_from: int = 0, lights: tuple | None = None):
+    """Follow photons in this chunk; with `lights` (`trace.light_arrays`),
+    their first hits here teach its light cache. Returns (deposits, end
+    counts, culled, {chunk: [RayBatch]} of photons leaving through portals)."""
     deposits, outgoing = [], {}
     counts, culled = np.zeros(END_KINDS, np.int64), 0
     while len(batch):
         prim, u, v, out = _find_hits(view, batch)
         _merge(outgoing, out)
         dep, nxt, ends, c = scatter_photons(view.surf, batch, prim, u, v, cull_box, max_depth,
-                                            deposit_from)
+                                            deposit_from, lights)
         deposits.append(dep)
         counts += ends
         culled += c

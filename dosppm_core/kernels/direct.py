@@ -23,15 +23,15 @@ point either way, so an eye path stays one path (exact accounting). Point
 and spot lights are sampled by the light alone (no direction finds them).
 
 Among many lights, power alone is a poor guide: most of a building's 600
-lamps are far from any one hit point. So the light is chosen by resampled
-importance sampling (Talbot et al. 2005): RIS_CANDIDATES lights and points
-are drawn by power, each weighted by its unoccluded contribution at the hit
-point over its pdf, and one is kept in proportion to its weight; the
-estimate is its contribution over its target times the mean weight, which
-is unbiased wherever the target is positive where the contribution is. It
-costs a few arithmetic samples and still one shadow ray. Glossy hit points
-under triangle lights keep power alone: the one-sample MIS above needs the
-light technique's pdf in closed form.
+lamps are far from any one hit point, or behind its walls. So elsewhere
+the light is chosen from a defensive mixture of the light tree
+(`light_tree`: bounds on what each group of lights can deliver to the hit
+point, O(log n)) and the lights its cell learned from the photons' first
+hits (`light_cache`: which lights reach there, walls included); the
+estimate divides by the mixture's probability of the light chosen, which
+is positive for every light that can light the hit point. Glossy hit points
+under triangle lights keep power alone: the one-sample MIS above needs
+the light technique's pdf where a BSDF-sampled ray finds an emitter.
 
 The light choice and the point on the light draw from the eye path's own
 random stream at the hit point, so the same seed samples the same light
@@ -44,13 +44,14 @@ import numpy as np
 
 from dosppm_core.kernels.bsdf import eval_bsdf, glossy_pdf, sample_bsdf
 from dosppm_core.kernels.emit import select_light
+from dosppm_core.kernels.light_cache import cell_pmf, pick_in_cell, read_cell
+from dosppm_core.kernels.light_tree import sample_tree, tree_pmf
 from dosppm_core.kernels.paths import offset_origin
 from dosppm_core.kernels.rng import next_float
 from dosppm_core.scene.model import GLOSSY, LIGHT_POINT, LIGHT_TRIANGLE
 
 C_LIGHT = 0.5          # share of light samples at glossy hit points (MIS); 1 elsewhere
 FIRST_HIT = 1e37       # tmax of a BSDF-sampled ray: finite (the wire refuses inf), past any scene
-RIS_CANDIDATES = 8     # lights drawn by power per shadow ray where there are several
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
@@ -87,7 +88,7 @@ def _sample_light(lights, li, p0, p1, p2, u1, u2):
     """A point y on light li seen from x = p: (y, unit wi from x to y,
     distance, the light's Le * G factor per colour channel scale (a scalar
     times `value`), and whether y lies on a surface (a triangle light))."""
-    kind, lp0, lp1, lp2, value, cone, _power, _cdf = lights
+    kind, lp0, lp1, lp2, cone = lights[0], lights[1], lights[2], lights[3], lights[5]
     if kind[li] == LIGHT_TRIANGLE:
         q0, q1, q2, m0, m1, m2, area = _point_on_triangle(lp0[li], lp1[li], lp2[li], u1, u2)
     else:
@@ -111,11 +112,13 @@ def _sample_light(lights, li, p0, p1, p2, u1, u2):
 
 
 @nb.njit(cache=True, parallel=True, error_model="numpy")
-def sample_direct(hits, states, surf, lights, mis, eps_rel):
+def sample_direct(hits, states, surf, lights, cache, mis, eps_rel):
     """One direct-light ray per hit point. `hits` is (position, normal,
     outgoing, weight, material) of `jobs.HitPoints`, `states` each eye
     path's rng state at its hit point, `surf` a `SurfaceData`, `lights`
-    the LightTable's (kind, p0, p1, p2, value, cone, power, cdf), `mis`
+    the LightTable's (kind, p0, p1, p2, value, cone, power, cdf) and its
+    light tree's arrays, `cache` the light cache's arrays (frozen: no
+    photon writes them meanwhile), `mis`
     whether the scene has triangle lights (glossy hit points then use MIS).
 
     Returns (rows, origin, direction, tmax, radiance, pdf) of the rays that
@@ -141,12 +144,12 @@ def sample_direct(hits, states, surf, lights, mis, eps_rel):
                 keep[i] = _bsdf_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf,
                                     u1, u2, eps_rel, out)
                 continue
-        if glossy or lights[6].shape[0] == 1:
+        if glossy:
             keep[i] = _light_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights,
                                  total, glossy, ul, u1, u2, eps_rel, out)
         else:
-            keep[i] = _resampled_light_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m,
-                                           surf, lights, total, st, ul, u1, u2, eps_rel, out)
+            keep[i] = _chosen_light_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights,
+                                        cache, st, ul, u1, u2, eps_rel, out)
     rows = np.flatnonzero(keep)
     origin, direction, tmax, radiance, pdf = out
     return rows, origin[rows], direction[rows], tmax[rows], radiance[rows], pdf[rows]
@@ -203,49 +206,53 @@ def _light_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights, t
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
-def _resampled_light_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights, total,
-                         st, ul, u1, u2, eps_rel, out):
-    """A shadow ray to one of RIS_CANDIDATES light points drawn by power,
-    kept in proportion to w = (f cos Le_Y G) / pdf (streaming, one reservoir);
-    its radiance is W refl (Le / Le_Y) * mean(w). Writes row i of `out`,
-    returns whether it may contribute."""
-    power, cdf, value = lights[6], lights[7], lights[4]
-    alpha = np.float64(surf.roughness[m])
-    kind = surf.kind[m]
-    w_sum, li_k, q0k, q1k, q2k, w0k, w1k, w2k, dist_k = 0.0, -1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-    for j in range(RIS_CANDIDATES):
-        if j > 0:
-            st, ul = next_float(st)
-            st, u1 = next_float(st)
-            st, u2 = next_float(st)
-        st, ur = next_float(st)
-        li = select_light(cdf, ul)
-        q0, q1, q2, w0, w1, w2, dist, g = _sample_light(lights, li, p0, p1, p2, u1, u2)
-        if not g > 0.0:
-            continue
-        cos_x = n0 * w0 + n1 * w1 + n2 * w2
-        if not cos_x > 0.0:
-            continue
-        f = eval_bsdf(kind, alpha, n0, n1, n2, o0, o1, o2, w0, w1, w2)
-        lum = 0.2126 * value[li, 0] + 0.7152 * value[li, 1] + 0.0722 * value[li, 2]
-        w = f * cos_x * g * lum * total / power[li]
-        if not w > 0.0:
-            continue
-        w_sum += w
-        if ur * w_sum < w:
-            li_k, q0k, q1k, q2k, w0k, w1k, w2k, dist_k = li, q0, q1, q2, w0, w1, w2, dist
-    if li_k < 0:
+def _chosen_light_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights, cache,
+                      st, ul, u1, u2, eps_rel, out):
+    """A shadow ray to a point on a light chosen from the defensive mixture
+    a p_tree + (1 - a) p_cell of the light tree at the hit point and the
+    lights its cell learned from the photons (`light_cache`). Writes
+    row i of `out`, returns whether it may contribute."""
+    tree = (lights[8], lights[9], lights[10], lights[11], lights[12], lights[13])
+    row, share, total = read_cell(cache, p0, p1, p2, n0, n1, n2)
+    st, um = next_float(st)
+    if um < share:
+        li, p_tree = sample_tree(tree, p0, p1, p2, n0, n1, n2, ul)
+        if li < 0:
+            return False
+    else:
+        li = pick_in_cell(cache, row, total, ul)
+        p_tree = tree_pmf(tree, li, p0, p1, p2, n0, n1, n2)
+    pmf = share * p_tree + (1.0 - share) * cell_pmf(cache, row, total, li)
+    q0, q1, q2, w0, w1, w2, dist, g = _sample_light(lights, li, p0, p1, p2, u1, u2)
+    if not (g > 0.0 and pmf > 0.0):
         return False
-    end = eps_rel * max(abs(q0k), abs(q1k), abs(q2k)) + surf.eps_abs
-    t = dist_k - 2.0 * end
+    cos_x = n0 * w0 + n1 * w1 + n2 * w2
+    if not cos_x > 0.0:
+        return False
+    f = eval_bsdf(surf.kind[m], np.float64(surf.roughness[m]), n0, n1, n2, o0, o1, o2, w0, w1, w2)
+    if not f > 0.0:
+        return False
+    # Stop short of the light: a triangle light must not shadow itself.
+    end = eps_rel * max(abs(q0), abs(q1), abs(q2)) + surf.eps_abs
+    t = dist - 2.0 * end
     if not t > 0.0:
         return False
-    lum = 0.2126 * value[li_k, 0] + 0.7152 * value[li_k, 1] + 0.0722 * value[li_k, 2]
-    _write_ray(i, out, p0, p1, p2, n0, n1, n2, w0k, w1k, w2k, t, w_sum / RIS_CANDIDATES / lum,
-               weight, surf.reflectance, m, 0.0, eps_rel, surf.eps_abs)
+    _write_ray(i, out, p0, p1, p2, n0, n1, n2, w0, w1, w2, t, f * cos_x * g / pmf, weight, surf.reflectance,
+               m, 0.0, eps_rel, surf.eps_abs)
     for k in range(3):
-        out[3][i, k] *= value[li_k, k]
+        out[3][i, k] *= lights[4][li, k]
     return True
+
+
+@nb.njit(cache=True, error_model="numpy")
+def choice_pmf(lights, cache, p0, p1, p2, n0, n1, n2, li):
+    """(mixture, tree, cell) probabilities with which `_chosen_light_ray`
+    at hit point p (normal n) picks light li, for tests and diagnostics."""
+    tree = (lights[8], lights[9], lights[10], lights[11], lights[12], lights[13])
+    row, share, total = read_cell(cache, p0, p1, p2, n0, n1, n2)
+    p_tree = tree_pmf(tree, li, p0, p1, p2, n0, n1, n2)
+    p_cell = cell_pmf(cache, row, total, li)
+    return share * p_tree + (1.0 - share) * p_cell, p_tree, p_cell
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")

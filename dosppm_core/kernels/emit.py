@@ -92,13 +92,14 @@ def emit_photons(kind, p0, p1, p2, value, cone, power, cdf, seed, jobs, starts, 
     Each photon's flux is radiant power / pdf, so the image is the sum over
     photons divided by the number emitted (eq. 5's N_e). Surface photons
     start `eps` off their light along its normal (Embree's tnear is 0).
-    Returns origin, direction, flux, rng state.
+    Returns origin, direction, flux, rng state, and the light of each.
     """
     count = starts[-1]
     origin = np.empty((count, 3), np.float32)
     direction = np.empty((count, 3), np.float32)
     flux = np.empty((count, 3), np.float32)
     states = np.empty(count, np.uint64)
+    light = np.empty(count, np.int32)
     total = power.sum()
     for i in nb.prange(count):
         m = np.searchsorted(starts, i, side="right") - 1
@@ -126,7 +127,8 @@ def emit_photons(kind, p0, p1, p2, value, cone, power, cdf, seed, jobs, starts, 
             direction[i, k] = d[k]
             flux[i, k] = value[li, k] * scale / p_sel
         states[i] = st
-    return origin, direction, flux, states
+        light[i] = li
+    return origin, direction, flux, states, light
 
 
 @nb.njit(cache=True, error_model="numpy")

@@ -25,10 +25,11 @@ from dosppm_core.chunks.cache import ChunkCache, next_with_work, release_freed_m
 from dosppm_core.chunks.view import (start_chunks, trace_eye_in_chunk, trace_photons_in_chunk,
                                      trace_shadows_in_chunk)
 from dosppm_core.jobs import ESCAPED, HitPoints, PhotonDeposits, RayBatch, ShadowRays
+from dosppm_core.kernels.light_cache import LightCache, share_of_memory
 from dosppm_core.modes.deadline import Deadline, Rate, that_fit
 from dosppm_core.settings import Progress, RenderSettings
 from dosppm_core.sppm.iteration import EyePass, SPPMIteration
-from dosppm_core.trace import NO_CULL, emit_photon_job, eye_ray_job, light_arrays
+from dosppm_core.trace import NO_CULL, emit_photon_job, eye_ray_job, freeze_light_cache, light_arrays
 
 
 TRACE_STEP_RAYS = 262_144      # photon rays traced at once in a chunk, at most (client batching up to this)
@@ -88,8 +89,11 @@ class OutOfCoreRenderer:
         self.pipelined = pipelined
         s = self.settings
         cost = np.asarray(provider.chunk_memory, np.float64)
+        cache_bytes = s.light_cache
         if memory_bytes is None:
             memory_bytes = float(cost.sum())
+        else:
+            memory_bytes, cache_bytes = share_of_memory(memory_bytes, cost.max(initial=0.0), s.light_cache)
         if memory_bytes < cost.max():
             raise ValueError(f"memory limit {memory_bytes:.0f} B is below the largest chunk "
                              f"({cost.max():.0f} B)")
@@ -100,7 +104,8 @@ class OutOfCoreRenderer:
             s.photons_per_iteration = max(s.photons_per_iteration, self.max_photons_per_iteration // 4)
         self.sppm = SPPMIteration(self.header, s)
         self.eps_abs = self.header.spawn_epsilon()
-        self.lights = light_arrays(self.header.lights) if s.direct == "nee" else None
+        self.lights = light_arrays(self.header.lights, LightCache(self.header.bounds, cache_bytes, frozen=True)) \
+            if s.direct == "nee" else None
         self.iteration = 0
         self.eye_iterations = 0
         self.next_photon_job = 0
@@ -254,6 +259,7 @@ class OutOfCoreRenderer:
                                 min(s.tile_pixels, n_pix - start))
             self._enqueue(self._eye_queues, batch)
         self._eye = EyePass(self.eye_iterations)
+        freeze_light_cache(self.lights)
 
     def _finish_eye_iteration(self) -> None:
         self.sppm.install_eye_pass(self._eye)
@@ -377,7 +383,7 @@ class OutOfCoreRenderer:
             batch = RayBatch.concat(self._take(self._photon_queues[k], self.trace_step_rays))
             self._rays_traced += len(batch)
             dep, ends, _culled, out = trace_photons_in_chunk(view, batch, self._cull, s.max_depth,
-                                                             s.deposit_from)
+                                                             s.deposit_from, self.lights)
             self._account(ends, out, self._photon_queues)
             self.phase_seconds["photon"] += time.perf_counter() - t0
             self._add_deposits(dep)

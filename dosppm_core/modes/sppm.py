@@ -12,12 +12,13 @@ import time
 import numpy as np
 
 from dosppm_core.accel import Accelerator
+from dosppm_core.kernels.light_cache import LightCache
 from dosppm_core.modes.deadline import Deadline, Rate, that_fit
 from dosppm_core.scene.model import Scene
 from dosppm_core.settings import Progress, RenderSettings
 from dosppm_core.sppm.iteration import EyePass, SPPMIteration
-from dosppm_core.trace import (SurfaceData, emit_photon_job, eye_ray_job, light_arrays, trace_eye,
-                               trace_photon_jobs)
+from dosppm_core.trace import (SurfaceData, emit_photon_job, eye_ray_job, freeze_light_cache, light_arrays,
+                               trace_eye, trace_photon_jobs)
 
 
 class Renderer:
@@ -29,7 +30,8 @@ class Renderer:
         self.settings.validate()
         self.accel = Accelerator(scene.vertices, scene.triangles, threads=self.settings.threads)
         self.surf = SurfaceData.from_scene(scene)
-        self.lights = light_arrays(scene.lights) if self.settings.direct == "nee" else None
+        self.lights = light_arrays(scene.lights, LightCache(scene.bounds(), self.settings.light_cache, frozen=True)) \
+            if self.settings.direct == "nee" else None
         self.sppm = SPPMIteration(scene, self.settings)
         self.iteration = 0
         self.next_photon_job = 0
@@ -71,6 +73,7 @@ class Renderer:
         s, cam = self.settings, self.scene.camera
         n_pix = int(cam.width) * int(cam.height)
         eye = EyePass(self.iteration)
+        freeze_light_cache(self.lights)
         for start in range(0, n_pix, s.tile_pixels):
             batch = eye_ray_job(self.scene, s.seed, self.iteration, start,
                                 min(s.tile_pixels, n_pix - start))
@@ -94,7 +97,7 @@ class Renderer:
             t0 = time.perf_counter()
             deposits, ends, _culled = trace_photon_jobs(
                 self.accel, self.surf, self._jobs(count), cull, s.max_depth,
-                deposit_from=s.deposit_from)
+                deposit_from=s.deposit_from, lights=self.lights)
             self.sppm.count_path_ends(ends)
             self.sppm.add_photons(deposits, count)
             self.photon_rate.add(count, time.perf_counter() - t0)

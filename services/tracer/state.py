@@ -29,6 +29,8 @@ from dosppm_core.chunks import pacing
 from dosppm_core.chunks.cache import ChunkCache, next_with_work
 from dosppm_core.chunks.view import trace_eye_in_chunk, trace_photons_in_chunk, trace_shadows_in_chunk
 from dosppm_core.jobs import HitPoints, RayBatch, ShadowRays, paths_per_job
+from dosppm_core.kernels.light_cache import LightCache, share_of_memory
+from dosppm_core.settings import LIGHT_CACHE_BYTES
 from dosppm_core.trace import light_arrays
 from services.credit import split as split_credit
 from services.wire import Out
@@ -82,16 +84,19 @@ class TracerState:
 
     def __init__(self, endpoint: str, provider, max_depth: int, memory_bytes: float | None = None,
                  threads: int = 1, step_rays: int = STEP_RAYS, direct: str = "nee",
-                 queue_memory_bytes: float | None = None):
+                 queue_memory_bytes: float | None = None, light_cache: int = LIGHT_CACHE_BYTES):
         self.endpoint, self.provider, self.max_depth = endpoint, provider, int(max_depth)
         # Direct light by shadow rays ('nee'): photons deposit from their
         # second surface on. 'photons': the paper's pure estimator.
-        self.lights = light_arrays(provider.header.lights) if direct == "nee" else None
         self.deposit_from = 1 if direct == "nee" else 0
         self.step_rays = int(step_rays)
         cost = np.asarray(provider.chunk_memory, np.float64)
         if memory_bytes is None:        # its share of the machine, at least one chunk
             memory_bytes = float(pacing.default_chunk_memory(at_least=cost.max(initial=0.0)))
+        # The light cache this tracer learns for its chunks counts in its memory.
+        memory_bytes, cache_bytes = share_of_memory(memory_bytes, cost.max(initial=0.0), light_cache)
+        self.lights = light_arrays(provider.header.lights, LightCache(provider.header.bounds, cache_bytes)) \
+            if direct == "nee" else None
         self.cache = ChunkCache(provider, memory_bytes, threads=threads)
         self.queue_cap = pacing.queue_cap_rays(queue_memory_bytes)
         self._queue_target, self._loads_at_pace = 0, 0
@@ -312,7 +317,7 @@ class TracerState:
         self.counters["photons_traced"] += len(batch)
         box = union_box([p.cull_box for p in taken])
         deposits, ends, culled, outgoing = trace_photons_in_chunk(view, batch, box, self.max_depth,
-                                                                  self.deposit_from)
+                                                                  self.deposit_from, self.lights)
         fields = dict(chunk=view.index, ends=ends, culled=int(culled), deposits=deposits)
         return self._after_trace(batch, concat_credit(taken), fields, [("photon", outgoing)], cull_box=box)
 
