@@ -76,17 +76,9 @@ class LightCache:
     def empty(cls) -> LightCache:
         return cls(np.zeros((2, 3)), 0)
 
-    @property
-    def nbytes(self) -> int:
-        read = sum(a.nbytes for a in self.read) if self.read[0] is not self.keys else 0
-        return sum(a.nbytes for a in self.arrays()) + read
-
     def arrays(self) -> tuple:
         """The live table, which the photons teach."""
         return self.keys, self.count, self.rest, self.light, self.flux, self.grid
-
-    def cells_used(self) -> int:
-        return int((self.keys >= 0).sum())
 
 
 def share_of_memory(memory_bytes: float, largest_chunk: float, wanted: int) -> tuple[float, int]:
@@ -127,8 +119,9 @@ def _home(key, n):
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
-def find_cell(keys, key):
-    """The row holding `key`, or -1."""
+def find_cell(keys, key, claim=False):
+    """The row holding `key` (with `claim`, claimed if new), or -1: not
+    there, or no room within PROBES rows of its home."""
     n = keys.shape[0]
     if n == 0:
         return -1
@@ -138,21 +131,8 @@ def find_cell(keys, key):
         if k == key:
             return s
         if k < 0:
-            return -1
-        s = (s + 1) & (n - 1)
-    return -1
-
-
-@nb.njit(inline="always", cache=True, error_model="numpy")
-def _claim_cell(keys, key):
-    """The row holding `key`, claimed if new; -1 if no room near its home."""
-    n = keys.shape[0]
-    s = _home(key, n)
-    for _ in range(PROBES):
-        k = keys[s]
-        if k == key:
-            return s
-        if k < 0:
+            if not claim:
+                return -1
             keys[s] = key
             return s
         s = (s + 1) & (n - 1)
@@ -195,7 +175,7 @@ def learn_first_hits(cache, direction, weight, depth, pixel, prim, u, v, surf):
         if is_specular(kind) or not (front or two_sided[m]):
             continue
         s = 1.0 if front else -1.0
-        row = _claim_cell(keys, cell_key(grid, p0, p1, p2, s * n0, s * n1, s * n2))
+        row = find_cell(keys, cell_key(grid, p0, p1, p2, s * n0, s * n1, s * n2), True)
         if row < 0:
             dropped += 1
             continue

@@ -51,10 +51,6 @@ class LightTree(NamedTuple):
     parent: np.ndarray    # int32 (N,), -1 at the root
     leaf_of: np.ndarray   # int32 (L,): each light's leaf, -1 if not in the tree
 
-    @property
-    def nbytes(self) -> int:
-        return sum(a.nbytes for a in self)
-
 
 def build_light_tree(lights) -> LightTree:
     """The tree over a `LightTable`'s rows."""
