@@ -35,6 +35,19 @@ def relmse(a, ref, eps: float = 1e-2) -> float:
     return float(np.mean((a - ref) ** 2 / (ref * ref + eps)))
 
 
+def seed_noise(a, b, eps: float = 1e-2) -> float:
+    """The relMSE one render of two independent seeds, `a` and `b`, has
+    from noise alone, with no reference: E[(a - b)^2] = 2 var per pixel, so
+    the mean of (a - b)^2 / (2 (m^2 + eps)), m = (a + b) / 2 their mean.
+    relmse(a, b) / 2 would divide by one seed's own noisy value instead: a
+    pixel that is black in b and bright in a (a rare path found once) then
+    weighs m^2 / eps, and a few such pixels decide the figure (on a
+    600-light building, 0.79 where this gives 0.016)."""
+    a, b = _pair(a, b)
+    m = 0.5 * (a + b)
+    return float(np.mean((a - b) ** 2 / (2.0 * (m * m + eps))))
+
+
 def luminance(img) -> np.ndarray:
     """Rec.709 luminance Y of a linear RGB (..., 3) image."""
     img = np.asarray(img, dtype=np.float64)

@@ -31,6 +31,25 @@ def test_relmse_of_scaled_image_matches_closed_form():
     assert metrics.relmse(k * ref, ref, eps=0.0) == pytest.approx((k - 1) ** 2)
 
 
+def test_seed_noise_is_the_relmse_one_render_has_from_its_noise():
+    """Two independent renders, each truth + noise of known relative
+    variance: seed_noise recovers it, where relmse(a, b) / 2 does not when
+    the noise is heavy-tailed (a rare bright path that one seed found)."""
+    rng = np.random.default_rng(5)
+    truth = np.full((200, 200, 3), 2.0)
+    sigma = 0.1 * truth
+    a, b = (truth + rng.normal(0.0, 1.0, truth.shape) * sigma for _ in range(2))
+    expected = float(np.mean(sigma ** 2 / (truth ** 2 + 1e-2)))
+    assert metrics.seed_noise(a, b) == pytest.approx(expected, rel=0.03)
+    # a rare path: one pixel of 40,000 is 1,000x brighter in one seed (and black
+    # in the other); it adds its own (a - b)^2 / (2 m^2) = 2000^2 / (2 * 1000^2) = 2,
+    # over 40,000 pixels
+    a2, b2 = a.copy(), b.copy()
+    a2[7, 7], b2[7, 7] = 2000.0, 0.0
+    assert metrics.seed_noise(a2, b2) - metrics.seed_noise(a, b) == pytest.approx(2.0 / 40_000, rel=0.01)
+    assert metrics.relmse(a2, b2) / 2 > 1000 * metrics.seed_noise(a2, b2)
+
+
 def test_mean_luminance_bias_of_scaled_and_grey_images():
     ref = _image()
     assert metrics.mean_luminance_bias(1.03 * ref, ref) == pytest.approx(0.03)
