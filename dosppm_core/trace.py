@@ -90,7 +90,8 @@ def advance_eye(surf: SurfaceData, batch: RayBatch, prim, u, v, max_depth: int,
     """The eye-path bounce at known hits, for any aggregate. With `lights`
     (`light_arrays`), each hit point also samples a light: its path goes
     on as a shadow ray, and ends (STORED) when that ray does."""
-    ends, (lit, rgb), (h, hpos, hn), (g, no, nd, nw, st) = paths.advance_eye_paths(
+    kernel = paths.advance_eye_paths if len(batch) >= paths.SERIAL_BELOW else paths.advance_eye_paths_serial
+    ends, (lit, rgb), (h, hpos, hn), (g, no, nd, nw, st) = kernel(
         (batch.direction, batch.weight, batch.depth, batch.rng), (prim, u, v), surf,
         max_depth, EPS_REL)
     hits = HitPoints(hpos, hn, -batch.direction[h], batch.weight[h],
@@ -133,7 +134,8 @@ def shadow_rays(surf: SurfaceData, lights: tuple, hits: HitPoints, states, jobs)
     BSDF-sampled one, by one-sample MIS); hit points whose sample cannot
     contribute get none."""
     mis = bool(np.any(lights[0] == LIGHT_TRIANGLE))
-    rows, o, d, tmax, rgb, pdf = direct.sample_direct(
+    kernel = direct.sample_direct if len(hits) >= paths.SERIAL_BELOW else direct.sample_direct_serial
+    rows, o, d, tmax, rgb, pdf = kernel(
         (hits.position, hits.normal, hits.outgoing, hits.weight, hits.material),
         np.ascontiguousarray(states), surf, lights[:LIGHT_CACHE], lights[LIGHT_CACHE], mis, EPS_REL)
     return ShadowRays(o, d, rgb, tmax, pdf, hits.pixel[rows], job=np.asarray(jobs)[rows])

@@ -1066,3 +1066,47 @@ def test_rows_whose_hit_is_elsewhere_are_skipped_as_if_absent(kind):
         assert len(a) > 0
         for name, column in a.arrays().items():
             np.testing.assert_array_equal(column, getattr(b, name), err_msg=name)
+
+
+def test_serial_eye_and_direct_kernels_equal_the_parallel_ones():
+    """Small batches run the eye bounce and the light sampling on one
+    thread (`paths.SERIAL_BELOW`); each gives the parallel kernel's output
+    exactly, over a pass with glass and mirror bounces and its long tail of
+    light caught in glass; the glossy (MIS) path on a glossy floor."""
+    from dosppm_core.kernels import direct, paths
+    from dosppm_core.kernels.light_cache import LightCache
+    from dosppm_core.trace import EPS_REL, LIGHT_CACHE, SurfaceData, eye_ray_job, light_arrays
+    from tests.helpers.scenes import small_scene
+
+    scene = small_scene("cornell-caustic", 48)
+    scene.materials.kind[0], scene.materials.roughness[0] = GLOSSY, 0.2      # the white walls
+    accel = Accelerator(scene.vertices, scene.triangles, threads=2)
+    surf = SurfaceData.from_scene(scene)
+    lights = light_arrays(scene.lights, LightCache(scene.bounds(), 1 << 20))
+    batch = eye_ray_job(scene, 3, 0, 0, 48 * 48)
+    steps = hit_points = 0
+    while len(batch):
+        prim, _t, u, v = accel.intersect(batch.origin, batch.direction)
+        args = ((batch.direction, batch.weight, batch.depth, batch.rng), (prim, u, v), surf, 256, EPS_REL)
+        a, b = paths.advance_eye_paths(*args), paths.advance_eye_paths_serial(*args)
+        for x, y in zip(_leaves(a), _leaves(b)):
+            np.testing.assert_array_equal(x, y)
+        ends, _lit, (h, hpos, hn), (g, no, nd, nw, st) = a
+        if len(h):
+            hits = (hpos, hn, -batch.direction[h], batch.weight[h], surf.tri_material[prim[h]])
+            dargs = (hits, np.ascontiguousarray(batch.rng[h]), surf, lights[:LIGHT_CACHE], lights[LIGHT_CACHE],
+                     True, EPS_REL)
+            for x, y in zip(direct.sample_direct(*dargs), direct.sample_direct_serial(*dargs)):
+                np.testing.assert_array_equal(x, y)
+            hit_points += len(h)
+        batch = tracing.RayBatch(no, nd, nw, batch.pixel[g], batch.depth[g] + 1, st, job=batch.job[g])
+        steps += 1
+    assert steps > 3 and hit_points > 0.9 * 48 * 48
+
+
+def _leaves(t):
+    for x in t:
+        if isinstance(x, tuple):
+            yield from _leaves(x)
+        else:
+            yield x

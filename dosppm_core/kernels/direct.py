@@ -122,37 +122,61 @@ def sample_direct(hits, states, surf, lights, cache, mis, eps_rel):
     whether the scene has triangle lights (glossy hit points then use MIS).
 
     Returns (rows, origin, direction, tmax, radiance, pdf) of the rays that
-    may contribute (`rows` index the hit points; `jobs.ShadowRays`)."""
-    position, normal, outgoing, weight, material = hits
-    n = position.shape[0]
-    out = (np.empty((n, 3), np.float32), np.empty((n, 3), np.float32), np.empty(n, np.float32),
-           np.zeros((n, 3), np.float32), np.zeros(n, np.float32))
-    keep = np.zeros(n, np.bool_)
+    may contribute (`rows` index the hit points; `jobs.ShadowRays`).
+    (`sample_direct_serial`: the same on one thread, for small batches.)"""
+    n = hits[0].shape[0]
+    out, keep = _direct_buffers(n)
     total = lights[6].sum()     # once, not per ray: hundreds of lights in some scenes
     for i in nb.prange(n):
-        m = material[i]
-        glossy = mis and surf.kind[m] == GLOSSY
-        st, ul = next_float(states[i])
-        st, u1 = next_float(st)
-        st, u2 = next_float(st)
-        p0, p1, p2 = np.float64(position[i, 0]), np.float64(position[i, 1]), np.float64(position[i, 2])
-        n0, n1, n2 = normal[i, 0], normal[i, 1], normal[i, 2]
-        o0, o1, o2 = outgoing[i, 0], outgoing[i, 1], outgoing[i, 2]
-        if glossy:
-            st, ut = next_float(st)
-            if ut >= C_LIGHT:
-                keep[i] = _bsdf_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf,
-                                    u1, u2, eps_rel, out)
-                continue
-        if glossy:
-            keep[i] = _light_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights,
-                                 total, glossy, ul, u1, u2, eps_rel, out)
-        else:
-            keep[i] = _chosen_light_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights,
-                                        cache, st, ul, u1, u2, eps_rel, out)
+        keep[i] = _direct_ray(i, hits, states, surf, lights, cache, mis, eps_rel, total, out)
+    return _kept_rays(out, keep)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def sample_direct_serial(hits, states, surf, lights, cache, mis, eps_rel):
+    """`sample_direct` on this thread."""
+    n = hits[0].shape[0]
+    out, keep = _direct_buffers(n)
+    total = lights[6].sum()
+    for i in range(n):
+        keep[i] = _direct_ray(i, hits, states, surf, lights, cache, mis, eps_rel, total, out)
+    return _kept_rays(out, keep)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _direct_buffers(n):
+    out = (np.empty((n, 3), np.float32), np.empty((n, 3), np.float32), np.empty(n, np.float32),
+           np.zeros((n, 3), np.float32), np.zeros(n, np.float32))
+    return out, np.zeros(n, np.bool_)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _kept_rays(out, keep):
     rows = np.flatnonzero(keep)
     origin, direction, tmax, radiance, pdf = out
     return rows, origin[rows], direction[rows], tmax[rows], radiance[rows], pdf[rows]
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def _direct_ray(i, hits, states, surf, lights, cache, mis, eps_rel, total, out):
+    """Hit point i's ray into row i of `out`; whether it may contribute."""
+    position, normal, outgoing, weight, material = hits
+    m = material[i]
+    glossy = mis and surf.kind[m] == GLOSSY
+    st, ul = next_float(states[i])
+    st, u1 = next_float(st)
+    st, u2 = next_float(st)
+    p0, p1, p2 = np.float64(position[i, 0]), np.float64(position[i, 1]), np.float64(position[i, 2])
+    n0, n1, n2 = normal[i, 0], normal[i, 1], normal[i, 2]
+    o0, o1, o2 = outgoing[i, 0], outgoing[i, 1], outgoing[i, 2]
+    if glossy:
+        st, ut = next_float(st)
+        if ut >= C_LIGHT:
+            return _bsdf_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, u1, u2, eps_rel, out)
+        return _light_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights,
+                          total, glossy, ul, u1, u2, eps_rel, out)
+    return _chosen_light_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights,
+                             cache, st, ul, u1, u2, eps_rel, out)
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
