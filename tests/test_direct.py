@@ -108,6 +108,30 @@ def test_small_area_light_above_a_plane():
     assert got.mean() == pytest.approx(expected.mean(), rel=0.01)
 
 
+def test_a_lamp_seen_low_from_a_floor_far_from_the_origin_does_not_shadow_itself():
+    """A floor patch 16 m from the origin lit by a small ceiling lamp 6 m
+    away and 2.5 m up, as in the generated building. The shadow ray leaves
+    the floor lifted by the spawn offset (relative to |p|); aimed from the
+    hit point instead of from where it starts, it ran on past the lamp and
+    the lamp shadowed itself (the building's floor read 10% dark)."""
+    c, s, radiance = np.array([10.0, 0.0, 2.5]), 0.05, 2000.0
+    quad = c + np.array([[-s, -s, 0], [-s, s, 0], [s, s, 0], [s, -s, 0]]) / 2
+
+    def lamp(b):
+        b.add_material(Material("lamp", "diffuse", (0, 0, 0), emission=(radiance,) * 3, two_sided=False))
+        b.add_mesh(quad, [(0, 1, 2), (0, 2, 3)], "lamp", "lamp")    # faces -z
+    scene = _plane_scene(lamp)
+    scene.camera = Camera((16, 0, 0.8), (16, 0, 0), (0, 1, 0), 70, SIZE, SIZE)
+    x = _pixel_points(scene)
+    d = c - x
+    dist = np.linalg.norm(d, axis=-1)
+    cos = d[..., 2] / dist            # at the floor and at the lamp alike (parallel)
+    expected = (RHO / math.pi * radiance * s * s * cos * cos / dist ** 2).mean(-1)
+    got = _render(scene, iterations=64)
+    assert got.mean() == pytest.approx(expected.mean(), rel=0.01)
+    np.testing.assert_allclose(got, expected, rtol=0.05)     # the jitter in a pixel: 2% at most
+
+
 def _many_lamps(rng, n):
     """n point lamps of assorted power, some near the plane, most far."""
     pos = np.c_[rng.uniform(-4, 4, n), rng.uniform(-4, 4, n), rng.uniform(0.3, 3.0, n)]

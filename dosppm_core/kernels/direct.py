@@ -180,6 +180,35 @@ def _direct_ray(i, hits, states, surf, lights, cache, mis, eps_rel, total, out):
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
+def _aim(i, out, p0, p1, p2, n0, n1, n2, w0, w1, w2, q0, q1, q2, eps_rel, eps_abs):
+    """Row i's shadow ray: from hit point p, spawned off its surface toward
+    w, to light point q, stopping short of q (a triangle light must not
+    shadow itself). Aimed from the spawned origin: from p, a ray lifted off
+    a floor by the spawn offset ran on past the lamp it was aimed at when
+    it rose at less than ~60 degrees, and the lamp shadowed itself (the
+    generated building's floor was 10% dark). False: no room for a ray."""
+    origin, direction, tmax = out[0], out[1], out[2]
+    s0, s1, s2 = offset_origin(p0, p1, p2, n0, n1, n2, w0, w1, w2, eps_rel, eps_abs)
+    d0, d1, d2 = q0 - s0, q1 - s1, q2 - s2
+    dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    t = dist - 2.0 * (eps_rel * max(abs(q0), abs(q1), abs(q2)) + eps_abs)
+    if not t > 0.0:
+        return False
+    origin[i, 0], origin[i, 1], origin[i, 2] = s0, s1, s2
+    direction[i, 0], direction[i, 1], direction[i, 2] = d0 / dist, d1 / dist, d2 / dist
+    tmax[i] = t
+    out[4][i] = 0.0
+    return True
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def _write_radiance(i, out, scale, weight, refl, m, value):
+    """Row i's contribution if unoccluded: W refl scale Le (per channel)."""
+    for k in range(3):
+        out[3][i, k] = weight[i, k] * refl[m, k] * scale * value[k]
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
 def _write_ray(i, out, p0, p1, p2, n0, n1, n2, w0, w1, w2, t, scale, weight, refl, m, pdf,
                eps_rel, eps_abs):
     origin, direction, tmax, radiance, pdfs = out
@@ -217,15 +246,9 @@ def _light_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights, t
         scale = f * cos_x * g / (p_sel * C_LIGHT)   # a delta light: only this technique finds it
     else:
         scale = f * cos_x * g / p_sel
-    # Stop short of the light: a triangle light must not shadow itself.
-    end = eps_rel * max(abs(q0), abs(q1), abs(q2)) + surf.eps_abs
-    t = dist - 2.0 * end
-    if not t > 0.0:
+    if not _aim(i, out, p0, p1, p2, n0, n1, n2, w0, w1, w2, q0, q1, q2, eps_rel, surf.eps_abs):
         return False
-    _write_ray(i, out, p0, p1, p2, n0, n1, n2, w0, w1, w2, t, scale, weight, surf.reflectance, m, 0.0,
-               eps_rel, surf.eps_abs)
-    for k in range(3):
-        out[3][i, k] *= value[li, k]
+    _write_radiance(i, out, scale, weight, surf.reflectance, m, value[li])
     return True
 
 
@@ -256,15 +279,9 @@ def _chosen_light_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, li
     f = eval_bsdf(surf.kind[m], np.float64(surf.roughness[m]), n0, n1, n2, o0, o1, o2, w0, w1, w2)
     if not f > 0.0:
         return False
-    # Stop short of the light: a triangle light must not shadow itself.
-    end = eps_rel * max(abs(q0), abs(q1), abs(q2)) + surf.eps_abs
-    t = dist - 2.0 * end
-    if not t > 0.0:
+    if not _aim(i, out, p0, p1, p2, n0, n1, n2, w0, w1, w2, q0, q1, q2, eps_rel, surf.eps_abs):
         return False
-    _write_ray(i, out, p0, p1, p2, n0, n1, n2, w0, w1, w2, t, f * cos_x * g / pmf, weight, surf.reflectance,
-               m, 0.0, eps_rel, surf.eps_abs)
-    for k in range(3):
-        out[3][i, k] *= lights[4][li, k]
+    _write_radiance(i, out, f * cos_x * g / pmf, weight, surf.reflectance, m, lights[4][li])
     return True
 
 
