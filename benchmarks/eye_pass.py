@@ -5,10 +5,14 @@ iteration each takes, at the default photons per iteration.
 
     python benchmarks/eye_pass.py [--iterations 30] [--repeats 3] [--code DIR]
 
-`--code DIR` measures the dosppm_core of another checkout (a worktree of
-an older commit), so two commits can be run side by side, round by round:
+`--base DIR` runs another checkout's dosppm_core (a worktree of an older
+commit) and this one's side by side, alternating round by round, and
+reports each one's medians and their ratio:
 
-    python benchmarks/eye_pass.py --code /tmp/old --json /tmp/old.json
+    git worktree add /tmp/base e4ef81a
+    python benchmarks/eye_pass.py --base /tmp/base
+
+(`--code DIR` measures only that checkout.)
 
 Writes benchmarks/results/eye-pass.json with provenance.
 """
@@ -52,6 +56,23 @@ def measure(args) -> dict:
             "photons_per_iteration": r.settings.photons_per_iteration}
 
 
+def report(res: dict) -> str:
+    rows = [("base", f"base ({res.get('base_commit', '?')[:7]})"), ("this", "this commit")]
+    lines = [f"{res['scene']}, medians of {len(res['runs']['this'])} runs a side, alternating:", "",
+             "| code | eye pass (ms) | hit points / eye-second | photon pass (ms) | eye share of an iteration |",
+             "|---|---|---|---|---|"]
+    for key, name in rows:
+        if key in res["median"]:
+            m = res["median"][key]
+            lines.append(f"| {name} | {m['eye_s'] * 1e3:.1f} | {m['hit_points_per_eye_s']:,.0f} | "
+                         f"{m['photon_s'] * 1e3:.1f} | {m['eye_share']:.0%} |")
+    if "ratio_this_to_base" in res:
+        r = res["ratio_this_to_base"]
+        lines += ["", f"Hit points per eye-second {r['hit_points_per_eye_s']:.1f}x the base's; "
+                      f"photons per photon-second {r['photons_per_photon_s']:.2f}x."]
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--iterations", type=int, default=30)
@@ -62,6 +83,7 @@ def main(argv=None) -> int:
     p.add_argument("--height", type=int, default=120)
     p.add_argument("--direct", default="nee")
     p.add_argument("--code", default=None, help="a checkout whose dosppm_core to measure")
+    p.add_argument("--base", default=None, help="a checkout to measure beside this one, round by round")
     p.add_argument("--one", action="store_true", help=argparse.SUPPRESS)   # a child's single run
     p.add_argument("--json", default=os.path.join(ROOT, "benchmarks", "results", "eye-pass.json"))
     args = p.parse_args(argv)
@@ -70,25 +92,36 @@ def main(argv=None) -> int:
         sys.path.insert(0, args.code or ROOT)
         print(json.dumps(measure(args)))
         return 0
-    # Each run in its own process (python -P: the --code tree, not this one).
     import json
-    runs = []
     child = ["--iterations", str(args.iterations), "--triangles", str(args.triangles), "--lights",
              str(args.lights), "--width", str(args.width), "--height", str(args.height), "--direct", args.direct]
-    child += ["--code", args.code] if args.code else []
-    for _ in range(args.repeats):
-        out = subprocess.run([sys.executable, "-P", os.path.abspath(__file__), *child, "--one"],
+
+    def one(code):
+        # Each run in its own process (python -P: the --code tree, not this one).
+        out = subprocess.run([sys.executable, "-P", os.path.abspath(__file__), *child, "--code", code, "--one"],
                              check=True, capture_output=True, text=True).stdout
-        runs.append(json.loads(out.strip().splitlines()[-1]))
-        print(runs[-1], file=sys.stderr)
+        run = json.loads(out.strip().splitlines()[-1])
+        print(code, run, file=sys.stderr)
+        return run
+
+    codes = {"base": args.base, "this": args.code or ROOT} if args.base else {"this": args.code or ROOT}
+    runs = {name: [] for name in codes}
+    for _ in range(args.repeats):
+        for name, code in codes.items():
+            runs[name].append(one(code))
+    median = {name: {k: statistics.median(r[k] for r in rs) for k in rs[0]} for name, rs in runs.items()}
     res = {"scene": f"generated building, {int(args.triangles):,} triangles, {args.lights} lights, "
                     f"{args.width}x{args.height}, SPPM, direct {args.direct}",
-           "code": args.code or "this checkout", "runs": runs,
-           "median": {k: statistics.median(r[k] for r in runs) for k in runs[0]}}
+           "code": {name: os.path.abspath(code) for name, code in codes.items()}, "runs": runs, "median": median}
+    if args.base:
+        res["base_commit"] = subprocess.run(["git", "-C", args.base, "rev-parse", "HEAD"], capture_output=True,
+                                            text=True).stdout.strip()
+        res["ratio_this_to_base"] = {k: median["this"][k] / median["base"][k]
+                                     for k in ("hit_points_per_eye_s", "photons_per_photon_s")}
     sys.path.insert(0, ROOT)
     from services.evaluation.provenance import write_results
     write_results(args.json, res)
-    print(json.dumps(res["median"], indent=1))
+    print(report(res))
     return 0
 
 

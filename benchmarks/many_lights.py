@@ -74,8 +74,8 @@ def run(args) -> dict:
 
 
 def report(res: dict) -> str:
-    lines = [f"{res['scene']}, {res['seconds']:g} s a render, two seeds each: noise = relMSE between "
-             "the two images / 2.", "",
+    lines = [f"{res['scene']}, {res['seconds']:g} s a render, two seeds each: noise = the relMSE one "
+             "render has from its noise (`metrics.seed_noise` of the two).", "",
              "| estimator | photons per render | eye iterations | noise relMSE | mean luminance (seed 1, 2) |",
              "|---|---|---|---|---|"]
     for name, r in res["rows"].items():

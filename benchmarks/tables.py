@@ -157,6 +157,16 @@ def _many_lights(doc: dict) -> str:
     return many_lights.report(doc)
 
 
+def _many_lights_pbrt(doc: dict) -> str:
+    import many_lights_pbrt
+    return many_lights_pbrt.report(doc)
+
+
+def _eye_pass(doc: dict) -> str:
+    import eye_pass
+    return eye_pass.report(doc)
+
+
 # table name -> (results file, the function that renders it)
 TABLES = {
     "core": ("benchmarks/results/core.json", _core),
@@ -165,6 +175,8 @@ TABLES = {
     "osppm": ("benchmarks/results/osppm.json", _osppm),
     "equal-work": ("benchmarks/results/equal-work.json", _equal_work),
     "many-lights": ("benchmarks/results/many-lights.json", _many_lights),
+    "many-lights-pbrt": ("benchmarks/results/many-lights-pbrt.json", _many_lights_pbrt),
+    "eye-pass": ("benchmarks/results/eye-pass.json", _eye_pass),
     "accuracy-failure-modes": ("docs/evaluation/results.json", _evaluation()),
     "accuracy-failure-modes-mirror": ("docs/evaluation/results.json", _evaluation(mirror=True)),
     "accuracy-sponza-20s": ("benchmarks/results/issue12-sponza/results.json", _evaluation(20.0)),
