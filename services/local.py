@@ -250,15 +250,16 @@ def warm_kernels() -> None:
     """Compile every kernel a render uses (eye, photon, portal, gather) on
     a tiny two-chunk scene, so numba's cache holds them before any tracer
     starts its clock (tracers would otherwise each compile at once)."""
-    scene = builtin.make("cornell-box")
-    scene.camera.width = scene.camera.height = 16
+    scene = builtin.make("cornell-caustic")       # glass: eye steps of a few paths at its end
+    scene.camera.width = scene.camera.height = 96
     with tempfile.TemporaryDirectory(prefix="dosppm-warm-") as tmp:
         subdivide(SceneSource(scene), os.path.join(tmp, "s"), chunks=2)
         store = ChunkStore.open(os.path.join(tmp, "s"))
-        settings = RenderSettings(photons_per_iteration=2048, photons_per_job=512, tile_pixels=64,
-                                  threads=1)
-        for gather in ("grid", "hash"):
-            settings.gather = gather
+        # Eye tiles on both sides of paths.SERIAL_BELOW: small batches run
+        # the one-thread kernels, large ones the parallel ones.
+        for gather, tile in (("grid", 64), ("hash", 64), ("grid", 96 * 96)):
+            settings = RenderSettings(photons_per_iteration=2048, photons_per_job=512, tile_pixels=tile,
+                                      threads=1, gather=gather)
             c = InProcessCluster(store, settings, tracers=1, min_photon_jobs=4)
             c.run(photons=4096)
             c.close()
