@@ -10,7 +10,7 @@ import time
 
 from dosppm_core.kernels import paths
 
-COMPILING = "compiling kernels (first run on this machine; cached afterwards, about a minute)..."
+COMPILING = "compiling kernels (first run on this machine; cached afterwards, a minute or two)..."
 
 
 def human(n: float) -> str:
