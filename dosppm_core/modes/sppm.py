@@ -32,7 +32,7 @@ class Renderer:
         self.surf = SurfaceData.from_scene(scene)
         self.lights = light_arrays(scene.lights, LightCache(scene.bounds(), self.settings.light_cache, frozen=True)) \
             if self.settings.direct == "nee" else None
-        self.sppm = SPPMIteration(scene, self.settings)
+        self.sppm = SPPMIteration(scene.header(), self.settings)
         self.iteration = 0
         self.next_photon_job = 0
         self.seconds = 0.0
