@@ -5,6 +5,7 @@ back as anything but replies (handlers); no frame may take long (no hang);
 memory stays bounded; and no fabricated deposit reaches the statistics."""
 from __future__ import annotations
 
+import heapq
 import re
 import time
 import tracemalloc
@@ -94,6 +95,19 @@ def _feed(server, tracer, msg) -> None:
     assert isinstance(outs, list)
 
 
+def _decode_cpu_s(frames: list[bytes], repeats: int = 3) -> float:
+    """The least CPU time of a few decodes of one frame."""
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.thread_time()
+        try:
+            wire.decode(frames)
+        except wire.WireError:
+            pass
+        best = min(best, time.thread_time() - t0)
+    return best
+
+
 @pytest.mark.slow   # about 30 s
 def test_100k_mutated_frames(roles):
     server, tracer = roles
@@ -102,12 +116,12 @@ def test_100k_mutated_frames(roles):
     valid = [[bytes(f) for f in wire.encode(t, **sample_fields(t, int(rng.integers(0, 6)), rng, v))]
              for t in types for v in range(4)]
     decoded = errors = 0
-    slowest = 0.0
+    slowest: list[tuple[float, int, list[bytes]]] = []     # a heap of the slowest frames
     tracemalloc.start()
     base = None
     for k in range(FRAMES):
         frames = _mutate(valid[k % len(valid)], rng) if k % 10 else valid[k % len(valid)]
-        t0 = time.process_time()     # CPU time: a shared machine's stalls are not the decoder's
+        t0 = time.thread_time()   # this thread's CPU: neither a shared machine's stalls nor other threads
         try:
             msg = wire.decode(frames)
         except wire.WireError as e:
@@ -115,7 +129,9 @@ def test_100k_mutated_frames(roles):
             assert "\n" not in str(e) and len(str(e)) < 400
             continue
         finally:
-            slowest = max(slowest, time.process_time() - t0)
+            heapq.heappush(slowest, (time.thread_time() - t0, k, frames))
+            if len(slowest) > 5:
+                heapq.heappop(slowest)
         decoded += 1
         _feed(server, tracer, msg)
         if tracer.queued_rays > 100_000:      # the tracer would trace these; here, forget them
@@ -125,7 +141,10 @@ def test_100k_mutated_frames(roles):
     current = tracemalloc.get_traced_memory()[0]
     tracemalloc.stop()
     assert decoded > 10_000 and errors > 50_000, (decoded, errors)
-    assert slowest < 0.5, f"one frame took {slowest:.3f} s of CPU"
+    # A frame that was slow once (a garbage collection may fall inside
+    # any decode) must be slow every time to be the decoder's fault.
+    worst = max(_decode_cpu_s(frames) for _, _, frames in slowest)
+    assert worst < 0.5, f"one frame takes {worst:.3f} s of CPU to decode"
     assert current - base < 64 << 20, f"memory grew by {(current - base) >> 20} MiB"
     # Results for jobs that never existed were counted stale, and none of
     # their fabricated deposits is held for the statistics.

@@ -69,6 +69,8 @@ COUNTERS = ("photons_emitted", "photons_completed", "photons_committed", "photon
             "deposits_stale", "deposits_late", "refused", "tracers_rejoined", "jobs_timed_out",
             "welcomes_resent", "job_messages_lost", "jobs_abandoned", "photons_abandoned")
 LATENCIES_KEPT = 64           # photon jobs' latencies the deadline's estimate takes the median of
+EVICTIONS_SHOWN = 20    # the last evictions in the status, with their reasons
+
 # Tracer heartbeat fields the server passes on in its status.
 STATUS_KEYS = ("load", "resident", "busy_s", "steps", "rays_traced", "photons_traced", "portal_by_chunk",
                "portal_rays_out", "portal_rays_in", "chunk_loads", "load_s", "load_wait_s", "wasted_prefetches",
@@ -745,7 +747,7 @@ class ServerState:
                 "held_bytes": self.held.rows * DEPOSIT_BYTES, "held_full": self.held.full,
                 "hit_points": c["hit_points"], "chunks": self.tree.chunk_count,
                 "path_ends": {n: int(v) for n, v in zip(END_NAMES, self.path_ends) if n != "continues"},
-                "counters": dict(c),
+                "counters": dict(c), "evicted": list(self.evicted[-EVICTIONS_SHOWN:]),
                 "tracers": [{"id": t.id, "index": t.index, "endpoint": t.endpoint,
                              "chunks": [k for k, o in enumerate(self.owners) if t.id in o],
                              "queue": t.load_estimate, "rays_sent": t.rays_sent, "results": t.results,
