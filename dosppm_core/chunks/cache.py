@@ -2,7 +2,7 @@
 
 OSPPM (one process) and each DOSPPM tracer keep their chunks in a
 `ChunkCache`: chunks are activated one after another, round robin over the
-chunks with work (`next_with_work`), at most as many resident as the
+chunks with work (`schedule.py` picks them), at most as many resident as the
 memory limit allows, the least recently used evicted, and the next chunk
 with work loaded on a background thread while the active one traces
 (Günther & Grosch §3.1, "asynchronous loading").
@@ -14,24 +14,10 @@ import time
 from collections import OrderedDict
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 
 from dosppm_core.chunks.view import ChunkView
-
-
-def next_with_work(has_work: Callable[[int], bool], after: int, chunk_count: int,
-                   stop: int | None = None) -> int | None:
-    """The next chunk with work after `after` in round-robin order (`after`
-    itself last), or None; with `stop`, not going past that chunk."""
-    for i in range(1, chunk_count + 1):
-        k = (after + i) % chunk_count
-        if has_work(k):
-            return k
-        if k == stop:
-            return None
-    return None
 
 
 @dataclass

@@ -15,10 +15,11 @@ import os
 
 import numpy as np
 
-from dosppm_core.jobs import PhotonDeposits, RayBatch
+from dosppm_core.jobs import HitPoints, PhotonDeposits, RayBatch
 
 GROWTH = 4                       # at most this factor per sweep
 LOAD_SHARE = 0.1                 # chunk loads at most this share of a sweep's time
+DWELL_MIN_S, DWELL_MAX_S = 0.25, 5.0    # `dwell_s`'s bounds
 # The default limit on queued rays (--queue-memory) is this share of the
 # memory the process may use, within these bounds: on a 24 GiB machine the
 # upper bound, which lets OSPPM's photons per iteration grow until tracing
@@ -42,6 +43,11 @@ def _row_bytes(record) -> int:
 
 RAY_BYTES = _row_bytes(RayBatch)
 DEPOSIT_BYTES = _row_bytes(PhotonDeposits)
+HIT_POINT_BYTES = _row_bytes(HitPoints)
+# Eye iterations traced at once, at most (issue 31). Out of core one chunk
+# load then serves the eye rays of several; more would only delay the
+# newest hit points further behind the photons.
+EYE_IN_FLIGHT = 4
 
 
 def work_to_hide_loads(load_s: float, trace_s: float, work: float, share: float = LOAD_SHARE) -> float:
@@ -52,6 +58,13 @@ def work_to_hide_loads(load_s: float, trace_s: float, work: float, share: float 
     if load_s <= 0 or trace_s <= 0 or work <= 0:
         return 0.0
     return work / trace_s * load_s * (1.0 - share) / share
+
+
+def dwell_s(load_s: float, share: float = LOAD_SHARE) -> float:
+    """Seconds to trace photons on a chunk before moving on (the chunk
+    scheduler's dwell), for chunk loads of `load_s` each to be `share` of
+    the time, within [DWELL_MIN_S, DWELL_MAX_S]."""
+    return min(DWELL_MAX_S, max(DWELL_MIN_S, load_s * (1.0 - share) / share))
 
 
 def grown(current: int, wanted: float, cap: int, first: bool = False) -> int:
@@ -137,3 +150,12 @@ def deposit_batch_cap(queue_memory_bytes: float | None) -> int:
     limit set by the user makes batches smaller."""
     limit = default_queue_memory() if queue_memory_bytes is None else queue_memory_bytes
     return max(1, int(limit // 4 // DEPOSIT_BYTES))
+
+
+def eye_iterations_in_flight(pixels: int, queue_memory_bytes: float) -> int:
+    """Eye iterations a server may trace at once: EYE_IN_FLIGHT, fewer when
+    their hit points (one a pixel each, held until the iteration is
+    complete) would take more than a quarter of the queue memory; one at
+    least."""
+    fit = int(queue_memory_bytes // 4 // max(1, pixels * HIT_POINT_BYTES))
+    return max(1, min(EYE_IN_FLIGHT, fit))

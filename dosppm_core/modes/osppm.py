@@ -21,7 +21,8 @@ import time
 import numpy as np
 
 from dosppm_core.chunks import pacing
-from dosppm_core.chunks.cache import ChunkCache, next_with_work, release_freed_memory_to_the_os
+from dosppm_core.chunks.cache import ChunkCache, release_freed_memory_to_the_os
+from dosppm_core.chunks.schedule import next_with_work
 from dosppm_core.chunks.view import (start_chunks, trace_eye_in_chunk, trace_photons_in_chunk,
                                      trace_shadows_in_chunk)
 from dosppm_core.jobs import ESCAPED, HitPoints, PhotonDeposits, RayBatch, ShadowRays

@@ -16,8 +16,12 @@ statistics updates it hands over. What it does:
   server's, or the longer queue it asks for to hide chunk loads) gets
   nothing more until it reports again (back-pressure).
   Eye iterations are split into tiles (§5.6) and run at the same time as
-  photons: the next starts once the last is complete and
-  `photons_per_iteration` photons have been emitted since it started.
+  photons: the next starts once `photons_per_iteration` photons have been
+  emitted since the last one started, with up to `eye_in_flight` of them
+  traced at once (the paper's §6 future work; out of core, one chunk load
+  then serves several). They replace the hit points in order, each once
+  all its paths have ended, so every pixel gets one eye sample per
+  iteration whatever its paths' speed.
 - Exact accounting: the server made every path, so it knows each job's
   path count; tracers report ended paths per job and return the job's
   credit with the messages that carry its deposits; a job is complete when
@@ -38,7 +42,7 @@ from collections import deque
 
 import numpy as np
 
-from dosppm_core.chunks.pacing import FIRST_QUEUE_RAYS, default_queue_memory
+from dosppm_core.chunks.pacing import FIRST_QUEUE_RAYS, default_queue_memory, eye_iterations_in_flight
 from dosppm_core.chunks.view import located_photons, start_chunks
 from dosppm_core.jobs import END_NAMES, RayBatch
 from dosppm_core.settings import RenderSettings
@@ -120,7 +124,8 @@ class ServerState:
         self._photon_pending: deque = deque()         # job ids created, not yet sent
         self._photon_receivers: set = set()
         self.photon_jobs_in_flight = 0
-        self.eye: EyeIteration | None = None
+        self.eyes: dict[int, EyeIteration] = {}          # in flight, by index (oldest first)
+        self.eye_in_flight = eye_iterations_in_flight(self.n_pixels, held_bytes or default_queue_memory())
         self.photons_before = self.iterations_before = 0    # from a resumed checkpoint
         self._eye_restart = False
         self.eye_started = 0
@@ -295,8 +300,9 @@ class ServerState:
             if len(deposits):
                 self.held.add(deposits)
                 c["deposits_received"] += len(deposits)
-        if msg.hits is not None and self.eye is not None and msg.eye_iteration == self.eye.index:
-            self.eye.results.add(msg.hits, msg.emitted_pixels, msg.emitted_rgb)
+        e = self.eyes.get(msg.eye_iteration) if msg.hits is not None else None
+        if e is not None:
+            e.results.add(msg.hits, msg.emitted_pixels, msg.emitted_rgb)
         for j, fed, left in zip(msg.job_ids.tolist(), msg.job_fed.tolist(), msg.job_left.tolist()):
             job = self.jobs.get(j)
             if job is None:
@@ -334,16 +340,17 @@ class ServerState:
             self._latencies.append(self._now - job.sent_s)
             return
         self.counters["eye_jobs_completed"] += 1
-        e = self.eye
-        e.open_jobs -= 1
-        if e.open_jobs == 0:
-            self._finish_eye_iteration(e)
+        self.eyes[job.eye_iteration].open_jobs -= 1
+        # In order: a later iteration whose paths all ended waits for the
+        # earlier ones, so the hit points are replaced one iteration at a time.
+        while self.eyes and next(iter(self.eyes.values())).open_jobs == 0:
+            self._finish_eye_iteration(self.eyes.pop(next(iter(self.eyes))))
 
     def _finish_eye_iteration(self, e: EyeIteration) -> None:
         hits, emitted_light = e.results.complete()
         self.updates.append(Update("hits", hits=hits, emitted_light=emitted_light, eye_iteration=e.index))
         self.counters["hit_points"] += len(hits)
-        self.eye, self.eye_completed = None, self.eye_completed + 1
+        self.eye_completed += 1
 
     def _maybe_batch(self, final: bool = False) -> None:
         """Hand over the deposits of complete jobs once `photon_batch` are
@@ -440,7 +447,7 @@ class ServerState:
         """The schedule DOSPPM improves on (Figure 15, 'alternating'): an
         eye pass, then `photons_per_iteration` photons, each waiting for
         the other to finish."""
-        if self.eye is not None or self.photon_jobs_in_flight:
+        if self.eyes or self.photon_jobs_in_flight:
             return self._send_photon_jobs() if self._photon_pending else []
         if not self.eye_started or self.counters["photons_emitted"] - self._photons_at_eye_start \
                 >= self.settings.photons_per_iteration:
@@ -512,13 +519,13 @@ class ServerState:
                 self.counters["photons_discarded"] += job.paths
                 again.append(self._new_job("photon", job.paths, rng_key=job.rng_key))
         self._photon_pending.extendleft(reversed(again))
-        if self.eye is not None:
+        if self.eyes:
             for j in [j for j, job in self.jobs.items() if job.kind == "eye"]:
                 del self.jobs[j]
                 self.discarded.add(j)
-            self.eye = None                   # the next tick starts a fresh iteration
+            self.counters["eye_iterations_restarted"] += len(self.eyes)
+            self.eyes.clear()                 # the next tick starts a fresh iteration
             self._eye_restart = True
-            self.counters["eye_iterations_restarted"] += 1
 
     @property
     def credit(self) -> int:
@@ -566,13 +573,13 @@ class ServerState:
 
     def _maybe_start_eye_iteration(self) -> list[Out]:
         s = self.settings
-        if self.eye is not None or (self.eye_started and not self._eye_restart and
-                                    self.counters["photons_emitted"] - self._photons_at_eye_start
-                                    < s.photons_per_iteration):
+        if len(self.eyes) >= self.eye_in_flight or (
+                self.eye_started and not self._eye_restart and
+                self.counters["photons_emitted"] - self._photons_at_eye_start < s.photons_per_iteration):
             return []
         self._eye_restart = False
         e = EyeIteration(self.eye_started, 0)
-        self.eye, self.eye_started = e, self.eye_started + 1
+        self.eyes[e.index], self.eye_started = e, self.eye_started + 1
         self._photons_at_eye_start = self.counters["photons_emitted"]
         tiles = [(start, min(s.tile_pixels, self.n_pixels - start))
                  for start in range(0, self.n_pixels, s.tile_pixels)]
@@ -727,7 +734,7 @@ class ServerState:
                 self.photon_jobs_in_flight -= 1
                 self.counters["photons_abandoned"] += job.paths
                 self.counters["jobs_abandoned"] += 1
-        self.eye = None
+        self.eyes.clear()
 
     def finish(self) -> None:
         """Hand over the last, partial batch (call once drained)."""
@@ -741,6 +748,7 @@ class ServerState:
     def status(self) -> dict:
         c = self.counters
         return {"protocol": PROTOCOL_VERSION, "iteration": self.eye_completed,
+                "eye_iterations_in_flight": len(self.eyes),
                 "waiting_for": self.waiting_for(),
                 "photons_emitted": c["photons_emitted"], "photons_committed": c["photons_committed"],
                 "jobs_in_flight": len(self.jobs), "photon_jobs_in_flight": self.photon_jobs_in_flight,

@@ -1,10 +1,10 @@
 """The tracer's state (Günther & Grosch §3.1, §4.3), apart from its sockets.
 
 A tracer owns some chunks. Ray packages for them (emission jobs from the
-server, portal packages from other tracers) wait in one queue per chunk and
-kind. A step activates one chunk (loading it under the memory budget, the
-next one prefetched), coalesces what waits for it into one batch (client
-batching: packages split at portals merge again here), traces it with the
+server, portal packages from other tracers) wait in the library's chunk
+scheduler (`dosppm_core.chunks.schedule`, eye work first), as OSPPM's do.
+A step activates the chunk it picks (loading it under the memory budget,
+the next one prefetched), traces the batch it coalesces there with the
 library's chunk kernels and returns the messages to send: `results` to the
 server (ended paths per job, deposits, hit points, light reaching pixels)
 and `portal_rays` for the chunks the rays enter next. An eye path that
@@ -20,13 +20,13 @@ from __future__ import annotations
 
 import itertools
 import time
-from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from dosppm_core.chunks import pacing
-from dosppm_core.chunks.cache import ChunkCache, next_with_work
+from dosppm_core.chunks.cache import ChunkCache
+from dosppm_core.chunks.schedule import EYE, PHOTON, SHADOW, ChunkScheduler
 from dosppm_core.chunks.view import trace_eye_in_chunk, trace_photons_in_chunk, trace_shadows_in_chunk
 from dosppm_core.jobs import HitPoints, RayBatch, ShadowRays, paths_per_job
 from dosppm_core.kernels.light_cache import LightCache, share_of_memory
@@ -37,7 +37,6 @@ from services.wire import Out
 
 SERVER = "server"           # Out.dest of messages for the server
 STEP_RAYS = 65_536          # rays coalesced into one traced batch
-DWELL_STEPS = 32            # steps on one chunk before moving on when not all fit
 _CARRY_CREDIT = ("photon_job", "eye_job", "portal_rays")
 
 
@@ -46,6 +45,9 @@ class Package:
     batch: RayBatch | ShadowRays
     credit: tuple                           # (job ids, exponents): its share of its jobs' credit
     cull_box: np.ndarray | None = None      # photons only
+
+    def __len__(self) -> int:
+        return len(self.batch)
 
 
 def own_credit(batch) -> tuple:
@@ -58,17 +60,6 @@ def own_credit(batch) -> tuple:
 def concat_credit(packages: list[Package]) -> tuple:
     return (np.concatenate([p.credit[0] for p in packages]),
             np.concatenate([p.credit[1] for p in packages]))
-
-
-@dataclass
-class ChunkQueue:
-    photons: deque = field(default_factory=deque)
-    eye: dict = field(default_factory=dict)          # eye_iteration -> deque of Package
-    shadows: dict = field(default_factory=dict)      # eye_iteration -> deque of Package
-    rays: int = 0
-
-    def __bool__(self) -> bool:
-        return self.rays > 0
 
 
 def union_box(boxes: list[np.ndarray]) -> np.ndarray:
@@ -100,12 +91,10 @@ class TracerState:
         self.cache = ChunkCache(provider, memory_bytes, threads=threads)
         self.queue_cap = pacing.queue_cap_rays(queue_memory_bytes)
         self._queue_target, self._loads_at_pace = 0, 0
-        self.queues: dict[int, ChunkQueue] = {}
+        self.schedule = ChunkScheduler(provider.tree.chunk_count, self.step_rays)
         self.owners: list[list[str]] = [[] for _ in range(provider.tree.chunk_count)]
         self.table_version = -1
         self._next_owner = [itertools.count() for _ in self.owners]
-        self._active: int | None = None
-        self._dwell = 0
         # Portal packages for chunks no tracer serves yet (a table still
         # being built); retried when the next table arrives.
         self.unroutable: list = []
@@ -124,7 +113,7 @@ class TracerState:
             raise ValueError(f"peer table lists {len(owners)} chunks, the scene has {len(self.owners)}")
         self.owners, self.table_version = [list(o) for o in owners], table_version
         out = []
-        for k in [k for k in self.queues if not self.serves(k)]:
+        for k in [k for k in self.schedule.queues if not self.serves(k)]:
             out += self._hand_over(k)
         return out + self.retry_unroutable()
 
@@ -136,11 +125,9 @@ class TracerState:
         return [k for k, o in enumerate(self.owners) if self.endpoint in o]
 
     def _hand_over(self, k: int) -> list[Out]:
-        q = self.queues.pop(k)
-        out = [self._portal(k, "photon", p.batch, p.credit, cull_box=p.cull_box) for p in q.photons]
-        out += [self._portal(k, "eye", p.batch, p.credit, eye_iteration=e) for e, ps in q.eye.items() for p in ps]
-        out += [self._portal(k, "shadow", p.batch, p.credit, eye_iteration=e)
-                for e, ps in q.shadows.items() for p in ps]
+        q = self.schedule.pop(k)
+        out = [self._portal(k, kind, p.batch, p.credit, cull_box=p.cull_box, eye_iteration=e)
+               for kind, e, p in q.items()]
         self.counters["forwarded_rays"] += q.rays
         return [o for o in out if o is not None]
 
@@ -159,13 +146,9 @@ class TracerState:
             self.counters["forwarded_rays"] += len(batch)
             out = self._portal(chunk, kind, batch, credit, cull_box=cull_box, eye_iteration=eye_iteration)
             return [] if out is None else [out]
-        q = self.queues.setdefault(chunk, ChunkQueue())
-        if kind == "photon":
-            q.photons.append(Package(batch, credit, np.asarray(cull_box, np.float64)))
-        else:
-            queues = q.shadows if kind == "shadow" else q.eye
-            queues.setdefault(int(eye_iteration), deque()).append(Package(batch, credit))
-        q.rays += len(batch)
+        box = np.asarray(cull_box, np.float64) if kind == PHOTON else None
+        age = int(batch.job.min()) if kind == PHOTON else 0
+        self.schedule.push(chunk, kind, Package(batch, credit, box), eye_iteration, age=age)
         return []
 
     @property
@@ -174,9 +157,8 @@ class TracerState:
 
     def reset(self) -> None:
         """Forget every queued package (their jobs were discarded)."""
-        self.queues.clear()
+        self.schedule.clear()
         self.unroutable = []
-        self._active = None
 
     def handle(self, msg) -> list[Out]:
         """A decoded message from the server or a peer."""
@@ -197,10 +179,10 @@ class TracerState:
 
     @property
     def queued_rays(self) -> int:
-        return sum(q.rays for q in self.queues.values())
+        return self.schedule.rays
 
     def has_work(self) -> bool:
-        return any(self.queues.values())
+        return self.schedule.has_work()
 
     def all_fit(self) -> bool:
         return sum(self.cache.cost[k] for k in self.chunks) <= self.cache.memory
@@ -219,6 +201,8 @@ class TracerState:
         pacing.GROWTH times a sweep, so one slow load cannot flood the
         server's emission."""
         cc = self.cache.counters
+        if cc.loads:
+            self.schedule.dwell_s = pacing.dwell_s(cc.load_seconds / cc.loads)
         if self.all_fit() or cc.loads - self._loads_at_pace < max(2, len(self.chunks)):
             return
         self._loads_at_pace = cc.loads
@@ -231,89 +215,44 @@ class TracerState:
 
     # -- tracing -----------------------------------------------------------------
     def step(self) -> list[Out]:
-        """Trace one coalesced batch in one chunk; eye and shadow rays
-        first (they gate the server's next eye iteration)."""
-        k = self._pick_chunk()
+        """Trace one coalesced batch in the chunk the scheduler picks; eye
+        and shadow rays first (they gate the server's next eye iteration)."""
+        k = self.schedule.pick(self.all_fit(), time.perf_counter())
         if k is None:
             return []
         t0, rays = time.perf_counter(), self.counters["rays_traced"]
-        view = self.cache.activate(k, ahead=self._next_with_work(k))
-        q = self.queues[k]
-        if q.eye:
-            out = self._trace_eye(view, q)
-        elif q.shadows:
-            out = self._trace_shadows(view, q)
-        else:
-            out = self._trace_photons(view, q)
+        view = self.cache.activate(k, ahead=self.schedule.ahead(k))
+        taken = self.schedule.take(k)
+        trace = {EYE: self._trace_eye, SHADOW: self._trace_shadows, PHOTON: self._trace_photons}[taken.kind]
+        out = trace(view, taken)
         del view   # an evicted chunk must not outlive its eviction
-        if not q:
-            del self.queues[k]
         self.counters["steps"] += 1
         self.counters["busy_s"] += time.perf_counter() - t0
         self.rays_by_chunk[k] = self.rays_by_chunk.get(k, 0) + self.counters["rays_traced"] - rays
         self._pace()
         return out
 
-    def _pick_chunk(self) -> int | None:
-        """Round robin over the chunks with work. When not all of ours fit
-        in memory, stay on the active chunk while it has work, for at most
-        DWELL_STEPS (the paper's 'load the next chunk when all its jobs are
-        processed', without starving the others while work keeps coming)."""
-        a = self._active
-        if a is not None and self.queues.get(a) and self._dwell < DWELL_STEPS and not self.all_fit():
-            self._dwell += 1
-            return a
-        k = self._next_with_work(-1 if a is None else a)
-        if k != a:
-            self._dwell = 0
-        self._active = k
-        return k
-
-    def _next_with_work(self, after: int) -> int | None:
-        return next_with_work(lambda k: bool(self.queues.get(k)), after, len(self.owners))
-
-    def _take(self, packages: deque) -> list[Package]:
-        """Client batching (§4.3): coalesce waiting packages up to
-        `step_rays` rays; step_rays 0 traces one package per step."""
-        taken, rays = [], 0
-        while packages and (not taken or rays + len(packages[0].batch) <= self.step_rays):
-            p = packages.popleft()
-            taken.append(p)
-            rays += len(p.batch)
-        return taken
-
-    def _trace_eye(self, view, q: ChunkQueue) -> list[Out]:
-        e, batch, credit = self._take_iteration(q, q.eye, RayBatch)
+    def _trace_eye(self, view, taken) -> list[Out]:
+        e, batch = taken.eye_iteration, RayBatch.concat([p.batch for p in taken.items])
         hits, (pix, rgb), ends, outgoing, shadows = trace_eye_in_chunk(view, batch, self.max_depth,
                                                                        self.lights)
         fields = dict(chunk=view.index, eye_iteration=e, ends=ends, hits=hits, emitted_pixels=pix,
                       emitted_rgb=rgb)
-        return self._after_trace(batch, credit, fields, [("eye", outgoing), ("shadow", shadows)],
-                                 eye_iteration=e)
+        return self._after_trace(batch, concat_credit(taken.items), fields,
+                                 [(EYE, outgoing), (SHADOW, shadows)], eye_iteration=e)
 
-    def _trace_shadows(self, view, q: ChunkQueue) -> list[Out]:
-        e, batch, credit = self._take_iteration(q, q.shadows, ShadowRays)
+    def _trace_shadows(self, view, taken) -> list[Out]:
+        e, batch = taken.eye_iteration, ShadowRays.concat([p.batch for p in taken.items])
         (pix, rgb), ends, outgoing = trace_shadows_in_chunk(view, batch)
         fields = dict(chunk=view.index, eye_iteration=e, ends=ends, hits=HitPoints.empty(),
                       emitted_pixels=pix, emitted_rgb=rgb)
         outgoing = {k: [part] for k, part in outgoing.items()}
-        return self._after_trace(batch, credit, fields, [("shadow", outgoing)], eye_iteration=e)
+        return self._after_trace(batch, concat_credit(taken.items), fields, [(SHADOW, outgoing)],
+                                 eye_iteration=e)
 
-    def _take_iteration(self, q: ChunkQueue, queues: dict, record):
-        """(eye iteration, coalesced batch, its credit) of the oldest eye
-        iteration's packages waiting in `queues`."""
-        e = min(queues)
-        taken = self._take(queues[e])
-        if not queues[e]:
-            del queues[e]
-        batch = record.concat([p.batch for p in taken])
-        q.rays -= len(batch)
-        return e, batch, concat_credit(taken)
-
-    def _trace_photons(self, view, q: ChunkQueue) -> list[Out]:
-        taken = self._take(q.photons)
+    def _trace_photons(self, view, taken) -> list[Out]:
+        taken = taken.items
         batch = RayBatch.concat([p.batch for p in taken])
-        q.rays -= len(batch)
         self.counters["photons_traced"] += len(batch)
         box = union_box([p.cull_box for p in taken])
         deposits, ends, culled, outgoing = trace_photons_in_chunk(view, batch, box, self.max_depth,
