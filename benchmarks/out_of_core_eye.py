@@ -81,6 +81,7 @@ def run_dosppm(store: str, seconds: float, flags: list[str], out: str) -> dict:
             point = {k: st.get(k) for k in ("seconds", "photons_emitted", "photons_committed", "hit_points",
                                             "iteration", "eye_iterations_in_flight")}
             point["photons_completed"] = st.get("counters", {}).get("photons_completed")
+            point["latency_s"] = st.get("photon_job_latency_s")
             timeline.append(point)
         time.sleep(0.5)
     wall = time.monotonic() - t0

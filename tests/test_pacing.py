@@ -107,8 +107,17 @@ def test_a_tracer_on_a_machine_smaller_than_its_chunks_keeps_a_share_of_it(four_
         t.close()
 
 
-def _tracer(provider, memory, queue_memory=None):
-    t = TracerState("inproc://t", provider, 10, memory_bytes=memory, queue_memory_bytes=queue_memory)
+class _Clock:
+    def __init__(self):
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def _tracer(provider, memory, queue_memory=None, clock=None):
+    t = TracerState("inproc://t", provider, 10, memory_bytes=memory, queue_memory_bytes=queue_memory,
+                    clock=clock or _Clock())
     t.set_peers(1, [["inproc://t"]] * provider.tree.chunk_count)
     return t
 
@@ -121,20 +130,35 @@ def _measured(t, loads, load_s, busy_s, rays):
     return t.queue_target()
 
 
-def test_a_tracer_whose_chunks_do_not_fit_asks_for_a_queue_that_hides_its_loads(four_chunks):
-    t = _tracer(four_chunks, 1.5 * max(four_chunks.chunk_memory), queue_memory=256 << 20)
+def test_a_tracer_whose_chunks_do_not_fit_asks_for_a_sweep_of_dwells_within_its_latency(four_chunks):
+    """Issue 31: each chunk visit dwells a load's cost over LOAD_SHARE, so
+    the queue asks for a sweep of dwells at the tracing rate, but no more
+    than the tracer gets through in pacing.LATENCY_S, loads included."""
+    clock = _Clock()
+    t = _tracer(four_chunks, 1.5 * max(four_chunks.chunk_memory), queue_memory=256 << 20, clock=clock)
     try:
         assert t.queue_target() == 0
-        # 4 chunks at 0.25 s a load: 1 s of loads a sweep; 100k rays/s
-        # traced wants 900k rays queued, asked for at once; then 4M wanted,
-        # re-measured once per sweep's worth of loads, at most 4x a step.
-        assert _measured(t, 4, 1.0, 1.0, 100_000) == 900_000
-        assert _measured(t, 5, 1.25, 1.0, 1_000_000) == 900_000         # not a sweep since
-        assert _measured(t, 8, 2.0, 2.0, 900_000) == 3_600_000
-        assert _measured(t, 12, 3.0, 2.0, 2_000_000) == pacing.queue_cap_rays(256 << 20)
+        clock.t = 1.0                      # the first sweep: cold loads, nothing to go by
+        assert _measured(t, 4, 1.0, 1.0, 100_000) == 0
+        dwell = pacing.dwell_s(0.25)
+        assert t.schedule.dwell_s == pytest.approx(dwell) and dwell == pytest.approx(2.25)
+        # Tracing at 550k rays/s a sweep of dwells is 4 * 2.25 s of it;
+        # 1M rays got through in the last second: 3 s of those is less.
+        clock.t = 2.0
+        assert _measured(t, 8, 2.0, 2.0, 1_100_000) == pytest.approx(1_000_000 * pacing.LATENCY_S, rel=1e-6)
+        assert _measured(t, 9, 2.25, 2.0, 9_000_000) == pytest.approx(3_000_000, rel=1e-6)   # not a sweep since
+        # Tracing slowly (100k rays a second of tracing): the sweep of
+        # dwells, 900k rays, is less than the 1.2M got through in 3 s.
+        clock.t = 3.0
+        assert _measured(t, 12, 3.0, 15.0, 1_500_000) == pytest.approx(4 * dwell * 100_000, rel=1e-6)
+        # A tracer that got through little still gets the server's first credit.
+        clock.t = 103.0
+        assert _measured(t, 16, 4.0, 16.0, 1_600_000) == pacing.FIRST_QUEUE_RAYS
         # Bounded by --queue-memory.
-        small = _tracer(four_chunks, 1.5 * max(four_chunks.chunk_memory), queue_memory=pacing.RAY_BYTES * 600_000)
-        assert _measured(small, 4, 1.0, 1.0, 50_000) == 450_000
+        small = _tracer(four_chunks, 1.5 * max(four_chunks.chunk_memory), queue_memory=pacing.RAY_BYTES * 600_000,
+                        clock=clock)
+        _measured(small, 4, 1.0, 1.0, 50_000)
+        clock.t = 104.0
         assert _measured(small, 8, 2.0, 2.0, 2_000_000) == 600_000
         small.close()
     finally:

@@ -20,6 +20,9 @@ from dosppm_core.jobs import HitPoints, PhotonDeposits, RayBatch
 GROWTH = 4                       # at most this factor per sweep
 LOAD_SHARE = 0.1                 # chunk loads at most this share of a sweep's time
 DWELL_MIN_S, DWELL_MAX_S = 0.25, 5.0    # `dwell_s`'s bounds
+# A tracer's queue holds no more than it traces in this time (issue 31):
+# a photon job waits for the queue ahead of it at each chunk it reaches.
+LATENCY_S = 3.0
 # The default limit on queued rays (--queue-memory) is this share of the
 # memory the process may use, within these bounds: on a 24 GiB machine the
 # upper bound, which lets OSPPM's photons per iteration grow until tracing
@@ -47,7 +50,7 @@ HIT_POINT_BYTES = _row_bytes(HitPoints)
 # Eye iterations traced at once, at most (issue 31). Out of core one chunk
 # load then serves the eye rays of several; more would only delay the
 # newest hit points further behind the photons.
-EYE_IN_FLIGHT = 4
+EYE_IN_FLIGHT = 16
 
 
 def work_to_hide_loads(load_s: float, trace_s: float, work: float, share: float = LOAD_SHARE) -> float:

@@ -79,7 +79,7 @@ EVICTIONS_SHOWN = 20    # the last evictions in the status, with their reasons
 STATUS_KEYS = ("load", "resident", "busy_s", "steps", "rays_traced", "photons_traced", "portal_by_chunk",
                "portal_rays_out", "portal_rays_in", "chunk_loads", "load_s", "load_wait_s", "wasted_prefetches",
                "queue_target", "idle_s", "receive_s", "step_send_s", "forwarded_rays", "cpu_s", "bytes_to_server",
-               "bytes_to_peers", "outbox", "outbox_rays", "rays_by_chunk")
+               "bytes_to_peers", "outbox", "outbox_rays", "rays_by_chunk", "waiting")
 
 
 class ServerState:
@@ -749,6 +749,7 @@ class ServerState:
         c = self.counters
         return {"protocol": PROTOCOL_VERSION, "iteration": self.eye_completed,
                 "eye_iterations_in_flight": len(self.eyes),
+                "photon_job_latency_s": _quantiles(self._latencies),
                 "waiting_for": self.waiting_for(),
                 "photons_emitted": c["photons_emitted"], "photons_committed": c["photons_committed"],
                 "jobs_in_flight": len(self.jobs), "photon_jobs_in_flight": self.photon_jobs_in_flight,
@@ -761,3 +762,12 @@ class ServerState:
                              "queue": t.load_estimate, "rays_sent": t.rays_sent, "results": t.results,
                              **{k: v for k, v in t.status.items() if k in STATUS_KEYS}}
                             for t in sorted(self.tracers.values(), key=lambda t: t.index)]}
+
+
+def _quantiles(seconds) -> dict | None:
+    """Median and 90th percentile of the last photon jobs' latencies (sent
+    to complete), for the status page."""
+    if not seconds:
+        return None
+    q = np.quantile(np.asarray(seconds, np.float64), [0.5, 0.9])
+    return {"median": round(float(q[0]), 2), "p90": round(float(q[1]), 2)}

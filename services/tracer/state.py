@@ -75,7 +75,10 @@ class TracerState:
 
     def __init__(self, endpoint: str, provider, max_depth: int, memory_bytes: float | None = None,
                  threads: int = 1, step_rays: int = STEP_RAYS, direct: str = "nee",
-                 queue_memory_bytes: float | None = None, light_cache: int = LIGHT_CACHE_BYTES):
+                 queue_memory_bytes: float | None = None, light_cache: int = LIGHT_CACHE_BYTES,
+                 clock=time.perf_counter):
+        """`clock`: seconds, for the scheduler's waits and dwells (a cluster
+        in one process passes its own, so its runs repeat exactly)."""
         self.endpoint, self.provider, self.max_depth = endpoint, provider, int(max_depth)
         # Direct light by shadow rays ('nee'): photons deposit from their
         # second surface on. 'photons': the paper's pure estimator.
@@ -91,7 +94,9 @@ class TracerState:
         self.cache = ChunkCache(provider, memory_bytes, threads=threads)
         self.queue_cap = pacing.queue_cap_rays(queue_memory_bytes)
         self._queue_target, self._loads_at_pace = 0, 0
-        self.schedule = ChunkScheduler(provider.tree.chunk_count, self.step_rays)
+        self._paced_at: tuple[float, int] | None = None     # (time, rays traced) at the last pacing
+        self.clock = clock
+        self.schedule = ChunkScheduler(provider.tree.chunk_count, self.step_rays, clock=clock)
         self.owners: list[list[str]] = [[] for _ in range(provider.tree.chunk_count)]
         self.table_version = -1
         self._next_owner = [itertools.count() for _ in self.owners]
@@ -194,30 +199,36 @@ class TracerState:
 
     def _pace(self) -> None:
         """With more chunks than fit, every chunk is loaded again each
-        sweep over them: the queue must hold enough rays for a sweep's
-        tracing to hide its loads (dosppm_core.chunks.pacing), within
-        `queue_cap` (--queue-memory). Re-measured after each sweep's worth
-        of loads; after the first measurement it grows at most
-        pacing.GROWTH times a sweep, so one slow load cannot flood the
-        server's emission."""
+        sweep over them: each visit must find a dwell's worth of rays
+        (`ChunkScheduler.dwell_s`, a load's cost over pacing.LOAD_SHARE),
+        so the queue asks for a sweep of dwells at the tracing rate, but
+        no more than the rays this tracer gets through, loads and eye work
+        included, in pacing.LATENCY_S: each photon job waits for the queue
+        ahead of it, and counts only once its last path has ended. Queues
+        grown only to hide loads reached 4M rays, and jobs 27 s from
+        emission to commit (issue 31). Re-measured after each sweep's worth
+        of loads, within `queue_cap` (--queue-memory)."""
         cc = self.cache.counters
         if cc.loads:
             self.schedule.dwell_s = pacing.dwell_s(cc.load_seconds / cc.loads)
         if self.all_fit() or cc.loads - self._loads_at_pace < max(2, len(self.chunks)):
             return
         self._loads_at_pace = cc.loads
-        load_s = len(self.chunks) * cc.load_seconds / cc.loads       # one sweep's loads
+        now, rays = self.clock(), self.counters["rays_traced"]
+        then = self._paced_at
+        self._paced_at = (now, rays)
+        if then is None:
+            return                        # the first sweep: loads of a cold start, nothing to go by
         trace_s = self.counters["busy_s"] - cc.wait_seconds
-        wanted = pacing.work_to_hide_loads(load_s, trace_s, self.counters["rays_traced"])
-        start = max(self._queue_target, pacing.FIRST_QUEUE_RAYS)
-        if wanted > start:
-            self._queue_target = pacing.grown(start, wanted, self.queue_cap, first=not self._queue_target)
+        sweep = len(self.chunks) * self.schedule.dwell_s * rays / max(trace_s, 1e-9)
+        through = (rays - then[1]) / max(now - then[0], 1e-9) * pacing.LATENCY_S
+        self._queue_target = int(min(self.queue_cap, max(pacing.FIRST_QUEUE_RAYS, min(sweep, through))))
 
     # -- tracing -----------------------------------------------------------------
     def step(self) -> list[Out]:
         """Trace one coalesced batch in the chunk the scheduler picks; eye
         and shadow rays first (they gate the server's next eye iteration)."""
-        k = self.schedule.pick(self.all_fit(), time.perf_counter())
+        k = self.schedule.pick(self.all_fit())
         if k is None:
             return []
         t0, rays = time.perf_counter(), self.counters["rays_traced"]
@@ -324,7 +335,7 @@ class TracerState:
         loads = {"chunk_loads": cc.loads, "load_s": round(cc.load_seconds, 3),
                  "load_wait_s": round(cc.wait_seconds, 3), "wasted_prefetches": cc.wasted_prefetches,
                  "queue_target": self.queue_target()}
-        return {"queue": self.queued_rays, "chunks": self.chunks, **loads,
+        return {"queue": self.queued_rays, "chunks": self.chunks, **loads, "waiting": self.schedule.waiting(),
                 "portal_by_chunk": [[k, i, o] for k, (i, o) in sorted(self.portal_by_chunk.items())],
                 "rays_by_chunk": [[k, n] for k, n in sorted(self.rays_by_chunk.items())],
                 "holds_every_chunk": bool(self.cache.cost.sum() <= self.cache.memory),
