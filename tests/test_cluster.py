@@ -11,6 +11,8 @@ exchanging real wire messages in one process (`services.inproc`).
 """
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 
 from dosppm_core.modes.sppm import Renderer
@@ -202,3 +204,46 @@ def test_a_killed_tracer_loses_no_photon_and_counts_none_twice(caustic):
     assert c.statistics.stats.photons_emitted == k["photons_committed"]
     assert k["over_credited_jobs"] == 0
     _assert_same_within_noise(c.image(), ref[5][0], ref[9][0])
+
+
+class _Watched(InProcessCluster):
+    """Records the most eye iterations the server had in flight at once."""
+    most_eye_in_flight = 0
+
+    def round(self) -> None:
+        super().round()
+        self.most_eye_in_flight = max(self.most_eye_in_flight, len(self.server.eyes))
+
+
+def _overlapped(scene, in_flight: int, seed: int):
+    """A render with an eye iteration started every 4,096 photons, so
+    iterations overlap when the server lets them."""
+    provider = MemoryChunks(scene, uniform_tree(root_box(scene), (2, 1, 1)))
+    c = _Watched(provider, dataclasses.replace(_settings(seed), photons_per_iteration=4096), tracers=2)
+    c.server.eye_in_flight = in_flight
+    try:
+        c.run(photons=PHOTONS)
+    finally:
+        c.close()
+    return provider, c
+
+
+def test_overlapping_eye_iterations_converge_to_the_sequential_image(caustic):
+    """Issue 31: eye iterations traced at once (iteration i + 1's hit points
+    while photons are applied to iteration i's) give the image of one at a
+    time within noise (another seed's); each installed iteration has
+    exactly its hit points, and the ledger re-traces the render exactly."""
+    from services import ledger
+    scene, ref = caustic
+    _, one = _overlapped(scene, 1, seed=5)
+    _, noise = _overlapped(scene, 1, seed=9)
+    provider, four = _overlapped(scene, 4, seed=5)
+    assert one.most_eye_in_flight == 1 and four.most_eye_in_flight >= 2
+    _assert_same_within_noise(four.image(), one.image(), noise.image())
+    per_iteration = ref[5][1].hit_points / ITERATIONS
+    for c in (one, four):
+        k = c.server.counters
+        assert k["photons_emitted"] == k["photons_completed"] == k["photons_committed"]
+        assert k["hit_points"] == pytest.approx(c.server.eye_completed * per_iteration, rel=0.02)
+    assert four.server.eye_completed > ITERATIONS
+    assert ledger.check(provider, four.statistics.ledger.records) == []

@@ -386,3 +386,41 @@ def test_each_resume_from_one_checkpoint_claims_a_block_of_its_own(tmp_path):
     (tmp_path / checkpoint.IDS_FILE).write_bytes(b"\xc1garbage")
     with pytest.raises(checkpoint.CheckpointError, match="job-ids.msgpack: unreadable"):
         checkpoint.claim_job_ids(str(tmp_path), doc)
+
+
+def _complete_eye_jobs(state, out, e: int, now: float) -> None:
+    """Every eye job of iteration e sent in `out` ends with all its credit."""
+    for j in sorted({jj for o in out if o.type == "eye_job" and o.fields["eye_iteration"] == e
+                     for jj in o.fields["credit_job"].tolist()}):
+        state.on_message("a", _results([j], [state.jobs[j].paths], credit=_shares(out, j)), now)
+
+
+def test_eye_iterations_in_flight_replace_the_hit_points_in_order():
+    """Issue 31: several eye iterations are traced at once, and one whose
+    paths all ended before an earlier one's waits for it: every pixel gets
+    one eye sample per installed iteration, whatever its paths' speed."""
+    state = new_state((1, 1, 1))
+    state.eye_in_flight = 2
+    _register(state, "a")
+    out = state.tick(0.0)
+    _complete_eye_jobs(state, out, 0, 0.1)
+    assert [u.eye_iteration for u in state.updates if u.kind == "hits"] == [0]
+    state.cull_box = np.array([[-1e9] * 3, [1e9] * 3])
+    sent, now = [], 0.2
+    while len(state.eyes) < 2 and now < 5.0:      # photons emitted start iterations 1 and 2
+        sent += state.tick(now)
+        now += 0.1
+        state._photon_receivers.clear()
+        for t in state.tracers.values():
+            t.sent_since_report = 0               # as if the tracer had reported an empty queue
+    assert sorted(state.eyes) == [1, 2]
+    # As many photons as an iteration emitted since (the jobs in flight
+    # are all there may be): still no third while two are in flight.
+    state.counters["photons_emitted"] += state.settings.photons_per_iteration
+    assert not [o for o in state.tick(now) if o.type == "eye_job"] and state.eye_started == 3
+    _complete_eye_jobs(state, sent, 2, now)
+    assert sorted(state.eyes) == [1, 2] and [u.eye_iteration for u in state.updates if u.kind == "hits"] == [0]
+    _complete_eye_jobs(state, sent, 1, now + 0.1)
+    assert not state.eyes and state.eye_completed == 3
+    assert [u.eye_iteration for u in state.updates if u.kind == "hits"] == [0, 1, 2]
+    assert [o for o in state.tick(now + 0.2) if o.type == "eye_job"] and state.eye_started == 4
