@@ -124,7 +124,7 @@ def run(args) -> dict:
     runs = {"dosppm out of core": (run_dosppm, ["--memory", args.memory, *extra]),
             "dosppm resident": (run_dosppm, extra),
             "osppm out of core": (run_osppm, ["--memory", str(two_chunks)]),
-            "osppm resident": (run_osppm, ["--memory", str(int(sum(cost)) + 1)])}
+            "osppm resident": (run_osppm, ["--memory", str(int(sum(cost)) + (256 << 20))])}
     if args.only:
         runs = {name: runs[name] for name in args.only}
     rows = {name: [] for name in runs}

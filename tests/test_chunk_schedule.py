@@ -196,3 +196,17 @@ def test_a_jobs_straggler_is_pursued_before_newer_photons_queued_earlier():
     clock.t = 7.0
     s.active = None                      # chunk 2's visit is over
     assert s.pick(False) == 1
+
+
+def test_the_chunk_being_loaded_ahead_goes_next_while_it_has_work():
+    """No prefetch is wasted: the chunk loading in the background goes next
+    even if other work has since waited longer; never if it was swept."""
+    s, clock = _scheduler(3)
+    s.push(1, PHOTON, Rays("p1"))
+    clock.t = 5.0
+    s.push(2, PHOTON, Rays("p2"))
+    clock.t = 6.0
+    assert s.pick(True, loading=2) == 2
+    s.take(2)
+    s.push(2, PHOTON, Rays("p2 again"))
+    assert s.pick(True, exclude={2}, loading=2) == 1

@@ -99,6 +99,11 @@ class ChunkCache:
             self.prefetch(ahead, active=k)
         return view
 
+    @property
+    def loading(self) -> int | None:
+        """The chunk being loaded ahead, if any."""
+        return self._pending[0] if self._pending else None
+
     def _activate(self, k: int) -> ChunkView:
         self.counters.activations += 1
         if k in self.resident:

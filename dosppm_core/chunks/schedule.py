@@ -159,16 +159,21 @@ class ChunkScheduler:
         return q is not None and q.eye_rays > 0
 
     # -- the next chunk ------------------------------------------------------
-    def pick(self, all_fit: bool) -> int | None:
+    def pick(self, all_fit: bool, exclude=(), loading: int | None = None) -> int | None:
         """The chunk to trace next: the active one while it has eye work,
         or photons and its dwell lasts (only when not all chunks fit); else
-        the one whose work has waited longest (`ChunkQueue.wait`), round
-        robin among equals."""
+        `loading` (the chunk being loaded ahead) if it has work, so no load
+        is wasted; else the one whose work has waited longest (`_wait`),
+        round robin among equals. Never one in `exclude` (OSPPM's chunks
+        already swept)."""
         a, now = self.active, self.clock()
         q = self.queues.get(a) if a is not None else None
-        if q and (q.eye_rays or (now < self._until and not all_fit)):
+        if q and a not in exclude and (q.eye_rays or (now < self._until and not all_fit)):
             return a
-        k = self._longest_waiting(now, after=-1 if a is None else a)
+        if loading is not None and loading != a and loading not in exclude and self.has_work(loading):
+            k = loading
+        else:
+            k = self._longest_waiting(now, after=-1 if a is None else a, skip=exclude)
         if q and k != a:                  # left with work: it waits from now
             q.unvisited_since = now
             if q.eye_rays:
@@ -179,12 +184,12 @@ class ChunkScheduler:
         self.active = k
         return k
 
-    def _longest_waiting(self, now: float, after: int, skip: int | None = None) -> int | None:
+    def _longest_waiting(self, now: float, after: int, skip=()) -> int | None:
         best, best_wait = None, -1.0
         for i in range(1, self.chunk_count + 1):
             k = (after + i) % self.chunk_count
             q = self.queues.get(k)
-            if not q or k == skip:
+            if not q or k in skip:
                 continue
             w = self._wait(q, now)
             if w > best_wait:
@@ -201,10 +206,14 @@ class ChunkScheduler:
             w = max(w, EYE_PRIORITY * (now - q.eye_since))
         return w
 
-    def ahead(self, k: int) -> int | None:
+    def ahead(self, k: int, exclude=()) -> int | None:
         """The chunk to load in the background while `k` traces: the one
         `pick` would choose next, were k done."""
-        return self._longest_waiting(self.clock(), after=k, skip=k)
+        return self._longest_waiting(self.clock(), after=k, skip={k, *exclude})
+
+    def eye_iterations_queued(self) -> set[int]:
+        """Eye iterations with eye or shadow rays still queued."""
+        return {e for q in self.queues.values() for queues in (q.eye, q.shadows) for e, ps in queues.items() if ps}
 
     # -- the next batch ------------------------------------------------------
     def take(self, k: int, photon_rays: int | None = None) -> Taken:

@@ -1,13 +1,14 @@
 """OSPPM: out-of-core SPPM in one process (Günther & Grosch §3.1).
 
 The scene lives in chunks (a chunk store on disk, or any object with
-`header`, `tree`, `chunk_memory` and `load(k)`). Each chunk has a queue of
-pending ray batches. Chunks are activated one after another, round robin,
-with at most as many resident as the memory limit allows; the next chunk
-with work is loaded on a background thread while the active one traces.
-All batches queued for the active chunk are coalesced into one (client
-batching, §4.3), so packages that split at portals merge again instead of
-multiplying.
+`header`, `tree`, `chunk_memory` and `load(k)`). Ray batches wait in the
+library's chunk scheduler (`chunks/schedule.py`), the one every DOSPPM
+tracer uses: eye work first, photons oldest job first. Chunks are
+activated one after another in its order, with at most as many resident
+as the memory limit allows; the next is loaded on a background thread
+while the active one traces. A chunk's queued batches are coalesced
+(client batching, §4.3), so packages that split at portals merge again
+instead of multiplying.
 
 An iteration is an eye phase (hit points of every pixel) and a photon
 phase, then the statistics update, exactly as in `modes.sppm.Renderer` (both drive `sppm.iteration`); the
@@ -22,7 +23,7 @@ import numpy as np
 
 from dosppm_core.chunks import pacing
 from dosppm_core.chunks.cache import ChunkCache, release_freed_memory_to_the_os
-from dosppm_core.chunks.schedule import next_with_work
+from dosppm_core.chunks.schedule import EYE, PHOTON, SHADOW, ChunkScheduler
 from dosppm_core.chunks.view import (start_chunks, trace_eye_in_chunk, trace_photons_in_chunk,
                                      trace_shadows_in_chunk)
 from dosppm_core.jobs import ESCAPED, HitPoints, PhotonDeposits, RayBatch, ShadowRays
@@ -54,8 +55,10 @@ class OutOfCoreRenderer:
       the chunks, each activated at most once, tracing whatever eye and
       photon rays wait for it. Rays that cross back to a chunk already
       swept wait in its queue for the next iteration, beside new photons,
-      instead of the sweep repeating for a thinning tail; an eye iteration
-      replaces the hit points once its last path has ended. Photons count
+      instead of the sweep repeating for a thinning tail. Each iteration
+      starts an eye iteration while fewer than `eye_in_flight` are traced
+      (out of core one sweep then serves several); they replace the hit
+      points in order, each once its last path has ended. Photons count
       as emitted when emitted, so an image is short by the photons still
       in queues (under one iteration's worth); `finish()` drains them.
 
@@ -89,7 +92,44 @@ class OutOfCoreRenderer:
         self.settings.validate()
         self.pipelined = pipelined
         s = self.settings
-        cost = np.asarray(provider.chunk_memory, np.float64)
+        cache_bytes = self._open_chunk_cache(memory_bytes)
+        # An eye iteration per this many photons, whatever pacing makes of
+        # an iteration's photons: the server's rule too.
+        self.photons_per_eye_iteration = s.photons_per_iteration
+        self._photons_since_eye = 0
+        if self.paced:      # chunks will be loaded every sweep: start at a quarter of the limit
+            s.photons_per_iteration = max(s.photons_per_iteration, self.max_photons_per_iteration // 4)
+        self.sppm = SPPMIteration(self.header, s)
+        self.eps_abs = self.header.spawn_epsilon()
+        self.lights = light_arrays(self.header.lights, LightCache(self.header.bounds, cache_bytes, frozen=True)) \
+            if s.direct == "nee" else None
+        self.iteration = 0
+        self.eye_iterations = 0                   # installed
+        self.next_photon_job = 0
+        self.seconds = 0.0
+        self.phase_seconds = {"eye": 0.0, "photon": 0.0, "update": 0.0}
+        # The scheduler's clock is the work done (a second per million rays
+        # traced), not the wall's: the order of chunks, and so the image,
+        # repeats exactly from run to run.
+        self.schedule = ChunkScheduler(self.tree.chunk_count, self.trace_step_rays,
+                                       clock=lambda: self._rays_traced * 1e-6)
+        self.eye_in_flight = pacing.eye_iterations_in_flight(
+            int(cam.width) * int(cam.height),
+            pacing.default_queue_memory() if queue_memory_bytes is None else queue_memory_bytes) if pipelined else 1
+        self._eyes: dict[int, EyePass] = {}      # eye iterations in flight, by index
+        self._eyes_started = 0
+        self._emitted_unapplied = 0
+        self._cull = NO_CULL
+        self._deadline: Deadline | None = None
+        self.photon_rate = Rate()          # photons emitted per second of iteration
+        self.ray_rate = Rate()             # rays traced per second of sweep, chunk loads included
+        self.paths_cut = 0                 # rays dropped at a deadline
+        self._rays_traced = 0
+
+    def _open_chunk_cache(self, memory_bytes: float | None) -> int:
+        """The chunk cache within `memory_bytes` (default: every chunk), the
+        light cache's share taken from it; returns that share."""
+        s, cost = self.settings, np.asarray(self.provider.chunk_memory, np.float64)
         cache_bytes = s.light_cache
         if memory_bytes is None:
             memory_bytes = float(cost.sum())
@@ -99,32 +139,9 @@ class OutOfCoreRenderer:
             raise ValueError(f"memory limit {memory_bytes:.0f} B is below the largest chunk "
                              f"({cost.max():.0f} B)")
         release_freed_memory_to_the_os()
-        self.cache = ChunkCache(provider, memory_bytes, threads=s.threads)
+        self.cache = ChunkCache(self.provider, memory_bytes, threads=s.threads)
         self.paced = self.paced and memory_bytes < cost.sum()     # all resident: nothing to hide
-        if self.paced:      # chunks will be loaded every sweep: start at a quarter of the limit
-            s.photons_per_iteration = max(s.photons_per_iteration, self.max_photons_per_iteration // 4)
-        self.sppm = SPPMIteration(self.header, s)
-        self.eps_abs = self.header.spawn_epsilon()
-        self.lights = light_arrays(self.header.lights, LightCache(self.header.bounds, cache_bytes, frozen=True)) \
-            if s.direct == "nee" else None
-        self.iteration = 0
-        self.eye_iterations = 0
-        self.next_photon_job = 0
-        self.seconds = 0.0
-        self.phase_seconds = {"eye": 0.0, "photon": 0.0, "update": 0.0}
-        self._cursor = 0
-        c = self.tree.chunk_count
-        self._eye_queues = [[] for _ in range(c)]
-        self._photon_queues = [[] for _ in range(c)]
-        self._shadow_queues = [[] for _ in range(c)]   # of the eye iteration in flight
-        self._eye: EyePass | None = None          # the eye iteration in flight
-        self._emitted_unapplied = 0
-        self._cull = NO_CULL
-        self._deadline: Deadline | None = None
-        self.photon_rate = Rate()          # photons emitted per second of iteration
-        self.ray_rate = Rate()             # rays traced per second of sweep, chunk loads included
-        self.paths_cut = 0                 # rays dropped at a deadline
-        self._rays_traced = 0
+        return cache_bytes
 
     @property
     def stats(self):
@@ -157,14 +174,12 @@ class OutOfCoreRenderer:
             # The first hit points must exist before any photon can count.
             self._start_eye_iteration()
             self._sweep(until_empty=True)
-            self._finish_eye_iteration()
+            self._install_eye_iterations()
         if self.pipelined:
-            if self._eye is None:
-                self._start_eye_iteration()
             self._emit_photons()
+            self._start_eye_iterations()
             swept = self._sweep_paced()
-            if self._eye is not None and not self._eye_paths_queued():
-                self._finish_eye_iteration()
+            self._install_eye_iterations()
         else:
             self._emit_photons()
             self._sweep(until_empty=True)
@@ -212,8 +227,7 @@ class OutOfCoreRenderer:
                 report(self.rays_queued, sweeps)
         if self.rays_queued:
             self._cut()
-        if self._eye is not None:
-            self._finish_eye_iteration()
+        self._install_eye_iterations()
         self._apply()
         self.seconds += time.perf_counter() - t0
 
@@ -226,21 +240,15 @@ class OutOfCoreRenderer:
 
     def _cut(self) -> None:
         """At the deadline: the rays still queued are dropped and counted,
-        and an eye iteration in flight with them (the hit points stay the
+        and the eye iterations in flight with them (the hit points stay the
         last complete iteration's)."""
-        self.paths_cut += sum(len(b) for q in self._photon_queues for b in q)
-        for queues in (self._photon_queues, self._eye_queues, self._shadow_queues):
-            for q in queues:
-                q.clear()
-        self._eye = None
+        self.paths_cut += self.schedule.rays - self.schedule.eye_rays
+        self.schedule.clear()
+        self._eyes.clear()
 
     @property
     def rays_queued(self) -> int:
-        queues = (self._eye_queues, self._shadow_queues, self._photon_queues)
-        return sum(len(b) for q in queues for part in q for b in part)
-
-    def _eye_paths_queued(self) -> bool:
-        return any(self._eye_queues) or any(self._shadow_queues)
+        return self.schedule.rays
 
     def progress(self) -> Progress:
         return self.sppm.progress(self.iteration, self.seconds)
@@ -255,17 +263,34 @@ class OutOfCoreRenderer:
     def _start_eye_iteration(self) -> None:
         s, cam = self.settings, self.header.camera
         n_pix = int(cam.width) * int(cam.height)
+        e = self._eyes_started
+        self._eyes_started += 1
+        self._eyes[e] = EyePass(e)
         for start in range(0, n_pix, s.tile_pixels):
-            batch = eye_ray_job(self.header, s.seed, self.eye_iterations, start,
-                                min(s.tile_pixels, n_pix - start))
-            self._enqueue(self._eye_queues, batch)
-        self._eye = EyePass(self.eye_iterations)
+            batch = eye_ray_job(self.header, s.seed, e, start, min(s.tile_pixels, n_pix - start))
+            self._enqueue(EYE, batch, e)
         freeze_light_cache(self.lights)
 
-    def _finish_eye_iteration(self) -> None:
-        self.sppm.install_eye_pass(self._eye)
-        self._eye = None
-        self.eye_iterations += 1
+    def _start_eye_iterations(self) -> None:
+        """An eye iteration for each `photons_per_eye_iteration` photons
+        emitted since the last began, while fewer than `eye_in_flight` are
+        traced; one at least when none is. Paced out of core an iteration
+        emits millions of photons (to hide its loads), and one eye
+        iteration per iteration left the pixels 3 eye samples in 30 s on
+        the 5M building."""
+        per = max(1, self.photons_per_eye_iteration)
+        while len(self._eyes) < self.eye_in_flight and (not self._eyes or self._photons_since_eye >= per):
+            self._start_eye_iteration()
+            self._photons_since_eye = max(0, self._photons_since_eye - per)
+        self._photons_since_eye = min(self._photons_since_eye, per * self.eye_in_flight)
+
+    def _install_eye_iterations(self) -> None:
+        """Eye iterations whose paths have all ended replace the hit points,
+        in order: a later one waits for the earlier ones."""
+        queued = self.schedule.eye_iterations_queued()
+        while self._eyes and min(self._eyes) not in queued:
+            self.sppm.install_eye_pass(self._eyes.pop(min(self._eyes)))
+            self.eye_iterations += 1
 
     def _emit_photons(self) -> None:
         """One iteration's photon jobs, culled against the current hit
@@ -274,10 +299,10 @@ class OutOfCoreRenderer:
         s = self.settings
         self._cull = self.sppm.cull_box()
         emitted = left = self._photons_fitting(self._photons_to_emit())
+        self._photons_since_eye += emitted
         while left > 0:
             count = min(s.photons_per_job, left)
-            self._enqueue(self._photon_queues, emit_photon_job(
-                self.header, s.seed, self.next_photon_job, count, self.eps_abs))
+            self._enqueue(PHOTON, emit_photon_job(self.header, s.seed, self.next_photon_job, count, self.eps_abs))
             self.next_photon_job += 1
             left -= count
         self._emitted_unapplied += emitted
@@ -320,90 +345,65 @@ class OutOfCoreRenderer:
         self.phase_seconds["update"] += time.perf_counter() - t0
 
     # -- chunk queues --------------------------------------------------------
-    def _enqueue(self, queues, batch: RayBatch) -> None:
+    def _enqueue(self, kind: str, batch: RayBatch, eye_iteration: int | None = None) -> None:
         routed, lost = start_chunks(self.tree, batch)
         self.sppm.path_ends[ESCAPED] += lost
         for k, b in routed.items():
-            queues[k].append(b)
+            self._push(kind, k, b, eye_iteration)
 
-    def _has_work(self, k: int) -> bool:
-        return bool(self._eye_queues[k] or self._shadow_queues[k] or self._photon_queues[k])
-
-    def _next_chunk(self, after: int, stop: int | None = None) -> int | None:
-        return next_with_work(self._has_work, after, self.tree.chunk_count, stop)
+    def _push(self, kind: str, k: int, batch, eye_iteration: int | None = None) -> None:
+        age = int(batch.job.min()) if kind == PHOTON else 0
+        self.schedule.push(k, kind, batch, eye_iteration, age=age)
 
     def _sweep(self, until_empty: bool) -> None:
-        """Activate chunks with work in round-robin order. One sweep visits
-        each chunk at most once, ending at the chunk before the first one
-        (`until_empty=False`); otherwise sweeps repeat until no queue
-        holds a ray."""
-        c = self.tree.chunk_count
-        k = self._next_chunk(self._cursor - 1)
-        last = None if k is None else (k - 1) % c
-        while k is not None:
-            ahead = self._next_chunk(k, None if until_empty else last)
-            if self._out_of_time():
+        """Activate chunks with work in the scheduler's order, tracing each
+        one's queue until it is empty ("load the next chunk when all its
+        jobs are processed"). One sweep visits each chunk at most once
+        (`until_empty=False`); otherwise visits go on until no queue holds
+        a ray."""
+        swept: set[int] = set()
+        while not self._out_of_time():
+            k = self.schedule.pick(True, exclude=() if until_empty else swept, loading=self.cache.loading)
+            if k is None:
                 return
-            view = self.cache.activate(k, ahead)
-            self._trace_chunk(view)
+            swept.add(k)
+            view = self.cache.activate(k, self.schedule.ahead(k, exclude=() if until_empty else swept))
+            while self.schedule.has_work(k) and not self._out_of_time():
+                self._step(view, k)
             del view    # an evicted chunk must not outlive its eviction
-            self._cursor = k
-            if not until_empty and k == last:
-                break
-            # Go on to the chunk being prefetched: it still has work, and
-            # the chunks between may only have received some just now.
-            k = ahead if ahead is not None else (self._next_chunk(k) if until_empty else None)
 
-    def _trace_chunk(self, view) -> None:
-        """Trace the chunk's whole eye and photon queues, each coalesced
-        into one batch (client batching), and queue what leaves."""
-        k, s = view.index, self.settings
-        if self._eye_queues[k]:
-            t0 = time.perf_counter()
-            batch = RayBatch.concat(self._eye_queues[k])
-            self._eye_queues[k] = []
-            self._rays_traced += len(batch)
-            hits, (pixels, rgb), ends, out, shadows = trace_eye_in_chunk(view, batch, s.max_depth,
-                                                                         self.lights)
-            self._eye.add(hits, pixels, rgb)
-            self._account(ends, out, self._eye_queues)
-            self._account(np.zeros_like(ends), shadows, self._shadow_queues)
-            self.phase_seconds["eye"] += time.perf_counter() - t0
-        if self._shadow_queues[k]:
-            t0 = time.perf_counter()
-            shadows = ShadowRays.concat(self._shadow_queues[k])
-            self._shadow_queues[k] = []
-            self._rays_traced += len(shadows)
-            (pixels, rgb), ends, out = trace_shadows_in_chunk(view, shadows)
-            self._eye.add(HitPoints.empty(), pixels, rgb)
-            self._account(ends, {j: [part] for j, part in out.items()}, self._shadow_queues)
-            self.phase_seconds["eye"] += time.perf_counter() - t0
-        while self._photon_queues[k] and not self._out_of_time():   # in steps (`_take`); rays leaving
-            # k queue at other chunks
-            t0 = time.perf_counter()
-            batch = RayBatch.concat(self._take(self._photon_queues[k], self.trace_step_rays))
-            self._rays_traced += len(batch)
-            dep, ends, _culled, out = trace_photons_in_chunk(view, batch, self._cull, s.max_depth,
-                                                             s.deposit_from, self.lights)
-            self._account(ends, out, self._photon_queues)
+    def _step(self, view, k: int) -> None:
+        """Trace the chunk's next batch (eye rays, their shadow rays, or up
+        to `trace_step_rays` photons: a photon iteration starts all in the
+        chunks with lights, and one concatenation of it all, with the rays
+        leaving it, would take three times the queue's memory at once) and
+        queue what leaves it."""
+        s, t0 = self.settings, time.perf_counter()
+        taken = self.schedule.take(k, photon_rays=self.trace_step_rays)
+        self._rays_traced += taken.rays
+        if taken.kind == EYE:
+            hits, (pixels, rgb), ends, out, shadows = trace_eye_in_chunk(
+                view, RayBatch.concat(taken.items), s.max_depth, self.lights)
+            self._eyes[taken.eye_iteration].add(hits, pixels, rgb)
+            self._account(ends, EYE, out, taken.eye_iteration)
+            self._account(np.zeros_like(ends), SHADOW, shadows, taken.eye_iteration)
+        elif taken.kind == SHADOW:
+            (pixels, rgb), ends, out = trace_shadows_in_chunk(view, ShadowRays.concat(taken.items))
+            self._eyes[taken.eye_iteration].add(HitPoints.empty(), pixels, rgb)
+            self._account(ends, SHADOW, {j: [part] for j, part in out.items()}, taken.eye_iteration)
+        else:
+            dep, ends, _culled, out = trace_photons_in_chunk(view, RayBatch.concat(taken.items), self._cull,
+                                                             s.max_depth, s.deposit_from, self.lights)
+            self._account(ends, PHOTON, out)
             self.phase_seconds["photon"] += time.perf_counter() - t0
             self._add_deposits(dep)
+            return
+        self.phase_seconds["eye"] += time.perf_counter() - t0
 
-    @staticmethod
-    def _take(queue: list, step_rays: int) -> list:
-        """Batches from the front of a chunk's queue, up to `step_rays` rays
-        (one batch at least): a photon iteration starts all in the chunks
-        with lights, and one concatenation of it all, with the rays leaving
-        it, would take three times the queue's memory at once."""
-        taken, rays = [], 0
-        while queue and (not taken or rays + len(queue[0]) <= step_rays):
-            taken.append(queue.pop(0))
-            rays += len(taken[-1])
-        return taken
-
-    def _account(self, ends, outgoing, queues) -> None:
+    def _account(self, ends, kind: str, outgoing, eye_iteration: int | None = None) -> None:
         self.sppm.count_path_ends(ends)
         self.cache.counters.traced_batches += 1
         for j, parts in outgoing.items():
-            queues[j].extend(parts)
+            for b in parts:
+                self._push(kind, j, b, eye_iteration)
             self.cache.counters.portal_rays += sum(len(b) for b in parts)

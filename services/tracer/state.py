@@ -228,7 +228,7 @@ class TracerState:
     def step(self) -> list[Out]:
         """Trace one coalesced batch in the chunk the scheduler picks; eye
         and shadow rays first (they gate the server's next eye iteration)."""
-        k = self.schedule.pick(self.all_fit())
+        k = self.schedule.pick(self.all_fit(), loading=self.cache.loading)
         if k is None:
             return []
         t0, rays = time.perf_counter(), self.counters["rays_traced"]
