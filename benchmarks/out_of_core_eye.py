@@ -142,19 +142,28 @@ def run(args) -> dict:
             "repeats": args.repeats, "runs": rows, "medians": med}
 
 
+def _latency_at_half(run: dict) -> float | None:
+    """The median photon job latency the status page showed half-way."""
+    half = run.get("half") or {}
+    lat = half.get("latency_s") or {}
+    return lat.get("median")
+
+
 def report(res: dict) -> str:
     lines = [f"{res['scene']}, {res['seconds']:g} s a render, medians of {res['repeats']}; DOSPPM with 2 "
              f"tracers, out of core at --memory {res['memory']} each; OSPPM out of core with room for two "
              "chunks.", "",
-             "| run | photons/s | hit points/s | eye iterations | photons committed half-way |",
-             "|---|---|---|---|---|"]
+             "| run | photons/s | hit points/s | eye iterations | photons committed half-way | "
+             "job latency, median (s) |",
+             "|---|---|---|---|---|---|"]
     for name, rs in res["runs"].items():
         m = res["medians"][name]
-        eye = statistics.median([r.get("eye_iterations", r["hit_points"] / 1) for r in rs]) \
-            if "eye_iterations" in rs[0] else "-"
+        eye = statistics.median([r["eye_iterations"] for r in rs]) if "eye_iterations" in rs[0] else "-"
         half = [r["committed_at_half"] for r in rs if r.get("committed_at_half") is not None]
+        lat = [_latency_at_half(r) for r in rs if _latency_at_half(r) is not None]
         lines.append(f"| {name} | {m['photons_per_s']:,.0f} | {m['hit_points_per_s']:,.0f} | {eye} | "
-                     f"{f'{statistics.median(half):.0%}' if half else '-'} |")
+                     f"{f'{statistics.median(half):.0%}' if half else '-'} | "
+                     f"{f'{statistics.median(lat):.1f}' if lat else '-'} |")
     ratio = []
     for mode in [m for m in ("dosppm", "osppm") if f"{m} resident" in res["medians"]
                  and f"{m} out of core" in res["medians"]]:

@@ -162,6 +162,11 @@ def _many_lights_pbrt(doc: dict) -> str:
     return many_lights_pbrt.report(doc)
 
 
+def _out_of_core_eye(doc: dict) -> str:
+    import out_of_core_eye
+    return out_of_core_eye.report(doc)
+
+
 def _eye_pass(doc: dict) -> str:
     import eye_pass
     return eye_pass.report(doc)
@@ -177,6 +182,7 @@ TABLES = {
     "many-lights": ("benchmarks/results/many-lights.json", _many_lights),
     "many-lights-pbrt": ("benchmarks/results/many-lights-pbrt.json", _many_lights_pbrt),
     "eye-pass": ("benchmarks/results/eye-pass.json", _eye_pass),
+    "out-of-core-eye": ("benchmarks/results/out-of-core-eye.json", _out_of_core_eye),
     "accuracy-failure-modes": ("docs/evaluation/results.json", _evaluation()),
     "accuracy-failure-modes-mirror": ("docs/evaluation/results.json", _evaluation(mirror=True)),
     "accuracy-sponza-20s": ("benchmarks/results/issue12-sponza/results.json", _evaluation(20.0)),
