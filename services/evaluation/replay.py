@@ -50,24 +50,20 @@ class ReplayState(TracerState):
         self.recorded: list[tuple[dict, int]] = []   # (results fields, paths traced)
         self.counters.update(replayed_steps=0, recorded_paths=0, recorded_s=0.0)
 
-    def _trace_photons(self, view, q):
+    def _trace_photons(self, view, taken):
         if len(self.recorded) < RECORDED_STEPS:
-            rays = q.rays
             t0 = time.perf_counter()
-            out = super()._trace_photons(view, q)
+            out = super()._trace_photons(view, taken)
             self.counters["recorded_s"] += time.perf_counter() - t0
-            paths = rays - q.rays
-            self.counters["recorded_paths"] += paths
-            self.recorded.append((out[0].fields, paths))
+            self.counters["recorded_paths"] += taken.rays
+            self.recorded.append((out[0].fields, taken.rays))
             return out
-        taken = self._take(q.photons)
-        jobs = np.concatenate([p.batch.job for p in taken])
-        q.rays -= len(jobs)
+        jobs = np.concatenate([p.batch.job for p in taken.items])
         fields, paths = self.recorded[self.counters["replayed_steps"] % len(self.recorded)]
         self.counters["replayed_steps"] += 1
         self.counters["rays_traced"] += len(jobs)
         return [Out(SERVER, "results", _relabelled(fields, paths, jobs, view.index, self.queued_rays,
-                                                   concat_credit(taken)))]
+                                                   concat_credit(taken.items)))]
 
 
 def _relabelled(fields: dict, paths: int, jobs: np.ndarray, chunk: int, queued: int, credit: tuple) -> dict:
