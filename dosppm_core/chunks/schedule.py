@@ -54,18 +54,6 @@ PHOTON_WAIT_DWELLS = 3  # photons never wait more than this many dwells while ey
 PHOTON, EYE, SHADOW = "photon", "eye", "shadow"
 
 
-def next_with_work(has_work, after: int, chunk_count: int, stop: int | None = None) -> int | None:
-    """The next chunk with work after `after` in round-robin order (`after`
-    itself last), or None; with `stop`, not going past that chunk."""
-    for i in range(1, chunk_count + 1):
-        k = (after + i) % chunk_count
-        if has_work(k):
-            return k
-        if k == stop:
-            return None
-    return None
-
-
 @dataclass
 class ChunkQueue:
     photons: list = field(default_factory=list)      # a heap of (age, arrival, item)
