@@ -6,8 +6,8 @@ with the same photons per iteration: one eye pass, and so one hit point
 per pixel that sees a surface, per PHOTONS photons, and statistics updated
 per PHOTONS deposits at most. What each then delivers is reported side by
 side: photons/s and hit points/s, and hit points per photon, which shows
-whether the eye rate really matched (DOSPPM starts an eye pass only when
-the last one is complete, so it may do fewer).
+whether the eye rate really matched (DOSPPM starts an eye pass per PHOTONS
+photons emitted, but never more than 16 in flight, so it may do fewer).
 
     python benchmarks/equal_work.py [--seconds 20] [--repeats 3] [--photons 1000000]
 

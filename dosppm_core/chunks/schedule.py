@@ -142,10 +142,6 @@ class ChunkScheduler:
             return any(self.queues.values())
         return bool(self.queues.get(k))
 
-    def _has_eye_work(self, k: int) -> bool:
-        q = self.queues.get(k)
-        return q is not None and q.eye_rays > 0
-
     # -- the next chunk ------------------------------------------------------
     def pick(self, all_fit: bool, exclude=(), loading: int | None = None) -> int | None:
         """The chunk to trace next: the active one while it has eye work,

@@ -343,8 +343,8 @@ class ServerState:
         self.eyes[job.eye_iteration].open_jobs -= 1
         # In order: a later iteration whose paths all ended waits for the
         # earlier ones, so the hit points are replaced one iteration at a time.
-        while self.eyes and next(iter(self.eyes.values())).open_jobs == 0:
-            self._finish_eye_iteration(self.eyes.pop(next(iter(self.eyes))))
+        while self.eyes and self.eyes[min(self.eyes)].open_jobs == 0:
+            self._finish_eye_iteration(self.eyes.pop(min(self.eyes)))
 
     def _finish_eye_iteration(self, e: EyeIteration) -> None:
         hits, emitted_light = e.results.complete()

@@ -262,14 +262,14 @@ class TracerState:
                                  eye_iteration=e)
 
     def _trace_photons(self, view, taken) -> list[Out]:
-        taken = taken.items
-        batch = RayBatch.concat([p.batch for p in taken])
+        items = taken.items
+        batch = RayBatch.concat([p.batch for p in items])
         self.counters["photons_traced"] += len(batch)
-        box = union_box([p.cull_box for p in taken])
+        box = union_box([p.cull_box for p in items])
         deposits, ends, culled, outgoing = trace_photons_in_chunk(view, batch, box, self.max_depth,
                                                                   self.deposit_from, self.lights)
         fields = dict(chunk=view.index, ends=ends, culled=int(culled), deposits=deposits)
-        return self._after_trace(batch, concat_credit(taken), fields, [("photon", outgoing)], cull_box=box)
+        return self._after_trace(batch, concat_credit(items), fields, [(PHOTON, outgoing)], cull_box=box)
 
     def _after_trace(self, batch, credit, fields, outgoing, **extra) -> list[Out]:
         """The step's results for the server and its packages leaving.
