@@ -2,7 +2,8 @@
 step's results relabelled for another package must be a results message
 the wire and the server's exact accounting accept, with the recorded
 deposits per path; and a real server fed by synthetic tracers must apply
-every photon it committed."""
+every photon it committed, and report what the render cost it (issue 32:
+CPU by part and bytes on the wire, from the render's start)."""
 from __future__ import annotations
 
 import numpy as np
@@ -11,6 +12,7 @@ import pytest
 from dosppm_core.jobs import END_NAMES, PhotonDeposits
 from services import wire
 from services.evaluation import replay
+from services.server.costs import FIELDS
 from tests.test_wire import random_record
 
 
@@ -36,12 +38,54 @@ def test_a_relabelled_step_is_a_valid_results_message_for_the_package():
     assert len(msg.deposits) == round(1700 * len(jobs) / 1000)   # the recorded deposits per path
 
 
+@pytest.fixture(scope="module")
+def replayed(tmp_path_factory):
+    """One short replayed render's server summary, shared by the tests below."""
+    return replay.run("cornell-box", tracers=1, seconds=4.0, work=str(tmp_path_factory.mktemp("replay")))
+
+
 @pytest.mark.slow
-def test_a_server_fed_by_synthetic_tracers_applies_what_it_committed(tmp_path):
-    s = replay.run("cornell-box", tracers=1, seconds=4.0, work=str(tmp_path))
+def test_a_server_fed_by_synthetic_tracers_applies_what_it_committed(replayed):
+    s = replayed
     c = s["counters"]
     assert s["replay_tracers"][0]["replayed_steps"] > 0      # past the recorded steps: replaying
     assert c["photons_committed"] > 0
     assert s["photons_applied"] == c["photons_committed"]
     f = replay.figures(s, per_core=1e5)
     assert f["photons_per_server_cpu_s"] > 0 and f["tracer_photons_per_core_s"] > 0
+
+
+@pytest.mark.slow
+def test_the_server_reports_what_the_render_cost_it_by_part(replayed):
+    s, tol = replayed, 0.05        # CPU seconds: marks are read one after the other
+    r = s["render_costs"]
+    assert set(FIELDS) <= set(r) and all(r[k] >= 0 for k in FIELDS)
+    # The parts on the loop's thread are within it, and it and the
+    # statistics thread within the process's CPU since the start.
+    assert r["job_making_cpu_s"] + r["held_cpu_s"] <= r["loop_cpu_s"] + tol
+    assert r["loop_cpu_s"] + r["statistics_cpu_s"] <= r["cpu_s"] + tol
+    assert r["job_making_cpu_s"] > 0 and r["held_cpu_s"] > 0 and r["statistics_cpu_s"] > 0
+    # Start-up left out: less than the whole process's CPU (loading the store at least).
+    assert r["cpu_s"] < s["cpu_s"]
+    assert 0 < r["bytes_in"] <= s["bytes_in"] and 0 < r["bytes_out"] <= s["bytes_out"]
+    f = replay.figures(s, per_core=1e5)
+    assert f["bytes_in_per_photon"] > 0 and f["bytes_out_per_photon"] > 0
+    assert f["server_cpu_us_per_photon"] > 0
+    assert min(f[k] for k in ("job_making_share", "held_share", "statistics_share")) >= 0
+
+
+def test_the_shares_of_server_cpu_add_up():
+    costs = dict(cpu_s=10.0, loop_cpu_s=6.0, job_making_cpu_s=2.0, held_cpu_s=1.0, statistics_cpu_s=3.0,
+                 bytes_in=5_000, bytes_out=1_000)
+    counters = {"photons_committed": 1000, "photons_emitted": 1250, "results": 10, "deposits_received": 4000}
+    s = {"counters": counters, "seconds": 5.0, "cpu_s": 12.0, "render_costs": costs}
+    f = replay.figures(s, per_core=50.0)
+    assert f["server_cpu_s"] == 10.0 and f["server_cpu_us_per_photon"] == pytest.approx(1e4)
+    assert f["tracer_cores_per_server_core"] == pytest.approx(100 / 50)      # start-up excluded
+    assert (f["bytes_in_per_photon"], f["bytes_out_per_photon"]) == (4.0, 0.8)
+    assert (f["job_making_share"], f["held_share"], f["loop_other_share"]) == pytest.approx((0.2, 0.1, 0.3))
+    assert f["loop_share_of_cpu"] == pytest.approx(0.6) and f["statistics_share"] == pytest.approx(0.3)
+    parts = ("job_making_share", "held_share", "loop_other_share", "statistics_share", "other_threads_share")
+    assert sum(f[k] for k in parts) == pytest.approx(1.0)
+    assert "| server CPU per photon applied" in replay.report(
+        {"scene": "x", "tracers": 1, "seconds": 5.0, "replay": dict(f, repeats=1)})

@@ -12,10 +12,13 @@ for real: they are a small share of a render's rays and their hit points
 must be right for the statistics.
 
 The server's own counters then give what one server core does at most:
-photons applied per second of server CPU, CPU per results message, and
-the statistics update's share. The tracer side's rate is the library's
-photon pass on the same scene with one thread, measured alone in the same
-run.
+photons applied per second of server CPU, CPU per photon and per results
+message, where that CPU goes (the message loop's thread: making photon
+jobs, held deposits and the rest; statistics updates; other threads), and
+the bytes per photon each way on the wire, all counted from the render's
+start (services/server/costs.py: the server's start-up is left out). The
+tracer side's rate is the library's photon pass on the same scene with
+one thread, measured alone in the same run.
 
     python -m services.evaluation.replay --tracers 2 --seconds 20
 """
@@ -146,23 +149,40 @@ def tracer_rate(scene: str, photons: int = 400_000) -> float:
 
 
 def figures(s: dict, per_core: float) -> dict:
-    """Photons per server CPU-second, CPU per message, and how many tracer
-    threads of `per_core` photon paths/s that feeds, from a server summary
-    of a replayed render."""
-    c = s["counters"]
-    photons, cpu, secs = c["photons_committed"], max(s.get("cpu_s", 0.0), 1e-9), s["seconds"]
+    """Photons per server CPU-second, CPU per photon and per message, where
+    it goes, bytes per photon on the wire, and how many tracer threads of
+    `per_core` photon paths/s that feeds, from a server summary of a
+    replayed render. CPU and bytes count from the render's start (the
+    summary's `render_costs`): loading the store and waiting for tracers
+    are no cost of photons, and weigh more the shorter the run."""
+    c, r = s["counters"], s["render_costs"]
+    photons, secs = c["photons_committed"], s["seconds"]
+    emitted, cpu = max(c["photons_emitted"], 1), max(r["cpu_s"], 1e-9)
     server_rate = photons / cpu                      # photons per server CPU-second
     return {"seconds": secs, "photons": photons, "photons_per_s": photons / secs,
-            "server_cpu_s": cpu, "server_cpu_load": cpu / secs,
-            "photons_per_server_cpu_s": server_rate,
+            "server_cpu_s": cpu, "server_cpu_whole_process_s": s.get("cpu_s", 0.0),
+            "server_cpu_load": cpu / secs, "photons_per_server_cpu_s": server_rate,
+            "server_cpu_us_per_photon": 1e6 * cpu / max(photons, 1),
             "results_messages": c["results"], "server_cpu_ms_per_message": 1e3 * cpu / max(c["results"], 1),
             "deposits_per_message": c["deposits_received"] / max(c["results"], 1),
+            "bytes_in_per_photon": r["bytes_in"] / emitted, "bytes_out_per_photon": r["bytes_out"] / emitted,
             "update_s": s.get("update_seconds", 0.0), "update_share_of_cpu": s.get("update_seconds", 0.0) / cpu,
-            # The message loop's thread (decoding, making photon jobs,
-            # accounting, encoding) against the rest: statistics updates.
-            "loop_share_of_cpu": s.get("loop_cpu_s", 0.0) / cpu,
+            **cpu_shares(r, cpu),
             "tracer_photons_per_core_s": per_core,
             "tracer_cores_per_server_core": server_rate / max(per_core, 1e-9)}
+
+
+def cpu_shares(r: dict, cpu: float) -> dict:
+    """The server's CPU by part (services/server/costs.py), as shares of
+    `cpu`. The loop's thread holds making photon jobs, held deposits and
+    the rest (decoding, accounting, sending); besides it the statistics
+    thread, and other threads: the statistics kernels' parallel workers
+    and zmq's I/O. Not clamped: a negative rest would be a part counted
+    twice."""
+    loop, job, held, stats = r["loop_cpu_s"], r["job_making_cpu_s"], r["held_cpu_s"], r["statistics_cpu_s"]
+    return {"loop_share_of_cpu": loop / cpu, "job_making_share": job / cpu, "held_share": held / cpu,
+            "loop_other_share": (loop - job - held) / cpu, "statistics_share": stats / cpu,
+            "other_threads_share": (cpu - loop - stats) / cpu}
 
 
 def _tracer_main(args) -> int:
@@ -176,14 +196,23 @@ def report(res: dict) -> str:
     r = res["replay"]
     return "\n".join([
         f"Replay: {res['scene']}, one server and {res['tracers']} synthetic tracers, {res['seconds']:.0f} s a run, "
-        f"medians of {r['repeats']}.", "",
+        f"medians of {r['repeats']}. Server CPU and bytes from the render's start (start-up left out).", "",
         "| figure | value |", "|---|---|",
         f"| photons applied per second of server CPU | {r['photons_per_server_cpu_s']:,.0f} |",
+        f"| server CPU per photon applied (microseconds) | {r['server_cpu_us_per_photon']:.2f} |",
+        f"| server CPU, render / whole process incl. start-up (s) "
+        f"| {r['server_cpu_s']:.2f} / {r['server_cpu_whole_process_s']:.2f} |",
         f"| server CPU per results message (ms) | {r['server_cpu_ms_per_message']:.1f} |",
         f"| deposits per results message | {r['deposits_per_message']:,.0f} |",
-        f"| the message loop's thread (messages, photon jobs, accounting), share of server CPU "
-        f"| {r['loop_share_of_cpu']:.0%} |",
-        f"| statistics updates (their thread and numba's workers), share | {1 - r['loop_share_of_cpu']:.0%} |",
+        f"| bytes per photon emitted, tracers to server | {r['bytes_in_per_photon']:.1f} |",
+        f"| bytes per photon emitted, server to tracers | {r['bytes_out_per_photon']:.1f} |",
+        f"| the message loop's thread, share of server CPU | {r['loop_share_of_cpu']:.0%} |",
+        f"| ... making photon jobs (emission, routing, encoding) | {r['job_making_share']:.0%} |",
+        f"| ... held deposits (adding, re-culling, releasing) | {r['held_share']:.0%} |",
+        f"| ... the rest of the loop (decoding, accounting, sending) | {r['loop_other_share']:.0%} |",
+        f"| statistics updates (their thread), share | {r['statistics_share']:.0%} |",
+        f"| other threads (the statistics kernels' workers, zmq's I/O), share "
+        f"| {r['other_threads_share']:.0%} |",
         f"| one tracer thread, photon paths/s (alone, same scene) | {r['tracer_photons_per_core_s']:,.0f} |",
         f"| **tracer cores one server core feeds** | **{r['tracer_cores_per_server_core']:.1f}** |",
         "| ... in the paper's CPU server / GPU server | 12.4 / 105 |"])

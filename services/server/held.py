@@ -7,6 +7,7 @@ import numpy as np
 
 from dosppm_core.chunks.pacing import DEPOSIT_BYTES
 from dosppm_core.jobs import PhotonDeposits
+from services.server.costs import thread_cpu
 
 UNKNOWN, IN_FLIGHT, COMPLETE, DISCARDED = 0, 1, 2, 3     # photon job status
 DEPOSITS_PER_PHOTON_GUESS = 4.0   # before any photon path has ended
@@ -45,6 +46,7 @@ class HeldDeposits:
         self.rows, self.photon_batch = 0, int(photon_batch)
         self.limit_rows = max(1, int(limit_bytes // DEPOSIT_BYTES))
         self._next_at, self._last_split_s = self.photon_batch, float("-inf")
+        self.cpu_s = 0.0     # CPU in add and split: a part of the server's cost per photon (costs.py)
 
     def jobs_that_fit(self, photons_per_job: int, deposits_per_photon: float | None) -> int:
         """Photon jobs in flight whose deposits fit the limit less a batch of
@@ -61,6 +63,7 @@ class HeldDeposits:
     def full(self) -> bool:
         return self.rows >= self.limit_rows
 
+    @thread_cpu("cpu_s")
     def add(self, deposits: PhotonDeposits) -> None:
         self.parts.append(HeldPart(deposits))
         self.rows += len(deposits)
@@ -69,6 +72,7 @@ class HeldDeposits:
         return self.rows >= self._next_at or (
             self.full and jobs_ready and now - self._last_split_s >= FULL_BATCH_INTERVAL_S)
 
+    @thread_cpu("cpu_s")
     def split(self, status_of, jobs: tuple, now: float) -> tuple[list, int]:
         """(deposits to commit, discarded jobs' deposit count); the rest is
         kept (`split_held`)."""

@@ -38,7 +38,7 @@ from dosppm_core.modes.deadline import grace_s
 from dosppm_core.settings import Progress, RenderSettings
 from services import config, transport, wire
 from services.ledger import Ledger
-from services.server import checkpoint
+from services.server import checkpoint, costs
 from services.server.history import StatusHistory, progress
 from services.server.http import StatusServer
 from services.server.state import ServerState, Update
@@ -125,12 +125,16 @@ class ServerProcess:
         self.started_at: float | None = None
         self.finished_at: float | None = None
         self.loop_cpu_s = 0.0            # the message loop thread's CPU, set as it ends
-        self.bytes_in = self.bytes_out = 0
-        self.undeliverable = 0
+        self.bytes_out = self.undeliverable = 0
+        self.job_encoding_cpu_s, self._costs_at = 0.0, {}    # the render's costs (costs.py)
 
     @property
     def status_url(self) -> str | None:
         return self.http.url if self.http else None
+
+    @property
+    def bytes_in(self) -> int:
+        return self.router.bytes_in
 
     # -- the loop ----------------------------------------------------------------------
     def run(self) -> dict:
@@ -152,6 +156,9 @@ class ServerProcess:
                 self._checkpoint()
             self._updates.put(None)
             worker.join()
+            # Every photon applied; writing the image and saying goodbye are
+            # the end's fixed cost, left out like the start's.
+            self._costs_at["end"] = costs.mark(self)
             self.statistics.end_ledger(self.state.counters["deposits_late"])
             self._write_image()
             self._say_goodbye()
@@ -177,6 +184,10 @@ class ServerProcess:
             self._pump_updates()
             if self.state.started and self.started_at is None:
                 self.started_at = now
+                # The render's cost counts from here: the store is loaded, the
+                # statistics made and the tracers welcomed; no photon job is
+                # made before the first eye iteration's hit points are in.
+                self._costs_at["start"] = costs.mark(self)
             if now - last_status >= STATUS_INTERVAL_S:
                 last_status = now
                 self._publish_status(now, phase if self.state.started else "waiting")
@@ -326,11 +337,17 @@ class ServerProcess:
 
     def _send(self, outs) -> None:
         for o in outs:
-            self._queue(o.dest, wire.encode(o.type, **o.fields))
+            frames = self._encoded_job(o) if o.type == "photon_job" else wire.encode(o.type, **o.fields)
+            self._queue(o.dest, frames)
         while self._lost:
             tid = self._lost.pop()
             if tid in self.state.tracers:
                 self._send(self.state.evict(tid, "unreachable"))
+
+    @costs.thread_cpu("job_encoding_cpu_s")
+    def _encoded_job(self, o) -> list:
+        """A photon job message's frames: encoding is part of making photon jobs."""
+        return wire.encode(o.type, **o.fields)
 
     def _queue(self, tid: str, frames) -> None:
         self._outbox.setdefault(tid, deque()).append(frames)
@@ -493,7 +510,7 @@ class ServerProcess:
                   photons_per_s=st["photons_emitted"] / seconds if seconds > 0 else 0.0,
                   hit_points_per_s=st["hit_points"] / seconds if seconds > 0 else 0.0,
                   eta_s=at["eta_s"], progress=at, update_seconds=round(self.statistics.update_seconds, 3),
-                  updates_queued=self._updates.qsize(), bytes_out=self.bytes_out,
+                  updates_queued=self._updates.qsize(), bytes_in=self.bytes_in, bytes_out=self.bytes_out,
                   cpu_s=round(time.process_time(), 3),
                   undeliverable=self.undeliverable, emission_paused=self.state.paused,
                   failure=self.failure)
@@ -538,6 +555,10 @@ class ServerProcess:
         st["photons_in_image"] = int(self.statistics.stats.photons_emitted)   # N_e, resumed part included
         st["cpu_s"] = round(time.process_time(), 3)
         st["loop_cpu_s"] = round(self.loop_cpu_s, 3)
+        st["bytes_in"], st["bytes_out"] = self.bytes_in, self.bytes_out
+        # Start-up (and the end's image and goodbyes) left out: costs.py.
+        end = self._costs_at.get("end") or costs.mark(self)
+        st["render_costs"] = costs.since(self._costs_at.get("start"), end)
         if self.started_at is not None:
             # When the render's clock started, as a Unix time: what a time
             # limit counts from (the process's own start-up comes before).

@@ -49,6 +49,7 @@ from dosppm_core.settings import RenderSettings
 from dosppm_core.trace import NO_CULL, eye_ray_job
 from services.credit import by_job, new_job
 from services.server.balance import FIRST_REBALANCE_S, REBALANCE_INTERVAL_S, assign_chunks, rebalanced
+from services.server.costs import thread_cpu
 from services.server.held import COMPLETE, DEPOSIT_BYTES, DISCARDED, IN_FLIGHT, HeldDeposits, JobStatus
 from services.server.job_messages import JobMessages
 from services.server.records import EyeIteration, Job, TracerInfo, Update  # noqa: F401 (Update: the shell's)
@@ -138,6 +139,7 @@ class ServerState:
         self.counters = dict.fromkeys(COUNTERS, 0)
         self.path_ends = np.zeros(len(END_NAMES), np.int64)
         self._latencies: deque = deque(maxlen=LATENCIES_KEPT)     # of the last photon jobs complete
+        self.job_making_cpu_s = 0.0     # a part of the server's cost per photon (costs.py)
 
     # -- tracers -------------------------------------------------------------------
     def welcome_fields(self, t: TracerInfo) -> dict:
@@ -415,11 +417,15 @@ class ServerState:
         out += self._maybe_start_eye_iteration()
         self._maybe_batch()     # held full: jobs may have completed since the last batch
         if self.cull_box is not None and not self.paused:
-            wanted = self._photon_jobs_wanted()
-            while self.photon_jobs_in_flight < wanted:
-                self._photon_pending.append(self._new_job("photon", self.settings.photons_per_job))
+            self._make_photon_jobs()
             out += self._send_photon_jobs()
         return out
+
+    @thread_cpu("job_making_cpu_s")
+    def _make_photon_jobs(self) -> None:
+        wanted = self._photon_jobs_wanted()
+        while self.photon_jobs_in_flight < wanted:
+            self._photon_pending.append(self._new_job("photon", self.settings.photons_per_job))
 
     def _ready_to_start(self, now: float) -> bool:
         if len(self.tracers) >= self.min_tracers:
@@ -616,6 +622,7 @@ class ServerState:
         self._credit(j, kept)               # the server's own share: all of it when none was sent
         return receivers
 
+    @thread_cpu("job_making_cpu_s")
     def _send_photon_jobs(self) -> list[Out]:
         out, parts, emitted = [], JobMessages(), 0
         box = self.cull_box      # NO_CULL when culling is off (`SPPMIteration.cull_box`)

@@ -14,6 +14,7 @@ from dosppm_core.settings import RenderSettings
 from dosppm_core.sppm.iteration import SPPMIteration
 from services.ledger import Ledger
 from services.server import checkpoint
+from services.server.costs import thread_cpu
 
 
 class ServerStatistics:
@@ -23,6 +24,9 @@ class ServerStatistics:
         self.sppm = SPPMIteration(header, settings, threads=threads)
         self.lock = threading.Lock()       # held while statistics change; snapshots take it
         self.update_seconds = 0.0
+        # This thread's CPU in updates; the kernels' parallel workers are
+        # not in it (costs.py).
+        self.update_cpu_s = 0.0
         self.photon_update_s = 0.0         # the last batch of photons took (the deadline's reserve)
         self.ledger = ledger
 
@@ -38,6 +42,7 @@ class ServerStatistics:
     def deposits_applied(self) -> int:
         return self.sppm.deposits_applied
 
+    @thread_cpu("update_cpu_s")
     def apply(self, update) -> np.ndarray | None:
         """Run one update; returns the cull box for photons emitted from
         now on (§4.3), None while there are no hit points yet."""
