@@ -74,15 +74,23 @@ def _pbrt_run(world: str, work: str, spp: int, seed: int, scene) -> tuple[float,
 
 
 def reference(args, scene, world: str, work: str) -> np.ndarray:
-    key = (f"building-{int(args.triangles)}-{args.lights}-{args.seed}-{args.width}x{args.height}-"
-           f"{args.ref_spp}spp-depth{DEPTH}")
-    path = os.path.join(os.path.expanduser(args.cache), key + ".exr")
+    key = f"building-{int(args.triangles)}-{args.lights}-{args.seed}-{args.width}x{args.height}-{args.ref_spp}spp"
+    return pbrt_reference(scene, key, args.ref_spp, args.cache, world, work)
+
+
+def pbrt_reference(scene, key: str, spp: int, cache: str, world: str | None = None,
+                   work: str | None = None) -> np.ndarray:
+    """pbrt-v4 `path` at `spp`, kept in `cache` under `key`; `scene` is
+    exported unless `world` is given."""
+    path = os.path.join(os.path.expanduser(cache), f"{key}-depth{DEPTH}.exr")
     if os.path.exists(path):
         return read_exr(path)[0]
-    seconds, img = _pbrt_run(world, work, args.ref_spp, 1, scene)
+    work = work or tempfile.mkdtemp(prefix="dosppm-pbrt-reference-")
+    world = world or pbrt.write_scene(scene, os.path.join(work, "scene"))
+    seconds, img = _pbrt_run(world, work, spp, 1, scene)
     os.makedirs(os.path.dirname(path), exist_ok=True)
     write_exr(path, img)
-    print(f"reference: pbrt path {args.ref_spp} spp in {seconds:.0f} s -> {path}", file=sys.stderr)
+    print(f"reference: pbrt path {spp} spp in {seconds:.0f} s -> {path}", file=sys.stderr)
     return img
 
 

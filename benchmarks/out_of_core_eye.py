@@ -10,11 +10,16 @@ and rendered for the same time in four ways, side by side in one run:
 Each run records photons emitted, eye iterations, hit points per second
 and, for DOSPPM, the status page's timeline: the share of the photons
 emitted so far that is committed half-way through (a job's deposits
-count once its last path has ended).
+count once its last path has ended), and each tracer's seconds by what it
+did. With pbrt-v4 at hand (DOSPPM_PBRT), each image's relMSE against a
+converged pbrt-v4 `path` reference of the same building (--reference-spp
+samples a pixel, cached in --cache; about 40 minutes on 2 cores). The
+building's tinted glass is made grey in both (pbrt-v4 has no tinted
+dielectric), as in many_lights_pbrt.py.
 
-    python benchmarks/out_of_core_eye.py [--seconds 30] [--repeats 1]
+    DOSPPM_PBRT=~/.cache/pbrt-v4/build/pbrt python benchmarks/out_of_core_eye.py [--seconds 30] [--repeats 1]
 
-The scene is generated once into --work (about 2 minutes, 1.5 GB).
+The scene is generated once into --work (about 3 minutes, 1.5 GB).
 """
 from __future__ import annotations
 
@@ -31,10 +36,17 @@ import urllib.request
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
+import numpy as np  # noqa: E402
+
 from dosppm_core.chunks.store import ChunkStore  # noqa: E402
+from dosppm_core.film import read_exr  # noqa: E402
+from dosppm_core.scene.generate import building_scene  # noqa: E402
+from dosppm_core.scene.soupfile import SoupWriter, open_soup  # noqa: E402
+from many_lights_pbrt import pbrt_reference, score  # noqa: E402
+from services.evaluation import pbrt  # noqa: E402
 from services.evaluation.provenance import write_results  # noqa: E402
 
-WORK = os.path.join(os.path.expanduser("~"), ".cache", "dosppm", "bench", "building-5M")
+WORK = os.path.join(os.path.expanduser("~"), ".cache", "dosppm", "bench", "building-5M-grey")
 
 
 def _dosppm(*args: str, **kw) -> subprocess.CompletedProcess:
@@ -43,14 +55,46 @@ def _dosppm(*args: str, **kw) -> subprocess.CompletedProcess:
 
 
 def prepare(work: str, triangles: float, lights: int, budget: str, width: int, height: int) -> str:
-    """The chunk store, generated and subdivided unless already there."""
-    soup, store = os.path.join(work, "soup"), os.path.join(work, "store")
+    """The chunk store, generated (tinted glass grey) and subdivided unless
+    already there."""
+    soup, grey, store = (os.path.join(work, n) for n in ("soup", "soup-grey", "store"))
     if not os.path.exists(os.path.join(store, "header.msgpack")) and not os.path.isdir(store):
         os.makedirs(work, exist_ok=True)
         _dosppm("scenes", "generate", "building", "--triangles", str(int(triangles)), "--lights", str(lights),
                 "--width", str(width), "--height", str(height), "--seed", "1", "--out", soup)
-        _dosppm("subdivide", soup, "--budget", budget, "--out", store)
+        grey_glass_soup(soup, grey)
+        _dosppm("subdivide", grey, "--budget", budget, "--out", store)
     return store
+
+
+def grey_glass(materials) -> None:
+    """Tinted glass made grey, in place (pbrt-v4 has no tinted dielectric)."""
+    for i, name in enumerate(materials.names):
+        if name == "glass-tinted":
+            materials.reflectance[i] = materials.reflectance[i].mean()
+
+
+def grey_glass_soup(src: str, dst: str) -> None:
+    soup = open_soup(src)
+    grey_glass(soup.header.materials)
+    writer = SoupWriter(dst)
+    for _start, corners, material in soup.blocks():
+        writer.append(corners, material)
+    writer.close(soup.header)
+
+
+def reference(args) -> np.ndarray | None:
+    """pbrt-v4's converged image of the same building, or None without
+    pbrt-v4 (then no relMSE is reported)."""
+    if not args.reference_spp or pbrt.missing_reason():
+        print(f"no reference: {pbrt.missing_reason() or '--reference-spp 0'}", file=sys.stderr)
+        return None
+    scene = building_scene(triangles=int(args.triangles), lights=args.lights, floors=2, seed=1,
+                           width=args.width, height=args.height)
+    grey_glass(scene.materials)
+    key = (f"building-{int(args.triangles)}-{args.lights}-1-{args.width}x{args.height}-grey-"
+           f"{args.reference_spp}spp")
+    return pbrt_reference(scene, key, args.reference_spp, args.cache)
 
 
 def _free_port() -> int:
@@ -74,10 +118,11 @@ def run_dosppm(store: str, seconds: float, flags: list[str], out: str) -> dict:
            "--out", out, "--http", f"127.0.0.1:{port}", "--quiet", *flags]
     t0 = time.monotonic()
     proc = subprocess.Popen(cmd, cwd=ROOT, env=dict(os.environ, PYTHONPATH=ROOT))
-    timeline = []
+    timeline, tracers = [], []
     while proc.poll() is None:
         st = _poll(port)
         if st and st.get("seconds"):
+            tracers = st.get("tracers") or tracers
             point = {k: st.get(k) for k in ("seconds", "photons_emitted", "photons_committed", "hit_points",
                                             "iteration", "eye_iterations_in_flight")}
             point["photons_completed"] = st.get("counters", {}).get("photons_completed")
@@ -98,7 +143,19 @@ def run_dosppm(store: str, seconds: float, flags: list[str], out: str) -> dict:
             "photons_per_s": summary["counters"]["photons_emitted"] / render_s,
             "committed_at_half": (half["photons_committed"] / half["photons_emitted"]
                                   if half and half["photons_emitted"] else None),
-            "half": half, "timeline": timeline[::4]}
+            "half": half, "timeline": timeline[::4], "tracers": [_time_split(t) for t in tracers]}
+
+
+def _time_split(t: dict) -> dict:
+    """A tracer's seconds by what it did, from its last heartbeat: tracing
+    (busy less waiting for chunk loads), waiting for loads, idle, and its
+    message handling."""
+    keys = ("busy_s", "load_wait_s", "load_s", "idle_s", "receive_s", "step_send_s", "cpu_s", "chunk_loads",
+            "steps", "rays_traced", "photons_traced")
+    out = {k: t.get(k) for k in keys}
+    if t.get("busy_s") is not None and t.get("load_wait_s") is not None:
+        out["tracing_s"] = round(t["busy_s"] - t["load_wait_s"], 3)
+    return out
 
 
 def run_osppm(store: str, seconds: float, flags: list[str], out: str) -> dict:
@@ -127,17 +184,22 @@ def run(args) -> dict:
             "osppm resident": (run_osppm, ["--memory", str(int(sum(cost)) + (256 << 20))])}
     if args.only:
         runs = {name: runs[name] for name in args.only}
+    ref = reference(args)
     rows = {name: [] for name in runs}
     for rep in range(args.repeats):
         for name, (fn, flags) in runs.items():     # interleaved: the machine's drift falls on all alike
-            r = fn(store, args.seconds, flags, os.path.join(args.work, "out", f"{name.replace(' ', '-')}.exr"))
+            out = os.path.join(args.work, "out", f"{name.replace(' ', '-')}.exr")
+            r = fn(store, args.seconds, flags, out)
+            if ref is not None:
+                r |= score(read_exr(out)[0], ref)
             print(f"{name}: {r['photons']:,} photons, {r['hit_points']:,} hit points, "
-                  f"{r['hit_points_per_s']:,.0f} hit points/s", file=sys.stderr)
+                  f"{r['hit_points_per_s']:,.0f} hit points/s, relMSE {r.get('relmse')}", file=sys.stderr)
             rows[name].append(r)
-    med = {name: {k: statistics.median([r[k] for r in rs]) for k in ("photons_per_s", "hit_points_per_s")}
-           for name, rs in rows.items()}
+    keys = ("photons_per_s", "hit_points_per_s") + (("relmse", "bias") if ref is not None else ())
+    med = {name: {k: statistics.median([r[k] for r in rs]) for k in keys} for name, rs in rows.items()}
     return {"scene": f"generated building, {int(args.triangles):,} triangles, {args.lights} lights, "
-                     f"{args.width}x{args.height}, {len(cost)} chunks ({args.budget} budget)",
+                     f"{args.width}x{args.height}, tinted glass grey, {len(cost)} chunks ({args.budget} budget)",
+            "reference": f"pbrt-v4 path, {args.reference_spp} spp" if ref is not None else None,
             "seconds": args.seconds, "memory": args.memory, "osppm_memory_bytes": two_chunks,
             "repeats": args.repeats, "runs": rows, "medians": med}
 
@@ -150,12 +212,13 @@ def _latency_at_half(run: dict) -> float | None:
 
 
 def report(res: dict) -> str:
+    scored = all("relmse" in m for m in res["medians"].values())
     lines = [f"{res['scene']}, {res['seconds']:g} s a render, medians of {res['repeats']}; DOSPPM with 2 "
              f"tracers, out of core at --memory {res['memory']} each; OSPPM out of core with room for two "
-             "chunks.", "",
+             "chunks." + (f" relMSE against {res['reference']}." if scored else ""), "",
              "| run | photons/s | hit points/s | eye iterations | photons committed half-way | "
-             "job latency, median (s) |",
-             "|---|---|---|---|---|---|"]
+             "job latency, median (s) | tracers tracing / loading |" + (" relMSE | mean bias |" if scored else ""),
+             "|---|---|---|---|---|---|---|" + ("---|---|" if scored else "")]
     for name, rs in res["runs"].items():
         m = res["medians"][name]
         eye = statistics.median([r["eye_iterations"] for r in rs]) if "eye_iterations" in rs[0] else "-"
@@ -163,14 +226,28 @@ def report(res: dict) -> str:
         lat = [_latency_at_half(r) for r in rs if _latency_at_half(r) is not None]
         lines.append(f"| {name} | {m['photons_per_s']:,.0f} | {m['hit_points_per_s']:,.0f} | {eye} | "
                      f"{f'{statistics.median(half):.0%}' if half else '-'} | "
-                     f"{f'{statistics.median(lat):.1f}' if lat else '-'} |")
+                     f"{f'{statistics.median(lat):.1f}' if lat else '-'} | {_shares(rs)} |"
+                     + (f" {m['relmse']:.4g} | {m['bias']:+.2%} |" if scored else ""))
     ratio = []
     for mode in [m for m in ("dosppm", "osppm") if f"{m} resident" in res["medians"]
                  and f"{m} out of core" in res["medians"]]:
         a, b = res["medians"][f"{mode} out of core"], res["medians"][f"{mode} resident"]
         ratio.append(f"{mode}: hit points/s out of core {a['hit_points_per_s'] / b['hit_points_per_s']:.2f}x "
-                     f"the resident run's, photons/s {a['photons_per_s'] / b['photons_per_s']:.2f}x")
+                     f"the resident run's, photons/s {a['photons_per_s'] / b['photons_per_s']:.2f}x"
+                     + (f", relMSE {a['relmse'] / b['relmse']:.2f}x" if scored else ""))
     return "\n".join(lines + ["", "; ".join(ratio) + "."])
+
+
+def _shares(rs: list[dict]) -> str:
+    """The tracers' median share of the render tracing and waiting for
+    chunk loads (from their last heartbeat; '-' for OSPPM)."""
+    per_run = [(sum(t["tracing_s"] for t in r["tracers"]), sum(t["load_wait_s"] for t in r["tracers"]),
+                len(r["tracers"]) * r["render_s"]) for r in rs if r.get("tracers")]
+    if not per_run:
+        return "-"
+    tracing = statistics.median(a / c for a, _, c in per_run)
+    loading = statistics.median(b / c for _, b, c in per_run)
+    return f"{tracing:.0%} / {loading:.0%}"
 
 
 def main(argv=None) -> int:
@@ -185,6 +262,8 @@ def main(argv=None) -> int:
     p.add_argument("--height", type=int, default=256)
     p.add_argument("--work", default=WORK)
     p.add_argument("--only", nargs="*", help="run only these (names as in the table)")
+    p.add_argument("--reference-spp", type=int, default=4096, help="pbrt-v4's samples a pixel (0: no relMSE)")
+    p.add_argument("--cache", default="~/.cache/dosppm/references")
     p.add_argument("--extra", default="", help="more flags for the DOSPPM runs, e.g. '--min-photon-jobs 64'")
     p.add_argument("--json", default=os.path.join(ROOT, "benchmarks", "results", "out-of-core-eye.json"))
     args = p.parse_args(argv)
