@@ -272,16 +272,23 @@ class TracerState:
         return self._after_trace(batch, concat_credit(items), fields, [(PHOTON, outgoing)], cull_box=box)
 
     def _after_trace(self, batch, credit, fields, outgoing, **extra) -> list[Out]:
-        """The step's results for the server and its packages leaving.
-        `outgoing` is [(kind, {chunk: [records]})]: the paths leaving, whose
-        job ids the results count as left. The batch's credit is split
-        between the leaving packages and the results (services/credit.py),
-        which return a share of every job they carry deposits or hit points of."""
+        """The step's results for the server and its packages leaving (`_send_on`)."""
         self.counters["rays_traced"] += len(batch)
+        return self._send_on(batch.job, credit, fields, outgoing, **extra)
+
+    def _send_on(self, job, credit, fields, outgoing, **extra) -> list[Out]:
+        """The results of a step for the server, and its paths going on.
+        `job`: the job column of the paths taken in, with their `credit`;
+        `outgoing` is [(kind, {chunk: [records]})]: the paths going on,
+        queued here for chunks this tracer serves and sent in portal
+        packages for the others, whose job ids the results count as left.
+        The credit is split between those packages and the results
+        (services/credit.py), which return a share of every job they carry
+        deposits or hit points of."""
         leaving = [(kind, chunk, type(parts[0]).concat(parts))
                    for kind, out in outgoing for chunk, parts in out.items()]
         fields["job_ids"], fields["job_fed"], fields["job_left"] = paths_per_job(
-            [batch.job], [b.job for _kind, _chunk, b in leaving])
+            [job], [b.job for _kind, _chunk, b in leaving])
         (fields["credit_job"], fields["credit_exp"]), shares = split_credit(
             *credit, [b.job for _kind, _chunk, b in leaving])
         portal = []
