@@ -51,7 +51,8 @@ class InProcessCluster:
         tid = f"t{len(self.tracers)}"
         t = TracerState(f"inproc://{tid}", self.store, self.settings.max_depth,
                         memory_bytes=self.memory_bytes, threads=self.settings.threads,
-                        step_rays=self.step_rays, direct=self.settings.direct, clock=lambda: self.now)
+                        step_rays=self.step_rays, direct=self.settings.direct, clock=lambda: self.now,
+                        seed=self.settings.seed)
         self.tracers[tid], self.by_endpoint[t.endpoint] = t, tid
         reg = _over_the_wire("register", dict(tracer_id=tid, capacity={"cores": 1, "memory_bytes": 0},
                                               endpoint=t.endpoint, has_store=True,

@@ -29,9 +29,9 @@ Nothing is dropped silently:
   disconnected identity raises `Unreachable` instead of vanishing, and a
   full queue raises `WouldBlock` (non-blocking send) instead of dropping;
 - high-water marks are HWM_MESSAGES messages, not the default 1000: a
-  message can be a ray batch of tens of MB (56 B per ray; the server's job
-  messages aim at `MESSAGE_RAYS`, but a tracer's coalesced portal packages
-  and results can be larger);
+  message can be a ray batch of tens of MB (56 B per ray: an eye job's
+  tile, a tracer's coalesced portal packages and results; a photon job
+  is a few hundred bytes, its photons made by the tracer);
 - memory stays bounded by credit, not by queue: the server sends photon
   jobs to a tracer only while the rays it last reported queued, plus the
   rays sent to it since, stay under a ray credit (`ServerState.credit`:

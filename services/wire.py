@@ -48,7 +48,9 @@ unequal record lengths, non-finite floats (only the cull box may hold
 int64; results have ends >= 0 and ends[CONTINUES] == 0, and an
 eye_iteration when they carry hits or emitted light; a photon portal_rays
 has a cull box and no eye_iteration, an eye one the reverse; chunk_data
-has part < parts and its bytes inside file_bytes. Nothing else escapes
+has part < parts and its bytes inside file_bytes; a photon_job has
+distinct job ids, ids and keys >= 0, counts >= 1 summing to at most
+MAX_EMITTED, and one credit term per job. Nothing else escapes
 `decode`: callers answer a WireError with `error_reply` and a log line
 (`transport.Socket.recv_or_reply` does both) and carry on. Semantic
 ranges the wire cannot know (pixel < width * height, chunk < chunk count,
@@ -65,8 +67,8 @@ Messages
                      (its peer ROUTER), has_store, store_key|None,
                      public_key|None (its CURVE key, for its peers)
       heartbeat      status {} (informational: queue, load, resident chunks)
-      results        chunk, culled, queued, queue_target (rays it asks to
-                     have queued; 0: the server's default),
+      results        chunk (None: an emission), culled, queued, queue_target
+                     (rays it asks to have queued; 0: the server's default),
                      eye_iteration|None, ends i64 (5,),
                      job_ids + job_fed + job_left i64 (k,), credit
                      returned (credit_job + credit_exp i64); optional
@@ -82,8 +84,10 @@ Messages
       refused        reason
       peers          table_version, peers [[endpoint]] indexed by chunk,
                      keys {endpoint: CURVE public key} (with CURVE)
-      photon_job     chunk, cull_box f64 (2, 3), batch (one or more jobs),
-                     credit (credit_job + credit_exp i64: one term per job)
+      photon_job     job_ids + rng_keys + counts i64 (n,): jobs whose photons
+                     the tracer makes (seed, rng key, count); cull_box f64
+                     (2, 3), credit (credit_job + credit_exp i64: one term
+                     per job)
       eye_job        eye_iteration, chunk, batch, credit
       chunk_data     chunk, sha256, part, parts, offset, file_bytes, data u8
       heartbeat, shutdown (reason)
@@ -98,26 +102,36 @@ Messages
 Exact accounting (the server knows when every path of a job has ended)
 ----------------------------------------------------------------------
 A job is a set of paths with one job id, carried per path in the
-`job` column of every RayBatch (and of every photon deposit). The server
-sends a job's paths in one or more messages (the parts starting in
-different chunks), and one message may carry several jobs; the job's path
-count N_j is known to the server, which made the paths. Paths lost at
-emission (they start outside every chunk) are not sent and not in N_j.
-Job ids are never reused, so late results of a discarded job are
-recognisably stale.
+`job` column of every RayBatch (and of every photon deposit); its path
+count N_j is the server's choice. Job ids are never reused, so late
+results of a discarded job are recognisably stale.
 
-`job_ids`/`job_fed`/`job_left` count, per job, the paths a step took in
-and the paths that left it through portals (travelling on in
-`portal_rays` packages, keeping their job id); the other fed - left ended
-in the step. `ends` counts those by how they ended (`dosppm_core.jobs`:
+A photon job travels as its id, rng key and count (a few tens of bytes,
+not 64 per photon): the tracer it is sent to makes its photons with the
+library's call (`chunks.view.located_photons`, the same photons whichever
+tracer makes them) and treats the emission as a step: photons starting in
+chunks it serves are queued there, the others go to their chunks'
+tracers as `portal_rays` of kind "photon", and it reports the emission in
+a `results` with chunk None: every photon fed, those that went on left,
+those that miss the scene ended ESCAPED. An eye job's rays are made by
+the server and sent in one message per start chunk; those that miss the
+scene the server counts ended (escaped) itself. One job message may
+carry several jobs.
+
+`job_ids`/`job_fed`/`job_left` count, per job, the paths a step (or an
+emission) took in and the paths that went on to a chunk's queue (through
+a portal, or where an emitted photon starts; in `portal_rays` packages,
+keeping their job id, when another tracer serves that chunk); the other
+fed - left ended in the step. `ends` counts those by how they ended (`dosppm_core.jobs`:
 CONTINUES, ESCAPED, ABSORBED, MAX_DEPTH, STORED), so ends[CONTINUES] is
 always 0 and sum(job_fed - job_left) == sum(ends) (the wire refuses
 anything else); the server counts them (path ends, stale paths).
 
 Completion is decided by credit (`services.credit`): every job message and
 portal package carries a share of its jobs' credit (one term 2**-e per
-job), and every `results` message returns the shares its step kept back,
-in the same message as the step's deposits and hit points.
+job; a photon_job the whole credit, 2**0), and every `results` message
+returns the shares its step (or emission) kept back, in the same message
+as the step's deposits and hit points.
 
     job j finished  <=>  the credit returned for j sums to 1
 
@@ -150,12 +164,17 @@ import numpy as np
 from dosppm_core.jobs import CONTINUES, END_NAMES, HitPoints, PhotonDeposits, RayBatch, ShadowRays
 from services import credit
 
-PROTOCOL_VERSION = 3   # 2: shadow rays (portal_rays kind 'shadow'); 3: credit (services/credit.py)
+PROTOCOL_VERSION = 4   # 2: shadow rays (portal_rays kind 'shadow'); 3: credit (services/credit.py);
+                       # 4: photon jobs as (id, rng key, count), emitted by the tracer
 
 # -- policy ---------------------------------------------------------------------
 MAX_ELEMENTS = 1 << 28           # per array: sanity cap on a declared size
 MAX_FRAME_BYTES = MAX_ELEMENTS * 8   # the largest frame a socket takes (transport's MAXMSGSIZE)
 CHUNK_PART_BYTES = 16 << 20      # chunk_data splits chunk files into parts this big
+# Photons one photon_job may ask a tracer to make: its message is a few
+# bytes, the rays 64 B each (4M: 256 MB), so the cap bounds what a
+# message can make a tracer allocate, as MAX_ELEMENTS does for arrays.
+MAX_EMITTED = 1 << 22
 
 
 class WireError(ValueError):
@@ -354,6 +373,22 @@ def _check_credit(f: dict) -> str | None:
     return None
 
 
+def _check_photon_job(f: dict) -> str | None:
+    problem = _check_credit(f)
+    if problem:
+        return problem
+    ids, keys, counts = f["job_ids"], f["rng_keys"], f["counts"]
+    if (ids < 0).any() or (keys < 0).any():
+        return "fields 'job_ids'/'rng_keys' need ids and keys >= 0"
+    if (counts < 1).any() or (counts > MAX_EMITTED).any() or int(counts.sum()) > MAX_EMITTED:
+        return f"field 'counts' needs counts >= 1 summing to at most {MAX_EMITTED}"
+    if len(np.unique(ids)) != len(ids):
+        return "field 'job_ids' lists a job twice"
+    if not np.array_equal(np.sort(f["credit_job"]), np.sort(ids)):
+        return "field 'credit_job' needs one term per job of 'job_ids'"
+    return None
+
+
 def _check_results(f: dict) -> str | None:
     problem = _check_credit(f)
     if problem:
@@ -404,7 +439,7 @@ _SPECS = (
                             "public_key": _Nullable(STR)},
          defaults={"store_key": None, "public_key": None}),
     Spec("heartbeat", "both", {"status": DATA}, defaults={"status": {}}),
-    Spec("results", _T2S, {"chunk": INT, "culled": INT, "queued": INT, "queue_target": INT,
+    Spec("results", _T2S, {"chunk": _Nullable(INT), "culled": INT, "queued": INT, "queue_target": INT,
                            "eye_iteration": _Nullable(INT)},
          (plain("ends", ("ends", np.int64, (), None), rows=len(END_NAMES)),
           plain("job_paths", ("job_ids", np.int64, (), None), ("job_fed", np.int64, (), None),
@@ -424,8 +459,10 @@ _SPECS = (
     Spec("refused", _S2T, {"reason": STR}, any_version=True),
     Spec("peers", _S2T, {"table_version": INT, "peers": _List(_List(STR)), "keys": DATA},
          defaults={"keys": {}}),
-    Spec("photon_job", _S2T, {"chunk": INT}, (_cull_box(), record("batch", RayBatch), _credit()),
-         check=_check_credit),
+    Spec("photon_job", _S2T, {},
+         (plain("jobs", ("job_ids", np.int64, (), None), ("rng_keys", np.int64, (), None),
+                ("counts", np.int64, (), None)), _cull_box(), _credit()),
+         check=_check_photon_job),
     Spec("eye_job", _S2T, {"eye_iteration": INT, "chunk": INT}, (record("batch", RayBatch), _credit()),
          check=_check_credit),
     Spec("chunk_data", _S2T, {"chunk": INT, "sha256": _Hex(), "part": INT, "parts": _Int(1),

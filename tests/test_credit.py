@@ -66,15 +66,11 @@ def test_an_account_is_complete_exactly_at_one():
 
 
 def test_the_wire_refuses_exponents_past_the_cap():
-    fields = dict(chunk=0, cull_box=np.zeros((2, 3)), batch=_empty_batch(),
-                  credit_job=np.array([3], np.int64), credit_exp=np.array([credit.MAX_EXP + 1], np.int64))
+    one = np.array([3], np.int64)
+    fields = dict(job_ids=one, rng_keys=one, counts=one, cull_box=np.zeros((2, 3)),
+                  credit_job=one, credit_exp=np.array([credit.MAX_EXP + 1], np.int64))
     with pytest.raises(wire.WireError, match="photon_job: field 'credit_exp'"):
         wire.decode([bytes(f) for f in wire.encode("photon_job", **fields)])
-
-
-def _empty_batch():
-    from dosppm_core.jobs import RayBatch
-    return RayBatch.empty()
 
 
 class _Reorder:
@@ -83,7 +79,8 @@ class _Reorder:
     went on through portals), so the downstream tracer's report of those
     paths may reach the server first. It keeps the
     old count of open path segments per photon job (paths sent, plus paths
-    left, minus paths fed, in the order the server gets them) to count the
+    left, minus paths fed, in the order the server gets them; an emission
+    feeds them all and passes on those that start in the scene) to count the
     deposits that counting would have dropped as late."""
 
     def __init__(self, delay=20):
@@ -94,8 +91,8 @@ class _Reorder:
         delivers what this returns on that route: held ones are released
         only with a later message of their own tracer to the server)."""
         if msg.type == "photon_job":
-            for j, n in zip(*np.unique(msg.batch.job, return_counts=True)):
-                self.open[int(j)] = self.open.get(int(j), 0) + int(n)
+            for j, n in zip(msg.job_ids.tolist(), msg.counts.tolist()):
+                self.open[j] = self.open.get(j, 0) + n
         if dest != "server":
             return [msg]
         for entry in self.held:
@@ -135,7 +132,7 @@ def test_a_downstream_report_that_overtakes_its_upstream_one_loses_nothing():
     c = InProcessCluster(provider, dataclasses.replace(settings(), photon_batch=20_000, photons_per_job=8),
                          tracers=2, tamper=reorder)
     try:
-        c.run(photons=40_000)
+        c.run(photons=60_000)
     finally:
         c.close()
     assert reorder.would_be_late > 1000, "the race never happened: the test proves nothing"

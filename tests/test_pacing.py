@@ -180,7 +180,7 @@ def test_the_server_sends_what_a_tracer_asks_for_a_tick_at_a_time():
     state.eye_completed = 1
 
     def photons_sent(now):
-        return sum(len(o.fields["batch"]) for o in state.tick(now) if o.type == "photon_job")
+        return sum(int(o.fields["counts"].sum()) for o in state.tick(now) if o.type == "photon_job")
 
     assert photons_sent(0.0) <= 4096 + 1024            # the server's credit
     asked = 3 * EMIT_PHOTONS_PER_TICK
@@ -191,8 +191,7 @@ def test_the_server_sends_what_a_tracer_asks_for_a_tick_at_a_time():
     assert state.photon_jobs_in_flight <= state.min_photon_jobs + 5
     ticks = [photons_sent(0.1 * i) for i in range(1, 6)]
     assert max(ticks) <= EMIT_PHOTONS_PER_TICK             # the loop stays responsive
-    # Then it stops at the new credit (photons leaving the scene box at
-    # once are never sent, so a little short of it).
+    # Then it stops at the new credit, overshooting by less than a job.
     assert 0.95 * asked <= sum(ticks) <= asked + 1024
     assert state.photon_jobs_in_flight >= asked // 1024
     # The time limit counts the queue's drain: its rays at the tracer's rate.
@@ -220,7 +219,7 @@ def _sent_after_report(state, queued: int, t0: float) -> int:
     msg = _results([], [])
     msg.queue_target, msg.queued = state.tracers["a"].queue_target, queued
     state.on_message("a", msg, t0)
-    return sum(len(o.fields["batch"]) for i in range(1, 8) for o in state.tick(t0 + 0.1 * i)
+    return sum(int(o.fields["counts"].sum()) for i in range(1, 8) for o in state.tick(t0 + 0.1 * i)
                if o.type == "photon_job")
 
 

@@ -49,12 +49,12 @@ def test_router_dealer_round_trip_of_a_million_rays(ctx, endpoint):
     prefix, hello = _recv(server, accept={"register"})
     assert prefix == [b"tracer-1"] and hello.tracer_id == "t-1"
 
-    sent = sample_fields("photon_job", 1_000_000, np.random.default_rng(4))
-    frames = encode("photon_job", **sent)
+    sent = sample_fields("portal_rays", 1_000_000, np.random.default_rng(4))     # photons and a cull box
+    frames = encode("portal_rays", **sent)
     assert all(np.shares_memory(v, a) for v, a in zip(frame_views(frames)[1:], sent["batch"].arrays().values()))
     server.send(frames, prefix)
     envelope, job = _recv(tracer)
-    assert envelope == [] and job.type == "photon_job"
+    assert envelope == [] and job.type == "portal_rays"
     assert_same_message(sent, job)
     if endpoint.startswith("inproc"):
         # inproc hands over the sender's buffers: zero copies end to end.

@@ -45,7 +45,7 @@ def sample_fields(msg_type: str, n: int, rng: np.random.Generator, variant: int 
     picks which optional parts a results message carries (and the kind
     of a portal package: 0, 2 photon, 1 eye, 3 shadow)."""
     fields = _sample_fields(msg_type, n, rng, variant)
-    if msg_type in ("results", "photon_job", "eye_job", "portal_rays"):
+    if msg_type in ("results", "eye_job", "portal_rays"):
         fields.update(credit_job=rng.integers(0, 1000, n % 4, dtype=np.int64),
                       credit_exp=rng.integers(0, 300, n % 4, dtype=np.int64))
     return fields
@@ -88,8 +88,11 @@ def _sample_fields(msg_type: str, n: int, rng: np.random.Generator, variant: int
         return dict(reason="full")
     if msg_type == "peers":
         return dict(table_version=4, peers=[["tcp://a:1"], [], ["tcp://b:2", "tcp://c:3"]])
-    if msg_type == "photon_job":
-        return dict(chunk=1, cull_box=box, batch=batch)
+    if msg_type == "photon_job":       # one credit term per job, as the wire wants
+        ids = rng.choice(1 << 40, n, replace=False).astype(np.int64)
+        return dict(job_ids=ids, rng_keys=rng.integers(0, 1 << 62, n, dtype=np.int64),
+                    counts=rng.integers(1, 1 << 14, n, dtype=np.int64), cull_box=box,
+                    credit_job=rng.permutation(ids), credit_exp=rng.integers(0, 300, n, dtype=np.int64))
     if msg_type == "eye_job":
         return dict(eye_iteration=5, chunk=0, batch=batch)
     if msg_type == "chunk_data":
@@ -164,7 +167,7 @@ def test_records_come_back_as_library_classes():
     msg = decode(encode("results", **sample_fields("results", 5, rng, variant=2)))
     assert isinstance(msg.deposits, PhotonDeposits) and isinstance(msg.hits, HitPoints)
     assert msg.emitted_rgb.shape == (5, 3) and msg.ends.dtype == np.int64
-    msg = decode(encode("photon_job", **sample_fields("photon_job", 5, rng)))
+    msg = decode(encode("portal_rays", **sample_fields("portal_rays", 5, rng)))
     assert isinstance(msg.batch, RayBatch) and len(msg.batch) == 5
     assert msg.cull_box.dtype == np.float64 and msg.cull_box[1, 2] == np.inf
     empty = decode(encode("results", chunk=0, ends=np.zeros(5, np.int64),
@@ -209,7 +212,7 @@ def test_describe_lists_every_message():
 
 
 # -- validation: one case per rule ---------------------------------------------------
-def _valid(msg_type="photon_job", n=4, variant=0):
+def _valid(msg_type="portal_rays", n=4, variant=0):
     frames = as_bytes(encode(msg_type, **sample_fields(msg_type, n, np.random.default_rng(0), variant)))
     return msgpack.unpackb(frames[0]), frames
 
@@ -225,7 +228,7 @@ def _set_array(header, frames, name, array):
     frames[i] = array.tobytes()
 
 
-def _poison(name, value, msg_type="photon_job", variant=0, row=0):
+def _poison(name, value, msg_type="portal_rays", variant=0, row=0):
     def edit(h, f):
         i = _index(h, name)
         a = np.frombuffer(f[i], np.dtype(h["arrays"][i - 1]["dtype"])).copy()
@@ -234,8 +237,27 @@ def _poison(name, value, msg_type="photon_job", variant=0, row=0):
     return msg_type, variant, edit
 
 
-def _header_edit(fn, msg_type="photon_job", variant=0):
+def _header_edit(fn, msg_type="portal_rays", variant=0):
     return msg_type, variant, lambda h, f: fn(h)
+
+
+def _copy_row(name, src, dst):
+    """Row `dst` of array `name` made equal to row `src`."""
+    def edit(h, f):
+        i = _index(h, name)
+        a = np.frombuffer(f[i], np.dtype(h["arrays"][i - 1]["dtype"])).copy()
+        a[dst] = a[src]
+        f[i] = a.tobytes()
+    return edit
+
+
+def _first_rows(n, *names):
+    """Arrays `names` cut to their first n rows."""
+    def edit(h, f):
+        for name in names:
+            i = _index(h, name)
+            _set_array(h, f, name, np.frombuffer(f[i], np.dtype(h["arrays"][i - 1]["dtype"]))[:n].copy())
+    return edit
 
 
 def _drop_array(name):
@@ -250,16 +272,16 @@ CASES = {
     "unknown type": (_header_edit(lambda h: h.update(type="teleport")), ["unknown message type", "teleport"]),
     "type not a str": (_header_edit(lambda h: h.update(type=3)), ["unknown message type"]),
     "wrong version": (_header_edit(lambda h: h.update(v=PROTOCOL_VERSION + 1)),
-                      ["photon_job", f"version {PROTOCOL_VERSION + 1}", f"version {PROTOCOL_VERSION}"]),
-    "missing version": (_header_edit(lambda h: h.pop("v")), ["photon_job", "None", f"version {PROTOCOL_VERSION}"]),
+                      ["portal_rays", f"version {PROTOCOL_VERSION + 1}", f"version {PROTOCOL_VERSION}"]),
+    "missing version": (_header_edit(lambda h: h.pop("v")), ["portal_rays", "None", f"version {PROTOCOL_VERSION}"]),
     "version not an int": (_header_edit(lambda h: h.update(v="1")),
-                           ["photon_job", "'1'", f"version {PROTOCOL_VERSION}"]),
-    "missing field": (_header_edit(lambda h: h.pop("chunk")), ["photon_job", "'chunk'", "missing"]),
-    "extra field": (_header_edit(lambda h: h.update(colour="red")), ["photon_job", "'colour'"]),
-    "str for int": (_header_edit(lambda h: h.update(chunk="7")), ["photon_job", "'chunk'", "int", "str"]),
-    "bool for int": (_header_edit(lambda h: h.update(chunk=True)), ["photon_job", "'chunk'", "bool"]),
-    "int past int64": (_header_edit(lambda h: h.update(chunk=2**63)), ["photon_job", "'chunk'"]),
-    "negative int": (_header_edit(lambda h: h.update(chunk=-1)), ["photon_job", "'chunk'", ">= 0"]),
+                           ["portal_rays", "'1'", f"version {PROTOCOL_VERSION}"]),
+    "missing field": (_header_edit(lambda h: h.pop("chunk")), ["portal_rays", "'chunk'", "missing"]),
+    "extra field": (_header_edit(lambda h: h.update(colour="red")), ["portal_rays", "'colour'"]),
+    "str for int": (_header_edit(lambda h: h.update(chunk="7")), ["portal_rays", "'chunk'", "int", "str"]),
+    "bool for int": (_header_edit(lambda h: h.update(chunk=True)), ["portal_rays", "'chunk'", "bool"]),
+    "int past int64": (_header_edit(lambda h: h.update(chunk=2**63)), ["portal_rays", "'chunk'"]),
+    "negative int": (_header_edit(lambda h: h.update(chunk=-1)), ["portal_rays", "'chunk'", ">= 0"]),
     "float for int": (_header_edit(lambda h: h.update(eye_iteration=1.0), "eye_job"),
                       ["eye_job", "'eye_iteration'"]),
     "int for bool": (_header_edit(lambda h: h.update(has_store=1), "register"), ["register", "'has_store'"]),
@@ -270,51 +292,51 @@ CASES = {
     "bad sha256": (_header_edit(lambda h: h.update(sha256="XYZ"), "chunk_data"), ["chunk_data", "'sha256'"]),
     "non-str key in data": (_header_edit(lambda h: h["status"].update({b"k": 1}), "heartbeat"),
                             ["heartbeat", "'status'"]),
-    "arrays missing": (("photon_job", 0, lambda h, f: (h.pop("arrays"), f.__delitem__(slice(1, None)))),
-                       ["photon_job", "'arrays'", "missing"]),
-    "arrays not a list": (_header_edit(lambda h: h.update(arrays={})), ["photon_job", "'arrays'", "list"]),
-    "array entry malformed": (_header_edit(lambda h: h["arrays"][0].pop("shape")), ["photon_job", "entry 0"]),
-    "frame missing": (("photon_job", 0, lambda h, f: f.pop()), ["photon_job", "'arrays'", "lists 11 arrays"]),
-    "extra frame": (("photon_job", 0, lambda h, f: f.append(b"")), ["photon_job", "12 array frames"]),
-    "array missing": (("photon_job", 0, lambda h, f: _drop_array("batch.rng")(h, f)),
-                      ["photon_job", "'batch.rng'", "missing"]),
-    "unknown array": (("photon_job", 0, lambda h, f: h["arrays"][0].update(name="batch.spin")),
-                      ["photon_job", "'batch.spin'", "not an array"]),
-    "duplicate array": (("photon_job", 0, lambda h, f: h["arrays"][1].update(name=h["arrays"][0]["name"])),
-                        ["photon_job", "listed twice"]),
-    "dtype mismatch": (("photon_job", 0, lambda h, f: _set_array(h, f, "batch.origin", np.zeros((4, 3)))),
-                       ["photon_job", "'batch.origin'", "'<f8'", "'<f4'"]),
-    "big-endian dtype": (("photon_job", 0, lambda h, f: _set_array(h, f, "batch.rng", np.zeros(4, ">u8"))),
-                         ["photon_job", "'batch.rng'", "'>u8'"]),
-    "wrong trailing dims": (("photon_job", 0, lambda h, f: _set_array(h, f, "batch.origin",
+    "arrays missing": (("portal_rays", 0, lambda h, f: (h.pop("arrays"), f.__delitem__(slice(1, None)))),
+                       ["portal_rays", "'arrays'", "missing"]),
+    "arrays not a list": (_header_edit(lambda h: h.update(arrays={})), ["portal_rays", "'arrays'", "list"]),
+    "array entry malformed": (_header_edit(lambda h: h["arrays"][0].pop("shape")), ["portal_rays", "entry 0"]),
+    "frame missing": (("portal_rays", 0, lambda h, f: f.pop()), ["portal_rays", "'arrays'", "lists 11 arrays"]),
+    "extra frame": (("portal_rays", 0, lambda h, f: f.append(b"")), ["portal_rays", "12 array frames"]),
+    "array missing": (("portal_rays", 0, lambda h, f: _drop_array("batch.rng")(h, f)),
+                      ["portal_rays", "'batch.rng'", "missing"]),
+    "unknown array": (("portal_rays", 0, lambda h, f: h["arrays"][0].update(name="batch.spin")),
+                      ["portal_rays", "'batch.spin'", "not an array"]),
+    "duplicate array": (("portal_rays", 0, lambda h, f: h["arrays"][1].update(name=h["arrays"][0]["name"])),
+                        ["portal_rays", "listed twice"]),
+    "dtype mismatch": (("portal_rays", 0, lambda h, f: _set_array(h, f, "batch.origin", np.zeros((4, 3)))),
+                       ["portal_rays", "'batch.origin'", "'<f8'", "'<f4'"]),
+    "big-endian dtype": (("portal_rays", 0, lambda h, f: _set_array(h, f, "batch.rng", np.zeros(4, ">u8"))),
+                         ["portal_rays", "'batch.rng'", "'>u8'"]),
+    "wrong trailing dims": (("portal_rays", 0, lambda h, f: _set_array(h, f, "batch.origin",
                                                                       np.zeros((3, 4), np.float32))),
-                            ["photon_job", "'batch.origin'", "shape (3, 4)", "(n, 3)"]),
-    "wrong rank": (("photon_job", 0, lambda h, f: _set_array(h, f, "batch.pixel", np.zeros((4, 1), np.int32))),
-                   ["photon_job", "'batch.pixel'", "shape"]),
-    "negative length": (("photon_job", 0, lambda h, f: h["arrays"][0].update(shape=[-4, 3])),
-                        ["photon_job", "shape"]),
-    "too large": (("photon_job", 0, lambda h, f: h["arrays"][_index(h, "batch.job") - 1].update(shape=[1 << 40])),
-                  ["photon_job", "'batch.job'", "cap"]),
-    "frame size": (("photon_job", 0, lambda h, f: f.__setitem__(_index(h, "batch.job"),
+                            ["portal_rays", "'batch.origin'", "shape (3, 4)", "(n, 3)"]),
+    "wrong rank": (("portal_rays", 0, lambda h, f: _set_array(h, f, "batch.pixel", np.zeros((4, 1), np.int32))),
+                   ["portal_rays", "'batch.pixel'", "shape"]),
+    "negative length": (("portal_rays", 0, lambda h, f: h["arrays"][0].update(shape=[-4, 3])),
+                        ["portal_rays", "shape"]),
+    "too large": (("portal_rays", 0, lambda h, f: h["arrays"][_index(h, "batch.job") - 1].update(shape=[1 << 40])),
+                  ["portal_rays", "'batch.job'", "cap"]),
+    "frame size": (("portal_rays", 0, lambda h, f: f.__setitem__(_index(h, "batch.job"),
                                                                 f[_index(h, "batch.job")][:-1])),
-                   ["photon_job", "'batch.job'", "31 bytes", "needs 32"]),
-    "unequal record lengths": (("photon_job", 0, lambda h, f: _set_array(h, f, "batch.depth",
+                   ["portal_rays", "'batch.job'", "31 bytes", "needs 32"]),
+    "unequal record lengths": (("portal_rays", 0, lambda h, f: _set_array(h, f, "batch.depth",
                                                                          np.zeros(3, np.int32))),
-                               ["photon_job", "'batch.depth'", "3 rows", "batch has 4"]),
-    "fixed rows": (("photon_job", 0, lambda h, f: _set_array(h, f, "cull_box", np.zeros((3, 3)))),
-                   ["photon_job", "'cull_box'", "3 rows"]),
-    "NaN origin": (_poison("batch.origin", np.nan), ["photon_job", "'batch.origin'", "NaN"]),
-    "inf direction": (_poison("batch.direction", np.inf, row=3), ["photon_job", "'batch.direction'", "infinite"]),
+                               ["portal_rays", "'batch.depth'", "3 rows", "batch has 4"]),
+    "fixed rows": (("portal_rays", 0, lambda h, f: _set_array(h, f, "cull_box", np.zeros((3, 3)))),
+                   ["portal_rays", "'cull_box'", "3 rows"]),
+    "NaN origin": (_poison("batch.origin", np.nan), ["portal_rays", "'batch.origin'", "NaN"]),
+    "inf direction": (_poison("batch.direction", np.inf, row=3), ["portal_rays", "'batch.direction'", "infinite"]),
     "inf flux": (_poison("deposits.flux", -np.inf, "results"), ["results", "'deposits.flux'"]),
     "NaN hit position": (_poison("hits.position", np.nan, "results", variant=1), ["results", "'hits.position'"]),
-    "NaN cull box": (_poison("cull_box", np.nan), ["photon_job", "'cull_box'", "NaN"]),
-    "malformed msgpack": (("photon_job", 0, lambda h, f: f.__setitem__(0, b"\xc1\x00")), ["malformed msgpack"]),
-    "truncated msgpack": (("photon_job", 0, lambda h, f: f.__setitem__(0, f[0][:20])), ["malformed msgpack"]),
-    "header not a map": (("photon_job", 0, lambda h, f: f.__setitem__(0, msgpack.packb([1, 2]))),
+    "NaN cull box": (_poison("cull_box", np.nan), ["portal_rays", "'cull_box'", "NaN"]),
+    "malformed msgpack": (("portal_rays", 0, lambda h, f: f.__setitem__(0, b"\xc1\x00")), ["malformed msgpack"]),
+    "truncated msgpack": (("portal_rays", 0, lambda h, f: f.__setitem__(0, f[0][:20])), ["malformed msgpack"]),
+    "header not a map": (("portal_rays", 0, lambda h, f: f.__setitem__(0, msgpack.packb([1, 2]))),
                          ["header is a list", "not a map"]),
-    "msgpack extension": (("photon_job", 0, lambda h, f: f.__setitem__(0, msgpack.packb(msgpack.ExtType(5, b"x")))),
+    "msgpack extension": (("portal_rays", 0, lambda h, f: f.__setitem__(0, msgpack.packb(msgpack.ExtType(5, b"x")))),
                           ["malformed msgpack", "extension"]),
-    "empty message": (("photon_job", 0, lambda h, f: f.clear()), ["empty message"]),
+    "empty message": (("portal_rays", 0, lambda h, f: f.clear()), ["empty message"]),
     "continuing paths reported": (_poison("ends", 3, "results"), ["results", "'ends'", "continuing"]),
     "negative end count": (_poison("ends", -1, "results", row=2), ["results", "'ends'", "negative"]),
     "hits without eye_iteration": (_header_edit(lambda h: h.update(eye_iteration=None), "results", 1),
@@ -325,6 +347,25 @@ CASES = {
                              ["portal_rays", "'cull_box'", "eye and shadow rays"]),
     "shadow package with a ray batch": (("portal_rays", 1, lambda h, f: h.update(kind="shadow")),
                                         ["portal_rays", "'shadows'", "ShadowRays"]),
+    "photon job of no photons": (_poison("counts", 0, "photon_job", row=2),
+                                 ["photon_job", "'counts'", ">= 1"]),
+    "photon job past the cap": (_poison("counts", wire.MAX_EMITTED, "photon_job"),
+                                ["photon_job", "'counts'", f"at most {wire.MAX_EMITTED}"]),
+    "photon job's job twice": (("photon_job", 0, _copy_row("job_ids", 0, 3)),
+                               ["photon_job", "'job_ids'", "twice"]),
+    "photon job's negative key": (_poison("rng_keys", -5, "photon_job", row=1), ["photon_job", "'rng_keys'"]),
+    "photon job's negative id": (_poison("job_ids", -1, "photon_job"), ["photon_job", "'job_ids'"]),
+    "photon job's credit for another job": (_poison("credit_job", 12345, "photon_job"),
+                                            ["photon_job", "'credit_job'", "one term per job"]),
+    "photon job's credit missing a job": (("photon_job", 0, _first_rows(3, "credit_job", "credit_exp")),
+                                          ["photon_job", "'credit_job'", "one term per job"]),
+    "photon job's unequal columns": (("photon_job", 0, lambda h, f: _set_array(h, f, "counts",
+                                                                              np.ones(3, np.int64))),
+                                     ["photon_job", "'counts'", "3 rows", "jobs has 4"]),
+    "photon job's old batch": (("photon_job", 0, lambda h, f: h.update(chunk=1)),
+                               ["photon_job", "'chunk'", "not part of the message"]),
+    "photon job without a box": (("photon_job", 0, lambda h, f: _drop_array("cull_box")(h, f)),
+                                 ["photon_job", "'cull_box'", "missing"]),
     "part past parts": (_header_edit(lambda h: h.update(part=1), "chunk_data"), ["chunk_data", "'part'"]),
     "data past file": (_header_edit(lambda h: h.update(file_bytes=2), "chunk_data"),
                        ["chunk_data", "'data'", "file_bytes"]),
@@ -348,14 +389,14 @@ def test_each_malformed_message_is_refused_naming_type_and_field(case):
 
 
 def test_infinite_cull_box_means_no_culling_and_is_accepted():
-    msg = decode(encode("photon_job", chunk=0, cull_box=np.array([[-np.inf] * 3, [np.inf] * 3]),
-                        batch=RayBatch.empty(), **NO_CREDIT))
+    box = np.array([[-np.inf] * 3, [np.inf] * 3])
+    msg = decode(encode("portal_rays", kind="photon", chunk=0, cull_box=box, batch=RayBatch.empty(), **NO_CREDIT))
     assert np.isinf(msg.cull_box).all()
 
 
 def test_decode_refuses_types_a_role_does_not_take():
-    frames = encode("photon_job", **sample_fields("photon_job", 2, np.random.default_rng(0)))
-    with pytest.raises(WireError, match="photon_job: not accepted here"):
+    frames = encode("portal_rays", **sample_fields("portal_rays", 2, np.random.default_rng(0)))
+    with pytest.raises(WireError, match="portal_rays: not accepted here"):
         decode(frames, accept={"register", "results"})
 
 

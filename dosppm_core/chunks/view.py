@@ -84,8 +84,9 @@ def _entered(tree: ChunkTree, batch: RayBatch) -> np.ndarray:
 def located_photons(scene, tree: ChunkTree, seed: int, keys, counts, eps_abs: float):
     """The photons of several jobs (`trace.emit_photon_jobs`, job after
     job), each with its tmin set and the chunk it starts in (-1: it misses
-    the scene): the server emits jobs in groups, since a kernel call per
-    1,024-photon job costs more than its photons. Returns (batch, chunk)."""
+    the scene): a tracer emits the jobs of a photon job message at once,
+    since a kernel call per 1,024-photon job costs more than its photons.
+    Returns (batch, chunk)."""
     batch = emit_photon_jobs(scene, seed, keys, counts, eps_abs)
     return batch, _entered(tree, batch)
 

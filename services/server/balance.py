@@ -1,5 +1,6 @@
 """Which tracer serves each chunk: round robin at the start (Günther &
-Grosch §3.1), then by measured work.
+Grosch §3.1), then by measured work; and which chunks the lights lie in
+(their tracers emit the photon jobs).
 
 Round robin in index order gives each tracer as many chunks, whatever
 work the lights and the camera give each. On the 5M-triangle building
@@ -20,6 +21,10 @@ and balanced rays left one tracer busy 69-77% against 92% without
 """
 from __future__ import annotations
 
+import numpy as np
+
+from dosppm_core.scene.model import LIGHT_TRIANGLE
+
 # Re-assign at most this often, and only when the busiest tracer's share
 # of the rays would fall by at least MIN_GAIN: every move makes the new
 # owner load the chunk, and its queued packages travel once more.
@@ -27,6 +32,17 @@ REBALANCE_INTERVAL_S = 10.0
 FIRST_REBALANCE_S = 3.0          # after the start: the first table is the most uneven
 MIN_GAIN = 0.03
 MIN_MEASURED_RAYS = 1_000_000    # summed over tracers, before the counts say anything
+
+
+def light_chunks(header, tree) -> list[int]:
+    """The chunks the lights' centroids lie in (every chunk if none does):
+    photon paths start there, so the tracers serving them make the photon
+    jobs' photons and keep most of them in their own queues."""
+    lights = header.lights
+    centre = np.where((lights.kind == LIGHT_TRIANGLE)[:, None],
+                      (lights.p0 + lights.p1 + lights.p2) / 3, lights.p0)
+    k = tree.locate(centre, np.zeros_like(centre))
+    return sorted(set(k[k >= 0].tolist())) or list(range(tree.chunk_count))
 
 
 def assign_chunks(chunk_count: int, ids: list[str]) -> list[list[str]]:

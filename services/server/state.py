@@ -10,11 +10,11 @@ statistics updates it hands over. What it does:
   by tracers k, k + c, ...), and every tracer gets the table of who serves
   which chunk whenever it changes.
 - Emission: photon jobs are created while fewer than `min_photon_jobs`
-  (§3.3), or than the tracers' credit holds, are in flight, and sent as they
-  fit to the tracers serving the chunks their photons start in; a tracer
-  whose reported queue plus what was sent since passes its credit (the
-  server's, or the longer queue it asks for to hide chunk loads) gets
-  nothing more until it reports again (back-pressure).
+  (§3.3), or than the tracers' credit holds, are in flight, and sent as
+  (id, rng key, count) to the tracers of the lights' chunks, which make
+  the photons; a tracer whose reported queue plus what was sent since
+  passes its credit (the server's, or the longer queue it asks for to hide
+  chunk loads) gets nothing more until it reports again (back-pressure).
   Eye iterations are split into tiles (§5.6) and run at the same time as
   photons: the next starts once `photons_per_iteration` photons have been
   emitted since the last one started, with up to `eye_in_flight` of them
@@ -43,22 +43,23 @@ from collections import deque
 import numpy as np
 
 from dosppm_core.chunks.pacing import FIRST_QUEUE_RAYS, default_queue_memory, eye_iterations_in_flight
-from dosppm_core.chunks.view import located_photons, start_chunks
+from dosppm_core.chunks.view import start_chunks
 from dosppm_core.jobs import END_NAMES, RayBatch
 from dosppm_core.settings import RenderSettings
 from dosppm_core.trace import NO_CULL, eye_ray_job
 from services.credit import by_job, new_job
-from services.server.balance import FIRST_REBALANCE_S, REBALANCE_INTERVAL_S, assign_chunks, rebalanced
+from services.server.balance import (FIRST_REBALANCE_S, REBALANCE_INTERVAL_S, assign_chunks, light_chunks,
+                                     rebalanced)
 from services.server.costs import thread_cpu
 from services.server.held import COMPLETE, DEPOSIT_BYTES, DISCARDED, IN_FLIGHT, HeldDeposits, JobStatus
 from services.server.job_messages import JobMessages
 from services.server.records import EyeIteration, Job, TracerInfo, Update  # noqa: F401 (Update: the shell's)
-from services.wire import JOB_MESSAGES, PROTOCOL_VERSION, Out
+from services.wire import JOB_MESSAGES, MAX_EMITTED, PROTOCOL_VERSION, Out
 
-MESSAGE_RAYS = 32_768         # rays per job message the server aims for
+MESSAGE_RAYS = 32_768         # a tracer's credit is never below this (rays)
 TOTAL_CREDIT_RAYS = 1 << 20   # rays queued at all tracers together, at most (see `credit`)
 EMIT_PHOTONS_PER_TICK = 1 << 17   # so long queues (`credit_of`) do not hold the loop from heartbeats
-EMIT_JOBS_PER_CALL = 16           # photon jobs emitted and located by one kernel call
+JOBS_PER_MESSAGE = 16     # photon jobs a tracer emits in one kernel call (one per job costs more)
 MAX_TRACERS = 1024            # registrations beyond this are refused (memory stays bounded)
 HEARTBEAT_INTERVAL_S = 1.0
 # A job message an idle tracer has not acknowledged this long after it was
@@ -96,6 +97,8 @@ class ServerState:
         tick (None: never). `held_bytes`: --queue-memory (`HeldDeposits`)."""
         settings = settings.for_image(int(header.camera.width) * int(header.camera.height))
         settings.validate()
+        if settings.photons_per_job > MAX_EMITTED:
+            raise ValueError(f"photons_per_job must be at most {MAX_EMITTED:,} in the service")
         self.header, self.tree, self.settings = header, tree, settings
         self.store_key, self.manifest = store_key, manifest
         self.min_photon_jobs, self.queue_target = int(min_photon_jobs), int(queue_target_rays)
@@ -109,7 +112,7 @@ class ServerState:
         self.discarded: set[int] = set()          # job ids whose late results are ignored
         self.evicted: list[dict] = []
         self.rejoined: dict[str, float] = {}      # tracer id -> when it last registered again (status page)
-        self.eps_abs = header.spawn_epsilon()
+        self.light_chunks = light_chunks(header, tree)     # their tracers emit the photon jobs
         self.n_pixels = int(header.camera.width) * int(header.camera.height)
         self.tracers: dict[str, TracerInfo] = {}
         self._indices = itertools.count()
@@ -123,7 +126,6 @@ class ServerState:
         self.next_job = self.first_job = 0         # job ids are never reused (checkpoint.claim_job_ids)
         self._job_status = JobStatus(0)            # per photon job id: UNKNOWN, IN_FLIGHT, ...
         self._photon_pending: deque = deque()         # job ids created, not yet sent
-        self._photon_receivers: set = set()
         self.photon_jobs_in_flight = 0
         self.eyes: dict[int, EyeIteration] = {}          # in flight, by index (oldest first)
         self.eye_in_flight = eye_iterations_in_flight(self.n_pixels, held_bytes or default_queue_memory())
@@ -265,7 +267,7 @@ class ServerState:
 
     def _check_results(self, msg) -> str | None:
         """What the wire cannot know: ranges of chunks, pixels, materials."""
-        if msg.chunk >= self.tree.chunk_count:
+        if msg.chunk is not None and msg.chunk >= self.tree.chunk_count:      # None: an emission
             return f"field 'chunk' {msg.chunk} out of range (scene has {self.tree.chunk_count})"
         if msg.hits is not None and len(msg.hits):
             h = msg.hits
@@ -601,69 +603,62 @@ class ServerState:
         return [Out(tid, "eye_job", dict(eye_iteration=e.index, chunk=k, **parts.take((tid, k))))
                 for tid, k in list(parts)]
 
-    def _route(self, j: int, batch: RayBatch, parts: JobMessages, chunk: np.ndarray | None = None) -> set:
-        """Split a new job's paths by start chunk into `parts` per (tracer,
-        chunk), each with its share of the job's credit; paths that miss
-        the scene end here. `chunk`: each path's start chunk where known
-        (`located_photons`). Returns the tracers."""
-        routed, lost = start_chunks(self.tree, batch, chunk=chunk)
+    def _route(self, j: int, batch: RayBatch, parts: JobMessages) -> None:
+        """Split a new eye job's paths by start chunk into `parts` per
+        (tracer, chunk), each with its share of the job's credit; paths
+        that miss the scene end here."""
+        routed, lost = start_chunks(self.tree, batch)
         self.path_ends[1] += lost           # ESCAPED, before any tracer saw them
         exp, kept = new_job(len(routed))
         share = (np.array([j], np.int64), np.array([exp], np.int64))
-        receivers = set()
         for k, part in routed.items():
             t = self._least_loaded(k)
             t.sent_since_report += len(part)
             t.rays_sent += len(part)
             parts.add((t.id, k), part, share)
-            receivers.add(t.id)
-        self.jobs[j].sent = True
-        self.jobs[j].progress_s = self.jobs[j].sent_s = self._now
+        self.jobs[j].sent, self.jobs[j].progress_s, self.jobs[j].sent_s = True, self._now, self._now
         self._credit(j, kept)               # the server's own share: all of it when none was sent
-        return receivers
+
+    def _emitters(self) -> list[TracerInfo]:
+        """The tracers serving a chunk a light lies in: photon paths start
+        there, so most photons they make stay in their own queues."""
+        ids = dict.fromkeys(i for k in self.light_chunks for i in self.owners[k])   # in a fixed order
+        return [self.tracers[i] for i in ids if i in self.tracers]
 
     @thread_cpu("job_making_cpu_s")
     def _send_photon_jobs(self) -> list[Out]:
-        out, parts, emitted = [], JobMessages(), 0
-        box = self.cull_box      # NO_CULL when culling is off (`SPPMIteration.cull_box`)
-        # Photon jobs start where the lights are: the tracers that got the
-        # last group's photons gate the next one, and a group is no larger
-        # than their credit left, so a slow one is never sent more than one
-        # job past its credit.
-        while self._photon_pending and emitted < EMIT_PHOTONS_PER_TICK and not self.held.full:
-            gates = [self.tracers[t] for t in self._photon_receivers if t in self.tracers]
-            room = min((self.credit_of(t) - t.load_estimate for t in gates or self.tracers.values()),
-                       default=0)
-            if room <= 0 and gates:
+        """Photon jobs go out as (id, rng key, count), each message to the
+        emitting tracer with the most credit left, and no larger than that
+        room: emission spreads, and a slow tracer is never sent more than one
+        job past its credit. It queues the photons or passes them on
+        (`TracerState.emit`); they count against its queue until it reports."""
+        out, sent, ppj = [], 0, self.settings.photons_per_job
+        emitters = self._emitters()
+        while self._photon_pending and emitters and sent < EMIT_PHOTONS_PER_TICK and not self.held.full:
+            t = max(emitters, key=lambda t: self.credit_of(t) - t.load_estimate)
+            room = self.credit_of(t) - t.load_estimate
+            if room <= 0:
                 break
-            n = max(1, -(-room // self.settings.photons_per_job))
-            group = [self._photon_pending.popleft()
-                     for _ in range(min(n, EMIT_JOBS_PER_CALL, len(self._photon_pending)))]
-            emitted += self._emit_group(group, box, parts, out)
-        return out + self._flush(parts, box, full_only=False)
-
-    def _emit_group(self, group: list[int], box, parts: JobMessages, out: list[Out]) -> int:
-        """Emit and route the photon jobs `group`; full messages go to `out`."""
-        jobs = [self.jobs[j] for j in group]
-        counts = np.array([job.paths for job in jobs], np.int64)
-        batch, chunk = located_photons(self.header, self.tree, self.settings.seed,
-                                       [job.rng_key for job in jobs], counts, self.eps_abs)
-        batch.job[:] = np.repeat(np.asarray(group, np.int64), counts)
-        ends = np.cumsum(counts)
-        receivers: set = set()
-        for j, job, a, b in zip(group, jobs, (ends - counts).tolist(), ends.tolist()):
-            job.cull_box = box                  # for the ledger: the box it is sent with
-            receivers |= self._route(j, batch.slice(a, b), parts, chunk[a:b])
-            out += self._flush(parts, box, full_only=True)
-        self.counters["photons_emitted"] += int(ends[-1])
-        self._photon_receivers = receivers
-        return int(ends[-1])
-
-    def _flush(self, parts: JobMessages, box, full_only: bool) -> list[Out]:
-        out = []
-        for tid, k in parts.keys_at(MESSAGE_RAYS if full_only else 0):
-            out.append(Out(tid, "photon_job", dict(chunk=k, cull_box=box, **parts.take((tid, k)))))
+            n = min(-(-room // ppj), JOBS_PER_MESSAGE, MAX_EMITTED // ppj, len(self._photon_pending))
+            out.append(self._photon_job(t, [self._photon_pending.popleft() for _ in range(n)]))
+            sent += int(out[-1].fields["counts"].sum())
         return out
+
+    def _photon_job(self, t: TracerInfo, group: list[int]) -> Out:
+        """The photon_job message of the jobs `group` for tracer `t`, with
+        their whole credit; their photons count as emitted now."""
+        jobs = [self.jobs[j] for j in group]
+        ids = np.array(group, np.int64)
+        counts = np.array([job.paths for job in jobs], np.int64)
+        for job in jobs:       # the cull box for the ledger: the box it is sent with
+            job.sent, job.progress_s, job.sent_s, job.cull_box = True, self._now, self._now, self.cull_box
+        photons = int(counts.sum())
+        t.sent_since_report += photons
+        t.rays_sent += photons
+        self.counters["photons_emitted"] += photons
+        return Out(t.id, "photon_job", dict(
+            job_ids=ids, rng_keys=np.array([job.rng_key for job in jobs], np.int64), counts=counts,
+            cull_box=self.cull_box, credit_job=ids, credit_exp=np.zeros(len(ids), np.int64)))
 
     # -- checkpoints ---------------------------------------------------------------------
     def checkpoint_meta(self) -> dict:

@@ -244,7 +244,8 @@ class TracerProcess:
                                      memory_bytes=self.memory_bytes, threads=self.threads,
                                      step_rays=STEP_RAYS if batching else 0,
                                      direct=welcome.settings.get("direct", "nee"),
-                                     queue_memory_bytes=self.queue_memory_bytes)
+                                     queue_memory_bytes=self.queue_memory_bytes,
+                                     seed=welcome.settings["seed"])
             log.info("tracer %s joined as %d at %s, chunks %s", self.tracer_id, welcome.tracer_index,
                      self.endpoint, welcome.chunks)
             self.say(f"tracer {self.tracer_id}: registered with server {self.server_url} as tracer "

@@ -1,8 +1,9 @@
 """The tracer's state (Günther & Grosch §3.1, §4.3), apart from its sockets.
 
-A tracer owns some chunks. Ray packages for them (emission jobs from the
-server, portal packages from other tracers) wait in the library's chunk
-scheduler (`dosppm_core.chunks.schedule`, eye work first), as OSPPM's do.
+A tracer owns some chunks. Ray packages for them (eye jobs from the
+server, photons it made, portal packages from other tracers) wait in the
+library's chunk scheduler (`dosppm_core.chunks.schedule`, eye work
+first), as OSPPM's do.
 A step activates the chunk it picks (loading it under the memory budget,
 the next one prefetched), traces the batch it coalesces there with the
 library's chunk kernels and returns the messages to send: `results` to the
@@ -11,6 +12,10 @@ and `portal_rays` for the chunks the rays enter next. An eye path that
 stores a hit point goes on as its shadow ray (kind "shadow", same job),
 which crosses portals like any ray and ends the path where it stops. Packages for a chunk this tracer does not
 serve are passed on to a tracer that does.
+
+Photon jobs come from the server as (id, rng key, count): the tracer
+makes their photons (`emit`) and sends them on as a step sends its rays,
+with a `results` message for the emission (chunk None).
 
 Nothing here opens a socket: `TracerState` takes decoded message fields
 and returns `Out` records, so tests drive whole clusters of them in one
@@ -27,8 +32,9 @@ import numpy as np
 from dosppm_core.chunks import pacing
 from dosppm_core.chunks.cache import ChunkCache
 from dosppm_core.chunks.schedule import EYE, PHOTON, SHADOW, ChunkScheduler
-from dosppm_core.chunks.view import trace_eye_in_chunk, trace_photons_in_chunk, trace_shadows_in_chunk
-from dosppm_core.jobs import HitPoints, RayBatch, ShadowRays, paths_per_job
+from dosppm_core.chunks.view import (located_photons, start_chunks, trace_eye_in_chunk,
+                                     trace_photons_in_chunk, trace_shadows_in_chunk)
+from dosppm_core.jobs import END_NAMES, ESCAPED, HitPoints, RayBatch, ShadowRays, paths_per_job
 from dosppm_core.kernels.light_cache import LightCache, share_of_memory
 from dosppm_core.settings import LIGHT_CACHE_BYTES
 from dosppm_core.trace import light_arrays
@@ -76,10 +82,13 @@ class TracerState:
     def __init__(self, endpoint: str, provider, max_depth: int, memory_bytes: float | None = None,
                  threads: int = 1, step_rays: int = STEP_RAYS, direct: str = "nee",
                  queue_memory_bytes: float | None = None, light_cache: int = LIGHT_CACHE_BYTES,
-                 clock=time.perf_counter):
+                 clock=time.perf_counter, seed: int | None = None):
         """`clock`: seconds, for the scheduler's waits and dwells (a cluster
-        in one process passes its own, so its runs repeat exactly)."""
+        in one process passes its own, so its runs repeat exactly).
+        `seed`: the render's (the welcome's settings), which photon jobs'
+        photons are made from; None: this tracer takes no photon jobs."""
         self.endpoint, self.provider, self.max_depth = endpoint, provider, int(max_depth)
+        self.seed = seed
         # Direct light by shadow rays ('nee'): photons deposit from their
         # second surface on. 'photons': the paper's pure estimator.
         self.deposit_from = 1 if direct == "nee" else 0
@@ -103,8 +112,8 @@ class TracerState:
         # Portal packages for chunks no tracer serves yet (a table still
         # being built); retried when the next table arrives.
         self.unroutable: list = []
-        self.counters = {"steps": 0, "rays_traced": 0, "photons_traced": 0, "portal_rays_out": 0,
-                         "portal_rays_in": 0, "forwarded_rays": 0, "busy_s": 0.0}
+        self.counters = {"steps": 0, "rays_traced": 0, "photons_emitted": 0, "photons_traced": 0,
+                         "portal_rays_out": 0, "portal_rays_in": 0, "forwarded_rays": 0, "busy_s": 0.0}
         self.portal_by_chunk: dict[int, list[int]] = {}     # chunk -> [rays in, rays out] (status page)
         self.rays_by_chunk: dict[int, int] = {}             # chunk -> rays traced (the server balances by it)
 
@@ -139,9 +148,9 @@ class TracerState:
     # -- incoming packages -------------------------------------------------------
     def receive(self, kind: str, chunk: int, batch: RayBatch | ShadowRays, cull_box=None,
                 eye_iteration: int | None = None, credit: tuple | None = None) -> list[Out]:
-        """Queue a package for `chunk` (an emission job or portal package)
-        with its share of credit (None: `own_credit`), or pass it on when
-        another tracer serves that chunk."""
+        """Queue a package for `chunk` (an eye job, photons made here or a
+        portal package) with its share of credit (None: `own_credit`), or
+        pass it on when another tracer serves that chunk."""
         if not 0 <= chunk < len(self.owners):
             raise ValueError(f"chunk {chunk} out of range (scene has {len(self.owners)})")
         if not len(batch):
@@ -171,7 +180,7 @@ class TracerState:
             return self.set_peers(msg.table_version, msg.peers)
         credit = (msg.credit_job, msg.credit_exp) if msg.type in _CARRY_CREDIT else None
         if msg.type == "photon_job":
-            return self.receive("photon", msg.chunk, msg.batch, cull_box=msg.cull_box, credit=credit)
+            return self.emit(msg.job_ids, msg.rng_keys, msg.counts, msg.cull_box, credit)
         if msg.type == "eye_job":
             return self.receive("eye", msg.chunk, msg.batch, eye_iteration=msg.eye_iteration, credit=credit)
         if msg.type == "portal_rays":
@@ -181,6 +190,30 @@ class TracerState:
             return self.receive(msg.kind, msg.chunk, rays, cull_box=msg.cull_box,
                                 eye_iteration=msg.eye_iteration, credit=credit)
         return []
+
+    def emit(self, job_ids, rng_keys, counts, cull_box, credit: tuple) -> list[Out]:
+        """Make the photons of a photon job message with the library's call
+        (`located_photons`: the same seed and keys give bit for bit the same
+        photons, whichever tracer makes them), and send them on as a step
+        sends the rays leaving it: queued for chunks this tracer serves,
+        portal packages for the others. Photons that miss the scene end
+        here, escaped. Its results (chunk None) return the credit the
+        packages do not carry."""
+        if self.seed is None:
+            raise ValueError("photon_job: this tracer was not given the render's seed")
+        if not len(job_ids):
+            return []
+        tree = self.provider.tree
+        batch, chunk = located_photons(self.provider.header, tree, self.seed, rng_keys, counts,
+                                       self.provider.header.spawn_epsilon())
+        batch.job[:] = np.repeat(np.asarray(job_ids, np.int64), counts)
+        routed, lost = start_chunks(tree, batch, chunk=chunk)
+        self.counters["photons_emitted"] += len(batch)
+        ends = np.zeros(len(END_NAMES), np.int64)
+        ends[ESCAPED] = lost
+        return self._send_on(batch.job, credit, dict(chunk=None, ends=ends),
+                             [(PHOTON, {k: [part] for k, part in routed.items()})],
+                             cull_box=np.asarray(cull_box, np.float64))
 
     @property
     def queued_rays(self) -> int:
@@ -272,21 +305,29 @@ class TracerState:
         return self._after_trace(batch, concat_credit(items), fields, [(PHOTON, outgoing)], cull_box=box)
 
     def _after_trace(self, batch, credit, fields, outgoing, **extra) -> list[Out]:
-        """The step's results for the server and its packages leaving.
-        `outgoing` is [(kind, {chunk: [records]})]: the paths leaving, whose
-        job ids the results count as left. The batch's credit is split
-        between the leaving packages and the results (services/credit.py),
-        which return a share of every job they carry deposits or hit points of."""
+        """The step's results for the server and its packages leaving (`_send_on`)."""
         self.counters["rays_traced"] += len(batch)
+        return self._send_on(batch.job, credit, fields, outgoing, **extra)
+
+    def _send_on(self, job, credit, fields, outgoing, **extra) -> list[Out]:
+        """The results of a step or an emission for the server, and its paths
+        going on. `job`: the job column of the paths taken in, with their
+        `credit`; `outgoing` is [(kind, {chunk: [records]})]: the paths
+        going on, queued here for chunks this tracer serves and sent in
+        portal packages for the others, whose job ids the results count as
+        left. The credit is split between those packages and the results
+        (services/credit.py), which return a share of every job they carry
+        deposits or hit points of."""
         leaving = [(kind, chunk, type(parts[0]).concat(parts))
                    for kind, out in outgoing for chunk, parts in out.items()]
         fields["job_ids"], fields["job_fed"], fields["job_left"] = paths_per_job(
-            [batch.job], [b.job for _kind, _chunk, b in leaving])
+            [job], [b.job for _kind, _chunk, b in leaving])
         (fields["credit_job"], fields["credit_exp"]), shares = split_credit(
             *credit, [b.job for _kind, _chunk, b in leaving])
         portal = []
         for (kind, chunk, merged), share in zip(leaving, shares):
-            self._count_portal(fields["chunk"], 0, len(merged))
+            if fields["chunk"] is not None:      # emitted photons were in no chunk before
+                self._count_portal(fields["chunk"], 0, len(merged))
             if self.serves(chunk):
                 self._count_portal(chunk, len(merged), 0)
                 portal += self.receive(kind, chunk, merged, credit=share, **extra)
