@@ -7,6 +7,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import os
+import subprocess
 
 import pytest
 
@@ -88,3 +89,24 @@ def test_dosppm_bench_writes_every_timing_and_its_provenance(tmp_path):
         assert len(times) == 3 and all(t > 0 for t in times), name
     passes = sorted(got["samples_s"]["photon_pass"])
     assert got["photon_paths_per_s"] == pytest.approx(20_000 / passes[1])
+
+
+def test_provenance_looks_for_changes_in_the_whole_repository(tmp_path, monkeypatch):
+    """A figure measured with an edit in dosppm_core/ or benchmarks/ is
+    dirty, not only one with an edit in services/ (issue 34)."""
+    assert os.path.exists(os.path.join(provenance.ROOT, "pyproject.toml"))
+    for name in ("dosppm_core/k.py", "benchmarks/b.py", "benchmarks/results/r.json"):
+        os.makedirs(tmp_path / os.path.dirname(name), exist_ok=True)
+        (tmp_path / name).write_text("x = 1\n")
+    def git(*args):
+        subprocess.run(["git", "-c", "user.name=t", "-c", "user.email=t@t", *args], cwd=tmp_path, check=True,
+                       capture_output=True)
+    git("init", "-q")
+    git("add", ".")
+    git("commit", "-q", "-m", "c")
+    monkeypatch.setattr(provenance, "ROOT", str(tmp_path))
+    assert not provenance.commit().endswith("+dirty")
+    (tmp_path / "benchmarks/results/r.json").write_text("x = 2\n")     # results files do not count
+    assert not provenance.commit().endswith("+dirty")
+    (tmp_path / "dosppm_core/k.py").write_text("x = 2\n")
+    assert provenance.commit().endswith("+dirty")

@@ -14,7 +14,9 @@ import statistics
 import subprocess
 import sys
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+# The repository's top (services/evaluation/ is two below it): a change
+# anywhere in it, dosppm_core/ and benchmarks/ included, makes a figure dirty.
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
 def commit() -> str:
