@@ -51,6 +51,18 @@ def pytest_runtest_makereport(item, call):
             rep.outcome, rep.longrepr = "failed", f"DOSPPM_REQUIRE_ALL=1, and this test would skip: {reason}"
 
 
+@pytest.hookimpl(hookwrapper=True)
+def pytest_make_collect_report(collector):
+    """A module that skips as it is imported (`pytest.importorskip`) skips
+    every test in it: under DOSPPM_REQUIRE_ALL, for a missing tool, that
+    fails too."""
+    rep = (yield).get_result()
+    if rep.skipped and os.environ.get("DOSPPM_REQUIRE_ALL") == "1":
+        reason = str(rep.longrepr[2] if isinstance(rep.longrepr, tuple) else rep.longrepr)
+        if any(w in reason.lower() for w in REQUIRED):
+            rep.outcome, rep.longrepr = "failed", f"DOSPPM_REQUIRE_ALL=1, and {rep.nodeid} would skip: {reason}"
+
+
 def pytest_terminal_summary(terminalreporter):
     """What ran, per tier, and why anything skipped: CI says what it ran."""
     written = figures.write_if_asked()

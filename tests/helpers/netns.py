@@ -37,7 +37,7 @@ def netns_unavailable(prefix: str) -> str | None:
     try:
         r = ip("netns", "add", probe, check=False)
     except (OSError, subprocess.SubprocessError) as e:
-        return f"`ip netns add` failed: {e}"
+        return f"cannot create a network namespace (`ip netns add` failed: {e})"
     if r.returncode != 0:
         return f"cannot create a network namespace: {r.stderr.strip()}"
     ip("netns", "del", probe, check=False)
