@@ -53,7 +53,7 @@ def _geometry(reader: ReaderState, obj: Obj):
     if obj.type in ("obj", "ply"):
         filename = required(obj, "filename", get_str)
         get_bool(obj, "face_normals")         # our normals are always the faces'
-        path = resolve(obj.take("filename", ("string",)).node, filename, reader.root_dir)
+        path = resolve(obj.take("filename", ("string",)).node, filename, reader.root_dir, reader.paths)
         return _load_mesh_file(path, obj.node)
     return {"rectangle": _rectangle, "cube": _cube, "sphere": _unit_sphere}[obj.type]()
 
