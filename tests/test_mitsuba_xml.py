@@ -431,7 +431,7 @@ BAD = [  # (snippet, line offset, element as written, what the message says)
      '<texture type="bitmap" name="reflectance">', "unsupported plugin"),
     ('<emitter type="envmap"/>', 0, '<emitter type="envmap">', "unsupported plugin"),
     ('<sensor type="orthographic"/>', 0, '<sensor type="orthographic">', "unsupported plugin"),
-    ('<shape type="disk"/>', 0, '<shape type="disk">', "unsupported plugin"),
+    ('<shape type="sdfgrid"/>', 0, '<shape type="sdfgrid">', "unsupported plugin"),
     ('<shape type="cube">\n  <ref id="nope"/></shape>', 1, '<ref id="nope">', "unknown id 'nope'"),
     ('<bsdf type="diffuse" id="s"><spectrum name="reflectance" filename="x.spd"/></bsdf>', 0,
      '<spectrum name="reflectance" filename="x.spd">', "unsupported attribute 'filename'"),
