@@ -17,7 +17,7 @@ OBJECT_TAGS = {"sensor", "film", "sampler", "rfilter", "integrator", "shape", "b
                "emitter", "texture", "medium", "phase", "volume"}
 VALUE_TAGS = {"float", "integer", "boolean", "string", "point", "vector", "rgb", "spectrum"}
 PLUGINS = {
-    "shape": {"obj", "ply", "rectangle", "cube", "sphere", "disk", "cylinder"},
+    "shape": {"obj", "ply", "rectangle", "cube", "sphere", "disk", "cylinder", "shapegroup", "instance"},
     "bsdf": {"diffuse", "twosided", "conductor", "roughconductor", "dielectric"},
     "emitter": {"area", "point", "spot"},
     "sensor": {"perspective", "thinlens"},

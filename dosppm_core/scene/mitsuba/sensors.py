@@ -91,9 +91,10 @@ def _film(reader: ReaderState, film: Obj) -> tuple:
         finish(rfilter)
         reader.settings["rfilter"] = {"type": rfilter.type, **params}
     size = (get_int(film, "width", 768), get_int(film, "height", 576))
-    pixel_format = get_str(film, "pixel_format")
-    if pixel_format is not None:
-        reader.settings["pixel_format"] = pixel_format
+    for name in ("pixel_format", "component_format"):    # how Mitsuba would write its image
+        value = get_str(film, name)
+        if value is not None:
+            reader.settings[name] = value
     finish(film)
     return size
 

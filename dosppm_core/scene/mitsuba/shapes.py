@@ -1,6 +1,8 @@
 """Shape plugins: obj and ply files, rectangle, cube, sphere (an
 icosphere), disk and cylinder (fine polygons), each with to_world,
-flip_normals and at most one BSDF and one area emitter.
+flip_normals and at most one BSDF and one area emitter; shapegroup and
+instance, flattened: each instance adds a moved copy of its group's
+triangles.
 
 The front of a surface is its triangle winding (counter-clockwise), which
 emission and one-sided BSDFs use and flip_normals reverses. Under a
@@ -33,17 +35,25 @@ from dosppm_core.scene.tomlfile import read_mesh_file
 # Shapes whose shading normal Mitsuba moves with the inverse transpose of
 # to_world, so a mirroring transform keeps their front outward.
 MIRROR_KEEPS_FRONT = ("rectangle", "cube", "disk", "cylinder")
+GROUPS = ("shapegroup", "instance")
 SEGMENTS = 256    # of a disk's rim or a cylinder: the area is short by (2 pi / 256)^2 / 6 = 1e-4
 
 
-def read_shape(reader: ReaderState, obj: Obj) -> None:
-    """Add one shape's triangles, with its material, to the builder."""
+def read_shape(reader: ReaderState, obj: Obj, outer: np.ndarray | None = None) -> None:
+    """Add one shape's triangles, with its material, to the builder;
+    `outer` is the to_world of the instance a shape group's shape is read
+    for (applied after the shape's own)."""
+    if obj.type in GROUPS:
+        _group_or_instance(reader, obj, outer)
+        return
     vertices, faces = _geometry(reader, obj)
     to_world = get_matrix(obj)
     if obj.type == "sphere":
         to_world = _sphere_frame(obj, to_world)
     elif obj.type == "cylinder":
         to_world = _circular(obj, to_world @ _cylinder_frame(obj))
+    if outer is not None:
+        to_world = outer @ to_world
     if obj.type in MIRROR_KEEPS_FRONT and np.linalg.det(to_world[:3, :3]) < 0:
         # Mitsuba moves these shading normals with the inverse transpose, so
         # a mirror keeps their front outward; its sphere's turns inward.
@@ -52,9 +62,32 @@ def read_shape(reader: ReaderState, obj: Obj) -> None:
         faces = faces[:, ::-1]
     children = reader.children(obj, {"bsdf", "emitter"})
     bsdf, emitter = reader.single(obj, children, "bsdf"), reader.single(obj, children, "emitter")
+    if outer is not None and emitter is not None:
+        emitter.node.fail("an emitter inside a shapegroup (Mitsuba does not instance emitters)")
     material = material_id(reader, bsdf, emitter, obj)
     finish(obj)
     reader.builder.add_mesh(vertices, faces, material, obj.where(), transform=to_world)
+
+
+def _group_or_instance(reader: ReaderState, obj: Obj, outer) -> None:
+    """A shapegroup adds nothing by itself; each instance flattens a copy of
+    its shapes into the scene's triangles, moved by the instance's to_world."""
+    if outer is not None:
+        obj.node.fail(f"a {obj.type} cannot be nested in a shapegroup")
+    if obj.type == "shapegroup":
+        members = reader.children(obj, {"shape"})
+        for member in members:
+            if member.type in GROUPS:
+                member.node.fail(f"a {member.type} cannot be nested in a shapegroup")
+        finish(obj)
+        return
+    children = reader.children(obj, {"shape"})
+    if len(children) != 1 or children[0].type != "shapegroup":
+        obj.node.fail("an instance needs exactly one <ref> to a shapegroup")
+    to_world = get_matrix(obj)
+    finish(obj)
+    for member in reader.children(children[0], {"shape"}):
+        read_shape(reader, member, to_world)
 
 
 def _geometry(reader: ReaderState, obj: Obj):
