@@ -46,7 +46,7 @@ def read_shape(reader: ReaderState, obj: Obj, outer: np.ndarray | None = None) -
     if obj.type in GROUPS:
         _group_or_instance(reader, obj, outer)
         return
-    vertices, faces = _geometry(reader, obj)
+    vertices, faces = shape_geometry(reader, obj)
     to_world = get_matrix(obj)
     if obj.type == "sphere":
         to_world = _sphere_frame(obj, to_world)
@@ -90,7 +90,9 @@ def _group_or_instance(reader: ReaderState, obj: Obj, outer) -> None:
         read_shape(reader, member, to_world)
 
 
-def _geometry(reader: ReaderState, obj: Obj):
+def shape_geometry(reader: ReaderState, obj: Obj):
+    """(vertices, faces) of a shape in its local frame: a mesh file's or
+    one of the built-in shapes'."""
     if obj.type in ("obj", "ply"):
         filename = required(obj, "filename", get_str)
         get_bool(obj, "face_normals")         # our normals are always the faces'
