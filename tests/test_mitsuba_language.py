@@ -34,9 +34,9 @@ def write(path, text):
     return str(path)
 
 
-def scene_xml(tmp_path, body, name="scene.xml", sensor=SENSOR):
+def scene_xml(tmp_path, body, name="scene.xml", sensor=SENSOR, lamp=None):
     """A scene of `body` with a camera and a point light (no scene builds without one)."""
-    return write(os.path.join(tmp_path, name), f'<scene version="3.0.0">\n{sensor}\n{LAMP}\n{body}\n</scene>\n')
+    return write(os.path.join(tmp_path, name), f'<scene version="3.0.0">\n{sensor}\n{lamp or LAMP}\n{body}\n</scene>\n')
 
 
 def area(scene, mask=None):
@@ -358,7 +358,8 @@ def test_orthographic_render_matches_mitsuba(mi, tmp_path):
         <shape type="instance"><ref id="g"/></shape>
         <shape type="instance"><ref id="g"/><transform name="to_world"><translate y="1.2" z="1"/></transform></shape>
         <shape type="disk"><transform name="to_world"><scale value="4"/><translate z="-1.5"/></transform></shape>
-        """, sensor=sensor).replace("0, 0, -5", "-3, -2, 4")
+        """, sensor=sensor, lamp=LAMP.replace("0, 0, -5", "-3, -2, 4").replace(
+            "</emitter>", '<rgb name="intensity" value="60"/></emitter>'))
     scene = load_mitsuba_xml(path)
     ours = np.asarray(api.render(scene, seconds=10, max_depth=1, threads=2).pixels).mean((0, 1))
     ref = np.array(mi.render(mi.load_file(path), spp=1024)).mean((0, 1))[:3]     # the moment's mean
