@@ -111,6 +111,8 @@ def test_defaults_and_parameters(tmp_path):
     assert scene.render_settings["spp"] == 9 and scene.render_settings["integrator"] == "volpath"
     assert area(scene) == pytest.approx(4.0)
     assert load_scene(path, params={"spp": 3}).render_settings["spp"] == 3
+    from dosppm_core import api
+    assert api.load(path, spp=5, width=4).render_settings["spp"] == 5
     with pytest.raises(SceneError, match="only a Mitsuba .xml file"):
         load_scene("cornell-box", params={"spp": 3})
 
