@@ -81,13 +81,22 @@ def test_path_folders_find_meshes_and_includes(tmp_path):
     assert area(scene) == pytest.approx(1.0)
 
 
-def test_a_later_path_is_searched_first(tmp_path):
+def later_path_scene(tmp_path):
     write(tmp_path / "a" / "m.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
     write(tmp_path / "b" / "m.obj", "v 0 0 0\nv 2 0 0\nv 0 2 0\nf 1 2 3\n")
-    path = scene_xml(tmp_path, """
+    return scene_xml(tmp_path, """
         <path value="a"/><path value="b"/>
         <shape type="obj"><string name="filename" value="m.obj"/></shape>""")
-    assert area(load_mitsuba_xml(path)) == pytest.approx(2.0)         # b's, as Mitsuba prepends
+
+
+def test_a_later_path_is_searched_first(tmp_path):
+    assert area(load_mitsuba_xml(later_path_scene(tmp_path))) == pytest.approx(2.0)  # b's: Mitsuba prepends
+
+
+@pytest.mark.reference
+def test_path_order_matches_mitsuba(mi, tmp_path):
+    path = later_path_scene(tmp_path)
+    assert [shape.surface_area() for shape in mi.load_file(path).shapes()] == pytest.approx([2.0])
 
 
 def test_defaults_and_parameters(tmp_path):
