@@ -5,7 +5,10 @@ loader stops at the first thing outside our subset, so each scene gets
 "loads" or that one-line refusal, and the refusals are counted by the
 element refused.
 
-    python benchmarks/mitsuba_scenes.py [--root DIR]
+    python benchmarks/mitsuba_scenes.py [--root DIR] [--out benchmarks/results/mitsuba-scenes.json]
+
+With --out, writes per scene its first refusal (null: it loads) and the
+errors of reading its language in full, with provenance.
 
 Exits 1 when a scene fails other than by a `SceneError` (a crash).
 """
@@ -128,6 +131,7 @@ def survey(root: str = SCENES) -> list:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--root", default=SCENES, help="the tests/scenes folder (default: %(default)s)")
+    p.add_argument("--out", help="also write the results here (JSON)")
     args = p.parse_args(argv)
     if not os.path.isdir(args.root):
         print(f"{args.root}: no such folder (the shared scenes sit beside the checkout)", file=sys.stderr)
@@ -146,6 +150,12 @@ def main(argv=None) -> int:
     print(f"{loads} of {len(results)} load; first refusals by count:")
     for text, n in counts.most_common():
         print(f"{n:4d}  {text}")
+    if args.out:
+        from services.evaluation.provenance import write_results
+        short = {n: (m and m.replace(args.root + os.sep, "")) for n, m in results}
+        write_results(args.out, {"scenes": short, "loads": loads, "refusals": dict(counts.most_common()),
+                                 "language_errors": {n: [m.replace(args.root + os.sep, "") for m in e]
+                                                     for n, e in language if e}})
     return 0
 
 
