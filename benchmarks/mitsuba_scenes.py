@@ -37,7 +37,7 @@ SCENES = os.path.join(ROOT, "..", "shared", "scenes", "mitsuba-data", "tests", "
 # Plugins refused because later parts of issue 33 (or none of it) build
 # them: textures, materials, lights, media and shapes beyond part 1's.
 LATER = {
-    "texture": {"bitmap", "checkerboard", "mesh_attribute"},
+    "texture": {"bitmap", "checkerboard", "mesh_attribute", "rawconstant"},
     "emitter": {"envmap", "constant", "directional", "projector"},
     "bsdf": {"roughplastic", "plastic", "roughdielectric", "principled", "principledthin", "normalmap",
              "bumpmap", "mask", "null", "thindielectric", "blendbsdf"},
@@ -98,6 +98,22 @@ def read_language(path: str) -> list:
     return errors
 
 
+def plugins_needed(path: str) -> list:
+    """Every plugin of the file (and its includes) outside our subset, as
+    'family:type': what it takes for the scene to load."""
+    try:
+        root = parse_xml(path)
+        if version(root) < (2, 0, 0):
+            upgrade_names(root)
+        expander = Expander(path, {}, _AnyPlugin())
+        expander.substitute(root)
+        scene = expander.object(root)
+    except SceneError:
+        return []
+    return sorted({f"{o.tag}:{o.type}" for o in _objects(scene)
+                   if o.tag != "scene" and o.type not in PLUGINS.get(o.tag, ())})
+
+
 def _objects(obj):
     yield obj
     for child in obj.children:
@@ -150,10 +166,15 @@ def main(argv=None) -> int:
     print(f"{loads} of {len(results)} load; first refusals by count:")
     for text, n in counts.most_common():
         print(f"{n:4d}  {text}")
+    needs = {n: plugins_needed(os.path.join(args.root, n)) for n, _ in results}
+    print("\nscenes by the plugins outside our subset they use (all of them, not only the first):")
+    for group, n in collections.Counter(tuple(v) for v in needs.values()).most_common():
+        print(f"{n:4d}  {', '.join(group) or '(none)'}")
     if args.out:
         from services.evaluation.provenance import write_results
         short = {n: (m and m.replace(args.root + os.sep, "")) for n, m in results}
         write_results(args.out, {"scenes": short, "loads": loads, "refusals": dict(counts.most_common()),
+                                 "plugins_needed": needs,
                                  "language_errors": {n: [m.replace(args.root + os.sep, "") for m in e]
                                                      for n, e in language if e}})
     return 0
