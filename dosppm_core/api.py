@@ -61,17 +61,21 @@ class Image:
 
 
 def load(scene: str | os.PathLike | Mapping, width: int | None = None,
-         height: int | None = None) -> Scene | "ChunkStore":
+         height: int | None = None, **params) -> Scene | "ChunkStore":
     """A scene from a built-in name, a TOML or Mitsuba XML file, or a dict
     with the tables of the TOML format (docs/scene-format.md; mesh files
     relative to the working directory): a `Scene`, in memory. A chunk store
     or a triangle soup directory (`dosppm scenes generate`), too large for
     memory perhaps: a `ChunkStore`, the soup cut into chunks of
     `DEFAULT_BUDGET_BYTES` under `default_store_cache()` the first time (as
-    `dosppm render` does). `width`/`height` override the camera's.
+    `dosppm render` does). `width`/`height` override the camera's; other
+    keywords are a Mitsuba file's `$name` parameters, as in
+    `mitsuba.load_file(path, spp=16)`.
 
     What cannot be opened raises SceneError (a chunk store: StoreError, a
     ValueError) with the one line `dosppm render` prints."""
+    if params and (isinstance(scene, Mapping) or not os.fspath(scene).lower().endswith(".xml")):
+        raise SceneError(f"parameters {', '.join(params)} given, but only a Mitsuba .xml file takes them")
     if isinstance(scene, Mapping):
         out = scene_from_document(dict(scene), "scene dict", "scene", os.getcwd())
         for key, value in (("width", width), ("height", height)):
@@ -85,7 +89,7 @@ def load(scene: str | os.PathLike | Mapping, width: int | None = None,
     if is_store(spec) or is_soup(spec):
         from dosppm_core.chunks.subdivide import open_render_store
         return open_render_store(spec, default_store_cache(), DEFAULT_BUDGET_BYTES, None, width, height)
-    return load_scene(spec, width=width, height=height)
+    return load_scene(spec, params or None, width=width, height=height)
 
 
 def render(scene: Scene | "ChunkStore" | str, seconds: float | None = None, *, photons: int | None = None,

@@ -19,7 +19,8 @@ two_sided  diffuse/mirror/glossy wrapped in `twosided` (glass never is)
 emission   `area` emitter (one-sided, along the CCW winding normal)
 point      `point`, intensity
 spot       `spot`, cutoff_angle, beam_width, intensity
-camera     `perspective` (`thinlens` when aperture_radius > 0), look_at
+camera     `perspective` (`thinlens` when aperture_radius > 0), look_at;
+           `orthographic` with to_world = look_at @ scale(ortho_scale, 1)
 film       `hdrfilm` RGB float32, **box** reconstruction filter
 sampler    `independent`
 =========  ==========================================================
@@ -154,6 +155,11 @@ def _sensor(mi, scene: Scene, spp: int, seed: int) -> dict:
     if cam.aperture_radius > 0:
         sensor.update(type="thinlens", aperture_radius=float(cam.aperture_radius),
                       focus_distance=float(cam.focus_distance))
+    if cam.projection == "orthographic":
+        # Mitsuba sizes the orthographic view by the scale of its to_world.
+        scale = mi.ScalarTransform4f().scale([float(cam.ortho_scale[0]), float(cam.ortho_scale[1]), 1.0])
+        del sensor["fov"], sensor["fov_axis"]
+        sensor.update(type="orthographic", to_world=sensor["to_world"] @ scale)
     return sensor
 
 

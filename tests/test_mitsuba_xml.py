@@ -299,7 +299,7 @@ def check_camera(mi, scene, ref):
     """Mitsuba's ray through image point (u, v) (v down, lens centre) must be
     ours: forward + (2u - 1) tan_x right + (1 - 2v) tan_y up."""
     cam = scene.camera
-    position, right, up, forward, (tan_x, tan_y, _), _ = cam.frame()
+    position, right, up, forward, (tan_x, tan_y, _), _ = cam.frame()[:6]
     sensor = ref.sensors()[0]
     for u, v in ((0.5, 0.5), (0.9, 0.2), (0.1, 0.95)):
         ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(u, v), mi.Point2f(0.5, 0.5))
@@ -430,8 +430,8 @@ BAD = [  # (snippet, line offset, element as written, what the message says)
     ('<bsdf type="diffuse" id="t"><texture type="bitmap" name="reflectance"/></bsdf>', 0,
      '<texture type="bitmap" name="reflectance">', "unsupported plugin"),
     ('<emitter type="envmap"/>', 0, '<emitter type="envmap">', "unsupported plugin"),
-    ('<sensor type="orthographic"/>', 0, '<sensor type="orthographic">', "unsupported plugin"),
-    ('<shape type="disk"/>', 0, '<shape type="disk">', "unsupported plugin"),
+    ('<sensor type="radiancemeter"/>', 0, '<sensor type="radiancemeter">', "unsupported plugin"),
+    ('<shape type="sdfgrid"/>', 0, '<shape type="sdfgrid">', "unsupported plugin"),
     ('<shape type="cube">\n  <ref id="nope"/></shape>', 1, '<ref id="nope">', "unknown id 'nope'"),
     ('<bsdf type="diffuse" id="s"><spectrum name="reflectance" filename="x.spd"/></bsdf>', 0,
      '<spectrum name="reflectance" filename="x.spd">', "unsupported attribute 'filename'"),

@@ -50,7 +50,7 @@ def _closed_form_plane(scene, light=LIGHT, sub=8):
     """Radiance of a Lambertian plane z=0 under a point light,
     L = rho / pi * I * cos(theta) / d^2, averaged over a sub x sub grid in
     each pixel as the box filter does."""
-    pos, right, up, fwd, (tx, ty, _), _ = scene.camera.frame()
+    pos, right, up, fwd, (tx, ty, _), _ = scene.camera.frame()[:6]
     w, h = scene.camera.width, scene.camera.height
     x = (2 * (np.arange(w * sub) + 0.5) / (w * sub) - 1) * tx
     y = (1 - 2 * (np.arange(h * sub) + 0.5) / (h * sub)) * ty     # row 0 is the top

@@ -27,14 +27,15 @@ def concentric_disk(u1, u2):
 @nb.njit(cache=True, parallel=True, error_model="numpy")
 def generate_eye_rays(frame, width, seed, iteration, pixel_start, count):
     """One eye ray per pixel in [pixel_start, pixel_start + count) of
-    iteration `iteration`: box-filtered jitter and an optional thin lens.
-    `frame` is `Camera.frame()`. Returns origin, direction, rng state."""
+    iteration `iteration`: box-filtered jitter and an optional thin lens, or
+    parallel rays for an orthographic camera. `frame` is `Camera.frame()`. Returns origin, direction, rng state."""
     origin = np.empty((count, 3), np.float32)
     direction = np.empty((count, 3), np.float32)
     states = np.empty(count, np.uint64)
     pos, right, up, fwd = frame[0], frame[1], frame[2], frame[3]
     tan_x, tan_y = frame[4, 0], frame[4, 1]
     aperture, focus, near = frame[5, 0], frame[5, 1], frame[5, 2]
+    ortho = frame[6, 0] > 0.0
     job = EYE_STREAM + np.uint64(iteration)
     for i in nb.prange(count):
         pixel = pixel_start + i
@@ -46,10 +47,16 @@ def generate_eye_rays(frame, width, seed, iteration, pixel_start, count):
         sx = (2.0 * (col + ux) / width - 1.0) * tan_x
         sy = (1.0 - 2.0 * (row + uy) / height) * tan_y
         d = np.empty(3)
+        o = np.empty(3)
+        if ortho:
+            # Parallel rays from the near plane: (sx, sy) is a world offset there.
+            for k in range(3):
+                direction[i, k] = fwd[k]
+                origin[i, k] = pos[k] + sx * right[k] + sy * up[k] + near * fwd[k]
+            states[i] = st
+            continue
         for k in range(3):
             d[k] = fwd[k] + sx * right[k] + sy * up[k]
-        o = np.empty(3)
-        for k in range(3):
             o[k] = pos[k]
         if aperture > 0.0:
             st, u1 = next_float(st)

@@ -13,8 +13,12 @@ from dosppm_core.scene.soupfile import is_soup, open_soup
 from dosppm_core.scene.tomlfile import load_toml
 
 
-def load_scene(spec: str, **overrides) -> Scene:
-    """`overrides` may set `width` and `height` of the camera."""
+def load_scene(spec: str, params: dict | None = None, **overrides) -> Scene:
+    """`overrides` may set `width` and `height` of the camera; `params` are
+    a Mitsuba file's `$name` parameters (`{"spp": 16}`, like Mitsuba's
+    ``-D spp=16``), overriding its `<default>`s."""
+    if params and not str(spec).lower().endswith(".xml"):
+        raise SceneError(f"{spec}: parameters {', '.join(params)} given, but only a Mitsuba .xml file takes them")
     if spec in builtin.SCENES:
         scene = builtin.make(spec)
     else:
@@ -28,7 +32,7 @@ def load_scene(spec: str, **overrides) -> Scene:
         if ext == ".toml":
             scene = load_toml(spec)
         elif ext == ".xml":
-            scene = load_mitsuba_xml(spec)
+            scene = load_mitsuba_xml(spec, **(params or {}))
         else:
             raise SceneError(f"{spec}: unknown scene format {ext!r} (expected .toml or .xml)")
     for key in ("width", "height"):

@@ -82,7 +82,13 @@ class Material:
 class Camera:
     """Perspective camera; `aperture_radius > 0` gives a thin lens focused at
     `focus_distance`. `fov_deg` is measured along `fov_axis`
-    ('x', 'y', 'smaller' or 'larger'), as in Mitsuba."""
+    ('x', 'y', 'smaller' or 'larger'), as in Mitsuba.
+
+    `projection="orthographic"` is Mitsuba's orthographic sensor: parallel
+    rays along the view direction from a plane `near_clip` ahead, which
+    spans `ortho_scale[0]` either side of the centre across the image and
+    `ortho_scale[1] * height / width` up and down (the scale of its
+    to_world); `fov_deg` and the lens are unused then."""
     position: tuple
     look_at: tuple
     up: tuple
@@ -93,6 +99,8 @@ class Camera:
     aperture_radius: float = 0.0
     focus_distance: float = 1.0
     near_clip: float = 0.0
+    projection: str = "perspective"
+    ortho_scale: tuple = (1.0, 1.0)
 
     def validate(self, where: str = "camera") -> None:
         for name in ("position", "look_at", "up"):
@@ -101,7 +109,15 @@ class Camera:
             raise SceneError(f"{where}: missing resolution (width and height)")
         if int(self.width) < 1 or int(self.height) < 1:
             raise SceneError(f"{where}: resolution must be positive, got {self.width}x{self.height}")
-        if not (0 < self.fov_deg < 180):
+        if self.projection not in ("perspective", "orthographic"):
+            raise SceneError(f"{where}.projection: must be perspective or orthographic, "
+                             f"got {self.projection!r}")
+        if self.projection == "orthographic":
+            if not (len(self.ortho_scale) == 2 and all(math.isfinite(v) and v > 0 for v in self.ortho_scale)):
+                raise SceneError(f"{where}.ortho_scale: must be two positive numbers, got {self.ortho_scale!r}")
+            if self.aperture_radius > 0:
+                raise SceneError(f"{where}: an orthographic camera has no lens (aperture_radius > 0)")
+        elif not (0 < self.fov_deg < 180):
             raise SceneError(f"{where}.fov: must lie in (0, 180) degrees, got {self.fov_deg!r}")
         if self.fov_axis not in ("x", "y", "smaller", "larger"):
             raise SceneError(f"{where}.fov_axis: must be x, y, smaller or larger, got {self.fov_axis!r}")
@@ -113,8 +129,10 @@ class Camera:
 
     def frame(self) -> np.ndarray:
         """Rows: position, right, up, forward (unit), (tan_x, tan_y, height),
-        (aperture, focus, near clip), a (6, 3) float64 array for the eye-ray kernel. Image right is
-        forward x up, so Mitsuba scenes come out unmirrored."""
+        (aperture, focus, near clip), (orthographic 1 or 0, 0, 0): a (7, 3)
+        float64 array for the eye-ray kernel. Image right is forward x up, so
+        Mitsuba scenes come out unmirrored. An orthographic camera puts the
+        half width and half height of its view in place of tan_x and tan_y."""
         pos = np.asarray(self.position, np.float64)
         fwd = np.asarray(self.look_at, np.float64) - pos
         fwd /= np.linalg.norm(fwd)
@@ -129,8 +147,12 @@ class Camera:
         elif axis == "larger":
             axis = "x" if w >= h else "y"
         tan_x, tan_y = (t, t * h / w) if axis == "x" else (t * w / h, t)
+        ortho = self.projection == "orthographic"
+        if ortho:
+            tan_x, tan_y = self.ortho_scale[0], self.ortho_scale[1] * h / w
         lens = (self.aperture_radius, self.focus_distance, self.near_clip)
-        return np.array([pos, right, up, fwd, (tan_x, tan_y, h), lens], dtype=np.float64)
+        return np.array([pos, right, up, fwd, (tan_x, tan_y, h), lens, (float(ortho), 0.0, 0.0)],
+                        dtype=np.float64)
 
 
 @dataclass

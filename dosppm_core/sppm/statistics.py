@@ -227,7 +227,9 @@ def pixel_footprint(scene: Scene, hits: HitPoints, pixels_across: float = MIN_RA
     frame = scene.camera.frame()
     diag = scene.diagonal()
     dist = np.linalg.norm(hits.position.astype(np.float64) - frame[0], axis=1)
-    footprint = 2.0 * frame[4, 0] * dist / int(scene.camera.width)
+    # An orthographic pixel has the same width at every distance.
+    spread = np.ones_like(dist) if frame[6, 0] > 0 else dist
+    footprint = 2.0 * frame[4, 0] * spread / int(scene.camera.width)
     return np.clip(pixels_across * footprint, 1e-5 * diag, diag / 20.0)
 
 

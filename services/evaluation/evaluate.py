@@ -275,7 +275,10 @@ def pbrt_sppm_radius(scene: Scene, pixels_across: float = 3.0) -> float:
     if not hit.any():
         return scene.diagonal() / 100.0
     dist = float(np.median(t[hit] * np.linalg.norm(rays.direction[hit], axis=1)))
-    return pixels_across * 2.0 * float(scene.camera.frame()[4, 0]) * dist / w
+    frame = scene.camera.frame()
+    if frame[6, 0] > 0:                   # orthographic: a pixel is as wide at any distance
+        dist = 1.0
+    return pixels_across * 2.0 * float(frame[4, 0]) * dist / w
 
 
 def _dosppm(scene: Scene, budgets, seed: int, work: str):

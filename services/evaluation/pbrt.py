@@ -201,6 +201,9 @@ def write_scene(scene: Scene, directory: str) -> str:
 def camera_lines(cam: Camera) -> list[str]:
     """Our camera's image right is forward x up; pbrt's is up x forward, so
     `Scale -1 1 1` flips the camera's x. pbrt's fov spans the shorter axis."""
+    if cam.projection != "perspective":
+        # pbrt's orthographic rays start at the camera, Mitsuba's at near_clip: not yet mapped.
+        raise PbrtError(f"camera: no pbrt mapping for a {cam.projection} camera")
     tan_x, tan_y = cam.frame()[4, :2]
     fov = 2.0 * math.degrees(math.atan(tan_x if cam.width <= cam.height else tan_y))
     camera = f'Camera "perspective" "float fov" [ {_num(fov)} ]'

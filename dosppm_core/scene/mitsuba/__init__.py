@@ -11,10 +11,14 @@ element     plugins and parameters understood
 ==========  ================================================================
 scene       ``version``; ``<default name value>`` and ``$name`` (keyword
             arguments override defaults; an unused keyword is an error);
-            ``<include filename>``; ``id`` on any object, ``<ref id>``
+            ``<include filename>``; ``<path value>`` (a folder searched for
+            relative file names); ``id`` on any object, ``<ref id>``
 shape       obj, ply (filename, face_normals); rectangle; cube; sphere
-            (center, radius; an icosphere of 20,480 triangles); all take
-            to_world and flip_normals
+            (center, radius; an icosphere of 20,480 triangles); disk (a fan
+            of 256 triangles); cylinder (p0, p1, radius; 256 quads, open);
+            all take to_world and flip_normals; shapegroup (shapes without
+            emitters) and instance (to_world, one ``<ref>`` to a group),
+            flattened into copies of the group's triangles
 bsdf        diffuse (reflectance); twosided (one nested BSDF);
             conductor (material="none", specular_reflectance) -> mirror;
             roughconductor (distribution="ggx", alpha or alpha_u = alpha_v,
@@ -25,11 +29,13 @@ emitter     area (radiance) in a shape or referenced by one; point (position
             or to_world, intensity); spot (to_world, intensity,
             cutoff_angle, beam_width)
 sensor      perspective, thinlens (fov or focal_length, fov_axis, to_world,
-            near_clip, far_clip, focus_distance, aperture_radius); film
-            hdrfilm (width, height, pixel_format, rfilter); sampler
-            (sample_count, seed)
+            near_clip, far_clip, focus_distance, aperture_radius);
+            orthographic (to_world, whose scale sizes the view, near_clip,
+            far_clip); film hdrfilm (width, height, pixel_format,
+            component_format, rfilter); sampler (sample_count, seed)
 integrator  path, volpath, volpathmis, ptracer, direct (max_depth, rr_depth,
-            hide_emitters)
+            hide_emitters); moment (read through to the one integrator it
+            wraps: our variance comes from our own estimator)
 values      float, integer, boolean, string, point, vector, rgb, spectrum
             (constant or wavelength:value pairs); transform of translate,
             rotate, scale, matrix, lookat (each applied after the previous)
@@ -48,6 +54,15 @@ Decisions:
   emission is not weighted and only clamped at 0. A constant spectrum is
   grey for a reflectance but ``value * xyz_to_srgb(1, 1, 1)`` (slightly
   purple) for an emitter; RGB is taken as is.
+* File names (meshes, includes) are looked up in the ``<path>`` folders,
+  the latest first as Mitsuba's file resolver prepends them, then beside the
+  file that names them, then beside the main file. A ``<path>`` folder is
+  taken from the directory of the file that writes it. Unlike Mitsuba, the
+  working directory is never searched: a scene loads the same from anywhere.
+* Disks and cylinders become fine polygons (their area falls short by
+  1e-4), spheres icospheres. A cylinder whose to_world shears it or scales
+  its cross-section unevenly is refused: Mitsuba only warns, and renders a
+  cylinder read off the transform rather than the transformed one.
 * roughconductor accepts only GGX. Mitsuba's default is Beckmann, so a file
   must say ``<string name="distribution" value="ggx"/>``: swapping the lobe
   silently would make comparisons against Mitsuba disagree.

@@ -17,14 +17,14 @@ OBJECT_TAGS = {"sensor", "film", "sampler", "rfilter", "integrator", "shape", "b
                "emitter", "texture", "medium", "phase", "volume"}
 VALUE_TAGS = {"float", "integer", "boolean", "string", "point", "vector", "rgb", "spectrum"}
 PLUGINS = {
-    "shape": {"obj", "ply", "rectangle", "cube", "sphere"},
+    "shape": {"obj", "ply", "rectangle", "cube", "sphere", "disk", "cylinder", "shapegroup", "instance"},
     "bsdf": {"diffuse", "twosided", "conductor", "roughconductor", "dielectric"},
     "emitter": {"area", "point", "spot"},
-    "sensor": {"perspective", "thinlens"},
+    "sensor": {"perspective", "thinlens", "orthographic"},
     "film": {"hdrfilm"},
     "rfilter": {"box", "tent", "gaussian", "mitchell", "catmullrom", "lanczos"},
     "sampler": {"independent", "stratified", "multijitter", "orthogonal", "ldsampler"},
-    "integrator": {"path", "volpath", "volpathmis", "ptracer", "direct"},
+    "integrator": {"path", "volpath", "volpathmis", "ptracer", "direct", "moment"},
 }
 NORI_PLUGINS = {**PLUGINS, "shape": {"obj"}, "bsdf": {"diffuse", "conductor", "dielectric"},
                 "emitter": {"area"}, "sensor": {"perspective"}, "sampler": {"independent"},
@@ -110,6 +110,7 @@ class Expander:
         self.plugins = plugins
         self.ids: dict[str, Obj] = {}
         self.includes = [os.path.realpath(path)]          # the chain of files being read
+        self.paths: list[str] = []                        # <path> folders, the latest first
 
     def unused_params(self) -> list:
         return [name for name, (_, used) in self.params.items() if not used]
@@ -147,10 +148,12 @@ class Expander:
     def child(self, parent: Obj, node: Node) -> None:
         self.substitute(node)
         tag = node.tag
-        if tag in ("default", "include", "ref") or tag in VALUE_TAGS and "type" not in node.attrib:
+        if tag in ("default", "include", "ref", "path") or tag in VALUE_TAGS and "type" not in node.attrib:
             no_children(node)
         if tag == "default":
             self.default(node)
+        elif tag == "path":
+            self.search_path(parent, node)
         elif tag == "include":
             self.include(parent, node)
         elif tag == "ref":
@@ -170,6 +173,23 @@ class Expander:
         # Keyword overrides and earlier defaults win; defaults count as used.
         self.params.setdefault(node.attrib["name"], [node.attrib["value"], True])
 
+    def search_path(self, parent: Obj, node: Node) -> None:
+        """Mitsuba's <path value>: a folder searched for relative file names,
+        written directly in a scene (or an included scene). A relative folder
+        is taken from the directory of the file that writes it."""
+        check_attrs(node, {"value"}, required=("value",))
+        if parent.tag != "scene":
+            node.fail("a <path> can only be a child of <scene>")
+        value = node.attrib["value"]
+        # Beside the writing file first, then as any file name is resolved.
+        found = [value] if os.path.isabs(value) else [
+            os.path.join(d, value) for d in (os.path.dirname(node.file), *self.paths, self.root_dir)]
+        folder = next((f for f in found if os.path.isdir(f)), None)
+        if folder is None:
+            node.fail(f"folder {value!r} not found")
+        # Prepended, as Mitsuba's resolver does: a later <path> is searched first.
+        self.paths.insert(0, os.path.normpath(folder))
+
     def property(self, parent: Obj, node: Node) -> None:
         if node.tag == "transform":
             check_attrs(node, {"name"}, required=("name",))
@@ -187,7 +207,7 @@ class Expander:
 
     def include(self, parent: Obj, node: Node) -> None:
         check_attrs(node, {"filename"}, required=("filename",))
-        path = resolve(node, node.attrib["filename"], self.root_dir)
+        path = resolve(node, node.attrib["filename"], self.root_dir, self.paths)
         real = os.path.realpath(path)
         if real in self.includes or len(self.includes) > MAX_INCLUDE_DEPTH:
             node.fail("include cycle (or deeper than 15 levels)")

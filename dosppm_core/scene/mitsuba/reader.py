@@ -48,7 +48,7 @@ def load_mitsuba_xml(path: str, **defaults) -> Scene:
     unused = expander.unused_params()
     if unused:
         raise SceneError(f"{path}: parameter(s) {', '.join(unused)} given but never used as $name in the file")
-    return read_scene(ReaderState(path, expander.ids, dialect), scene)
+    return read_scene(ReaderState(path, expander.ids, dialect, expander.paths), scene)
 
 
 def read_scene(reader: ReaderState, scene: Obj) -> Scene:

@@ -1,4 +1,4 @@
-"""The sensor (perspective or thinlens) becomes the `Camera`; its film,
+"""The sensor (perspective, thinlens or orthographic) becomes the `Camera`; its film,
 sampler and the integrator become render settings: what `Scene` cannot
 hold (integrator, max_depth, spp, far_clip, film filter, pixel format)
 lands in ``reader.settings``, only the keys the file sets."""
@@ -24,32 +24,54 @@ def read_sensor(reader: ReaderState, obj: Obj) -> None:
     width, height = _film(reader, film) if film is not None else (768, 576)
     if sampler is not None:
         _sampler(reader, sampler)
-    position, look_at, up = _camera_frame(reader, obj)
-    fov, axis = field_of_view(obj, width, height)
-    camera = Camera(position, look_at, up, fov, width, height, fov_axis=axis,
-                    near_clip=get_float(obj, "near_clip", 0.01))
+    if obj.type == "orthographic":
+        camera = _orthographic(reader, obj, width, height)
+    else:
+        position, look_at, up = _camera_frame(reader, obj)
+        fov, axis = field_of_view(obj, width, height)
+        camera = Camera(position, look_at, up, fov, width, height, fov_axis=axis,
+                        near_clip=get_float(obj, "near_clip", 0.01))
     far_clip = get_float(obj, "far_clip")
     if far_clip is not None:
         reader.settings["far_clip"] = far_clip
     if obj.type == "thinlens":
         camera.aperture_radius = required(obj, "aperture_radius", get_float)
         camera.focus_distance = get_float(obj, "focus_distance", far_clip or 1e4)
-    else:                                 # stored only: a pinhole has no focus
+    elif obj.type == "perspective":       # stored only: a pinhole has no focus
         camera.focus_distance = get_float(obj, "focus_distance", camera.focus_distance)
     finish(obj)
     camera.validate(obj.where())
     reader.builder.camera = camera
 
 
-def _camera_frame(reader: ReaderState, obj: Obj):
-    """Mitsuba's camera looks along local +z with +y up; our camera's
-    image right is forward x up, which matches a proper rotation only."""
+def _orthographic(reader: ReaderState, obj: Obj, width: int, height: int) -> Camera:
+    """Mitsuba's orthographic sensor: its to_world's scale sizes the view
+    (local x in [-1, 1], y in [-height/width, height/width]) and its z scale
+    stretches the distance to the near plane."""
     prop = obj.take("to_world", ("transform",))
     m = np.eye(4) if prop is None else prop.value
+    scale = np.linalg.norm(m[:3, :3], axis=0)
+    if np.any(scale < 1e-12):
+        (prop.node if prop else obj.node).fail("a sensor's to_world must not collapse an axis")
+    unscaled = m.copy()
+    unscaled[:3, :3] = m[:3, :3] / scale
+    position, look_at, up = _camera_frame(reader, obj, unscaled, prop.node if prop else obj.node)
+    near = get_float(obj, "near_clip", 0.01) * float(scale[2])
+    return Camera(position, look_at, up, 90.0, width, height, near_clip=near,
+                  projection="orthographic", ortho_scale=(float(scale[0]), float(scale[1])))
+
+
+def _camera_frame(reader: ReaderState, obj: Obj, m=None, node=None):
+    """Mitsuba's camera looks along local +z with +y up; our camera's
+    image right is forward x up, which matches a proper rotation only."""
+    if m is None:
+        prop = obj.take("to_world", ("transform",))
+        m = np.eye(4) if prop is None else prop.value
+        node = prop.node if prop else obj.node
     rotation = m[:3, :3]
-    node = prop.node if prop else obj.node
     if not np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-5):
-        node.fail("a sensor's to_world must be rotation and translation only (Mitsuba rejects scale)")
+        node.fail("a sensor's to_world must be rotation and translation only (Mitsuba rejects scale"
+                  " but for an orthographic sensor, and there it may not shear)")
     if np.linalg.det(rotation) < 0:
         hint = ' (a Nori camera needs <scale value="-1,1,1"/> before its <lookat>)' \
             if reader.dialect == "nori" else ""
@@ -91,9 +113,10 @@ def _film(reader: ReaderState, film: Obj) -> tuple:
         finish(rfilter)
         reader.settings["rfilter"] = {"type": rfilter.type, **params}
     size = (get_int(film, "width", 768), get_int(film, "height", 576))
-    pixel_format = get_str(film, "pixel_format")
-    if pixel_format is not None:
-        reader.settings["pixel_format"] = pixel_format
+    for name in ("pixel_format", "component_format"):    # how Mitsuba would write its image
+        value = get_str(film, name)
+        if value is not None:
+            reader.settings[name] = value
     finish(film)
     return size
 
@@ -113,6 +136,15 @@ def read_integrator(reader: ReaderState, obj: Obj) -> None:
     radius and photon count)."""
     if "integrator" in reader.settings:
         obj.node.fail("a second integrator")
+    if obj.type == "moment":
+        # Mitsuba's test scenes wrap the integrator to record its second
+        # moment; we read through to it, as our variance is our own.
+        nested = reader.children(obj, {"integrator"})
+        if len(nested) != 1:
+            obj.node.fail("a moment integrator must wrap exactly one integrator")
+        finish(obj)
+        read_integrator(reader, nested[0])
+        return
     reader.children(obj, ())
     reader.settings["integrator"] = obj.type
     params = {"max_depth": get_int, "rr_depth": get_int, "hide_emitters": get_bool}

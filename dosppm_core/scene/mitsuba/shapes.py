@@ -1,6 +1,8 @@
-"""Shape plugins: obj and ply files, rectangle, cube and sphere (an
-icosphere), each with to_world, flip_normals and at most one BSDF and one
-area emitter.
+"""Shape plugins: obj and ply files, rectangle, cube, sphere (an
+icosphere), disk and cylinder (fine polygons), each with to_world,
+flip_normals and at most one BSDF and one area emitter; shapegroup and
+instance, flattened: each instance adds a moved copy of its group's
+triangles.
 
 The front of a surface is its triangle winding (counter-clockwise), which
 emission and one-sided BSDFs use and flip_normals reverses. Under a
@@ -30,13 +32,29 @@ from dosppm_core.scene.mitsuba.xmltree import Node, resolve
 from dosppm_core.scene.tomlfile import read_mesh_file
 
 
-def read_shape(reader: ReaderState, obj: Obj) -> None:
-    """Add one shape's triangles, with its material, to the builder."""
-    vertices, faces = _geometry(reader, obj)
+# Shapes whose shading normal Mitsuba moves with the inverse transpose of
+# to_world, so a mirroring transform keeps their front outward.
+MIRROR_KEEPS_FRONT = ("rectangle", "cube", "disk", "cylinder")
+GROUPS = ("shapegroup", "instance")
+SEGMENTS = 256    # of a disk's rim or a cylinder: the area is short by (2 pi / 256)^2 / 6 = 1e-4
+
+
+def read_shape(reader: ReaderState, obj: Obj, outer: np.ndarray | None = None) -> None:
+    """Add one shape's triangles, with its material, to the builder;
+    `outer` is the to_world of the instance a shape group's shape is read
+    for (applied after the shape's own)."""
+    if obj.type in GROUPS:
+        _group_or_instance(reader, obj, outer)
+        return
+    vertices, faces = shape_geometry(reader, obj)
     to_world = get_matrix(obj)
     if obj.type == "sphere":
         to_world = _sphere_frame(obj, to_world)
-    if obj.type in ("rectangle", "cube") and np.linalg.det(to_world[:3, :3]) < 0:
+    elif obj.type == "cylinder":
+        to_world = _circular(obj, to_world @ _cylinder_frame(obj))
+    if outer is not None:
+        to_world = outer @ to_world
+    if obj.type in MIRROR_KEEPS_FRONT and np.linalg.det(to_world[:3, :3]) < 0:
         # Mitsuba moves these shading normals with the inverse transpose, so
         # a mirror keeps their front outward; its sphere's turns inward.
         faces = faces[:, ::-1]
@@ -44,18 +62,44 @@ def read_shape(reader: ReaderState, obj: Obj) -> None:
         faces = faces[:, ::-1]
     children = reader.children(obj, {"bsdf", "emitter"})
     bsdf, emitter = reader.single(obj, children, "bsdf"), reader.single(obj, children, "emitter")
+    if outer is not None and emitter is not None:
+        emitter.node.fail("an emitter inside a shapegroup (Mitsuba does not instance emitters)")
     material = material_id(reader, bsdf, emitter, obj)
     finish(obj)
     reader.builder.add_mesh(vertices, faces, material, obj.where(), transform=to_world)
 
 
-def _geometry(reader: ReaderState, obj: Obj):
+def _group_or_instance(reader: ReaderState, obj: Obj, outer) -> None:
+    """A shapegroup adds nothing by itself; each instance flattens a copy of
+    its shapes into the scene's triangles, moved by the instance's to_world."""
+    if outer is not None:
+        obj.node.fail(f"a {obj.type} cannot be nested in a shapegroup")
+    if obj.type == "shapegroup":
+        members = reader.children(obj, {"shape"})
+        for member in members:
+            if member.type in GROUPS:
+                member.node.fail(f"a {member.type} cannot be nested in a shapegroup")
+        finish(obj)
+        return
+    children = reader.children(obj, {"shape"})
+    if len(children) != 1 or children[0].type != "shapegroup":
+        obj.node.fail("an instance needs exactly one <ref> to a shapegroup")
+    to_world = get_matrix(obj)
+    finish(obj)
+    for member in reader.children(children[0], {"shape"}):
+        read_shape(reader, member, to_world)
+
+
+def shape_geometry(reader: ReaderState, obj: Obj):
+    """(vertices, faces) of a shape in its local frame: a mesh file's or
+    one of the built-in shapes'."""
     if obj.type in ("obj", "ply"):
         filename = required(obj, "filename", get_str)
         get_bool(obj, "face_normals")         # our normals are always the faces'
-        path = resolve(obj.take("filename", ("string",)).node, filename, reader.root_dir)
+        path = resolve(obj.take("filename", ("string",)).node, filename, reader.root_dir, reader.paths)
         return _load_mesh_file(path, obj.node)
-    return {"rectangle": _rectangle, "cube": _cube, "sphere": _unit_sphere}[obj.type]()
+    return {"rectangle": _rectangle, "cube": _cube, "sphere": _unit_sphere, "disk": _disk,
+            "cylinder": _cylinder}[obj.type]()
 
 
 def _load_mesh_file(path: str, node: Node):
@@ -77,6 +121,39 @@ def _sphere_frame(obj: Obj, to_world: np.ndarray) -> np.ndarray:
     local = np.diag([radius, radius, radius, 1.0])
     local[:3, 3] = get_point(obj, "center", np.zeros(3))
     return to_world @ local
+
+
+def _cylinder_frame(obj: Obj) -> np.ndarray:
+    """Mitsuba's cylinder from p0 to p1 of `radius`: the unit cylinder
+    (z in [0, 1]) scaled, turned onto p1 - p0 and moved to p0."""
+    p0 = np.asarray(get_point(obj, "p0", np.zeros(3)), np.float64)
+    p1 = np.asarray(get_point(obj, "p1", np.array([0.0, 0.0, 1.0])), np.float64)
+    radius = get_float(obj, "radius", 1.0)
+    axis = p1 - p0
+    length = float(np.linalg.norm(axis))
+    if not radius > 0 or length == 0:
+        obj.node.fail("a cylinder needs a positive radius and p0 != p1")
+    z = axis / length
+    helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = x * radius, np.cross(z, x) * radius, axis, p0
+    return m
+
+
+def _circular(obj: Obj, m: np.ndarray) -> np.ndarray:
+    """Mitsuba reads a cylinder's radius and length off its transform and
+    only warns when that shears it or scales x and y apart, then renders a
+    different cylinder than the transformed mesh: we refuse instead."""
+    cols = m[:3, :3]
+    gram = cols.T @ cols
+    scale = float(np.max(np.diag(gram)))
+    off = gram - np.diag(np.diag(gram))
+    if np.max(np.abs(off)) > 1e-6 * scale or abs(gram[0, 0] - gram[1, 1]) > 1e-6 * scale:
+        obj.node.fail("a cylinder's to_world must not shear it or scale its cross-section unevenly "
+                      "(Mitsuba warns and renders another cylinder)")
+    return m
 
 
 # -- the built-in shapes in their local frames ---------------------------------------
@@ -121,3 +198,27 @@ def _unit_sphere():
     mesh = trimesh.creation.icosphere(subdivisions=5, radius=1.0)
     vertices = np.asarray(mesh.vertices, np.float64)
     return vertices, _orient_outward(vertices, np.asarray(mesh.faces, np.int64))
+
+
+@functools.lru_cache(maxsize=1)
+def _disk():
+    """Mitsuba's disk: the unit disk in z = 0, front +z; a fan of SEGMENTS
+    triangles around its centre."""
+    phi = 2 * np.pi * np.arange(SEGMENTS) / SEGMENTS
+    rim = np.stack([np.cos(phi), np.sin(phi), np.zeros(SEGMENTS)], axis=1)
+    vertices = np.concatenate([[[0.0, 0.0, 0.0]], rim])
+    j = np.arange(SEGMENTS)
+    return vertices, np.stack([np.zeros(SEGMENTS, np.int64), 1 + j, 1 + (j + 1) % SEGMENTS], axis=1)
+
+
+@functools.lru_cache(maxsize=1)
+def _cylinder():
+    """Mitsuba's cylinder: radius 1 around z in [0, 1], open (no caps),
+    front outward; SEGMENTS quads."""
+    phi = 2 * np.pi * np.arange(SEGMENTS) / SEGMENTS
+    ring = np.stack([np.cos(phi), np.sin(phi)], axis=1)
+    vertices = np.concatenate([np.c_[ring, np.zeros(SEGMENTS)], np.c_[ring, np.ones(SEGMENTS)]])
+    j = np.arange(SEGMENTS)
+    jn = (j + 1) % SEGMENTS
+    faces = np.concatenate([np.stack([j, jn, SEGMENTS + jn], 1), np.stack([j, SEGMENTS + jn, SEGMENTS + j], 1)])
+    return vertices, faces.astype(np.int64)

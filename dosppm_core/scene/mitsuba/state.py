@@ -12,9 +12,10 @@ from dosppm_core.scene.model import SceneBuilder
 class ReaderState:
     """Shared by the plugin readers (shapes, bsdfs, emitters, sensors)."""
 
-    def __init__(self, path: str, ids: dict, dialect: str):
+    def __init__(self, path: str, ids: dict, dialect: str, paths=()):
         self.builder = SceneBuilder(source=path, name=os.path.splitext(os.path.basename(path))[0])
         self.root_dir = os.path.dirname(os.path.abspath(path))
+        self.paths = list(paths)            # <path> folders, the latest first
         self.ids = ids
         self.dialect = dialect
         self.settings: dict = {}

@@ -85,11 +85,14 @@ def check_attrs(node: Node, allowed, required=()) -> None:
             node.fail(f"missing attribute {key!r}")
 
 
-def resolve(node: Node, filename: str, root_dir: str) -> str:
-    """A relative name is looked up beside the file that names it, then beside
-    the main file (Mitsuba's resolver: cbox-rgb.xml's fragments name meshes/
-    relative to the main file)."""
+def resolve(node: Node, filename: str, root_dir: str, paths=()) -> str:
+    """A relative name is looked up in the folders `<path>` added (the
+    latest first, as Mitsuba's file resolver prepends them), then beside the
+    file that names it, then beside the main file (Mitsuba's resolver:
+    cbox-rgb.xml's fragments name meshes/ relative to the main file, and an
+    included file's own includes are found from the main file's folder)."""
     candidates = [filename] if os.path.isabs(filename) else [
+        *(os.path.join(folder, filename) for folder in paths),
         os.path.join(os.path.dirname(node.file), filename), os.path.join(root_dir, filename)]
     for path in candidates:
         if os.path.isfile(path):
