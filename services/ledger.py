@@ -112,7 +112,7 @@ def retrace(provider, records: list[dict], threads: int = 1) -> dict:
     the tracers' (Embree's BVH depends on the threads that built it, and a
     tie between two triangles at one distance may then fall otherwise)."""
     from dosppm_core.sppm.iteration import SPPMIteration
-    from services.server.held import within_own_boxes
+    from services.culling import within_own_boxes
     from services.tracer.state import TracerState
     settings = RenderSettings(**records[0]["settings"])
     header = copy.deepcopy(provider.header)
