@@ -70,7 +70,7 @@ class Ledger:
         """One applied `state.Update` (checkpoints are not statistics steps)."""
         if update.kind == "hits":
             self._write({"kind": "hits", "eye_iteration": int(update.eye_iteration)})
-        elif update.kind == "photons":
+        elif update.kind in ("photons", "epoch"):     # an epoch: its jobs, gathered at the tracers
             keys, paths, boxes = update.jobs
             self._write({"kind": "photons", "emitted": int(update.photons_emitted), "keys": _array(keys),
                          "paths": _array(paths), "boxes": _array(boxes)})

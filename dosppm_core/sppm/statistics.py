@@ -387,16 +387,28 @@ class PixelStatistics:
     def fit_from_pilot(self, fresh: np.ndarray, r_pilot: np.ndarray, m: np.ndarray, chosen: int) -> None:
         """Fit the radii of hit point rows `fresh` from the pilot gather's
         counts `m` of `chosen` subsampled deposits (summed over tracers)."""
+        fit = self.fitted_radii(fresh, r_pilot, m, chosen)
+        if fit is not None:
+            self.commit_fit(*fit)
+
+    def fitted_radii(self, fresh: np.ndarray, r_pilot: np.ndarray, m: np.ndarray, chosen: int) -> tuple | None:
+        """(pixels, their fitted radii, which are fitted) of `fit_from_pilot`,
+        not yet stored: a server gathering at its tracers stores them only
+        with the batch they were fitted for (`commit_fit`), so a batch
+        discarded after its pilot leaves the radii as they were."""
         if chosen <= 0:       # no deposit chosen: every pixel tries again next batch
-            return
+            return None
         hp = self.hit_points
         pix = hp.pixel[fresh]
         share = m / chosen                              # of the deposits, within r_pilot
         target = RADIUS_SHARE / len(hp)                 # RADIUS_SHARE hit points' fair share
         with np.errstate(divide="ignore"):
             r0 = r_pilot * np.sqrt(target / share)
-        self.radius[pix] = np.clip(r0, self.min_radius[pix], r_pilot)
-        self.fitted[pix] = m > 0
+        return pix, np.clip(r0, self.min_radius[pix], r_pilot), m > 0
+
+    def commit_fit(self, pix: np.ndarray, radius: np.ndarray, fitted: np.ndarray) -> None:
+        self.radius[pix] = radius
+        self.fitted[pix] = fitted
 
     # -- eye iterations -----------------------------------------------------
     def replace_hit_points(self, hits: HitPoints, emitted: tuple) -> None:

@@ -113,6 +113,8 @@ class EpochDeposits:
         if epoch not in self._culled:
             parts = self.held.pop(epoch, [])
             deposits = PhotonDeposits.concat(parts) if parts else PhotonDeposits.empty()
+            listed = np.isin(deposits.job, job_ids)    # an abandoned job's deposits never count
+            deposits = deposits if listed.all() else deposits.take(listed)
             jobs = (job_ids, None, None, job_boxes)
             self._culled[epoch] = within_own_boxes(deposits, jobs) if len(deposits) else deposits
         return self._culled[epoch]
