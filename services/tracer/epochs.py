@@ -68,6 +68,11 @@ class EpochDeposits:
             self.held.setdefault(e, []).append(part)
             self.counters["deposits_held"] += len(part)
 
+    def clear(self) -> None:
+        """Forget every held deposit (a tracer the server welcomed again)."""
+        self.held.clear()
+        self._culled.clear()
+
     def set_hit_points(self, version: int, hits: HitPoints) -> None:
         self.hit_points[int(version)] = hits
         for v in sorted(self.hit_points)[:-HIT_POINT_VERSIONS_KEPT]:
@@ -125,6 +130,14 @@ class EpochDeposits:
             raise ValueError(f"gather: field 'hits_version' names hit points {version} this tracer does not hold "
                              f"(it holds {sorted(self.hit_points)})")
         return hp
+
+
+def from_welcome(settings: dict, materials, threads: int) -> EpochDeposits | None:
+    """The hold a welcome's settings ask for: None when the server gathers."""
+    if settings.get("gather_at", "server") != "tracers":
+        return None
+    return EpochDeposits(int(settings["epoch_jobs"]), materials, settings.get("gather", "grid"), threads,
+                         bool(settings.get("reorder", True)))
 
 
 def sparse_sums(m: np.ndarray, phi: np.ndarray) -> dict:

@@ -176,6 +176,8 @@ class TracerState:
         """Forget every queued package (their jobs were discarded)."""
         self.schedule.clear()
         self.unroutable = []
+        if self.epochs is not None:     # their epochs are discarded too (the server's _discard_epochs)
+            self.epochs.clear()
 
     def handle(self, msg) -> list[Out]:
         """A decoded message from the server or a peer."""
@@ -410,7 +412,8 @@ class TracerState:
                 "rays_by_chunk": [[k, n] for k, n in sorted(self.rays_by_chunk.items())],
                 "holds_every_chunk": bool(self.cache.cost.sum() <= self.cache.memory),
                 "resident": sorted(self.cache.resident), **{k: (round(v, 3) if isinstance(v, float) else v)
-                                                            for k, v in self.counters.items()}}
+                                                            for k, v in self.counters.items()},
+                **({} if self.epochs is None else {"epochs": dict(self.epochs.counters, held=self.epochs.rows)})}
 
     def close(self) -> None:
         self.cache.close()
