@@ -74,7 +74,7 @@ def test_a_tracer_killed_mid_epoch_costs_its_epochs_and_no_photon(caustic):
     assert k["photons_discarded"] > 0
     # Exactly once: what was emitted and not discarded (in flight, or in a
     # discarded epoch) was applied, once.
-    assert k["photons_emitted"] - k["photons_discarded"] == k["photons_committed"]
+    assert k["photons_emitted"] - k["photons_discarded"] == k["photons_completed"] == k["photons_committed"]
     assert c.statistics.stats.photons_emitted == k["photons_committed"]
     assert k["over_credited_jobs"] == 0
     assert all(t.epochs.rows == 0 for tid, t in c.tracers.items() if tid != "t1")

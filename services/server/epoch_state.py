@@ -117,11 +117,16 @@ class EpochStateMixin:
         for e in lost:
             e.phase = "discarded"
         self.next_job = max(self.next_job, self.epochs.first_id_after(max(e.index for e in lost)))
-        again = []
+        again, c = [], self.counters
         for e in lost:
             for j, (key, paths, _box) in sorted(e.jobs.items()):
                 again.append(self._new_job("photon", paths, rng_key=key))
-                self.counters["photons_discarded"] += paths
+                # Complete, but never to be applied: counted discarded, not
+                # completed (completed = committed once the render drains).
+                c["photons_discarded"] += paths
+                c["photons_completed"] -= paths
+                c["photon_jobs_completed"] -= 1
+                c["jobs_discarded"] += 1
         self._photon_pending.extendleft(reversed(again))
         pending = [j for j in self._photon_pending if self.epochs.of(j) in self.epochs.discarded]
         for j in pending:          # made, not sent: ids of a discarded epoch are never used again
