@@ -80,3 +80,22 @@ def test_a_tracer_killed_mid_epoch_costs_its_epochs_and_no_photon(caustic):
     assert all(t.epochs.rows == 0 for tid, t in c.tracers.items() if tid != "t1")
     assert ledger.check(provider, c.statistics.ledger.records) == []
     assert_same_within_noise(c.image(), ref[5][0], ref[9][0])
+
+
+def test_where_one_epoch_is_one_batch_the_images_are_bit_for_bit_equal(caustic):
+    """One tracer, one eye iteration, and a batch (and epoch) larger than
+    the render: both gathers apply the same deposits, in the same order, at
+    the same hit points and radii, once; the images are equal bit for bit."""
+    scene, _ = caustic
+    s = dataclasses.replace(settings(), photon_batch=10_000_000, photons_per_iteration=10_000_000)
+    images = {}
+    for gather_at in ("server", "tracers"):
+        c = InProcessCluster(MemoryChunks(scene, uniform_tree(root_box(scene), (1, 1, 1))), s, tracers=1,
+                             gather_at=gather_at)
+        try:
+            c.run(photons=200_000)
+        finally:
+            c.close()
+        assert c.statistics.sppm.updates == 1
+        images[gather_at] = c.image()
+    assert (images["server"] == images["tracers"]).all()
