@@ -77,8 +77,7 @@ class ServerProcess:
                  checkpoint_dir: str | None = None, checkpoint_interval_s: float = 60.0,
                  resume: dict | None = None, curve_secret: str | None = None,
                  curve_clients: str | None = None, min_tracers_timeout_s: float | None = None,
-                 ledger: str | None = None, say=None, held_bytes: float | None = None,
-                 gather_at: str = "server"):
+                 ledger: str | None = None, say=None, held_bytes: float | None = None, gather_at="server"):
         """`say` prints a line for the user (what the server waits for);
         `ledger`: a file to record every update applied in (services/ledger.py)."""
         self.store, self.settings = store, settings
@@ -91,8 +90,7 @@ class ServerProcess:
                                  min_photon_jobs=min_photon_jobs, queue_target_rays=queue_target_rays,
                                  min_tracers=min_tracers, concurrent=concurrent,
                                  client_batching=client_batching, tracer_timeout_s=tracer_timeout_s,
-                                 min_tracers_timeout_s=min_tracers_timeout_s, held_bytes=held_bytes,
-                                 gather_at=gather_at)
+                                 min_tracers_timeout_s=min_tracers_timeout_s, held_bytes=held_bytes, gather_at=gather_at)
         book = None if ledger is None else Ledger(
             settings, (store.header.camera.width, store.header.camera.height), ledger,
             resume_at=None if resume is None else resume.get("ledger_records"))
@@ -115,8 +113,8 @@ class ServerProcess:
         self._outbox: dict[str, deque] = {}
         self._lost: list[str] = []
         self._updates: queue.Queue = queue.Queue()
-        self._boxes: queue.Queue = queue.Queue()
-        self._applied: queue.Queue = queue.Queue()    # updates whose application sends messages (epochs)
+        # Cull boxes, and updates whose application sends messages (epochs), from the statistics thread.
+        self._boxes, self._applied = queue.Queue(), queue.Queue()
         self._status: dict = {}
         self._status_lock = threading.Lock()
         self.history = StatusHistory(origin_s=time.monotonic())
