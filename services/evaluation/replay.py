@@ -234,8 +234,8 @@ def report(res: dict) -> str:
         f"| other threads (the statistics kernels' workers, zmq's I/O), share "
         f"| {r['other_threads_share']:.0%} |",
         f"| one tracer thread, photon paths/s (alone, same scene) | {r['tracer_photons_per_core_s']:,.0f} |",
-        f"| tracers' gather per photon applied (microseconds, gather at tracers) "
-        f"| {r.get('tracer_gather_us_per_photon', 0.0):.3f} |",
+        *([f"| tracers' gather per photon applied (microseconds, gather at tracers) "
+           f"| {r['tracer_gather_us_per_photon']:.3f} |"] if r.get("tracer_gather_us_per_photon") else []),
         f"| **tracer cores one server core feeds** | **{r['tracer_cores_per_server_core']:.1f}** |",
         "| ... in the paper's CPU server / GPU server | 12.4 / 105 |"])
 

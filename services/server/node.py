@@ -113,8 +113,7 @@ class ServerProcess:
         self._outbox: dict[str, deque] = {}
         self._lost: list[str] = []
         self._updates: queue.Queue = queue.Queue()
-        # Cull boxes, and updates whose application sends messages (epochs), from the statistics thread.
-        self._boxes, self._applied = queue.Queue(), queue.Queue()
+        self._boxes, self._applied = queue.Queue(), queue.Queue()   # from the statistics thread (epochs)
         self._status: dict = {}
         self._status_lock = threading.Lock()
         self.history = StatusHistory(origin_s=time.monotonic())
