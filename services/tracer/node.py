@@ -320,6 +320,9 @@ class TracerProcess:
                 self.session = msg.settings.get("session")
                 self.jobs_received = 0
                 self.state.reset()
+                # A server restarted from a checkpoint may cut epochs otherwise.
+                self.state.hold_epochs(from_welcome(msg.settings, self.state.provider.header.materials,
+                                                    self.threads))
                 self._rejoining, self._backoff = False, 0.0
                 log.info("rejoined the server as tracer %d", msg.tracer_index)
                 self.say(f"tracer {self.tracer_id}: rejoined server {self.server_url} as tracer "
