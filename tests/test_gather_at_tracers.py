@@ -99,3 +99,26 @@ def test_where_one_epoch_is_one_batch_the_images_are_bit_for_bit_equal(caustic):
         assert c.statistics.sppm.updates == 1
         images[gather_at] = c.image()
     assert (images["server"] == images["tracers"]).all()
+
+
+def test_epochs_go_in_order_and_skip_ids_never_used_at_once():
+    """A resumed server's ids start 2^40 on (checkpoint.claim_job_ids):
+    the epochs in between, where no photon job was made, are skipped in
+    one step; an epoch is due only once no job of it can still be made
+    or run, and only after the one before it is applied."""
+    from services.server.epochs import Epochs
+    e = Epochs(jobs_per_epoch=4)
+    first = 1 << 40
+    for j in range(first, first + 6):
+        e.made(j)
+    assert e.due(first + 6, emitting=True) is None       # its jobs are in flight
+    for j in range(first, first + 4):
+        e.complete(j, rng_key=j, paths=10, cull_box=None)
+    due = e.due(first + 6, emitting=True)
+    assert due is not None and due.index == first // 4 and sorted(due.jobs) == list(range(first, first + 4))
+    assert e.due(first + 6, emitting=True) is None       # one epoch at a time
+    e.applied(due)
+    for j in (first + 4, first + 5):
+        e.complete(j, rng_key=j, paths=10, cull_box=None)
+    assert e.due(first + 6, emitting=True) is None       # ids of it may still be made
+    assert e.due(first + 6, emitting=False).index == first // 4 + 1

@@ -98,7 +98,13 @@ class Epochs:
         if self.asking:
             return None
         while self.next in self.discarded or (self.next not in self.open and self.next < self.of(next_job)):
-            self.next += 1          # discarded, or no photon job was ever made in it (ids of eye jobs)
+            if self.next in self.discarded:
+                self.next += 1
+                continue
+            # No photon job was ever made in it (eye jobs' ids, or the ids a
+            # resumed server skipped: 2^40 of them, so jump, never step).
+            later = [e for e in self.open if e > self.next]
+            self.next = min(later) if later else self.of(next_job)
         e = self.open.get(self.next)
         if e is None or e.made > 0:
             return None
