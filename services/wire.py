@@ -127,8 +127,9 @@ import numpy as np
 from dosppm_core.jobs import CONTINUES, END_NAMES, HitPoints, PhotonDeposits, RayBatch, ShadowRays
 from services import credit
 
-PROTOCOL_VERSION = 4   # 2: shadow rays (portal_rays kind 'shadow'); 3: credit (services/credit.py);
-                       # 4: photon jobs as (id, rng key, count), emitted by the tracer
+PROTOCOL_VERSION = 5   # 2: shadow rays (portal_rays kind 'shadow'); 3: credit (services/credit.py);
+                       # 4: photon jobs as (id, rng key, count), emitted by the tracer;
+                       # 5: the gather at the tracers (hit_points, gather, drop_epoch, epoch_sums)
 
 # -- policy ---------------------------------------------------------------------
 MAX_ELEMENTS = 1 << 28           # per array: sanity cap on a declared size

@@ -264,7 +264,7 @@ class ServerState(EpochStateMixin):
         forgets its queues when welcomed."""
         self._welcomed(t, now)
         self._discard_jobs_in_flight()
-        return [Out(t.id, "welcome", self.welcome_fields(t)), *self._peer_tables()]
+        return [Out(t.id, "welcome", self.welcome_fields(t)), *self._peer_tables(), *self._drop_messages()]
 
     def _welcomed(self, t: TracerInfo, now: float) -> None:
         t.session += 1
@@ -415,7 +415,7 @@ class ServerState(EpochStateMixin):
             out += [Out(tid, "heartbeat", dict(status={})) for tid in self.tracers]
             out += self._evict_silent(now)
             self._watchdog(now)
-            out += self._rebalance(now)
+            out += self._rebalance(now) + self._drop_messages()   # epochs the watchdog discarded
         if not self.started:
             if not self._ready_to_start(now):
                 return out
