@@ -87,7 +87,7 @@ class EpochStateMixin:
         e = self.epochs.answer(tid, msg)
         if e is None:
             return []
-        n = len(e.sums[min(e.sums)].m) if e.phase == "pilot" else self._hit_point_rows(e)
+        n = len(e.sums[min(e.sums)].m) if e.phase == "pilot" else self._hit_point_rows()
         sums = total(e.sums, n)
         if e.phase in NEXT_STAGE:
             self.updates.append(Update("gather", epoch=e, stage=NEXT_STAGE[e.phase], sums=sums))
@@ -101,7 +101,7 @@ class EpochStateMixin:
         c["deposits_received"] += sums["deposits"]
         return []
 
-    def _hit_point_rows(self, e) -> int:
+    def _hit_point_rows(self) -> int:
         hits = self._hit_points_out["hits"] if self._hit_points_out else None
         return 0 if hits is None else len(hits)
 

@@ -98,7 +98,7 @@ class ServerStatistics:
             fresh, r_pilot, _most = pilot
             e.fit = st.fitted_radii(fresh, r_pilot, u.sums["m"], u.sums["chosen"])
         radius = st.radius.copy()
-        if getattr(e, "fit", None) is not None:
+        if e.fit is not None:
             radius[e.fit[0]] = e.fit[1]
         hp = st.hit_points
         return dict(base, phase="sums", rows=np.arange(len(hp), dtype=np.int64), radius=radius[hp.pixel])
@@ -106,7 +106,7 @@ class ServerStatistics:
     def _apply_epoch(self, u) -> None:
         """An epoch's summed sums, after the radii fitted for it."""
         e, s = u.epoch, u.sums
-        if getattr(e, "fit", None) is not None:
+        if e.fit is not None:
             self.sppm.stats.commit_fit(*e.fit)
         self.sppm.apply_sums(s["m"], s["phi"], u.photons_emitted, s["deposits"], s["flux"])
 
