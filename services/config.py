@@ -163,6 +163,9 @@ SERVICE = (
     _opt("resume", str, None, "continue the render saved in this checkpoint directory"),
     _opt("ledger", str, None, "record every statistics update applied in this file, to re-trace and "
          "check later (services/ledger.py)"),
+    _opt("gather_at", str, "server", "where photons are gathered: 'server' (the paper's: tracers send every "
+         "deposit) or 'tracers' (they keep them and send per-pixel sums by epochs; docs/how-it-works.md)",
+         choices=("server", "tracers")),
     _opt("tracer_timeout", float, 10.0, "drop a tracer silent this long (its jobs are re-emitted); "
          "raise it for chunks that take longer than this to load", rule="positive"),
 )

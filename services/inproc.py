@@ -12,6 +12,7 @@ from services import wire
 from services.ledger import Ledger
 from services.server.state import ServerState
 from services.server.statistics import ServerStatistics
+from services.tracer.epochs import EpochDeposits
 from services.tracer.state import SERVER, TracerState
 from services.wire import Out
 
@@ -23,14 +24,15 @@ def _over_the_wire(msg_type: str, fields: dict):
 class InProcessCluster:
     def __init__(self, store, settings: RenderSettings, tracers: int = 2, min_photon_jobs: int = 64,
                  queue_target_rays: int = 65_536, step_rays: int = 16_384,
-                 memory_bytes: float | None = None, tracer_timeout_s: float = 10.0, tamper=None):
+                 memory_bytes: float | None = None, tracer_timeout_s: float = 10.0, tamper=None,
+                 gather_at: str = "server"):
         """`tamper(sender, dest, msg)`: the messages to deliver instead of
         `msg` (a faulty transport, for the ledger's negative controls)."""
         self.settings = settings
         self.server = ServerState(store.header, store.tree, settings, getattr(store, "key", "memory"),
                                   getattr(store, "manifest", None),
                                   min_photon_jobs=min_photon_jobs, queue_target_rays=queue_target_rays,
-                                  min_tracers=tracers, tracer_timeout_s=tracer_timeout_s)
+                                  min_tracers=tracers, tracer_timeout_s=tracer_timeout_s, gather_at=gather_at)
         self.statistics = ServerStatistics(store.header, settings, threads=settings.threads,
                                            ledger=Ledger(settings, (store.header.camera.width, store.header.camera.height)))
         self.tamper = tamper
@@ -53,6 +55,9 @@ class InProcessCluster:
                         memory_bytes=self.memory_bytes, threads=self.settings.threads,
                         step_rays=self.step_rays, direct=self.settings.direct, clock=lambda: self.now,
                         seed=self.settings.seed)
+        if self.server.epochs is not None:      # as a tracer's node does on its welcome
+            t.hold_epochs(EpochDeposits(self.server.epochs.jobs_per_epoch, self.store.header.materials,
+                                        self.settings.gather, self.settings.threads, self.settings.reorder))
         self.tracers[tid], self.by_endpoint[t.endpoint] = t, tid
         reg = _over_the_wire("register", dict(tracer_id=tid, capacity={"cores": 1, "memory_bytes": 0},
                                               endpoint=t.endpoint, has_store=True,
@@ -92,9 +97,12 @@ class InProcessCluster:
 
     def _apply_updates(self) -> None:
         while self.server.updates:
-            box = self.statistics.apply(self.server.updates.popleft())
+            u = self.server.updates.popleft()
+            box = self.statistics.apply(u)
             if box is not None:
                 self.server.cull_box = box
+            self._post(SERVER, self.server.on_applied(u))
+            self._deliver()
 
     def round(self) -> None:
         """One tick of the server (10 ms of cluster time), then one step of

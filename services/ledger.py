@@ -70,7 +70,7 @@ class Ledger:
         """One applied `state.Update` (checkpoints are not statistics steps)."""
         if update.kind == "hits":
             self._write({"kind": "hits", "eye_iteration": int(update.eye_iteration)})
-        elif update.kind == "photons":
+        elif update.kind in ("photons", "epoch"):     # an epoch: its jobs, gathered at the tracers
             keys, paths, boxes = update.jobs
             self._write({"kind": "photons", "emitted": int(update.photons_emitted), "keys": _array(keys),
                          "paths": _array(paths), "boxes": _array(boxes)})
@@ -112,7 +112,7 @@ def retrace(provider, records: list[dict], threads: int = 1) -> dict:
     the tracers' (Embree's BVH depends on the threads that built it, and a
     tie between two triangles at one distance may then fall otherwise)."""
     from dosppm_core.sppm.iteration import SPPMIteration
-    from services.server.held import within_own_boxes
+    from services.culling import within_own_boxes
     from services.tracer.state import TracerState
     settings = RenderSettings(**records[0]["settings"])
     header = copy.deepcopy(provider.header)

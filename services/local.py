@@ -136,7 +136,8 @@ def _server(store, settings, v: dict, http, limits: Limits, reporter, resume, sa
                          checkpoint_interval_s=v["checkpoint_interval"], resume=resume,
                          curve_secret=v["curve_secret"], curve_clients=v["curve_clients"],
                          min_tracers_timeout_s=v["min_tracers_timeout"], ledger=v["ledger"], say=say,
-                         held_bytes=config.parse_bytes(v.get("queue_memory"), "--queue-memory"))
+                         held_bytes=config.parse_bytes(v.get("queue_memory"), "--queue-memory"),
+                         gather_at=v.get("gather_at", "server"))
 
 
 def _write_summary(out: str, summary: dict) -> None:

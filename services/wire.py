@@ -91,6 +91,19 @@ Messages
       eye_job        eye_iteration, chunk, batch, credit
       chunk_data     chunk, sha256, part, parts, offset, file_bytes, data u8
       heartbeat, shutdown (reason)
+      hit_points     hits_version (the eye iteration), hits: HitPoints, in the
+                     order the server's statistics hold them (gather at tracers)
+      gather         epoch, phase "count"|"pilot"|"sums", hits_version, total
+                     + most (the pilot's subsample), job_ids + job_boxes f64 (k, 2, 3) (the epoch's jobs and their
+                     own cull boxes), rows i64 + radius f64 (m,): hit point
+                     rows and their radii (the fresh rows for a pilot, all
+                     rows for the sums)
+      drop_epoch     epoch: discarded, its held deposits are dropped
+    tracer -> server (gather at tracers)
+      epoch_sums     epoch, phase, hits_version, deposits (held in the jobs' own
+                     boxes), chosen (pilot subsample), flux f64 (3,), m f64
+                     (k,) + phi f64 (k, 3) per hit point row, rows i64 (k,)
+                     when sparse (absent: every row, in order)
     tracer -> tracer
       portal_rays    kind "photon"|"eye"|"shadow", chunk (the destination),
                      eye_iteration (eye, shadow), cull_box (photon only),
@@ -99,58 +112,8 @@ Messages
 
 `MESSAGES` holds the specs; `describe()` prints this table from them.
 
-Exact accounting (the server knows when every path of a job has ended)
-----------------------------------------------------------------------
-A job is a set of paths with one job id, carried per path in the
-`job` column of every RayBatch (and of every photon deposit); its path
-count N_j is the server's choice. Job ids are never reused, so late
-results of a discarded job are recognisably stale.
-
-A photon job travels as its id, rng key and count (a few tens of bytes,
-not 64 per photon): the tracer it is sent to makes its photons with the
-library's call (`chunks.view.located_photons`, the same photons whichever
-tracer makes them) and treats the emission as a step: photons starting in
-chunks it serves are queued there, the others go to their chunks'
-tracers as `portal_rays` of kind "photon", and it reports the emission in
-a `results` with chunk None: every photon fed, those that went on left,
-those that miss the scene ended ESCAPED. An eye job's rays are made by
-the server and sent in one message per start chunk; those that miss the
-scene the server counts ended (escaped) itself. One job message may
-carry several jobs.
-
-`job_ids`/`job_fed`/`job_left` count, per job, the paths a step (or an
-emission) took in and the paths that went on to a chunk's queue (through
-a portal, or where an emitted photon starts; in `portal_rays` packages,
-keeping their job id, when another tracer serves that chunk); the other
-fed - left ended in the step. `ends` counts those by how they ended (`dosppm_core.jobs`:
-CONTINUES, ESCAPED, ABSORBED, MAX_DEPTH, STORED), so ends[CONTINUES] is
-always 0 and sum(job_fed - job_left) == sum(ends) (the wire refuses
-anything else); the server counts them (path ends, stale paths).
-
-Completion is decided by credit (`services.credit`): every job message and
-portal package carries a share of its jobs' credit (one term 2**-e per
-job; a photon_job the whole credit, 2**0), and every `results` message
-returns the shares its step (or emission) kept back, in the same message
-as the step's deposits and hit points.
-
-    job j finished  <=>  the credit returned for j sums to 1
-
-Counting open path segments instead is not enough: a step whose paths
-all left its chunk closes none, yet its message carries deposits, and the
-downstream tracer's report may arrive first (results of two tracers
-arrive in no guaranteed order). A share is returned only with a message,
-so a job whose credit is all back has all its deposits and hit points in
-hand. An eye path that stores a hit point goes on as that hit point's
-shadow ray (a `portal_rays` package of kind "shadow" when it crosses a
-portal), with the eye job's id and credit, so an eye job is finished only
-once its direct light is in. No timeout is involved.
-`culled` counts photon *deposits* dropped by the cull box (§4.3), not
-paths; `queued` is the rays waiting at the tracer after the step (the
-server's ray credit reads it: see `services.transport`, back-pressure).
-Client batching (§4.3) coalesces all packages of one kind for one chunk,
-whatever their jobs: the job column splits the counts afterwards.
-Coalesced photon packages use the union of their cull boxes ("widened
-when merged").
+Exact accounting (job ids, path counts, credit): docs/how-it-works.md,
+"Exact accounting on the wire", which is this protocol's.
 """
 from __future__ import annotations
 
@@ -164,8 +127,9 @@ import numpy as np
 from dosppm_core.jobs import CONTINUES, END_NAMES, HitPoints, PhotonDeposits, RayBatch, ShadowRays
 from services import credit
 
-PROTOCOL_VERSION = 4   # 2: shadow rays (portal_rays kind 'shadow'); 3: credit (services/credit.py);
-                       # 4: photon jobs as (id, rng key, count), emitted by the tracer
+PROTOCOL_VERSION = 5   # 2: shadow rays (portal_rays kind 'shadow'); 3: credit (services/credit.py);
+                       # 4: photon jobs as (id, rng key, count), emitted by the tracer;
+                       # 5: the gather at the tracers (hit_points, gather, drop_epoch, epoch_sums)
 
 # -- policy ---------------------------------------------------------------------
 MAX_ELEMENTS = 1 << 28           # per array: sanity cap on a declared size
@@ -175,6 +139,8 @@ CHUNK_PART_BYTES = 16 << 20      # chunk_data splits chunk files into parts this
 # bytes, the rays 64 B each (4M: 256 MB), so the cap bounds what a
 # message can make a tracer allocate, as MAX_ELEMENTS does for arrays.
 MAX_EMITTED = 1 << 22
+# The rounds of an epoch's gather at the tracers (services/tracer/epochs.py).
+GATHER_PHASES = ("count", "pilot", "sums")
 
 
 class WireError(ValueError):
@@ -432,6 +398,33 @@ def _check_chunk_data(f: dict) -> str | None:
     return None
 
 
+def _increasing(a: np.ndarray) -> bool:
+    return not len(a) or (a[0] >= 0 and bool((a[1:] > a[:-1]).all()))
+
+
+def _check_gather(f: dict) -> str | None:
+    if not _increasing(f["job_ids"]):
+        return "field 'job_ids' needs ids >= 0 in increasing order"
+    if not _increasing(f["rows"]):
+        return "field 'rows' needs hit point rows >= 0 in increasing order"
+    if (f["radius"] <= 0).any():
+        return "field 'radius' needs radii > 0"
+    if f["phase"] == "pilot" and (f["total"] < 1 or f["most"] < 1):
+        return "fields 'total'/'most' need to be >= 1 for phase 'pilot'"
+    return None
+
+
+def _check_epoch_sums(f: dict) -> str | None:
+    rows = f.get("rows")
+    if rows is not None and (len(rows) != len(f["m"]) or not _increasing(rows)):
+        return "field 'rows' needs one increasing row >= 0 per sum"
+    if (f["m"] < 0).any():
+        return "field 'm' needs counts >= 0"
+    if f["phase"] != "sums" and len(f["phi"]) and f["phi"].any():
+        return "field 'phi' must be zero outside phase 'sums'"
+    return None
+
+
 _T2S, _S2T, _T2T, _ANY = "tracer->server", "server->tracer", "tracer->tracer", "any->any"
 _SPECS = (
     Spec("register", _T2S, {"tracer_id": STR, "capacity": _Struct(cores=_Int(1), memory_bytes=INT),
@@ -469,6 +462,19 @@ _SPECS = (
                               "offset": INT, "file_bytes": INT},
          (plain("data", ("data", np.uint8, (), None)),), check=_check_chunk_data),
     Spec("shutdown", _S2T, {"reason": STR}, defaults={"reason": ""}),
+    Spec("hit_points", _S2T, {"hits_version": INT}, (record("hits", HitPoints),)),
+    Spec("gather", _S2T, {"epoch": INT, "phase": _Choice(*GATHER_PHASES), "hits_version": INT, "total": INT,
+                          "most": INT},
+         (plain("jobs", ("job_ids", np.int64, (), None), ("job_boxes", np.float64, (2, 3), NOT_NAN)),
+          plain("radii", ("rows", np.int64, (), None), ("radius", np.float64, (), FINITE))),
+         check=_check_gather, defaults={"total": 0, "most": 0}),
+    Spec("drop_epoch", _S2T, {"epoch": INT}),
+    Spec("epoch_sums", _T2S, {"epoch": INT, "phase": _Choice(*GATHER_PHASES), "hits_version": INT,
+                              "deposits": INT, "chosen": INT},
+         (plain("flux", ("flux", np.float64, (), FINITE), rows=3),
+          plain("sums", ("m", np.float64, (), FINITE), ("phi", np.float64, (3,), FINITE)),
+          plain("sparse", ("rows", np.int64, (), None), optional=True)),
+         check=_check_epoch_sums, defaults={"deposits": 0, "chosen": 0}),
     Spec("portal_rays", _T2T, {"kind": _Choice("photon", "eye", "shadow"), "chunk": INT,
                                "eye_iteration": _Nullable(INT)},
          (_cull_box(optional=True), record("batch", RayBatch, optional=True),

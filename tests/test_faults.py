@@ -32,9 +32,9 @@ TIMEOUT_S = 3.0
 class Cluster:
     """`dosppm server` and three `dosppm worker` processes."""
 
-    def __init__(self, tmp, seed: int, workers: int = 3):
+    def __init__(self, tmp, seed: int, workers: int = 3, server_args: tuple = ()):
         self.tmp, self.port, self.http, self.seed = tmp, free_port(), free_port(), seed
-        self.n = workers
+        self.n, self.server_args = workers, tuple(server_args)
         self.server = self.start_server()
         self.workers = [start_dosppm(
             "worker", "--server", f"tcp://127.0.0.1:{self.port}", "--threads", "1", "--id", f"w{i}",
@@ -51,7 +51,8 @@ class Cluster:
                "--photons-per-job", "1024",
                "--tracer-timeout", str(TIMEOUT_S), "--threads", "1", "--out", str(self.tmp / "img.exr"),
                "--store-cache", str(self.tmp / "stores"), "--checkpoint", str(self.tmp / "ckpt"),
-               "--checkpoint-interval", "1", "--ledger", str(self.tmp / "render.ledger"), "--quiet", *extra]
+               "--checkpoint-interval", "1", "--ledger", str(self.tmp / "render.ledger"), "--quiet",
+               *self.server_args, *extra]
         return start_dosppm(*cmd, stderr=open(self.tmp / log, "w"))
 
     def status(self) -> dict:
@@ -93,8 +94,8 @@ class Cluster:
                 p.wait()
 
 
-def _render(tmp, seed, fault=None, workers: int = 3):
-    c = Cluster(tmp, seed, workers)
+def _render(tmp, seed, fault=None, workers: int = 3, server_args: tuple = ()):
+    c = Cluster(tmp, seed, workers, server_args)
     try:
         if fault:
             fault(c)
@@ -230,5 +231,41 @@ def test_a_tracer_added_mid_render_gets_work(tmp_path, failure_free):
     assert {t["id"] for t in summary["tracers"]} == {"w0", "w1", "late"}
     assert k["photons_emitted"] - k["photons_discarded"] == k["photons_completed"] == k["photons_committed"]
     assert k["over_credited_jobs"] == 0 and k["tracers_evicted"] == 0
+    _assert_ledger(tmp_path)
+    assert_same_within_noise(img, failure_free[5], failure_free[9])
+
+
+TRACERS_GATHER = ("--gather-at", "tracers", "--photon-batch", "200000")   # several epochs a render
+
+
+def test_a_tracer_killed_mid_epoch_with_the_gather_at_the_tracers(tmp_path, failure_free):
+    """Issue 32: with the tracers holding deposits by epoch, a killed
+    tracer costs the open epochs (discarded, their jobs made again) and
+    nothing else: exactly once by the counters and the ledger."""
+    def kill(c: Cluster):
+        _mid_render(c)
+        c.workers[1].send_signal(signal.SIGKILL)
+        c.wait_for(lambda st: st["counters"]["tracers_evicted"] >= 1)
+    img, summary = _render(tmp_path, 5, kill, server_args=TRACERS_GATHER)
+    _assert_exactly_once(summary, tmp_path)
+    assert_same_within_noise(img, failure_free[5], failure_free[9])
+
+
+def test_the_server_killed_mid_epoch_and_resumed_with_the_gather_at_the_tracers(tmp_path, failure_free):
+    saved = {}
+
+    def crash(c: Cluster):
+        c.wait_for(lambda st: st.get("photons_committed", 0) > PHOTONS // 4)
+        c.wait_for(lambda st: (c.tmp / "ckpt" / "checkpoint.msgpack").exists())
+        c.server.send_signal(signal.SIGKILL)
+        c.server.wait(10)
+        saved.update(checkpoint.read(str(c.tmp / "ckpt")))
+        c.server = c.start_server("--resume", str(c.tmp / "ckpt"), log="server2.log")
+        c.wait_for(lambda st: len(st.get("tracers", [])) == 3, 60)
+    img, summary = _render(tmp_path, 5, crash, server_args=TRACERS_GATHER)
+    assert summary["photons_in_image"] >= PHOTONS
+    assert summary["photons_in_image"] == saved["photons_emitted"] + summary["photons_applied"]
+    k = summary["counters"]
+    assert k["photons_emitted"] - k["photons_discarded"] == k["photons_completed"] == k["photons_committed"]
     _assert_ledger(tmp_path)
     assert_same_within_noise(img, failure_free[5], failure_free[9])

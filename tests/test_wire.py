@@ -101,6 +101,8 @@ def _sample_fields(msg_type: str, n: int, rng: np.random.Generator, variant: int
                     file_bytes=n, data=data)
     if msg_type == "shutdown":
         return dict(reason="time limit")
+    if msg_type in ("hit_points", "gather", "drop_epoch", "epoch_sums"):
+        return _epoch_fields(msg_type, n, rng, variant, box)
     if msg_type == "portal_rays":
         if variant == 3:
             return dict(kind="shadow", chunk=4, eye_iteration=2, shadows=random_record(ShadowRays, n, rng))
@@ -108,6 +110,25 @@ def _sample_fields(msg_type: str, n: int, rng: np.random.Generator, variant: int
             return dict(kind="eye", chunk=4, eye_iteration=2, batch=batch)
         return dict(kind="photon", chunk=4, cull_box=box, batch=batch)
     raise AssertionError(msg_type)
+
+
+def _epoch_fields(msg_type: str, n: int, rng: np.random.Generator, variant: int, box) -> dict:
+    """The gather at the tracers' messages (variant: which phase, dense or sparse sums)."""
+    if msg_type == "hit_points":
+        return dict(hits_version=2, hits=random_record(HitPoints, n, rng))
+    if msg_type == "drop_epoch":
+        return dict(epoch=4)
+    phase = wire.GATHER_PHASES[variant % 3]
+    if msg_type == "gather":
+        return dict(epoch=3, phase=phase, hits_version=1, total=n + 1, most=n + 1,
+                    job_ids=np.arange(n, dtype=np.int64) * 3, job_boxes=np.tile(box, (n, 1, 1)),
+                    rows=np.arange(n, dtype=np.int64), radius=rng.uniform(0.1, 1, n))
+    f = dict(epoch=3, phase=phase, hits_version=1, deposits=n, chosen=0, flux=rng.random(3),
+             m=rng.integers(0, 5, n).astype(np.float64),
+             phi=rng.random((n, 3)) if phase == "sums" else np.zeros((n, 3)))
+    if variant == 3:
+        f["rows"] = np.arange(n, dtype=np.int64) * 2
+    return f
 
 
 def as_bytes(frames) -> list[bytes]:
@@ -366,6 +387,19 @@ CASES = {
                                ["photon_job", "'chunk'", "not part of the message"]),
     "photon job without a box": (("photon_job", 0, lambda h, f: _drop_array("cull_box")(h, f)),
                                  ["photon_job", "'cull_box'", "missing"]),
+    "gather's jobs out of order": (("gather", 0, _copy_row("job_ids", 0, 3)), ["gather", "'job_ids'", "increasing"]),
+    "gather's zero radius": (_poison("radius", 0.0, "gather", row=1), ["gather", "'radius'", "> 0"]),
+    "gather's NaN box": (_poison("job_boxes", np.nan, "gather"), ["gather", "'job_boxes'", "NaN"]),
+    "gather's unknown phase": (_header_edit(lambda h: h.update(phase="guess"), "gather"), ["gather", "'phase'"]),
+    "pilot without a total": (_header_edit(lambda h: h.update(phase="pilot", total=0), "gather"),
+                              ["gather", "'total'", "pilot"]),
+    "epoch sums' negative count": (_poison("m", -1.0, "epoch_sums", row=2), ["epoch_sums", "'m'", ">= 0"]),
+    "epoch sums' rows out of order": (("epoch_sums", 3, _copy_row("rows", 0, 3)),
+                                      ["epoch_sums", "'rows'", "increasing"]),
+    "epoch sums' flux of two": (("epoch_sums", 0, lambda h, f: _set_array(h, f, "flux", np.zeros(2))),
+                                ["epoch_sums", "'flux'", "2 rows"]),
+    "hit points without a version": (_header_edit(lambda h: h.pop("hits_version"), "hit_points"),
+                                     ["hit_points", "'hits_version'", "missing"]),
     "part past parts": (_header_edit(lambda h: h.update(part=1), "chunk_data"), ["chunk_data", "'part'"]),
     "data past file": (_header_edit(lambda h: h.update(file_bytes=2), "chunk_data"),
                        ["chunk_data", "'data'", "file_bytes"]),

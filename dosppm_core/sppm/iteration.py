@@ -151,6 +151,19 @@ class SPPMIteration:
         self.update_seconds += time.perf_counter() - t0
         self.updates += 1
 
+    def apply_sums(self, m: np.ndarray, phi: np.ndarray, emitted: int, deposits: int, flux) -> None:
+        """One statistics update (eqs. 1-4) from a batch gathered elsewhere:
+        per hit point (of the installed set, in its order) M and Phi at the
+        current radii, summed over the tracers that held the batch, with
+        how many deposits that was and their flux (the totals' ledger)."""
+        t0 = time.perf_counter()
+        self.stats.apply_sums(self.stats.hit_points.pixel, m, phi, emitted)
+        self.photons_applied += int(emitted)
+        self.deposits_applied += int(deposits)
+        self.flux_applied += np.asarray(flux, np.float64)
+        self.update_seconds += time.perf_counter() - t0
+        self.updates += 1
+
     def restore_totals(self, totals: dict) -> None:
         """The counts of `totals` of a checkpointed render (its statistics
         are restored on their own), so a resumed render's totals are the

@@ -243,19 +243,22 @@ def pilot_radius(hits: HitPoints) -> float:
     return max(diag * PILOT_DIAGONAL, 1e-6)
 
 
-def subsample(deposits: PhotonDeposits | list, most: int) -> GatherPhotons:
+def subsample(deposits: PhotonDeposits | list, most: int, total: int | None = None) -> GatherPhotons:
     """About `most` of the deposits (a PhotonDeposits or a list of parts),
     chosen by a hash of their position bits: the same deposits whatever
     order a batch arrived in, so a pilot gather (and the radii it fits)
     depends on the batch alone (a render's ledger re-traces the batch in
     another order, services/ledger.py). Parts are read where they are: the
-    batch is never copied whole."""
+    batch is never copied whole. `total`: the whole batch's deposit count
+    when `deposits` are one tracer's share of it; each deposit is chosen by
+    its own hash and the cut, so the tracers' choices add up to the whole
+    batch's (less the fallback below, which needs the whole batch)."""
     parts = deposits if isinstance(deposits, list) else [deposits]
-    n = sum(len(p) for p in parts)
+    n = sum(len(p) for p in parts) if total is None else int(total)
     if n > most:
         cut = np.uint64(most / n * 2.0 ** 32)
         chosen = PhotonDeposits.concat([p.take(np.flatnonzero(_position_hash(p.position) < cut)) for p in parts])
-        if len(chosen) == 0:        # all hashed alike (a batch of one repeated position)
+        if len(chosen) == 0 and total is None:   # all hashed alike (a batch of one repeated position)
             chosen = PhotonDeposits.concat([p.slice(0, min(len(p), most)) for p in parts]).slice(0, most)
     else:
         chosen = PhotonDeposits.concat(parts)
@@ -265,6 +268,43 @@ def subsample(deposits: PhotonDeposits | list, most: int) -> GatherPhotons:
 def _position_hash(position: np.ndarray) -> np.ndarray:
     bits = np.ascontiguousarray(position, np.float32).view(np.uint32).astype(np.uint64)
     return (bits[:, 0] * 0x9E3779B1 ^ bits[:, 1] * 0x85EBCA77 ^ bits[:, 2] * 0xC2B2AE3D) & 0xFFFFFFFF
+
+
+def gather_sums(deposits: PhotonDeposits | list, hp: HitPoints, radius: np.ndarray, materials,
+                gather: str = "grid", threads: int = 2, reorder: bool = True,
+                hash_options: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Per hit point (M, Phi) of a batch's deposits (or any part of it) at
+    the hit points' radii `radius`: summed over slices of the batch, so the
+    temporaries are a slice's size. Sums of disjoint parts add up to the
+    whole's (up to float64 summation order), which is what lets tracers
+    gather their own deposits and the server add their sums."""
+    parts = deposits if isinstance(deposits, list) else [deposits]
+    if len(hp) == 0 or not any(len(p) for p in parts):
+        return np.zeros(len(hp)), np.zeros((len(hp), 3))
+    # Registering the hit points in the grid and sorting the photons are
+    # both mostly serial: do them at once, on two cores.
+    grid = _PREP.submit(build_hit_point_grid, hp, radius, materials) if gather == "grid" else None
+    box = reach_box(hp.position, radius)
+    m = phi = 0
+    for group in gather_slices(parts):
+        piece = reorder_parts(group, box) if reorder else PhotonDeposits.concat(group)
+        if grid is not None:
+            dm, dphi = gather_grid(piece, hp, radius, materials, threads, grid.result())
+        else:
+            dm, dphi = gather_hash(piece, hp, radius, materials, threads, **(hash_options or {}))
+        m, phi = m + dm, phi + dphi
+    return m, phi
+
+
+def pilot_sums(deposits: PhotonDeposits | list, hpf: HitPoints, r_pilot: np.ndarray, materials,
+               threads: int, most: int, total: int | None = None) -> tuple[np.ndarray, int]:
+    """The pilot gather of `PixelStatistics.fit_from_pilot`: per hit point of
+    `hpf`, the subsampled deposits within its pilot radius, and how many
+    were subsampled. Both add up over tracers holding parts of a batch of
+    `total` deposits."""
+    pilot = subsample(deposits, most, total)
+    m, _ = gather_grid(pilot, hpf, r_pilot, materials, threads)
+    return m, len(pilot.position)
 
 
 class PixelStatistics:
@@ -323,21 +363,54 @@ class PixelStatistics:
         pixel footprint and the pilot radius. A pixel the pilot finds no
         photon for (a light seen directly, a dark room) stays at the pilot
         radius and is tried again with the next batch, on a subsample as
-        much smaller as such pixels are few (the Cornell box's lamp: 5%)."""
+        much smaller as such pixels are few (the Cornell box's lamp: 5%).
+        In three steps (`pilot_request`, `pilot_sums`, `fit_from_pilot`) so
+        that tracers holding parts of a batch can each run the middle one."""
+        request = self.pilot_request()
+        if request is None:
+            return
+        fresh, r_pilot, most = request
+        m, chosen = pilot_sums(deposits, hp.take(fresh), r_pilot, materials, threads, most)
+        self.fit_from_pilot(fresh, r_pilot, m, chosen)
+
+    def pilot_request(self) -> tuple | None:
+        """(rows of the hit points not fitted yet, their pilot radii, the
+        subsample size) for the next batch's pilot gather; None if every
+        hit point's pixel is fitted."""
+        hp = self.hit_points
+        if not self.fit or len(hp) == 0:
+            return None
         fresh = np.flatnonzero(self._unfitted(hp.pixel))
         if len(fresh) == 0:
-            return
+            return None
         few = min(1.0, max(0.1, 4.0 * len(fresh) / len(hp)))
-        pilot = subsample(deposits, int(PILOT_DEPOSITS * few))
-        hpf = hp.take(fresh)
-        r_pilot = self.radius[hpf.pixel]
-        m, _ = gather_grid(pilot, hpf, r_pilot, materials, threads)
-        share = m / len(pilot.position)                 # of the deposits, within r_pilot
+        return fresh, self.radius[hp.pixel[fresh]], int(PILOT_DEPOSITS * few)
+
+    def fit_from_pilot(self, fresh: np.ndarray, r_pilot: np.ndarray, m: np.ndarray, chosen: int) -> None:
+        """Fit the radii of hit point rows `fresh` from the pilot gather's
+        counts `m` of `chosen` subsampled deposits (summed over tracers)."""
+        fit = self.fitted_radii(fresh, r_pilot, m, chosen)
+        if fit is not None:
+            self.commit_fit(*fit)
+
+    def fitted_radii(self, fresh: np.ndarray, r_pilot: np.ndarray, m: np.ndarray, chosen: int) -> tuple | None:
+        """(pixels, their fitted radii, which are fitted) of `fit_from_pilot`,
+        not yet stored: a server gathering at its tracers stores them only
+        with the batch they were fitted for (`commit_fit`), so a batch
+        discarded after its pilot leaves the radii as they were."""
+        if chosen <= 0:       # no deposit chosen: every pixel tries again next batch
+            return None
+        hp = self.hit_points
+        pix = hp.pixel[fresh]
+        share = m / chosen                              # of the deposits, within r_pilot
         target = RADIUS_SHARE / len(hp)                 # RADIUS_SHARE hit points' fair share
         with np.errstate(divide="ignore"):
             r0 = r_pilot * np.sqrt(target / share)
-        self.radius[hpf.pixel] = np.clip(r0, self.min_radius[hpf.pixel], r_pilot)
-        self.fitted[hpf.pixel] = m > 0
+        return pix, np.clip(r0, self.min_radius[pix], r_pilot), m > 0
+
+    def commit_fit(self, pix: np.ndarray, radius: np.ndarray, fitted: np.ndarray) -> None:
+        self.radius[pix] = radius
+        self.fitted[pix] = fitted
 
     # -- eye iterations -----------------------------------------------------
     def replace_hit_points(self, hits: HitPoints, emitted: tuple) -> None:
@@ -362,30 +435,29 @@ class PixelStatistics:
                       hash_options: dict | None = None) -> None:
         """One statistics update for a batch of deposits (a PhotonDeposits,
         or a list of the parts it arrived in) from `emitted` photon paths
-        (eqs. 1-4). M and Phi are summed over slices of the batch, then
-        applied once: the same update, with temporaries of a slice's size."""
+        (eqs. 1-4): `gather_sums`, then `apply_sums`."""
         hp = self.hit_points
         parts = deposits if isinstance(deposits, list) else [deposits]
-        self.photons_emitted += int(emitted)
         if len(hp) == 0 or not any(len(p) for p in parts):
+            self.photons_emitted += int(emitted)
             return
         if gather not in GATHERS:
             raise ValueError(f"unknown gather {gather!r} (known: {', '.join(GATHERS)})")
         if self.fit:
             self._fit_to_density(parts, hp, materials, threads)
-        radius = self.radius[hp.pixel]
-        # Registering the hit points in the grid and sorting the photons are
-        # both mostly serial: do them at once, on two cores.
-        grid = _PREP.submit(build_hit_point_grid, hp, radius, materials) if gather == "grid" else None
-        m = phi = 0
-        for group in gather_slices(parts):
-            piece = reorder_parts(group, self.gather_box()) if reorder else PhotonDeposits.concat(group)
-            if grid is not None:
-                dm, dphi = gather_grid(piece, hp, radius, materials, threads, grid.result())
-            else:
-                dm, dphi = gather_hash(piece, hp, radius, materials, threads, **(hash_options or {}))
-            m, phi = m + dm, phi + dphi
-        self._update(hp.pixel, m, phi)
+        m, phi = gather_sums(parts, hp, self.radius[hp.pixel], materials, gather, threads,
+                             reorder, hash_options)
+        self.apply_sums(hp.pixel, m, phi, emitted)
+
+    def apply_sums(self, pixel: np.ndarray, m: np.ndarray, phi: np.ndarray, emitted: int) -> None:
+        """One statistics update (eqs. 1-4) from a batch's per-pixel sums:
+        M (photons within the radius) and Phi (their BSDF-weighted flux),
+        gathered at the current radii, summed over whoever held the batch's
+        deposits; `emitted` photon paths made the batch. The same arithmetic
+        as `apply_photons`, which is this after its own gather."""
+        self.photons_emitted += int(emitted)
+        if len(pixel):
+            self._update(np.asarray(pixel), np.asarray(m, np.float64), np.asarray(phi, np.float64))
 
     def _update(self, pixel: np.ndarray, m: np.ndarray, phi: np.ndarray) -> None:
         got = m > 0

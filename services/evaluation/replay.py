@@ -56,17 +56,27 @@ class ReplayState(TracerState):
     def _trace_photons(self, view, taken):
         if len(self.recorded) < RECORDED_STEPS:
             t0 = time.perf_counter()
-            out = super()._trace_photons(view, taken)
+            epochs, self.epochs = self.epochs, None      # the record keeps the step's deposits
+            try:
+                out = super()._trace_photons(view, taken)
+            finally:
+                self.epochs = epochs
             self.counters["recorded_s"] += time.perf_counter() - t0
             self.counters["recorded_paths"] += taken.rays
-            self.recorded.append((out[0].fields, taken.rays))
+            fields = out[0].fields
+            self.recorded.append((fields, taken.rays))
+            if epochs is not None:
+                epochs.add(fields["deposits"])
+                out[0] = Out(SERVER, "results", {k: v for k, v in fields.items() if k != "deposits"})
             return out
         jobs = np.concatenate([p.batch.job for p in taken.items])
         fields, paths = self.recorded[self.counters["replayed_steps"] % len(self.recorded)]
         self.counters["replayed_steps"] += 1
         self.counters["rays_traced"] += len(jobs)
-        return [Out(SERVER, "results", _relabelled(fields, paths, jobs, view.index, self.queued_rays,
-                                                   concat_credit(taken.items)))]
+        replayed = _relabelled(fields, paths, jobs, view.index, self.queued_rays, concat_credit(taken.items))
+        if self.epochs is not None:     # gathered here, when the server asks for the epoch's sums
+            self.epochs.add(replayed.pop("deposits"))
+        return [Out(SERVER, "results", replayed)]
 
 
 def _relabelled(fields: dict, paths: int, jobs: np.ndarray, chunk: int, queued: int, credit: tuple) -> dict:
@@ -172,6 +182,13 @@ def figures(s: dict, per_core: float) -> dict:
             "tracer_cores_per_server_core": server_rate / max(per_core, 1e-9)}
 
 
+def tracer_gather(s: dict) -> dict:
+    """The tracers' side of the gather at the tracers: seconds they spent
+    gathering epochs, per photon applied (0 when the server gathers)."""
+    gather_s = sum((t or {}).get("epoch_gather_s", 0.0) for t in s.get("replay_tracers", []))
+    return {"tracer_gather_us_per_photon": 1e6 * gather_s / max(s["counters"]["photons_committed"], 1)}
+
+
 def cpu_shares(r: dict, cpu: float) -> dict:
     """The server's CPU by part (services/server/costs.py), as shares of
     `cpu`. The loop's thread holds making photon jobs, held deposits and
@@ -188,7 +205,10 @@ def cpu_shares(r: dict, cpu: float) -> dict:
 def _tracer_main(args) -> int:
     tp = ReplayTracer(args.tracer, store=args.store, threads=1, tracer_id=f"replay-{os.getpid()}")
     tp.run()
-    print(json.dumps(getattr(tp, "state", None) and tp.state.counters))
+    state = getattr(tp, "state", None)
+    counters = state and dict(state.counters, **({} if state.epochs is None else
+                                                 {"epoch_" + k: v for k, v in state.epochs.counters.items()}))
+    print(json.dumps(counters))
     return 0
 
 
@@ -214,6 +234,8 @@ def report(res: dict) -> str:
         f"| other threads (the statistics kernels' workers, zmq's I/O), share "
         f"| {r['other_threads_share']:.0%} |",
         f"| one tracer thread, photon paths/s (alone, same scene) | {r['tracer_photons_per_core_s']:,.0f} |",
+        *([f"| tracers' gather per photon applied (microseconds, gather at tracers) "
+           f"| {r['tracer_gather_us_per_photon']:.3f} |"] if r.get("tracer_gather_us_per_photon") else []),
         f"| **tracer cores one server core feeds** | **{r['tracer_cores_per_server_core']:.1f}** |",
         "| ... in the paper's CPU server / GPU server | 12.4 / 105 |"])
 
@@ -226,6 +248,8 @@ def main(argv=None) -> int:
     p.add_argument("--tracers", type=int, default=2)
     p.add_argument("--seconds", type=float, default=20.0)
     p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--gather-at", choices=("server", "tracers"), default="server",
+                   help="where photons are gathered (the server's --gather-at)")
     p.add_argument("--json", help="write the runs, with provenance, here")
     args = p.parse_args(argv)
     if args.tracer:
@@ -235,8 +259,10 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory(prefix="dosppm-replay-") as work:
         for _ in range(args.repeats):       # alternated: drift on a shared machine hits both alike
             per_core = tracer_rate(args.scene)
-            runs.append(figures(run(args.scene, args.tracers, args.seconds, work), per_core))
-    res = {"scene": args.scene, "tracers": args.tracers, "seconds": args.seconds, "replay": median_of(runs)}
+            s = run(args.scene, args.tracers, args.seconds, work, ("--gather-at", args.gather_at))
+            runs.append(dict(figures(s, per_core), **tracer_gather(s)))
+    res = {"scene": args.scene, "tracers": args.tracers, "seconds": args.seconds, "gather_at": args.gather_at,
+           "replay": median_of(runs)}
     print(report(res))
     if args.json:
         write_results(args.json, res)

@@ -7,6 +7,7 @@ import numpy as np
 
 from dosppm_core.chunks.pacing import DEPOSIT_BYTES
 from dosppm_core.jobs import PhotonDeposits
+from services.culling import within_own_boxes
 from services.server.costs import thread_cpu
 
 UNKNOWN, IN_FLIGHT, COMPLETE, DISCARDED = 0, 1, 2, 3     # photon job status
@@ -161,24 +162,3 @@ def split_held(held: list, status_of, jobs: tuple) -> tuple[list, list, int]:
         if part.rows:
             keep.append(part)
     return commit, keep, discarded
-
-
-def _own_box_mask(deposits: PhotonDeposits, jobs: tuple) -> np.ndarray:
-    """Which deposits lie inside the cull box their own job was sent with.
-    A tracer culls a coalesced package against the union of its jobs'
-    boxes, which keeps more; culling again here makes what a job adds a
-    function of the job alone, so the ledger can re-trace it
-    (services/ledger.py). Deposits of jobs not in `jobs` pass."""
-    ids, _keys, _paths, boxes = jobs
-    if len(deposits) == 0 or len(ids) == 0 or np.isinf(boxes).all():
-        return np.ones(len(deposits), bool)
-    at = np.minimum(np.searchsorted(ids, deposits.job), len(ids) - 1)
-    box = boxes[at]
-    p = deposits.position
-    return np.all((p >= box[:, 0]) & (p <= box[:, 1]), axis=1) | (ids[at] != deposits.job)
-
-
-def within_own_boxes(deposits: PhotonDeposits, jobs: tuple) -> PhotonDeposits:
-    """The deposits inside their own job's cull box (`_own_box_mask`)."""
-    inside = _own_box_mask(deposits, jobs)
-    return deposits if inside.all() else deposits.take(inside)

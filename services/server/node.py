@@ -45,7 +45,7 @@ from services.server.state import ServerState, Update
 from services.server.statistics import ServerStatistics
 
 log = logging.getLogger("dosppm.server")
-ACCEPT = {"register", "heartbeat", "results", "chunk_request", "error"}
+ACCEPT = {"register", "heartbeat", "results", "chunk_request", "error", "epoch_sums"}
 STATUS_INTERVAL_S = 0.5
 PROGRESS_INTERVAL_S = 1.0
 MAX_UPDATES_QUEUED = 2       # statistics updates waiting before emission pauses
@@ -77,7 +77,7 @@ class ServerProcess:
                  checkpoint_dir: str | None = None, checkpoint_interval_s: float = 60.0,
                  resume: dict | None = None, curve_secret: str | None = None,
                  curve_clients: str | None = None, min_tracers_timeout_s: float | None = None,
-                 ledger: str | None = None, say=None, held_bytes: float | None = None):
+                 ledger: str | None = None, say=None, held_bytes: float | None = None, gather_at="server"):
         """`say` prints a line for the user (what the server waits for);
         `ledger`: a file to record every update applied in (services/ledger.py)."""
         self.store, self.settings = store, settings
@@ -90,7 +90,7 @@ class ServerProcess:
                                  min_photon_jobs=min_photon_jobs, queue_target_rays=queue_target_rays,
                                  min_tracers=min_tracers, concurrent=concurrent,
                                  client_batching=client_batching, tracer_timeout_s=tracer_timeout_s,
-                                 min_tracers_timeout_s=min_tracers_timeout_s, held_bytes=held_bytes)
+                                 min_tracers_timeout_s=min_tracers_timeout_s, held_bytes=held_bytes, gather_at=gather_at)
         book = None if ledger is None else Ledger(
             settings, (store.header.camera.width, store.header.camera.height), ledger,
             resume_at=None if resume is None else resume.get("ledger_records"))
@@ -113,7 +113,7 @@ class ServerProcess:
         self._outbox: dict[str, deque] = {}
         self._lost: list[str] = []
         self._updates: queue.Queue = queue.Queue()
-        self._boxes: queue.Queue = queue.Queue()
+        self._boxes, self._applied = queue.Queue(), queue.Queue()   # from the statistics thread (epochs)
         self._status: dict = {}
         self._status_lock = threading.Lock()
         self.history = StatusHistory(origin_s=time.monotonic())
@@ -393,6 +393,8 @@ class ServerProcess:
                 break
             if box is not None:
                 self.state.cull_box = box
+        while not self._applied.empty():
+            self._send(self.state.on_applied(self._applied.get_nowait()))
         # Server batching's back-pressure (§5.7, the server as bottleneck):
         # stop emitting photons while updates queue, instead of holding ever
         # more deposits.
@@ -433,6 +435,8 @@ class ServerProcess:
                 continue
             try:
                 self._boxes.put(self.statistics.apply(u))
+                if u.kind in ("hits", "gather", "epoch"):
+                    self._applied.put(u)
             except Exception:   # noqa: BLE001 - log and keep the render alive
                 log.exception("statistics update failed")
                 self._boxes.put(None)

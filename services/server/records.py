@@ -77,3 +77,13 @@ class Update:
     # paths, cull boxes (n, 2, 3)).
     eye_iteration: int | None = None
     jobs: tuple | None = None
+    # Gather at the tracers (services/server/epochs.py): "gather" asks the
+    # statistics for the request of the epoch's next round after `stage`
+    # ("start", "count" or "pilot", with that round's summed `sums`), which
+    # it leaves in `request`; "epoch" applies the summed sums. "hits" leaves
+    # the installed hit points, in the statistics' order, in `installed`.
+    epoch: object = None
+    stage: str | None = None
+    sums: dict | None = None
+    request: dict | None = None
+    installed: object = None

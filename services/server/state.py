@@ -51,6 +51,7 @@ from services.credit import by_job, new_job
 from services.server.balance import (FIRST_REBALANCE_S, REBALANCE_INTERVAL_S, assign_chunks, light_chunks,
                                      rebalanced)
 from services.server.costs import thread_cpu
+from services.server.epoch_state import EpochStateMixin
 from services.server.held import COMPLETE, DEPOSIT_BYTES, DISCARDED, IN_FLIGHT, HeldDeposits, JobStatus
 from services.server.job_messages import JobMessages
 from services.server.records import EyeIteration, Job, TracerInfo, Update  # noqa: F401 (Update: the shell's)
@@ -84,17 +85,19 @@ STATUS_KEYS = ("load", "resident", "busy_s", "steps", "rays_traced", "photons_tr
                "bytes_to_peers", "outbox", "outbox_rays", "rays_by_chunk", "waiting")
 
 
-class ServerState:
+class ServerState(EpochStateMixin):
     def __init__(self, header, tree, settings: RenderSettings, store_key: str,
                  manifest: dict | None = None, min_photon_jobs: int = 1000,
                  queue_target_rays: int = FIRST_QUEUE_RAYS, min_tracers: int = 1,
                  concurrent: bool = True, client_batching: bool = True,
                  tracer_timeout_s: float = 10.0, min_tracers_timeout_s: float | None = None,
-                 held_bytes: float | None = None):
+                 held_bytes: float | None = None, gather_at: str = "server"):
         """`concurrent`, `client_batching` False: two of the paper's
         optimisations off (Figure 15). The render starts once `min_tracers`
         have registered or, with one, `min_tracers_timeout_s` after the first
-        tick (None: never). `held_bytes`: --queue-memory (`HeldDeposits`)."""
+        tick (None: never). `held_bytes`: --queue-memory (`HeldDeposits`).
+        `gather_at`: "server" (the paper's: deposits sent, held, gathered
+        here) or "tracers" (by epochs: services/server/epoch_state.py)."""
         settings = settings.for_image(int(header.camera.width) * int(header.camera.height))
         settings.validate()
         if settings.photons_per_job > MAX_EMITTED:
@@ -142,13 +145,14 @@ class ServerState:
         self.path_ends = np.zeros(len(END_NAMES), np.int64)
         self._latencies: deque = deque(maxlen=LATENCIES_KEPT)     # of the last photon jobs complete
         self.job_making_cpu_s = 0.0     # a part of the server's cost per photon (costs.py)
+        self._init_epochs(gather_at, min_tracers)
 
     # -- tracers -------------------------------------------------------------------
     def welcome_fields(self, t: TracerInfo) -> dict:
         s = self.settings
         return dict(tracer_index=t.index, settings={"max_depth": s.max_depth, "seed": s.seed, "direct": s.direct,
                                                     "client_batching": self.client_batching,
-                                                    "session": t.session},
+                                                    "session": t.session, **self.epoch_settings()},
                     scene=self.header.to_wire(), tree=self.tree.to_wire(), store_key=self.store_key,
                     chunks=[k for k, o in enumerate(self.owners) if t.id in o],
                     manifest=None if t.store_key == self.store_key else self.manifest)
@@ -177,7 +181,8 @@ class ServerState:
             self._discard_jobs_in_flight()
         self._welcomed(t, now)
         self._reassign()
-        return [Out(tid, "welcome", self.welcome_fields(t)), *self._peer_tables()]
+        return [Out(tid, "welcome", self.welcome_fields(t)), *self._peer_tables(), *self._joined_epochs(tid),
+                *self._drop_messages()]
 
     def _reassign(self) -> None:
         ids = [t.id for t in sorted(self.tracers.values(), key=lambda t: t.index)]
@@ -220,6 +225,8 @@ class ServerState:
             return self._check_welcomed(t, now) or self._check_delivery(t, now)
         elif msg.type == "results":
             return self._counted(self._on_results(t, msg), now)
+        elif msg.type == "epoch_sums":
+            return self._on_epoch_sums(tid, msg)
         return []
 
     # -- results and exact accounting ----------------------------------------------------
@@ -257,7 +264,7 @@ class ServerState:
         forgets its queues when welcomed."""
         self._welcomed(t, now)
         self._discard_jobs_in_flight()
-        return [Out(t.id, "welcome", self.welcome_fields(t)), *self._peer_tables()]
+        return [Out(t.id, "welcome", self.welcome_fields(t)), *self._peer_tables(), *self._drop_messages()]
 
     def _welcomed(self, t: TracerInfo, now: float) -> None:
         t.session += 1
@@ -339,9 +346,12 @@ class ServerState:
             self._job_status.set(j, COMPLETE)
             self.counters["photons_completed"] += job.paths
             self.counters["photon_jobs_completed"] += 1
+            self._latencies.append(self._now - job.sent_s)
+            if self.epochs is not None:      # its deposits stay at the tracers, by epoch
+                self.epochs.complete(j, job.rng_key, job.paths, job.cull_box)
+                return
             self._ready_emitted += job.paths
             self._ready_jobs.append((j, job))
-            self._latencies.append(self._now - job.sent_s)
             return
         self.counters["eye_jobs_completed"] += 1
         self.eyes[job.eye_iteration].open_jobs -= 1
@@ -352,13 +362,16 @@ class ServerState:
 
     def _finish_eye_iteration(self, e: EyeIteration) -> None:
         hits, emitted_light = e.results.complete()
-        self.updates.append(Update("hits", hits=hits, emitted_light=emitted_light, eye_iteration=e.index))
+        self._eye_update(Update("hits", hits=hits, emitted_light=emitted_light, eye_iteration=e.index))
         self.counters["hit_points"] += len(hits)
         self.eye_completed += 1
 
     def _maybe_batch(self, final: bool = False) -> None:
         """Hand over the deposits of complete jobs once `photon_batch` are
-        held (server batching); deposits of jobs still in flight wait."""
+        held (server batching); deposits of jobs still in flight wait.
+        Gathering at the tracers: the next epoch's gather, once it is due."""
+        if self.epochs is not None:
+            return self._maybe_gather()
         if self.eye_completed == 0 or not (final or self.held.due(self._now, bool(self._ready_jobs))):
             return
         jobs = self._ready_job_columns()
@@ -402,7 +415,7 @@ class ServerState:
             out += [Out(tid, "heartbeat", dict(status={})) for tid in self.tracers]
             out += self._evict_silent(now)
             self._watchdog(now)
-            out += self._rebalance(now)
+            out += self._rebalance(now) + self._drop_messages()   # epochs the watchdog discarded
         if not self.started:
             if not self._ready_to_start(now):
                 return out
@@ -413,6 +426,7 @@ class ServerState:
             # Draining: only jobs re-emitted for a lost tracer still go out.
             # Their photons were emitted once and count towards N_e: left
             # unsent, they would hold the drain until its timeout.
+            self._maybe_batch()     # gathering at the tracers: the last epochs close now
             return out + (self._send_photon_jobs() if self._photon_pending else [])
         if not self.concurrent:
             return out + self._alternate()
@@ -511,9 +525,11 @@ class ServerState:
         self.counters["tracers_evicted"] += 1
         self._reassign()
         self._discard_jobs_in_flight()
-        return self._peer_tables()
+        return self._peer_tables() + self._drop_messages()
 
     def _discard_jobs_in_flight(self) -> None:
+        if self.epochs is not None:     # the lost tracer's held deposits go with their epochs
+            self._discard_epochs()
         again = []
         for j, job in list(self.jobs.items()):
             if not job.sent:
@@ -574,6 +590,8 @@ class ServerState:
         self.jobs[j] = Job(kind, paths, eye_iteration=eye_iteration, rng_key=j if rng_key is None else rng_key)
         if kind == "photon":
             self.photon_jobs_in_flight += 1
+            if self.epochs is not None:
+                self.epochs.made(j)
         return j
 
     def _least_loaded(self, chunk: int) -> TracerInfo:
@@ -698,6 +716,8 @@ class ServerState:
             del self.jobs[j]
             self._job_status.set(j, DISCARDED)
             self.photon_jobs_in_flight -= 1
+            if self.epochs is not None:
+                self.epochs.dropped(j)
         self._photon_pending.clear()
 
     def latency_estimate_s(self) -> float:
@@ -723,7 +743,7 @@ class ServerState:
 
     @property
     def drained(self) -> bool:
-        return not self.jobs
+        return not self.jobs and self.epochs_drained
 
     def abandon_jobs_in_flight(self) -> None:
         """At the deadline: every job still in flight is discarded whole,
@@ -734,6 +754,8 @@ class ServerState:
             if job.kind == "photon":
                 self._job_status.set(j, DISCARDED)
                 self.photon_jobs_in_flight -= 1
+                if self.epochs is not None:
+                    self.epochs.dropped(j)
                 self.counters["photons_abandoned"] += job.paths
                 self.counters["jobs_abandoned"] += 1
         self.eyes.clear()

@@ -29,6 +29,7 @@ class ServerStatistics:
         self.update_cpu_s = 0.0
         self.photon_update_s = 0.0         # the last batch of photons took (the deadline's reserve)
         self.ledger = ledger
+        self.hits_version: int | None = None     # the eye iteration whose hit points are installed
 
     @property
     def stats(self):
@@ -55,6 +56,12 @@ class ServerStatistics:
                 checkpoint.write(update.directory, self.sppm.stats, meta)
             elif update.kind == "hits":
                 self.sppm.install_hit_points(update.hits, update.emitted_light)
+                update.installed = self.sppm.stats.hit_points
+                self.hits_version = update.eye_iteration
+            elif update.kind == "gather":
+                update.request = self._gather_request(update)
+            elif update.kind == "epoch":
+                self._apply_epoch(update)
             else:
                 # The state already cut this batch at `photon_batch` deposits
                 # (only complete jobs count), so it is one update.
@@ -64,9 +71,44 @@ class ServerStatistics:
             box = self.sppm.cull_box() if self.sppm.has_hit_points else None
         took = time.perf_counter() - t0
         self.update_seconds += took
-        if update.kind == "photons":
+        if update.kind in ("photons", "epoch"):
             self.photon_update_s = took
         return box
+
+    def _gather_request(self, u) -> dict | None:
+        """The `gather` fields of epoch `u.epoch`'s next round after
+        `u.stage` (docs/how-it-works.md, "The gather at the tracers"): a
+        count first when a pilot will be needed (its subsample's cut needs
+        the epoch's deposit count), then the pilot, then the sums at the
+        radii the pixels have now, fitted ones included. None for an epoch
+        discarded meanwhile."""
+        e, st = u.epoch, self.sppm.stats
+        if e.phase == "discarded":
+            return None
+        ids, _keys, _paths, boxes = e.columns()
+        base = dict(epoch=e.index, hits_version=self.hits_version, job_ids=ids, job_boxes=boxes)
+        pilot = st.pilot_request()
+        if u.stage == "start" and pilot is not None:
+            return dict(base, phase="count", rows=np.zeros(0, np.int64), radius=np.zeros(0))
+        if u.stage == "count" and pilot is not None and u.sums["deposits"] > 0:
+            fresh, r_pilot, most = pilot
+            return dict(base, phase="pilot", total=u.sums["deposits"], most=most, rows=fresh.astype(np.int64),
+                        radius=r_pilot)
+        if u.stage == "pilot":
+            fresh, r_pilot, _most = pilot
+            e.fit = st.fitted_radii(fresh, r_pilot, u.sums["m"], u.sums["chosen"])
+        radius = st.radius.copy()
+        if e.fit is not None:
+            radius[e.fit[0]] = e.fit[1]
+        hp = st.hit_points
+        return dict(base, phase="sums", rows=np.arange(len(hp), dtype=np.int64), radius=radius[hp.pixel])
+
+    def _apply_epoch(self, u) -> None:
+        """An epoch's summed sums, after the radii fitted for it."""
+        e, s = u.epoch, u.sums
+        if e.fit is not None:
+            self.sppm.stats.commit_fit(*e.fit)
+        self.sppm.apply_sums(s["m"], s["phi"], u.photons_emitted, s["deposits"], s["flux"])
 
     def end_ledger(self, deposits_late: int) -> None:
         """The totals, once every update is applied (the ledger's last

@@ -21,6 +21,7 @@ import uuid
 from dosppm_core.chunks.store import ChunkStore, StoreError
 from dosppm_core.kernels import use_threads
 from services import transport, wire
+from services.tracer.epochs import from_welcome
 from services.tracer.fetch import FetchedStore
 from services.tracer.state import SERVER, STEP_RAYS, TracerState
 
@@ -246,6 +247,9 @@ class TracerProcess:
                                      direct=welcome.settings.get("direct", "nee"),
                                      queue_memory_bytes=self.queue_memory_bytes,
                                      seed=welcome.settings["seed"])
+            epochs = from_welcome(welcome.settings, provider.header.materials, self.threads)
+            if epochs is not None:
+                self.state.hold_epochs(epochs)
             log.info("tracer %s joined as %d at %s, chunks %s", self.tracer_id, welcome.tracer_index,
                      self.endpoint, welcome.chunks)
             self.say(f"tracer {self.tracer_id}: registered with server {self.server_url} as tracer "
@@ -316,6 +320,9 @@ class TracerProcess:
                 self.session = msg.settings.get("session")
                 self.jobs_received = 0
                 self.state.reset()
+                # A server restarted from a checkpoint may cut epochs otherwise.
+                self.state.hold_epochs(from_welcome(msg.settings, self.state.provider.header.materials,
+                                                    self.threads))
                 self._rejoining, self._backoff = False, 0.0
                 log.info("rejoined the server as tracer %d", msg.tracer_index)
                 self.say(f"tracer {self.tracer_id}: rejoined server {self.server_url} as tracer "

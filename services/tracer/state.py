@@ -41,6 +41,8 @@ from dosppm_core.trace import light_arrays
 from services.credit import split as split_credit
 from services.wire import Out
 
+_EPOCH_MESSAGES = ("hit_points", "gather", "drop_epoch")
+
 SERVER = "server"           # Out.dest of messages for the server
 STEP_RAYS = 65_536          # rays coalesced into one traced batch
 _CARRY_CREDIT = ("photon_job", "eye_job", "portal_rays")
@@ -116,6 +118,7 @@ class TracerState:
                          "portal_rays_out": 0, "portal_rays_in": 0, "forwarded_rays": 0, "busy_s": 0.0}
         self.portal_by_chunk: dict[int, list[int]] = {}     # chunk -> [rays in, rays out] (status page)
         self.rays_by_chunk: dict[int, int] = {}             # chunk -> rays traced (the server balances by it)
+        self.epochs = None      # EpochDeposits when the gather is at the tracers (`hold_epochs`)
 
     # -- the peer table ----------------------------------------------------------
     def set_peers(self, table_version: int, owners: list[list[str]]) -> list[Out]:
@@ -173,11 +176,15 @@ class TracerState:
         """Forget every queued package (their jobs were discarded)."""
         self.schedule.clear()
         self.unroutable = []
+        if self.epochs is not None:     # their epochs are discarded too (the server's _discard_epochs)
+            self.epochs.clear()
 
     def handle(self, msg) -> list[Out]:
         """A decoded message from the server or a peer."""
         if msg.type == "peers":
             return self.set_peers(msg.table_version, msg.peers)
+        if msg.type in _EPOCH_MESSAGES:
+            return self._epoch_message(msg)
         credit = (msg.credit_job, msg.credit_exp) if msg.type in _CARRY_CREDIT else None
         if msg.type == "photon_job":
             return self.emit(msg.job_ids, msg.rng_keys, msg.counts, msg.cull_box, credit)
@@ -190,6 +197,28 @@ class TracerState:
             return self.receive(msg.kind, msg.chunk, rays, cull_box=msg.cull_box,
                                 eye_iteration=msg.eye_iteration, credit=credit)
         return []
+
+    def hold_epochs(self, epochs) -> None:
+        """Gather at the tracers: keep deposits by epoch (`epochs`, an
+        `EpochDeposits`) instead of sending them with the results."""
+        self.epochs = epochs
+
+    def _epoch_message(self, msg) -> list[Out]:
+        if self.epochs is None:
+            return [Out(SERVER, "error", dict(reason=f"{msg.type}: this tracer gathers no epochs", about=msg.type))]
+        if msg.type == "hit_points":
+            self.epochs.set_hit_points(msg.hits_version, msg.hits)
+            return []
+        if msg.type == "drop_epoch":
+            self.epochs.drop(msg.epoch)
+            return []
+        t0 = time.perf_counter()
+        try:
+            fields = self.epochs.reply(msg)
+        except ValueError as e:
+            return [Out(SERVER, "error", dict(reason=str(e), about="gather"))]
+        self.epochs.counters["gather_s"] += time.perf_counter() - t0
+        return [Out(SERVER, "epoch_sums", fields)]
 
     def emit(self, job_ids, rng_keys, counts, cull_box, credit: tuple) -> list[Out]:
         """Make the photons of a photon job message with the library's call
@@ -302,6 +331,8 @@ class TracerState:
         deposits, ends, culled, outgoing = trace_photons_in_chunk(view, batch, box, self.max_depth,
                                                                   self.deposit_from, self.lights)
         fields = dict(chunk=view.index, ends=ends, culled=int(culled), deposits=deposits)
+        if self.epochs is not None:     # kept here until the server asks for the epoch's sums
+            self.epochs.add(fields.pop("deposits"))
         return self._after_trace(batch, concat_credit(items), fields, [(PHOTON, outgoing)], cull_box=box)
 
     def _after_trace(self, batch, credit, fields, outgoing, **extra) -> list[Out]:
@@ -381,7 +412,8 @@ class TracerState:
                 "rays_by_chunk": [[k, n] for k, n in sorted(self.rays_by_chunk.items())],
                 "holds_every_chunk": bool(self.cache.cost.sum() <= self.cache.memory),
                 "resident": sorted(self.cache.resident), **{k: (round(v, 3) if isinstance(v, float) else v)
-                                                            for k, v in self.counters.items()}}
+                                                            for k, v in self.counters.items()},
+                **({} if self.epochs is None else {"epochs": dict(self.epochs.counters, held=self.epochs.rows)})}
 
     def close(self) -> None:
         self.cache.close()

@@ -1,0 +1,175 @@
+"""The server's side of the gather at the tracers (issue 32 step 3; the
+derivation is in docs/how-it-works.md, "The gather at the tracers").
+
+Photon job ids are cut into epochs of `jobs_per_epoch` ids. Tracers keep
+the deposits of each epoch (services/tracer/epochs.py); the server keeps
+here, per epoch, the photon jobs made in it and which are complete. An
+epoch is due once no job of it can still be made or run (the ids past it
+are in use, or emission stopped, and none of its jobs is in flight), and
+every epoch before it is applied or discarded: eqs. 1-5 need a batch
+gathered at the radii it is applied to, so epochs are applied one at a
+time, in order. Its gather is then asked of every live tracer, in the
+rounds of `wire.GATHER_PHASES`, and once all have answered the last
+round its summed sums are one statistics update.
+
+Exactly-once by construction: an epoch is applied whole or not at all.
+A tracer lost while epochs are unapplied may have held deposits of any of
+them, so all of them are discarded (`discard_unapplied`) and their jobs
+made again under new ids, past every discarded epoch.
+
+Pure: no sockets, no statistics; `ServerState` drives it.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from dosppm_core.trace import NO_CULL
+
+SUMS_BYTES_PER_PHOTON = 8.0      # at most, into the server (issue 32), with every hit point reached
+DENSE_SUMS_BYTES = 32            # M and Phi (f64) of one hit point, from one tracer
+
+
+def jobs_per_epoch(photon_batch: int, photons_per_job: int, tracers: int, pixels: int) -> int:
+    """About `photon_batch` photons an epoch (server batching, §4.3), grown
+    until the sums of `tracers` tracers over `pixels` hit points are at
+    most SUMS_BYTES_PER_PHOTON a photon."""
+    photons = max(int(photon_batch), int(np.ceil(tracers * pixels * DENSE_SUMS_BYTES / SUMS_BYTES_PER_PHOTON)))
+    return max(1, -(-photons // max(1, int(photons_per_job))))
+
+
+@dataclass
+class Epoch:
+    index: int
+    made: int = 0                   # photon jobs made in it, not yet complete or dropped
+    jobs: dict = field(default_factory=dict)   # complete: id -> (rng key, paths, cull box)
+    phase: str | None = None        # the round asked, None before the first
+    waiting: set = field(default_factory=set)  # tracers whose answer to it is not in
+    sums: dict = field(default_factory=dict)   # the round's answers, by tracer (`total`)
+    fit: tuple | None = None        # radii fitted by its pilot, stored when it is applied
+
+    def columns(self) -> tuple:
+        """(ids, rng keys, paths, cull boxes (n, 2, 3)) of its complete jobs, by id."""
+        ids = sorted(self.jobs)
+        keys = np.array([self.jobs[j][0] for j in ids], np.int64)
+        paths = np.array([self.jobs[j][1] for j in ids], np.int64)
+        boxes = np.array([NO_CULL if self.jobs[j][2] is None else self.jobs[j][2] for j in ids],
+                         np.float64).reshape(-1, 2, 3)
+        return np.array(ids, np.int64), keys, paths, boxes
+
+
+class Epochs:
+    def __init__(self, jobs_per_epoch: int, first_job: int = 0):
+        self.jobs_per_epoch = int(jobs_per_epoch)
+        self.open: dict[int, Epoch] = {}
+        self.next = self.of(first_job)         # the next epoch to apply
+        self.discarded: set[int] = set()
+        self.asking = False                    # an epoch's gather is under way
+        self.counters = {"epochs_applied": 0, "epochs_discarded": 0, "epoch_rounds": 0}
+
+    def of(self, job: int) -> int:
+        return int(job) // self.jobs_per_epoch
+
+    def first_id_after(self, epoch: int) -> int:
+        return (int(epoch) + 1) * self.jobs_per_epoch
+
+    def made(self, j: int) -> None:
+        self._epoch(self.of(j)).made += 1
+
+    def dropped(self, j: int) -> None:
+        """A photon job that will never complete (never sent, or abandoned)."""
+        e = self.open.get(self.of(j))
+        if e is not None:
+            e.made -= 1
+
+    def complete(self, j: int, rng_key: int, paths: int, cull_box) -> None:
+        e = self._epoch(self.of(j))
+        e.made -= 1
+        e.jobs[int(j)] = (int(rng_key), int(paths), cull_box)
+
+    def _epoch(self, index: int) -> Epoch:
+        if index not in self.open:
+            self.open[index] = Epoch(index)
+        return self.open[index]
+
+    def due(self, next_job: int, emitting: bool) -> Epoch | None:
+        """The next epoch to gather, if it is due and none is being gathered."""
+        if self.asking:
+            return None
+        while self.next in self.discarded or (self.next not in self.open and self.next < self.of(next_job)):
+            if self.next in self.discarded:
+                self.next += 1
+                continue
+            # No photon job was ever made in it (eye jobs' ids, or the ids a
+            # resumed server skipped: 2^40 of them, so jump, never step).
+            later = [e for e in self.open if e > self.next]
+            self.next = min(later) if later else self.of(next_job)
+        e = self.open.get(self.next)
+        if e is None or e.made > 0:
+            return None
+        if emitting and next_job < self.first_id_after(e.index):
+            return None             # more of its jobs may still be made
+        if not e.jobs:              # every job of it dropped: nothing to gather
+            del self.open[e.index]
+            self.next += 1
+            return self.due(next_job, emitting)
+        self.asking = True
+        return e
+
+    def ask(self, e: Epoch, phase: str, tracers) -> None:
+        """Round `phase` of epoch `e` goes to `tracers`; answers are added up."""
+        e.phase, e.waiting, e.sums = phase, set(tracers), {}
+        self.counters["epoch_rounds"] += 1
+
+    def answer(self, tid: str, msg) -> Epoch | None:
+        """A tracer's `epoch_sums`; the epoch once every answer to its round
+        is in (None while some are missing, or for a stale answer)."""
+        e = self.open.get(msg.epoch)
+        if e is None or msg.phase != e.phase or tid not in e.waiting:
+            return None              # a discarded epoch's, or an earlier round's
+        e.waiting.discard(tid)
+        e.sums[tid] = msg
+        return e if not e.waiting else None
+
+    def applied(self, e: Epoch) -> None:
+        del self.open[e.index]
+        self.next, self.asking = e.index + 1, False
+        self.counters["epochs_applied"] += 1
+
+    def discard_unapplied(self) -> list[Epoch]:
+        """Every epoch not yet handed to the statistics: (their jobs to make
+        again). The round under way, if any, is forgotten with it."""
+        lost = [e for e in self.open.values() if e.phase != "applying"]
+        for e in lost:
+            del self.open[e.index]
+            self.discarded.add(e.index)
+        self.asking = any(e.phase == "applying" for e in self.open.values())
+        self.counters["epochs_discarded"] += len(lost)
+        return lost
+
+    @property
+    def unapplied(self) -> int:
+        return len(self.open)
+
+
+def total(answers: dict, n: int) -> dict:
+    """A round's answers added up, in tracer id order (so a render's sums do
+    not depend on which answer came first): deposits, chosen, flux, and M
+    and Phi over `n` rows (sparse answers spread to every row)."""
+    out = {"deposits": 0, "chosen": 0, "flux": np.zeros(3), "m": np.zeros(n), "phi": np.zeros((n, 3))}
+    for tid in sorted(answers):
+        msg = answers[tid]
+        out["deposits"] += int(msg.deposits)
+        out["chosen"] += int(msg.chosen)
+        out["flux"] = out["flux"] + np.asarray(msg.flux, np.float64)
+        if msg.phase == "count":
+            continue
+        rows = msg.fields.get("rows")
+        if rows is None:
+            out["m"] = out["m"] + msg.m
+            out["phi"] = out["phi"] + msg.phi
+        else:
+            out["m"][rows] += msg.m       # rows are distinct (the wire checks they increase)
+            out["phi"][rows] += msg.phi
+    return out

@@ -1,0 +1,124 @@
+"""The gather at the tracers, by epochs (issue 32 step 3), in process
+(`services.inproc`): the image agrees with the server's own gather and with
+single-process SPPM within noise, every photon is applied exactly once
+(the ledger re-traces the render), and a tracer lost mid-epoch costs its
+open epochs, which are made again under new ids, and nothing else."""
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from services import ledger
+from services.inproc import InProcessCluster
+from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
+from tests.helpers.cluster import assert_same_within_noise, caustic_reference, caustic_scene, settings
+
+PHOTONS = 240_000
+BATCH = 60_000      # several epochs (and server batches) in a render of PHOTONS
+
+
+def _settings(seed=5):
+    return dataclasses.replace(settings(seed), photon_batch=BATCH)
+
+
+@pytest.fixture(scope="module")
+def caustic():
+    return caustic_scene(), caustic_reference()
+
+
+def _render(scene, gather_at, tiles=(2, 1, 1), tracers=2, seed=5):
+    provider = MemoryChunks(scene, uniform_tree(root_box(scene), tiles))
+    c = InProcessCluster(provider, _settings(seed), tracers=tracers, gather_at=gather_at)
+    try:
+        c.run(photons=PHOTONS)
+    finally:
+        c.close()
+    return provider, c
+
+
+def test_the_tracers_gather_gives_the_servers_image_and_counts_each_photon_once(caustic):
+    scene, ref = caustic
+    _, server = _render(scene, "server")
+    provider, tracers = _render(scene, "tracers")
+    assert_same_within_noise(tracers.image(), ref[5][0], ref[9][0])
+    assert_same_within_noise(tracers.image(), server.image(), ref[9][0])
+    k, e = tracers.server.counters, tracers.server.epochs
+    assert k["photons_emitted"] == k["photons_completed"] == k["photons_committed"] >= PHOTONS
+    assert tracers.statistics.stats.photons_emitted == k["photons_committed"]
+    assert e.counters["epochs_applied"] >= 3 and not e.open and not tracers.server.jobs
+    assert tracers.statistics.deposits_applied == k["deposits_received"] > 0
+    # No deposit went to the server; every tracer's held deposits were gathered or dropped.
+    assert all(t.epochs.rows == 0 for t in tracers.tracers.values())
+    assert ledger.check(provider, tracers.statistics.ledger.records) == []
+
+
+def test_a_tracer_killed_mid_epoch_costs_its_epochs_and_no_photon(caustic):
+    """c = 4 over three tracers; one stops dead with deposits of open
+    epochs in its hold. The gather waits for its answer until it is
+    evicted; then every unapplied epoch is discarded and its jobs made
+    again past it: nothing is lost, nothing counted twice, the ledger
+    re-traces the render and the image agrees with SPPM within noise."""
+    scene, ref = caustic
+    provider = MemoryChunks(scene, uniform_tree(root_box(scene), (2, 2, 1)))
+    c = InProcessCluster(provider, _settings(), tracers=3, tracer_timeout_s=2.0, gather_at="tracers")
+    c.render(photons=PHOTONS // 3)
+    assert c.tracers["t1"].epochs.rows > 0           # it holds deposits of open epochs
+    c.kill("t1")
+    c.render(photons=PHOTONS)
+    c.drain()
+    c.close()
+    s, k, e = c.server, c.server.counters, c.server.epochs
+    assert k["tracers_evicted"] == 1 and "t1" not in s.tracers
+    assert e.counters["epochs_discarded"] >= 1 and e.counters["epochs_applied"] >= 1
+    assert k["photons_discarded"] > 0
+    # Exactly once: what was emitted and not discarded (in flight, or in a
+    # discarded epoch) was applied, once.
+    assert k["photons_emitted"] - k["photons_discarded"] == k["photons_completed"] == k["photons_committed"]
+    assert c.statistics.stats.photons_emitted == k["photons_committed"]
+    assert k["over_credited_jobs"] == 0
+    assert all(t.epochs.rows == 0 for tid, t in c.tracers.items() if tid != "t1")
+    assert ledger.check(provider, c.statistics.ledger.records) == []
+    assert_same_within_noise(c.image(), ref[5][0], ref[9][0])
+
+
+def test_where_one_epoch_is_one_batch_the_images_are_bit_for_bit_equal(caustic):
+    """One tracer, one eye iteration, and a batch (and epoch) larger than
+    the render: both gathers apply the same deposits, in the same order, at
+    the same hit points and radii, once; the images are equal bit for bit."""
+    scene, _ = caustic
+    s = dataclasses.replace(settings(), photon_batch=10_000_000, photons_per_iteration=10_000_000)
+    images = {}
+    for gather_at in ("server", "tracers"):
+        c = InProcessCluster(MemoryChunks(scene, uniform_tree(root_box(scene), (1, 1, 1))), s, tracers=1,
+                             gather_at=gather_at)
+        try:
+            c.run(photons=200_000)
+        finally:
+            c.close()
+        assert c.statistics.sppm.updates == 1
+        images[gather_at] = c.image()
+    assert (images["server"] == images["tracers"]).all()
+
+
+def test_epochs_go_in_order_and_skip_ids_never_used_at_once():
+    """A resumed server's ids start 2^40 on (checkpoint.claim_job_ids):
+    the epochs in between, where no photon job was made, are skipped in
+    one step; an epoch is due only once no job of it can still be made
+    or run, and only after the one before it is applied."""
+    from services.server.epochs import Epochs
+    e = Epochs(jobs_per_epoch=4)
+    first = 1 << 40
+    for j in range(first, first + 6):
+        e.made(j)
+    assert e.due(first + 6, emitting=True) is None       # its jobs are in flight
+    for j in range(first, first + 4):
+        e.complete(j, rng_key=j, paths=10, cull_box=None)
+    due = e.due(first + 6, emitting=True)
+    assert due is not None and due.index == first // 4 and sorted(due.jobs) == list(range(first, first + 4))
+    assert e.due(first + 6, emitting=True) is None       # one epoch at a time
+    e.applied(due)
+    for j in (first + 4, first + 5):
+        e.complete(j, rng_key=j, paths=10, cull_box=None)
+    assert e.due(first + 6, emitting=True) is None       # ids of it may still be made
+    assert e.due(first + 6, emitting=False).index == first // 4 + 1
