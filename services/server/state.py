@@ -647,7 +647,7 @@ class ServerState(EpochStateMixin):
     def _send_photon_jobs(self) -> list[Out]:
         """Photon jobs go out as (id, rng key, count), each message to the
         emitting tracer with the most credit left, and no larger than that
-        room: emission spreads, and a slow tracer is never sent more than one
+        room or its share of the pending jobs: emission spreads, and a slow tracer is never sent more than one
         job past its credit. It queues the photons or passes them on
         (`TracerState.emit`); they count against its queue until it reports."""
         out, sent, ppj = [], 0, self.settings.photons_per_job
@@ -657,7 +657,9 @@ class ServerState(EpochStateMixin):
             room = self.credit_of(t) - t.load_estimate
             if room <= 0:
                 break
-            n = min(-(-room // ppj), JOBS_PER_MESSAGE, MAX_EMITTED // ppj, len(self._photon_pending))
+            # Its share of the pending: with 16 in flight one message took all.
+            share = -(-len(self._photon_pending) // len(emitters))
+            n = min(-(-room // ppj), JOBS_PER_MESSAGE, MAX_EMITTED // ppj, share)
             out.append(self._photon_job(t, [self._photon_pending.popleft() for _ in range(n)]))
             sent += int(out[-1].fields["counts"].sum())
         return out
