@@ -152,11 +152,15 @@ def test_server_and_two_tracers_on_separate_hosts(lan, tmp_path):
     assert sorted(tracers) == ["tracer-t1", "tracer-t2"], (st["tracers"], tails)
     endpoints = {h: tracers[f"tracer-{h}"]["endpoint"] for h in ("t1", "t2")}
     assert endpoints == {h: f"tcp://{lan[h][1]}:{PEER_PORT}" for h in ("t1", "t2")}, (endpoints, tails)
-    portal_out = sum(t.get("portal_rays_out", 0) for t in st["tracers"])
+    # Portal traffic: in the last poll, or in the summary's table (a short
+    # render may end between two polls).
+    summary = json.loads(out.with_suffix(".json").read_text()) if out.with_suffix(".json").exists() else {}
+    portal_out = max(sum(t.get("portal_rays_out", 0) for t in tt) for tt in (st["tracers"], summary.get("tracers", [])))
     assert portal_out > 0, (f"no portal traffic between the tracers: {st['tracers']}", tails)
     c = st["counters"]
     assert c["over_credited_jobs"] == 0 and c["stale_paths"] == 0, (c, tails)
-    assert st["photons_committed"] > 0 and c["photons_committed"] > 0, (st, tails)
+    # The last poll may come before the first commit of a short render:
+    # that photons were committed is the summary's to say (below).
     assert c["photons_committed"] <= c["photons_emitted"], c
     # The server's own accounting of the whole run (OUT.json beside the
     # image, written after the drain): exact, unlike a status polled while
@@ -165,9 +169,9 @@ def test_server_and_two_tracers_on_separate_hosts(lan, tmp_path):
     assert summary_file.exists(), "the server wrote no OUT.json accounting beside the image\n" + tails
     summary = json.loads(summary_file.read_text())
     sc = summary["counters"]
-    assert sc["photons_emitted"] > 0, (sc, tails)
-    # --time is a deadline: jobs still in flight at its end are abandoned
-    # whole and counted; every other photon is committed and applied.
+    assert sc["photons_emitted"] >= 240_000 and sc["photons_committed"] > 0, (sc, tails)
+    # Jobs still in flight at the end are abandoned whole and counted
+    # (none with --photons); every other photon is committed and applied.
     assert sc["photons_emitted"] == sc["photons_completed"] + sc["photons_abandoned"], sc
     assert sc["photons_completed"] == sc["photons_committed"] \
         == summary.get("photons_applied", sc["photons_committed"]), (sc, summary.get("photons_applied"))
