@@ -75,17 +75,22 @@ class _AnyPlugin(dict):
         return self._All()
 
 
+def _expanded(path: str):
+    """(expander, scene object) of the file with every plugin allowed."""
+    root = parse_xml(path)
+    if version(root) < (2, 0, 0):
+        upgrade_names(root)
+    expander = Expander(path, {}, _AnyPlugin())
+    expander.substitute(root)
+    return expander, expander.object(root)
+
+
 def read_language(path: str) -> list:
     """[] when the whole file, plugins aside, is in our language (its
     directives expand and every value parses) and every shape of a type we
     read finds its file and makes its triangles; else the one-line errors."""
     try:
-        root = parse_xml(path)
-        if version(root) < (2, 0, 0):
-            upgrade_names(root)
-        expander = Expander(path, {}, _AnyPlugin())
-        expander.substitute(root)
-        scene = expander.object(root)
+        expander, scene = _expanded(path)
     except SceneError as exc:
         return [str(exc)]
     reader, errors = ReaderState(path, expander.ids, "mitsuba", expander.paths), []
@@ -102,12 +107,7 @@ def plugins_needed(path: str) -> list:
     """Every plugin of the file (and its includes) outside our subset, as
     'family:type': what it takes for the scene to load."""
     try:
-        root = parse_xml(path)
-        if version(root) < (2, 0, 0):
-            upgrade_names(root)
-        expander = Expander(path, {}, _AnyPlugin())
-        expander.substitute(root)
-        scene = expander.object(root)
+        _, scene = _expanded(path)
     except SceneError:
         return []
     return sorted({f"{o.tag}:{o.type}" for o in _objects(scene)
