@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from services import transport
-from services.tracer.node import TracerProcess
+from services.tracer.node import TracerError, TracerProcess
 from services.wire import PROTOCOL_VERSION, encode
 from tests.test_wire import _register_from_the_future, _valid, assert_same_message, frame_views, sample_fields
 
@@ -222,5 +222,29 @@ def test_a_tracer_replaces_its_server_connection(ctx):
         assert prefix == [b"swap"] and msg.status == {"n": 1}
         server.send(encode("shutdown", reason="bye"), prefix)
         assert tracer._poller.poll(WAIT_MS) == {tracer.dealer}
+    finally:
+        tracer._close()
+
+
+def test_results_wait_no_longer_than_the_servers_silence_allows(ctx):
+    """Results the server cannot take (here: no server at all) wait until
+    the server has been silent --retry seconds since it was last heard, the
+    give-up time of the reconnect loop, not --retry from the send: a send
+    begun late in a network cut used to keep the tracer up to twice --retry."""
+    probe = transport.router(ctx)
+    nobody = probe.bind("tcp://127.0.0.1:*")
+    probe.close(linger_ms=0)                  # a port nothing listens on
+    tracer = TracerProcess(nobody, bind="tcp://127.0.0.1:*", tracer_id="cut", context=ctx,
+                           connect_timeout_s=3.0)
+    tracer._open()
+    try:
+        frames = encode("heartbeat", status={})
+        for silent_s, least_s, most_s in ((2.5, 0.0, 1.5), (0.0, 2.5, 6.0)):
+            tracer._last_heard = time.monotonic() - silent_s
+            t0 = time.monotonic()
+            with pytest.raises(TracerError, match="took no results for 3 s"):
+                for _ in range(10 * transport.HWM_MESSAGES):   # libzmq queues the first HWM
+                    tracer._to_server(frames)
+            assert least_s <= time.monotonic() - t0 <= most_s
     finally:
         tracer._close()

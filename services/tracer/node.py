@@ -236,6 +236,7 @@ class TracerProcess:
     def _run(self) -> str:
         self._open()
         self._pending_server: list = []
+        self._last_heard = time.monotonic()
         try:
             welcome = self._register()
             provider = self._provider(welcome)
@@ -266,7 +267,7 @@ class TracerProcess:
         # this one sleeps at the barrier.
         use_threads(self.threads)
         self._poller = poller = transport.Poller(self.dealer, self.router)
-        last_beat = last_heard = time.monotonic()
+        last_beat = self._last_heard = time.monotonic()
         while self.stopped is None:
             busy = self.state.has_work() or bool(self.outbox)
             t0 = time.monotonic()
@@ -274,7 +275,7 @@ class TracerProcess:
             now = time.monotonic()
             self.loop_s["idle_s"] += now - t0
             if self.dealer in events or self._pending_server:
-                last_heard = now
+                self._last_heard = now
             self._drain_server(self.dealer in events)
             if self.router in events:
                 self._drain_peers()
@@ -290,11 +291,11 @@ class TracerProcess:
                 # acknowledges job messages (`jobs_received`), and one that
                 # is only unread must not look lost.
                 if self.dealer.poll(0):
-                    last_heard = now
+                    self._last_heard = now
                     self._drain_server(True)
                 self._to_server(wire.encode("heartbeat", status=self._status()), disposable=True)
-            if now - last_heard > SERVER_SILENT_S:
-                self._reconnect(now, now - last_heard)
+            if now - self._last_heard > SERVER_SILENT_S:
+                self._reconnect(now, now - self._last_heard)
 
     def _status(self) -> dict:
         s = self.state.status()
@@ -396,15 +397,17 @@ class TracerProcess:
 
     def _to_server(self, frames, disposable: bool = False) -> None:
         """Heartbeats and registers are dropped when the pipe to the server
-        is full (it is down; another goes out soon). Results wait, for as
-        long as the server may take to come back (`connect_timeout_s`)."""
+        is full (it is down; another goes out soon). Results wait until the
+        server has been silent `connect_timeout_s`, the same give-up time
+        as `_reconnect`'s: counted from when it was last heard, not from
+        this send, or a send begun late in a cut would double --retry."""
         if disposable:
             try:
                 self.dealer.send(frames, block=False)
             except transport.WouldBlock:
                 pass
             return
-        deadline = time.monotonic() + self.connect_timeout_s
+        deadline = self._last_heard + self.connect_timeout_s
         while True:
             try:
                 self.dealer.send(frames, block=False)
