@@ -4,7 +4,8 @@
     DIR/chunk-0000.bin     chunk 0's raw arrays, little-endian, each at a
     DIR/chunk-0001.bin     64-byte-aligned offset given in the manifest:
     ...                      vertices float32 (nv, 3), triangles int32 (nt, 3),
-                             tri_material int32 (nt,), global_id int32 (nt,)
+                             tri_material int32 (nt,), global_id int32 (nt,),
+                             and, if its triangles are textured, uv float32 (nv, 2)
 
 The manifest (msgpack, no pickle) holds: format "dosppm-chunks", version,
 the store key, the chunk tree (`ChunkTree.to_wire`), the portals, the scene
@@ -42,6 +43,13 @@ ALIGN = 64
 # (name, dtype, columns; 0 = a plain vector), in file order.
 ARRAYS = (("vertices", "<f4", 3), ("triangles", "<i4", 3),
           ("tri_material", "<i4", 0), ("global_id", "<i4", 0))
+# Present only in the chunks of textured scenes: the vertices' texture
+# coordinates. A file without it is laid out exactly as before.
+UV_ARRAY = ("uv", "<f4", 2)
+
+
+def _arrays(uv: bool) -> tuple:
+    return ARRAYS + (UV_ARRAY,) if uv else ARRAYS
 
 
 @dataclass
@@ -51,10 +59,16 @@ class ChunkGeometry:
     triangles: np.ndarray    # int32 (nt, 3)
     tri_material: np.ndarray  # int32 (nt,)
     global_id: np.ndarray    # int32 (nt,)
+    uv: np.ndarray = None    # float32 (nv, 2), or (0, 2): an untextured chunk
+
+    def __post_init__(self):
+        if self.uv is None:
+            self.uv = np.zeros((0, 2), np.float32)
 
     @property
     def nbytes(self) -> int:
-        return sum(a.nbytes for a in (self.vertices, self.triangles, self.tri_material, self.global_id))
+        return sum(a.nbytes for a in (self.vertices, self.triangles, self.tri_material, self.global_id,
+                                      self.uv))
 
 
 class StoreError(ValueError):
@@ -159,11 +173,11 @@ class Portals:
 
 
 # -- chunk files ---------------------------------------------------------------
-def chunk_layout(triangles: int, vertices: int) -> tuple[dict, int]:
+def chunk_layout(triangles: int, vertices: int, uv: bool = False) -> tuple[dict, int]:
     """{array name: (offset, nbytes)} and the file size, arrays 64-byte aligned."""
-    rows = {"vertices": vertices}
+    rows = {"vertices": vertices, "uv": vertices}
     out, offset = {}, 0
-    for name, dtype, cols in ARRAYS:
+    for name, dtype, cols in _arrays(uv):
         nbytes = rows.get(name, triangles) * max(cols, 1) * np.dtype(dtype).itemsize
         out[name] = (offset, nbytes)
         offset += -(-nbytes // ALIGN) * ALIGN
@@ -174,10 +188,11 @@ def write_chunk_file(path: str, geometry) -> dict:
     """Write one chunk's arrays; returns its manifest entry (less the file
     name and memory estimate, which the caller adds)."""
     nt, nv = int(geometry.triangles.shape[0]), int(geometry.vertices.shape[0])
-    layout, size = chunk_layout(nt, nv)
+    uv = len(geometry.uv) > 0
+    layout, size = chunk_layout(nt, nv, uv)
     h = hashlib.sha256()
     with open(path, "wb") as f:
-        for name, dtype, _cols in ARRAYS:
+        for name, dtype, _cols in _arrays(uv):
             offset, nbytes = layout[name]
             pad = b"\0" * (offset - f.tell())
             data = np.ascontiguousarray(getattr(geometry, name), dtype).tobytes()
@@ -310,9 +325,9 @@ class ChunkStore:
         else:
             buf = _read_checked(file, entry)
         nt, nv = entry["triangles"], entry["vertices"]
-        rows = {"vertices": nv}
+        rows = {"vertices": nv, "uv": nv}
         arrays = {}
-        for name, dtype, cols in ARRAYS:
+        for name, dtype, cols in _arrays("uv" in entry["arrays"]):
             offset, nbytes = entry["arrays"][name]
             a = buf[offset:offset + nbytes].view(dtype)
             arrays[name] = a.reshape(rows.get(name, nt), cols) if cols else a
@@ -354,8 +369,9 @@ def _check_entries(path: str, doc: dict, chunk_count: int, check_files: bool = T
     for k, e in enumerate(entries):
         try:
             nt, nv = int(e["triangles"]), int(e["vertices"])
-            layout, size = chunk_layout(nt, nv)
+            layout, size = chunk_layout(nt, nv, "uv" in e["arrays"])
             ok = (e["file"] == chunk_file_name(k) and int(e["file_bytes"]) == size
+                  and set(e["arrays"]) == set(layout)
                   and all(tuple(e["arrays"][n]) == layout[n] for n in layout)
                   and float(e["memory_bytes"]) >= 0 and isinstance(e["sha256"], str))
         except (KeyError, TypeError, ValueError):

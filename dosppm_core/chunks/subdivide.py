@@ -55,12 +55,15 @@ EMBREE_BYTES_PER_TRIANGLE = 110
 EMBREE_BYTES_PER_VERTEX = 12
 STORED_BYTES_PER_TRIANGLE = 12 + 4 + 4   # triangles, tri_material, global_id
 STORED_BYTES_PER_VERTEX = 12
+STORED_BYTES_PER_UV = 8                  # a textured chunk's uv per vertex
 # Before insertion only triangle counts are known; a closed mesh has about
 # half a vertex per triangle. Guessing low never over-splits: a chunk that
 # comes out too big is split again after insertion.
 GUESS_VERTICES_PER_TRIANGLE = 0.5
 
 RECORD = np.dtype([("corners", "<f4", (3, 3)), ("material", "<i4"), ("global_id", "<i4")])
+# The record of a source with texture coordinates: its corners' uv too.
+RECORD_UV = np.dtype(RECORD.descr + [("uv", "<f4", (3, 2))])
 
 # Working memory per triangle of a source block during insertion: the block
 # read (40 B), its records (44), the (triangle, chunk) overlap pairs and
@@ -77,10 +80,10 @@ def block_for_memory(memory_bytes: int) -> int:
     return max(MIN_BLOCK, int(memory_bytes) // BLOCK_BYTES_PER_TRIANGLE)
 
 
-def chunk_memory_bytes(triangles: int, vertices: int) -> int:
+def chunk_memory_bytes(triangles: int, vertices: int, uv: bool = False) -> int:
     """Estimated resident bytes of a loaded chunk, BVH build peak included."""
-    return int((STORED_BYTES_PER_TRIANGLE + EMBREE_BYTES_PER_TRIANGLE) * triangles
-               + (STORED_BYTES_PER_VERTEX + EMBREE_BYTES_PER_VERTEX) * vertices)
+    per_vertex = STORED_BYTES_PER_VERTEX + EMBREE_BYTES_PER_VERTEX + (STORED_BYTES_PER_UV if uv else 0)
+    return int((STORED_BYTES_PER_TRIANGLE + EMBREE_BYTES_PER_TRIANGLE) * triangles + per_vertex * vertices)
 
 
 def _guess_memory(count: int) -> int:
@@ -434,8 +437,8 @@ class Spill:
     """Per-leaf spill files of triangle records (corners, material, global
     id), appended block by block in global-id order."""
 
-    def __init__(self, folder: str):
-        self.folder = folder
+    def __init__(self, folder: str, dtype=RECORD):
+        self.folder, self.dtype = folder, dtype
         os.makedirs(folder, exist_ok=True)
 
     def path(self, node: int) -> str:
@@ -449,8 +452,8 @@ class Spill:
         """The node's records, removing its file."""
         p = self.path(node)
         if not os.path.exists(p):
-            return np.empty(0, RECORD)
-        records = np.fromfile(p, RECORD)
+            return np.empty(0, self.dtype)
+        records = np.fromfile(p, self.dtype)
         os.remove(p)
         return records
 
@@ -470,26 +473,33 @@ def insert(records: np.ndarray, tree: ChunkTree, leaf_nodes: list[int], margin: 
     return np.bincount(tris, minlength=len(records))
 
 
-def source_records(first: int, corners: np.ndarray, material: np.ndarray) -> np.ndarray:
-    r = np.empty(len(corners), RECORD)
+def source_records(first: int, corners: np.ndarray, material: np.ndarray, uv=None) -> np.ndarray:
+    r = np.empty(len(corners), RECORD if uv is None else RECORD_UV)
     r["corners"], r["material"] = corners, material
+    if uv is not None:
+        r["uv"] = uv
     r["global_id"] = np.arange(first, first + len(corners))
     return r
 
 
 def dedup_geometry(records: np.ndarray) -> ChunkGeometry:
-    """Chunk-local arrays: vertices shared by bitwise-equal corners."""
+    """Chunk-local arrays: vertices shared by bitwise-equal corners (and,
+    with texture coordinates, equal uv: a seam keeps its two vertices)."""
     nt = len(records)
+    uv = "uv" in records.dtype.names
     bits = np.ascontiguousarray(records["corners"]).reshape(-1, 3).view("<u4")
-    order = np.lexsort((bits[:, 2], bits[:, 1], bits[:, 0]))
+    if uv:
+        bits = np.concatenate([bits, np.ascontiguousarray(records["uv"]).reshape(-1, 2).view("<u4")], axis=1)
+    order = np.lexsort(bits.T[::-1])
     sorted_bits = bits[order]
     new = np.ones(len(order), bool)
     new[1:] = np.any(sorted_bits[1:] != sorted_bits[:-1], axis=1)
     local = np.empty(len(order), np.int32)
     local[order] = np.cumsum(new) - 1
-    vertices = np.ascontiguousarray(sorted_bits[new]).view("<f4").reshape(-1, 3)
-    return ChunkGeometry(vertices, local.reshape(nt, 3), records["material"].astype(np.int32),
-                         records["global_id"].astype(np.int32))
+    unique = np.ascontiguousarray(sorted_bits[new]).view("<f4")
+    return ChunkGeometry(np.ascontiguousarray(unique[:, :3]), local.reshape(nt, 3),
+                         records["material"].astype(np.int32), records["global_id"].astype(np.int32),
+                         np.ascontiguousarray(unique[:, 3:]) if uv else None)
 
 
 # -- the whole pipeline ---------------------------------------------------------
@@ -528,7 +538,7 @@ def subdivide(source, out: str, budget_bytes: int | None = None, grid: int = DEF
     partial = chunkstore.partial_path(out)
     shutil.rmtree(partial, ignore_errors=True)
     try:
-        spill = Spill(os.path.join(partial, "spill"))
+        spill = Spill(os.path.join(partial, "spill"), RECORD_UV if _has_uv(source) else RECORD)
         margin = INSERT_MARGIN * source.header.diagonal()
         _insert_source(source, kd, margin, spill, block)
         seconds["insertion"], t = time.perf_counter() - t, time.perf_counter()
@@ -563,12 +573,20 @@ def _check_arguments(source, budget_bytes, grid, chunks) -> None:
         raise SceneError(f"{source.count:,} triangles: global ids are int32, at most 2^31 - 1")
 
 
+def _has_uv(source) -> bool:
+    """Whether a triangle source carries texture coordinates (`SceneSource`
+    of a textured scene; soups have none)."""
+    return bool(getattr(source, "has_uv", False))
+
+
 def _insert_source(source, kd: KdBuilder, margin: float, spill: Spill, block: int) -> None:
     """Stream the source through the tree into the leaves' spill files."""
     leaves = kd.leaves()
     tree = kd.tree(leaves)
+    uv = _has_uv(source)
     for first, corners, material in source.blocks(block):
-        copies = insert(source_records(first, corners, material), tree, leaves, margin, spill)
+        corner_uv = source.corner_uv(first, len(corners)) if uv else None
+        copies = insert(source_records(first, corners, material, corner_uv), tree, leaves, margin, spill)
         if np.any(copies == 0):
             i = first + int(np.flatnonzero(copies == 0)[0])
             raise SceneError(f"scene {source.header.name}: triangle {i} lies outside the "
@@ -585,7 +603,7 @@ def _finish_chunks(kd: KdBuilder, spill: Spill, margin: float, partial: str,
         n = todo.pop()
         records = spill.take(n)
         geometry = dedup_geometry(records)
-        need = chunk_memory_bytes(len(geometry.triangles), len(geometry.vertices))
+        need = chunk_memory_bytes(len(geometry.triangles), len(geometry.vertices), len(geometry.uv) > 0)
         if budget_bytes is not None and need > budget_bytes:
             if forced:
                 raise SceneError(f"chunk at {kd.where(n)} needs {format_bytes(need)}, over the "

@@ -17,6 +17,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dosppm_core.scene.errors import SceneError
+from dosppm_core.scene.textures import Texture, TextureTable
+
 # Material kinds, as stored in `MaterialTable.kind` and read by the kernels.
 DIFFUSE, MIRROR, GLASS, GLOSSY = 0, 1, 2, 3
 MATERIAL_KINDS = {"diffuse": DIFFUSE, "mirror": MIRROR, "glass": GLASS, "glossy": GLOSSY}
@@ -29,10 +32,6 @@ LIGHT_TRIANGLE, LIGHT_POINT, LIGHT_SPOT = 0, 1, 2
 # the scene diagonal (the relative part is `trace.EPS_REL`): every mode and
 # every chunk must offset alike, or chunked and unchunked paths diverge.
 SPAWN_EPSILON = 1e-6
-
-
-class SceneError(ValueError):
-    """A user mistake in a scene; the message is one line naming where it is."""
 
 
 def _rgb(value, where: str) -> np.ndarray:
@@ -54,6 +53,8 @@ class Material:
     microfacet reflection lobe of `roughness` = alpha, tinted by
     `reflectance`). `two_sided=False` makes the back of a diffuse, mirror or
     glossy surface black, as Mitsuba does without its `twosided` wrapper.
+    `texture` >= 0 (an id from `SceneBuilder.add_texture`) replaces
+    `reflectance` by that texture's value at the hit's UV.
     """
     name: str
     kind: str = "diffuse"
@@ -62,6 +63,7 @@ class Material:
     roughness: float = 0.1
     emission: tuple = (0.0, 0.0, 0.0)
     two_sided: bool = True
+    texture: int = -1
 
     def validate(self, where: str) -> None:
         if self.kind not in MATERIAL_KINDS:
@@ -165,17 +167,32 @@ class MaterialTable:
     roughness: np.ndarray     # float32 (m,)
     two_sided: np.ndarray     # bool (m,)
     names: list
+    # The texture giving each material's reflectance, -1 for none. A
+    # textured material's `reflectance` row is (1, 1, 1): the kernels fold
+    # the texel into the path weight at the hit (`kernels.texture`), so
+    # every reader of `reflectance` multiplies by the texel through it.
+    texture: np.ndarray = None  # int32 (m,)
+
+    def __post_init__(self):
+        if self.texture is None:
+            self.texture = np.full(len(self.kind), -1, np.int32)
+
+    @property
+    def textured(self) -> bool:
+        return bool(np.any(self.texture >= 0))
 
     @classmethod
     def from_materials(cls, mats: list[Material]) -> "MaterialTable":
+        refl = [(1.0, 1.0, 1.0) if m.texture >= 0 else _rgb(m.reflectance, m.name) for m in mats]
         return cls(
             kind=np.array([MATERIAL_KINDS[m.kind] for m in mats], np.int32),
-            reflectance=np.array([_rgb(m.reflectance, m.name) for m in mats], np.float32).reshape(-1, 3),
+            reflectance=np.array(refl, np.float32).reshape(-1, 3),
             emission=np.array([_rgb(m.emission, m.name) for m in mats], np.float32).reshape(-1, 3),
             ior=np.array([m.ior for m in mats], np.float32),
             roughness=np.array([m.roughness for m in mats], np.float32),
             two_sided=np.array([m.two_sided for m in mats], np.bool_),
             names=[m.name for m in mats],
+            texture=np.array([m.texture for m in mats], np.int32),
         )
 
 
@@ -214,6 +231,16 @@ class Scene:
     name: str = "scene"
     source: str = "<memory>"
     render_settings: dict = field(default_factory=dict)  # hints a scene file carries
+    # Per-vertex texture coordinates, float32 (nv, 2), Mitsuba's convention
+    # (see `textures`); (0, 2) when the scene has none, so it stores nothing.
+    uvs: np.ndarray = None
+    textures: TextureTable = None
+
+    def __post_init__(self):
+        if self.uvs is None:
+            self.uvs = np.zeros((0, 2), np.float32)
+        if self.textures is None:
+            self.textures = TextureTable.empty()
 
     @property
     def triangle_count(self) -> int:
@@ -237,7 +264,7 @@ class Scene:
 
     def header(self) -> "SceneHeader":
         return SceneHeader(self.materials, self.lights, self.camera, self.bounds(), self.name,
-                           self.source, dict(self.render_settings))
+                           self.source, dict(self.render_settings), self.textures)
 
 
 @dataclass
@@ -251,6 +278,11 @@ class SceneHeader:
     name: str = "scene"
     source: str = "<memory>"
     render_settings: dict = field(default_factory=dict)
+    textures: TextureTable = None
+
+    def __post_init__(self):
+        if self.textures is None:
+            self.textures = TextureTable.empty()
 
     def diagonal(self) -> float:
         return float(np.linalg.norm(self.bounds[1] - self.bounds[0]))
@@ -264,7 +296,8 @@ class SceneHeader:
                 "lights": {k: _pack(v) for k, v in vars(self.lights).items()},
                 "camera": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(self.camera).items()},
                 "bounds": _pack(self.bounds), "name": self.name, "source": self.source,
-                "render_settings": dict(self.render_settings)}
+                "render_settings": dict(self.render_settings),
+                "textures": {k: _pack(v) for k, v in vars(self.textures).items()}}
 
     @classmethod
     def from_wire(cls, d: dict) -> "SceneHeader":
@@ -273,8 +306,9 @@ class SceneHeader:
             mats = MaterialTable(**{k: _unpack(v) for k, v in d["materials"].items()})
             lights = LightTable(**{k: _unpack(v) for k, v in d["lights"].items()})
             cam = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d["camera"].items()}
+            textures = TextureTable(**{k: _unpack(v) for k, v in d["textures"].items()})
             header = cls(mats, lights, Camera(**cam), _unpack(d["bounds"]), d["name"],
-                         d["source"], dict(d["render_settings"]))
+                         d["source"], dict(d["render_settings"]), textures)
         except (KeyError, TypeError, ValueError) as e:
             raise SceneError(f"scene header: malformed field {e}") from None
         header.camera.validate("scene header: camera")
@@ -299,6 +333,7 @@ class _Mesh:
     vertices: np.ndarray
     faces: np.ndarray
     material: int
+    uv: np.ndarray | None = None
 
 
 @dataclass
@@ -311,16 +346,28 @@ class SceneBuilder:
     _material_ids: dict = field(default_factory=dict)
     _meshes: list = field(default_factory=list)
     _delta_lights: list = field(default_factory=list)
+    _textures: list = field(default_factory=list)
     camera: Camera | None = None
+
+    def add_texture(self, texture: Texture) -> int:
+        """A texture materials may name by the id returned."""
+        self._textures.append(texture)
+        return len(self._textures) - 1
 
     def add_material(self, material: Material, where: str | None = None) -> int:
         where = where or f"{self.source}: material {material.name!r}"
         material.validate(where)
+        if not -1 <= material.texture < len(self._textures):
+            raise SceneError(f"{where}: texture id {material.texture} out of range")
         if material.name in self._material_ids:
             raise SceneError(f"{where}: duplicate material name {material.name!r}")
         self._material_ids[material.name] = len(self._materials)
         self._materials.append(material)
         return self._material_ids[material.name]
+
+    def textured(self, material: int) -> bool:
+        """Whether material id `material` reads a texture (its meshes keep UVs)."""
+        return self._materials[material].texture >= 0
 
     def material_id(self, name: str, where: str) -> int:
         try:
@@ -329,12 +376,17 @@ class SceneBuilder:
             raise SceneError(f"{where}: unknown material {name!r}") from None
 
     def add_mesh(self, vertices, faces, material: str | int, where: str,
-                 transform: np.ndarray | None = None) -> None:
-        """Add triangles. `transform` is a 4x4 object-to-world matrix."""
+                 transform: np.ndarray | None = None, uv=None) -> None:
+        """Add triangles. `transform` is a 4x4 object-to-world matrix; `uv`
+        (nv, 2) the vertices' texture coordinates, if the mesh has any."""
         v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
         f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
         if not np.all(np.isfinite(v)):
             raise SceneError(f"{where}: vertices contain NaN or Inf")
+        if uv is not None:
+            uv = np.asarray(uv, np.float64)
+            if uv.shape != (len(v), 2) or not np.all(np.isfinite(uv)):
+                raise SceneError(f"{where}: texture coordinates must be {len(v)} finite (u, v) pairs")
         if f.size and (f.min() < 0 or f.max() >= len(v)):
             raise SceneError(f"{where}: face index out of range (0..{len(v) - 1})")
         if transform is not None:
@@ -343,7 +395,14 @@ class SceneBuilder:
             if not np.all(np.isfinite(v)):
                 raise SceneError(f"{where}: transform produced NaN or Inf vertices")
         mid = material if isinstance(material, int) else self.material_id(material, where)
-        self._meshes.append(_Mesh(v, f, mid))
+        if not self.textured(mid):
+            uv = None       # only textured surfaces store UVs: the rest pay nothing
+        elif uv is None:
+            # Mitsuba's uv on a mesh without texture coordinates is the
+            # hit's barycentrics (b1, b2): one vertex per corner gives that.
+            v, f = v[f].reshape(-1, 3), np.arange(f.size).reshape(-1, 3)
+            uv = np.tile([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]], (len(f), 1))
+        self._meshes.append(_Mesh(v, f, mid, uv))
 
     def add_point_light(self, position, intensity, where: str) -> None:
         pos, val = _rgb(position, f"{where}.position"), _rgb(intensity, f"{where}.intensity")
@@ -382,7 +441,16 @@ class SceneBuilder:
         if lights.kind.size == 0 or lights.total_power <= 0:
             raise SceneError(f"{self.source}: no light (no emissive material, point or spot light)")
         return Scene(verts.astype(np.float32), tris.astype(np.int32), mats.astype(np.int32),
-                     mtable, lights, self.camera, self.name, self.source)
+                     mtable, lights, self.camera, self.name, self.source, uvs=self._merged_uv(),
+                     textures=TextureTable.from_textures(self._textures))
+
+    def _merged_uv(self) -> np.ndarray:
+        """The vertices' UVs in merged order; (0, 2) when no mesh has any
+        (meshes without UVs among some with get (0, 0))."""
+        if all(m.uv is None for m in self._meshes):
+            return np.zeros((0, 2), np.float32)
+        return np.concatenate([np.zeros((len(m.vertices), 2)) if m.uv is None else m.uv
+                               for m in self._meshes]).astype(np.float32)
 
     def _merge_meshes(self):
         offsets = np.cumsum([0] + [len(m.vertices) for m in self._meshes])

@@ -45,10 +45,19 @@ class SceneSource:
             tris = s.triangles[start:start + size]
             yield start, np.take(s.vertices, tris, axis=0), s.tri_material[start:start + size]
 
+    @property
+    def has_uv(self) -> bool:
+        return len(self.scene.uvs) > 0
+
+    def corner_uv(self, first: int, count: int) -> np.ndarray:
+        """(count, 3, 2) float32 texture coordinates of the corners of
+        triangles [first, first + count) (a source with `has_uv`)."""
+        return np.take(self.scene.uvs, self.scene.triangles[first:first + count], axis=0)
+
     def content_hash(self) -> str:
         h = hashlib.sha256()
         s = self.scene
-        for a in (s.vertices, s.triangles, s.tri_material):
+        for a in (s.vertices, s.triangles, s.tri_material) + ((s.uvs,) if len(s.uvs) else ()):
             h.update(np.ascontiguousarray(a).tobytes())
         h.update(header_digest(self.header))
         return h.hexdigest()

@@ -255,40 +255,45 @@ def _read_shape(shape: dict, builder: SceneBuilder, path: str, where: str, base_
     transform = _read_transform(shape, path, where)
     if kind == "mesh":
         file = _string(shape, "file", path, where)
-        vertices, faces = load_mesh_file(os.path.join(base_dir, file), path, f"{where}.file")
+        vertices, faces, uv = load_mesh_file(os.path.join(base_dir, file), path, f"{where}.file")
         mesh_where = f"{path}: {where}.file ({file})"
     else:
         vertices, faces = _PRIMITIVES[kind]()
+        uv = None
         mesh_where = f"{path}: {where}"
     if transform is not None and np.linalg.det(transform[:3, :3]) < 0:
         # A mirroring transform turns counter-clockwise into clockwise;
         # reverse the winding so the front (emitting) side stays the front,
         # as pbrt does for transforms that swap handedness.
         faces = faces[:, ::-1]
-    builder.add_mesh(vertices, faces, material, mesh_where, transform)
+    builder.add_mesh(vertices, faces, material, mesh_where, transform, uv=uv)
     return shape["material"]
 
 
-def load_mesh_file(full: str, path: str, where: str) -> tuple[np.ndarray, np.ndarray]:
-    """(vertices, triangles) of any mesh file trimesh reads; errors name
-    the scene file `path` and the element `where`."""
+def load_mesh_file(full: str, path: str, where: str):
+    """(vertices, triangles, uv or None) of any mesh file trimesh reads;
+    errors name the scene file `path` and the element `where`."""
     if not os.path.isfile(full):
         raise SceneError(f"{path}: {where}: no such file {full!r}")
     try:
-        return read_mesh_file(full)
+        return read_mesh_file(full, with_uv=True)
     except ValueError as e:
         raise SceneError(f"{path}: {where}: {e}") from None
 
 
-def read_mesh_file(full: str) -> tuple[np.ndarray, np.ndarray]:
+def read_mesh_file(full: str, with_uv: bool = False):
     """(vertices float64, triangles int64) of any mesh file trimesh reads,
-    or ValueError with a one-line reason. Shared by every scene loader."""
+    or ValueError with a one-line reason. Shared by every scene loader.
+    `with_uv` adds the vertices' texture coordinates (float64 (nv, 2), or
+    None if the file has none) in Mitsuba's convention: an OBJ's v is
+    turned into 1 - v, as Mitsuba's OBJ reader does (v = 0 is then the
+    image's top row); a PLY's are taken as stored."""
     import trimesh  # imported here: half a second that scenes without meshes never pay
     try:
         # Only geometry is used: skipping materials also keeps trimesh from
         # importing Pillow for the textures an OBJ's .mtl may name.
         loaded = trimesh.load(full, process=False, skip_materials=True)
-        vertices, faces = _flatten(loaded)
+        vertices, faces, uv = _flatten(loaded)
     # trimesh's readers raise many exception types on bad input (ValueError,
     # KeyError, IndexError, struct.error...): all mean "cannot read".
     except Exception as e:  # noqa: BLE001
@@ -296,13 +301,18 @@ def read_mesh_file(full: str) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(f"cannot read mesh {full!r}: {detail}") from None
     if len(faces) == 0:
         raise ValueError(f"mesh {full!r} has no triangles")
-    return vertices, faces
+    if not with_uv:
+        return vertices, faces
+    if uv is not None and full.lower().endswith(".obj"):
+        uv[:, 1] = 1.0 - uv[:, 1]
+    return vertices, faces, uv
 
 
-def _flatten(loaded) -> tuple[np.ndarray, np.ndarray]:
-    """One triangle soup from a trimesh Trimesh or Scene, with each node's
-    transform applied. Done here rather than with force="mesh", whose
-    Scene.dump deep-copies every visual and so needs Pillow."""
+def _flatten(loaded):
+    """One triangle soup (vertices, faces, uv or None) from a trimesh
+    Trimesh or Scene, with each node's transform applied. Done here rather
+    than with force="mesh", whose Scene.dump deep-copies every visual and
+    so needs Pillow. Parts without UVs get (0, 0) beside parts with them."""
     if hasattr(loaded, "graph"):
         parts = []
         for node in loaded.graph.nodes_geometry:
@@ -310,7 +320,7 @@ def _flatten(loaded) -> tuple[np.ndarray, np.ndarray]:
             parts.append((loaded.geometry[name], transform))
     else:
         parts = [(loaded, None)]
-    vertices, faces, offset = [], [], 0
+    vertices, faces, uvs, offset = [], [], [], 0
     for mesh, transform in parts:
         f = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), np.int64)
         if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
@@ -320,10 +330,23 @@ def _flatten(loaded) -> tuple[np.ndarray, np.ndarray]:
             v = v @ transform[:3, :3].T + transform[:3, 3]
         vertices.append(v)
         faces.append(f + offset)
+        uvs.append(_mesh_uv(mesh, len(v)))
         offset += len(v)
     if not faces:
-        return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
-    return np.concatenate(vertices), np.concatenate(faces)
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int64), None
+    uv = None
+    if any(u is not None for u in uvs):
+        uv = np.concatenate([np.zeros((len(v), 2)) if u is None else u for v, u in zip(vertices, uvs)])
+    return np.concatenate(vertices), np.concatenate(faces), uv
+
+
+def _mesh_uv(mesh, count: int):
+    """A trimesh mesh's per-vertex UVs (float64 copy), None without."""
+    uv = getattr(getattr(mesh, "visual", None), "uv", None)
+    if uv is None:
+        return None
+    uv = np.array(uv, np.float64)
+    return uv if uv.shape == (count, 2) else None
 
 
 def _read_transform(shape: dict, path: str, where: str) -> np.ndarray | None:

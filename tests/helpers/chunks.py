@@ -94,7 +94,8 @@ def bbox_chunks(scene, tree: ChunkTree) -> list[ChunkGeometry]:
         sel = np.flatnonzero(np.all(lo <= box[1] + margin, axis=1) & np.all(hi >= box[0] - margin, axis=1))
         used, local = np.unique(scene.triangles[sel], return_inverse=True)
         out.append(ChunkGeometry(scene.vertices[used], local.reshape(-1, 3).astype(np.int32),
-                                 scene.tri_material[sel], sel.astype(np.int32)))
+                                 scene.tri_material[sel], sel.astype(np.int32),
+                                 scene.uvs[used] if len(scene.uvs) else None))
     return out
 
 

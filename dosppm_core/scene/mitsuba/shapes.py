@@ -4,6 +4,12 @@ flip_normals and at most one BSDF and one area emitter; shapegroup and
 instance, flattened: each instance adds a moved copy of its group's
 triangles.
 
+A shape whose material reads a texture gets texture coordinates laid out
+as Mitsuba's: an OBJ's or PLY's own, and for the built-in shapes their
+analytic (u, v) at the vertices, with vertices repeated along seams (and
+at a sphere's poles and a disk's centre) so that interpolation within a
+triangle never crosses from u = 1 back to 0. Other shapes store none.
+
 The front of a surface is its triangle winding (counter-clockwise), which
 emission and one-sided BSDFs use and flip_normals reverses. Under a
 mirroring to_world Mitsuba keeps the front of rectangles and cubes outward
@@ -46,7 +52,12 @@ def read_shape(reader: ReaderState, obj: Obj, outer: np.ndarray | None = None) -
     if obj.type in GROUPS:
         _group_or_instance(reader, obj, outer)
         return
-    vertices, faces = shape_geometry(reader, obj)
+    children = reader.children(obj, {"bsdf", "emitter"})
+    bsdf, emitter = reader.single(obj, children, "bsdf"), reader.single(obj, children, "emitter")
+    if outer is not None and emitter is not None:
+        emitter.node.fail("an emitter inside a shapegroup (Mitsuba does not instance emitters)")
+    material = material_id(reader, bsdf, emitter, obj)
+    vertices, faces, uv = shape_geometry(reader, obj, reader.builder.textured(material))
     to_world = get_matrix(obj)
     if obj.type == "sphere":
         to_world = _sphere_frame(obj, to_world)
@@ -60,13 +71,8 @@ def read_shape(reader: ReaderState, obj: Obj, outer: np.ndarray | None = None) -
         faces = faces[:, ::-1]
     if get_bool(obj, "flip_normals", False):
         faces = faces[:, ::-1]
-    children = reader.children(obj, {"bsdf", "emitter"})
-    bsdf, emitter = reader.single(obj, children, "bsdf"), reader.single(obj, children, "emitter")
-    if outer is not None and emitter is not None:
-        emitter.node.fail("an emitter inside a shapegroup (Mitsuba does not instance emitters)")
-    material = material_id(reader, bsdf, emitter, obj)
     finish(obj)
-    reader.builder.add_mesh(vertices, faces, material, obj.where(), transform=to_world)
+    reader.builder.add_mesh(vertices, faces, material, obj.where(), transform=to_world, uv=uv)
 
 
 def _group_or_instance(reader: ReaderState, obj: Obj, outer) -> None:
@@ -90,21 +96,25 @@ def _group_or_instance(reader: ReaderState, obj: Obj, outer) -> None:
         read_shape(reader, member, to_world)
 
 
-def shape_geometry(reader: ReaderState, obj: Obj):
-    """(vertices, faces) of a shape in its local frame: a mesh file's or
-    one of the built-in shapes'."""
+def shape_geometry(reader: ReaderState, obj: Obj, with_uv: bool = False):
+    """(vertices, faces, uv) of a shape in its local frame: a mesh file's or
+    one of the built-in shapes'; uv is None unless `with_uv` (and the file
+    has some)."""
     if obj.type in ("obj", "ply"):
         filename = required(obj, "filename", get_str)
         get_bool(obj, "face_normals")         # our normals are always the faces'
         path = resolve(obj.take("filename", ("string",)).node, filename, reader.root_dir, reader.paths)
-        return _load_mesh_file(path, obj.node)
-    return {"rectangle": _rectangle, "cube": _cube, "sphere": _unit_sphere, "disk": _disk,
-            "cylinder": _cylinder}[obj.type]()
+        vertices, faces, uv = _load_mesh_file(path, obj.node)
+        return vertices, faces, uv if with_uv else None
+    if with_uv:
+        return _TEXTURED[obj.type]()
+    vertices, faces = _BUILT_IN[obj.type]()
+    return vertices, faces, None
 
 
 def _load_mesh_file(path: str, node: Node):
     try:
-        return read_mesh_file(path)
+        return read_mesh_file(path, with_uv=True)
     except ValueError as exc:
         node.fail(str(exc))
 
@@ -134,11 +144,14 @@ def _cylinder_frame(obj: Obj) -> np.ndarray:
     if not radius > 0 or length == 0:
         obj.node.fail("a cylinder needs a positive radius and p0 != p1")
     z = axis / length
-    helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    x = np.cross(helper, z)
-    x /= np.linalg.norm(x)
+    # Mitsuba's Frame3f(z) (Duff et al.'s basis): the same x, y keep the
+    # angle phi, and so a texture's u, where Mitsuba has it.
+    sign = 1.0 if z[2] >= 0.0 else -1.0
+    a, b = -1.0 / (sign + z[2]), z[0] * z[1] * -1.0 / (sign + z[2])
+    x = np.array([1.0 + sign * z[0] * z[0] * a, sign * b, -sign * z[0]])
+    y = np.array([b, sign + z[1] * z[1] * a, -z[1]])
     m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = x * radius, np.cross(z, x) * radius, axis, p0
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = x * radius, y * radius, axis, p0
     return m
 
 
@@ -222,3 +235,73 @@ def _cylinder():
     jn = (j + 1) % SEGMENTS
     faces = np.concatenate([np.stack([j, jn, SEGMENTS + jn], 1), np.stack([j, SEGMENTS + jn, SEGMENTS + j], 1)])
     return vertices, faces.astype(np.int64)
+
+
+# -- their texture coordinates, as Mitsuba's (seams split) -------------------------
+# The cube's (u, v) at `_cube`'s vertices, face by face (axis x, y, z; side
+# -1 then +1), read off Mitsuba 3's cube by tracing rays at its corners.
+_CUBE_UV = np.array([
+    [0, 0], [1, 0], [1, 1], [0, 1], [0, 1], [1, 1], [1, 0], [0, 0],
+    [0, 0], [1, 0], [1, 1], [0, 1], [1, 1], [1, 0], [0, 0], [0, 1],
+    [1, 0], [1, 1], [0, 1], [0, 0], [0, 0], [0, 1], [1, 1], [1, 0]], np.float64)
+
+
+def _rectangle_uv():
+    v, f = _rectangle()
+    return v, f, (v[:, :2] + 1.0) / 2.0
+
+
+def _cube_uv():
+    v, f = _cube()
+    return v, f, _CUBE_UV.copy()
+
+
+def _sphere_uv():
+    """uv = (phi / 2 pi, theta / pi) about z, as Mitsuba's sphere; each
+    triangle gets its own corners, so one that straddles phi = 0 can take
+    u + 1 for its corners past the seam, and a corner on a pole the mean u
+    of the other two."""
+    v, f = _unit_sphere()
+    corners = v[f]                                     # (T, 3, 3)
+    u = np.arctan2(corners[..., 1], corners[..., 0]) / (2 * np.pi) % 1.0
+    w = np.arccos(np.clip(corners[..., 2], -1.0, 1.0)) / np.pi
+    pole = np.hypot(corners[..., 0], corners[..., 1]) < 1e-9
+    u = np.where(pole, np.nan, u)
+    span = np.nanmax(u, axis=1) - np.nanmin(u, axis=1)
+    u = np.where((span > 0.5)[:, None] & (u < 0.5), u + 1.0, u)
+    u = np.where(pole, np.nanmean(u, axis=1)[:, None], u)
+    return corners.reshape(-1, 3), np.arange(f.size).reshape(-1, 3), np.stack([u, w], -1).reshape(-1, 2)
+
+
+def _disk_uv():
+    """uv = (r, phi / 2 pi), as Mitsuba's disk: the fan's centre repeated
+    per triangle at the triangle's middle angle, and the rim's last vertex
+    repeated at u = 1."""
+    v, f = _disk()
+    corners = v[f]
+    j = np.arange(SEGMENTS)
+    uv = np.zeros((SEGMENTS, 3, 2))
+    uv[:, 0] = np.c_[np.zeros(SEGMENTS), (j + 0.5) / SEGMENTS]
+    uv[:, 1] = np.c_[np.ones(SEGMENTS), j / SEGMENTS]
+    uv[:, 2] = np.c_[np.ones(SEGMENTS), (j + 1) / SEGMENTS]
+    return corners.reshape(-1, 3), np.arange(f.size).reshape(-1, 3), uv.reshape(-1, 2)
+
+
+def _cylinder_uv():
+    """uv = (phi / 2 pi, z), as Mitsuba's cylinder: a ring of SEGMENTS + 1
+    columns, the last at u = 1 where the first lies."""
+    n = SEGMENTS + 1
+    phi = 2 * np.pi * np.arange(n) / SEGMENTS
+    ring = np.stack([np.cos(phi), np.sin(phi)], axis=1)
+    vertices = np.concatenate([np.c_[ring, np.zeros(n)], np.c_[ring, np.ones(n)]])
+    j = np.arange(SEGMENTS)
+    faces = np.concatenate([np.stack([j, j + 1, n + j + 1], 1), np.stack([j, n + j + 1, n + j], 1)])
+    u = np.arange(n) / SEGMENTS
+    uv = np.concatenate([np.c_[u, np.zeros(n)], np.c_[u, np.ones(n)]])
+    return vertices, faces.astype(np.int64), uv
+
+
+_BUILT_IN = {"rectangle": _rectangle, "cube": _cube, "sphere": _unit_sphere, "disk": _disk,
+             "cylinder": _cylinder}
+_TEXTURED = {"rectangle": _rectangle_uv, "cube": _cube_uv, "sphere": _sphere_uv, "disk": _disk_uv,
+             "cylinder": _cylinder_uv}
