@@ -2,17 +2,17 @@
 (material="none") -> mirror; roughconductor (GGX only) -> glossy;
 dielectric (one tint) -> glass. One <bsdf> object is one material; a
 shape's (bsdf, area emitter) pair becomes one builder material, since
-emission belongs to the material."""
+emission belongs to the material. The colour (reflectance, or the
+conductor's or glass's tint) may be a texture (`textures`)."""
 from __future__ import annotations
 
 import dataclasses
 
-import numpy as np
-
 from dosppm_core.scene.mitsuba.emitters import area_radiance
 from dosppm_core.scene.mitsuba.objects import Obj
-from dosppm_core.scene.mitsuba.params import finish, get_bool, get_float, get_rgb
+from dosppm_core.scene.mitsuba.params import finish, get_bool, get_float
 from dosppm_core.scene.mitsuba.state import ReaderState
+from dosppm_core.scene.mitsuba.textures import TextureParams
 from dosppm_core.scene.model import Material
 
 # Mitsuba's named indices of refraction (include/mitsuba/render/ior.h).
@@ -59,9 +59,17 @@ def _default_bsdf(reader: ReaderState, emitter) -> Material:
     return Material("default", "diffuse", (0.5, 0.5, 0.5), two_sided=False)
 
 
+def _coloured(name: str, kind: str, colour: tuple, **kw) -> Material:
+    """A material of `colour` = (RGB, -1) or (None, texture id)."""
+    rgb, texture = colour
+    return Material(name, kind, (1.0, 1.0, 1.0) if rgb is None else rgb, texture=texture, **kw)
+
+
 def _diffuse(reader: ReaderState, obj: Obj) -> Material:
-    reader.children(obj, ())
-    return Material(obj.name(), "diffuse", get_rgb(obj, "reflectance", 0.5), two_sided=False)
+    params = TextureParams(reader, obj)
+    colour = params.rgb("reflectance", 0.5)
+    params.finish()
+    return _coloured(obj.name(), "diffuse", colour, two_sided=False)
 
 
 def _twosided(reader: ReaderState, obj: Obj) -> Material:
@@ -72,13 +80,15 @@ def _twosided(reader: ReaderState, obj: Obj) -> Material:
 
 
 def _conductor(reader: ReaderState, obj: Obj) -> Material:
-    reader.children(obj, ())
+    params = TextureParams(reader, obj)
     _no_metal(obj)
-    return Material(obj.name(), "mirror", get_rgb(obj, "specular_reflectance", 1.0), two_sided=False)
+    colour = params.rgb("specular_reflectance", 1.0)
+    params.finish()
+    return _coloured(obj.name(), "mirror", colour, two_sided=False)
 
 
 def _roughconductor(reader: ReaderState, obj: Obj) -> Material:
-    reader.children(obj, ())
+    params = TextureParams(reader, obj)
     _no_metal(obj)
     prop = obj.take("distribution", ("string",))
     if prop is None or prop.value != "ggx":
@@ -88,8 +98,9 @@ def _roughconductor(reader: ReaderState, obj: Obj) -> Material:
             f"distribution {prop.value if prop else 'beckmann (Mitsuba default)'!r} is unsupported; "
             'only GGX: add <string name="distribution" value="ggx"/>')
     get_bool(obj, "sample_visible")       # a sampling strategy: the image is the same
-    return Material(obj.name(), "glossy", get_rgb(obj, "specular_reflectance", 1.0),
-                    roughness=_alpha(obj), two_sided=False)
+    colour = params.rgb("specular_reflectance", 1.0)
+    params.finish()                       # a textured alpha is refused here
+    return _coloured(obj.name(), "glossy", colour, roughness=_alpha(obj), two_sided=False)
 
 
 def _alpha(obj: Obj) -> float:
@@ -102,12 +113,11 @@ def _alpha(obj: Obj) -> float:
 
 
 def _dielectric(reader: ReaderState, obj: Obj) -> Material:
-    reader.children(obj, ())
+    params = TextureParams(reader, obj)
     eta = _ior(obj, "int_ior", "bk7") / _ior(obj, "ext_ior", "air")
-    tint = get_rgb(obj, "specular_reflectance", 1.0)
-    if not np.allclose(tint, get_rgb(obj, "specular_transmittance", 1.0)):
-        obj.node.fail("specular_reflectance and specular_transmittance differ; our glass has one tint")
-    return Material(obj.name(), "glass", tint, ior=eta, two_sided=True)
+    colour = params.same("specular_reflectance", "specular_transmittance", 1.0)
+    params.finish()
+    return _coloured(obj.name(), "glass", colour, ior=eta, two_sided=True)
 
 
 def _ior(obj: Obj, name: str, default: str) -> float:

@@ -23,12 +23,13 @@ from dosppm_core.scene.mitsuba.params import finish
 from dosppm_core.scene.mitsuba.sensors import read_integrator, read_sensor
 from dosppm_core.scene.mitsuba.shapes import read_shape
 from dosppm_core.scene.mitsuba.state import ReaderState
+from dosppm_core.scene.mitsuba.textures import read_texture
 from dosppm_core.scene.mitsuba.xmltree import parse_xml
 from dosppm_core.scene.model import Scene, SceneError
 
 # The scene-level objects and who reads them.
 _READERS = {"shape": read_shape, "sensor": read_sensor, "integrator": read_integrator,
-            "bsdf": bsdf_material, "emitter": read_emitter}
+            "bsdf": bsdf_material, "emitter": read_emitter, "texture": read_texture}
 
 
 def load_mitsuba_xml(path: str, **defaults) -> Scene:

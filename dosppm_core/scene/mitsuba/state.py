@@ -22,6 +22,7 @@ class ReaderState:
         self.bsdfs: dict = {}               # id(Obj) -> Material without emission
         self.material_ids: dict = {}        # (id(bsdf), id(emitter)) -> builder material id
         self.radiance: dict = {}            # id(area emitter) -> RGB radiance
+        self.textures: dict = {}            # id(texture Obj) -> builder texture id
         self.loose_area_emitters: list = []
 
     def children(self, obj: Obj, allowed) -> list:

@@ -1,0 +1,105 @@
+"""Texture plugins: bitmap (filename, filter_type, wrap_mode, raw, to_uv)
+and checkerboard (color0, color1, to_uv), nested in a BSDF under a
+parameter's name or referenced by id (`<ref name="reflectance" id="tex"/>`).
+
+One <texture> object is one texture of the scene however often it is
+referenced. A BSDF reads its colour parameters through `TextureParams`,
+which returns either a constant RGB or a texture id, and fails on a
+texture nested under a name the BSDF does not read."""
+from __future__ import annotations
+
+import numpy as np
+
+from dosppm_core.scene import textures as tx
+from dosppm_core.scene.mitsuba.objects import Obj, Ref
+from dosppm_core.scene.mitsuba.params import finish, get_bool, get_matrix, get_rgb, get_str, required
+from dosppm_core.scene.mitsuba.state import ReaderState
+from dosppm_core.scene.mitsuba.xmltree import resolve
+
+
+def read_texture(reader: ReaderState, obj: Obj) -> int:
+    """The builder's id of the texture `obj` describes (read once)."""
+    if id(obj) not in reader.textures:
+        reader.children(obj, ())          # no textures of textures
+        texture = _bitmap(reader, obj) if obj.type == "bitmap" else _checkerboard(obj)
+        finish(obj)
+        reader.textures[id(obj)] = reader.builder.add_texture(texture)
+    return reader.textures[id(obj)]
+
+
+def _uv_map(obj: Obj) -> tuple:
+    """Mitsuba's to_uv: the 2D affine part (rows and columns x, y and the
+    translation) of the 4x4 transform given."""
+    m = get_matrix(obj, "to_uv")
+    return (m[0, 0], m[0, 1], m[0, 3], m[1, 0], m[1, 1], m[1, 3])
+
+
+def _bitmap(reader: ReaderState, obj: Obj) -> tx.Texture:
+    filename = required(obj, "filename", get_str)
+    node = obj.take("filename", ("string",)).node
+    path = resolve(node, filename, reader.root_dir, reader.paths)
+    raw = get_bool(obj, "raw", False)
+    filter_type = get_str(obj, "filter_type", "bilinear")
+    wrap_mode = get_str(obj, "wrap_mode", "repeat")
+    get_bool(obj, "accel")                # a GPU lookup strategy: the same values
+    for name, value, allowed in (("filter_type", filter_type, tx.FILTERS),
+                                 ("wrap_mode", wrap_mode, tx.WRAP_MODES)):
+        if value not in allowed:
+            obj.take(name, ("string",)).node.fail(
+                f"{name} {value!r} is unsupported (known: {', '.join(allowed)})")
+    try:
+        texels = tx.read_image(path, raw=raw)
+    except ValueError as exc:
+        node.fail(str(exc))
+    return tx.bitmap(obj.name(), texels, filter_type, wrap_mode, _uv_map(obj))
+
+
+def _checkerboard(obj: Obj) -> tx.Texture:
+    # Mitsuba's defaults: color0 0.4, color1 0.2.
+    return tx.checkerboard(obj.name(), get_rgb(obj, "color0", 0.4), get_rgb(obj, "color1", 0.2),
+                           _uv_map(obj))
+
+
+class TextureParams:
+    """A BSDF's nested or referenced textures, by parameter name."""
+
+    def __init__(self, reader: ReaderState, obj: Obj):
+        self.reader, self.obj = reader, obj
+        self.named: dict = {}
+        for child in obj.children:
+            target = child
+            if isinstance(child, Ref):
+                target = reader.ids.get(child.id) or child.node.fail(f"unknown id {child.id!r}")
+            if target.tag != "texture":
+                child.node.fail(f"not allowed inside {obj.node.label}")
+            name = child.node.attrib.get("name")
+            if not name:
+                child.node.fail("a texture inside a BSDF needs the name of the parameter it gives")
+            if name in self.named:
+                child.node.fail(f"parameter {name!r} given twice")
+            self.named[name] = [child, target, False]
+
+    def rgb(self, name: str, default: float) -> tuple:
+        """(RGB, -1) of a constant parameter, or (None, texture id) of a
+        textured one."""
+        if name not in self.named:
+            return get_rgb(self.obj, name, default), -1
+        entry = self.named[name]
+        if name in self.obj.props:
+            entry[0].node.fail(f"parameter {name!r} given twice (a value and a texture)")
+        entry[2] = True
+        return None, read_texture(self.reader, entry[1])
+
+    def same(self, a: str, b: str, default: float) -> tuple:
+        """(RGB, texture id) of two parameters that must agree (a glass's
+        one tint): equal constants or the same texture object."""
+        rgb_a, tex_a = self.rgb(a, default)
+        rgb_b, tex_b = self.rgb(b, default)
+        if tex_a != tex_b or (tex_a < 0 and not np.allclose(rgb_a, rgb_b)):
+            self.obj.node.fail(f"{a} and {b} differ; our glass has one tint")
+        return rgb_a, tex_a
+
+    def finish(self) -> None:
+        for name, (child, _target, used) in self.named.items():
+            if not used:
+                child.node.fail(f"a texture for {name!r} is unsupported here (only constant values)")
