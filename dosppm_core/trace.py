@@ -7,7 +7,7 @@ import numpy as np
 
 from dosppm_core.accel import Accelerator
 from dosppm_core.jobs import STORED, HitPoints, PhotonDeposits, RayBatch, ShadowRays
-from dosppm_core.kernels import direct, emit, light_cache, paths
+from dosppm_core.kernels import direct, emit, light_cache, paths, texture
 from dosppm_core.kernels.light_cache import LightCache
 from dosppm_core.kernels.light_tree import build_light_tree
 from dosppm_core.kernels.paths import SurfaceData
@@ -94,7 +94,11 @@ def advance_eye(surf: SurfaceData, batch: RayBatch, prim, u, v, max_depth: int,
     ends, (lit, rgb), (h, hpos, hn), (g, no, nd, nw, st) = kernel(
         (batch.direction, batch.weight, batch.depth, batch.rng), (prim, u, v), surf,
         max_depth, EPS_REL)
-    hits = HitPoints(hpos, hn, -batch.direction[h], batch.weight[h],
+    weight = batch.weight[h]
+    if len(surf.tex_info) and len(h):
+        # A textured hit point carries its texel in its weight (`kernels.texture`).
+        texture.fold_texels(surf, prim[h], u[h], v[h], weight)
+    hits = HitPoints(hpos, hn, -batch.direction[h], weight,
                      surf.tri_material[prim[h]], batch.pixel[h])
     nxt = RayBatch(no, nd, nw, batch.pixel[g], batch.depth[g] + 1, st, job=batch.job[g])
     shadows = ShadowRays.empty()

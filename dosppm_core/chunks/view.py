@@ -32,9 +32,8 @@ class ChunkView:
         self.eps = PORTAL_EPS * header.diagonal()
         self.total_power = header.lights.total_power    # BSDF-sampled direct-light rays weigh by it
         m = header.materials
-        self.surf = SurfaceData(geometry.vertices, geometry.triangles, geometry.tri_material,
-                                m.kind, m.reflectance, m.emission, m.ior, m.roughness,
-                                m.two_sided, header.spawn_epsilon())
+        self.surf = SurfaceData.from_arrays(geometry.vertices, geometry.triangles, geometry.tri_material,
+                                            m, header.spawn_epsilon(), geometry.uv, header.textures)
         # An empty chunk (air between walls) still routes rays; Embree
         # needs one triangle, so give it one that no ray can reach.
         verts, tris = geometry.vertices, geometry.triangles

@@ -24,6 +24,7 @@ import numpy as np
 from dosppm_core.jobs import ABSORBED, CONTINUES, ESCAPED, MAX_DEPTH, STORED
 from dosppm_core.kernels.bsdf import is_specular, sample_bsdf
 from dosppm_core.kernels.rng import next_float
+from dosppm_core.kernels.texture import reflectance_at
 
 # `prim` of a ray whose hit lies in another chunk (it left through a
 # portal): the bounce kernels skip its row, so a chunk's batch need not be
@@ -45,13 +46,29 @@ class SurfaceData(NamedTuple):
     roughness: np.ndarray       # GGX alpha
     two_sided: np.ndarray
     eps_abs: float              # absolute part of the spawn offset (Scene.spawn_epsilon)
+    # Textures (`kernels.texture`): empty arrays in an untextured scene.
+    uvs: np.ndarray             # float32 (V, 2) or (0, 2)
+    mat_texture: np.ndarray     # int32 (M,): the texture giving reflectance, -1 for none
+    tex_info: np.ndarray        # int32 (K, 6), `TextureTable.info`
+    tex_uv: np.ndarray          # float64 (K, 6), its to_uv maps
+    texels: np.ndarray          # float32 (N, 3)
 
     @classmethod
     def from_scene(cls, scene) -> "SurfaceData":
-        m = scene.materials
-        return cls(scene.vertices, scene.triangles, scene.tri_material, m.kind,
-                   m.reflectance, m.emission, m.ior, m.roughness, m.two_sided,
-                   scene.spawn_epsilon())
+        return cls.from_arrays(scene.vertices, scene.triangles, scene.tri_material, scene.materials,
+                               scene.spawn_epsilon(), scene.uvs, scene.textures)
+
+    @classmethod
+    def from_arrays(cls, vertices, triangles, tri_material, m, eps_abs, uvs, textures) -> "SurfaceData":
+        """From geometry arrays, a `MaterialTable` m and a `TextureTable`."""
+        return cls(vertices, triangles, tri_material, m.kind, m.reflectance, m.emission, m.ior,
+                   m.roughness, m.two_sided, eps_abs, np.ascontiguousarray(uvs, np.float32),
+                   np.ascontiguousarray(m.texture, np.int32), textures.info, textures.uv_map,
+                   textures.texels)
+
+    @property
+    def textured(self) -> bool:
+        return bool(np.any(self.mat_texture >= 0))
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -144,15 +161,15 @@ DEEP_SURVIVAL = 0.9
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
-def roulette(flux, i, refl, m, scale, ur, depth):
-    """Russian roulette on the scattered flux (or an eye path's weight): a
-    path survives with the ratio p of its new to old largest component
-    (at most DEEP_SURVIVAL from surface DEEP_DEPTH on), and is reweighted
-    by 1/p. Returns (survives, the new flux)."""
+def roulette(flux, i, r0, r1, r2, scale, ur, depth):
+    """Russian roulette on the scattered flux (or an eye path's weight)
+    times reflectance r: a path survives with the ratio p of its new to
+    old largest component (at most DEEP_SURVIVAL from surface DEEP_DEPTH
+    on), and is reweighted by 1/p. Returns (survives, the new flux)."""
     old_max = max(flux[i, 0], flux[i, 1], flux[i, 2])
-    nf0 = flux[i, 0] * refl[m, 0] * scale
-    nf1 = flux[i, 1] * refl[m, 1] * scale
-    nf2 = flux[i, 2] * refl[m, 2] * scale
+    nf0 = flux[i, 0] * r0 * scale
+    nf1 = flux[i, 1] * r1 * scale
+    nf2 = flux[i, 2] * r2 * scale
     p = min(1.0, max(nf0, nf1, nf2) / old_max) if old_max > 0 else 0.0
     if depth >= DEEP_DEPTH:
         p = min(p, DEEP_SURVIVAL)
@@ -249,7 +266,8 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
     written densely from row a. Returns where each ended (dc, gc)."""
     # The tuples are unpacked here, once per block, not per ray in the helpers.
     direction, flux, depth, states, job, pixel = rays
-    verts, tris, tri_mat, kinds, refl, _emit, ior, rough, two_sided, eps_abs = surf
+    (verts, tris, tri_mat, kinds, refl, _emit, ior, rough, two_sided, eps_abs,
+     uvs, mtex, tinfo, tuv, texels) = surf
     prim, u, v = hits
     dep_pos, dep_in, dep_n, dep_f, dep_job = dep
     new_o, new_d, new_f, new_st, new_depth, new_job, new_pix = nxt
@@ -287,7 +305,8 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
         if not ok:
             end[i] = ABSORBED
             continue
-        ok, f0, f1, f2 = roulette(flux, i, refl, m, scale, ur, depth[i])
+        r0, r1, r2 = reflectance_at(refl, mtex, uvs, tris, tinfo, tuv, texels, m, tri, u[i], v[i])
+        ok, f0, f1, f2 = roulette(flux, i, r0, r1, r2, scale, ur, depth[i])
         if not ok:
             end[i] = ABSORBED
             continue
@@ -408,7 +427,8 @@ def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp,
     """The eye bounce of rows [a, e), each written to its own row."""
     # The tuples are unpacked here, once per block, not per ray in the helpers.
     direction, weight, depth, states = rays
-    verts, tris, tri_mat, kinds, refl, emit, ior, rough, two_sided, eps_abs = surf
+    (verts, tris, tri_mat, kinds, refl, emit, ior, rough, two_sided, eps_abs,
+     uvs, mtex, tinfo, tuv, texels) = surf
     prim, u, v = hits
     hp_pos, hp_n = hp
     new_o, new_d, new_w, new_st = nxt
@@ -444,7 +464,8 @@ def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp,
         # with it the depth limit is only a safety net. It decides on the
         # reflectance alone, not the eta^2 of refraction (pbrt's etaScale):
         # that factor leaving glass would kill 56% of the paths through it.
-        ok, f0, f1, f2 = roulette(weight, i, refl, m, 1.0, ur, depth[i])
+        r0, r1, r2 = reflectance_at(refl, mtex, uvs, tris, tinfo, tuv, texels, m, tri, u[i], v[i])
+        ok, f0, f1, f2 = roulette(weight, i, r0, r1, r2, 1.0, ur, depth[i])
         if not ok:
             end[i] = ABSORBED
             continue

@@ -1,0 +1,123 @@
+"""Texture lookups at a hit: the reflectance a textured material has there.
+
+A hit on triangle `tri` at barycentrics (u, v) has the texture coordinate
+interpolated from its vertices' UVs; `texel` evaluates texture t there as
+Mitsuba 3's bitmap and checkerboard do (`scene.textures`). Photon bounces
+and eye hits call the same `reflectance_at`, so photons and eye rays read
+the same texel.
+
+Where the texel goes: an eye path's hit point keeps it folded into its
+weight (`fold_texels`), and a textured material's `reflectance` row is
+(1, 1, 1). The gather and next-event estimation multiply weight by
+reflectance, so they read the texel with no change, the hit-point record
+and the wire keep their format, and an untextured scene runs no extra
+code at its hit points: the trace step calls `fold_texels` only when the
+scene has textures. Inside the bounce kernels (photon roulette, an eye path
+through a tinted mirror or glass) `reflectance_at` branches on the
+material's texture id, -1 for a constant.
+"""
+import math
+
+import numba as nb
+import numpy as np
+
+from dosppm_core.scene.textures import CHECKERBOARD, CLAMP, MIRROR, NEAREST, REPEAT
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def wrap_index(i, size, mode):
+    """Texel index i wrapped into [0, size) as Mitsuba's wrap modes."""
+    if mode == REPEAT:
+        i = i % size
+        return i + size if i < 0 else i
+    if mode == MIRROR:
+        i = i % (2 * size)
+        if i < 0:
+            i += 2 * size
+        return 2 * size - 1 - i if i >= size else i
+    return min(max(i, 0), size - 1)
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def _floor_int(x):
+    # Far outside [0, 1] (or NaN from a degenerate triangle) a float could
+    # overflow the int: clamp first; every wrap mode folds it back anyway.
+    if not x > -1e9:
+        return -1000000000
+    return int(math.floor(min(x, 1e9)))
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def texel(info, uv_map, texels, t, s, r):
+    """Linear RGB of texture t at texture coordinate (s, r)."""
+    a = uv_map[t]
+    u = a[0] * s + a[1] * r + a[2]
+    v = a[3] * s + a[4] * r + a[5]
+    off, w, h, wrap = info[t, 1], info[t, 2], info[t, 3], info[t, 5]
+    if info[t, 0] == CHECKERBOARD:
+        row = off if (u - math.floor(u) > 0.5) == (v - math.floor(v) > 0.5) else off + 1
+        return np.float64(texels[row, 0]), np.float64(texels[row, 1]), np.float64(texels[row, 2])
+    if info[t, 4] == NEAREST:
+        x = wrap_index(_floor_int(u * w), w, wrap)
+        y = wrap_index(_floor_int(v * h), h, wrap)
+        row = off + y * w + x
+        return np.float64(texels[row, 0]), np.float64(texels[row, 1]), np.float64(texels[row, 2])
+    # Bilinear between the four texel centres around (u w - 1/2, v h - 1/2).
+    fx, fy = u * w - 0.5, v * h - 0.5
+    x0, y0 = _floor_int(fx), _floor_int(fy)
+    ax, ay = fx - x0, fy - y0
+    xa, xb = wrap_index(x0, w, wrap), wrap_index(x0 + 1, w, wrap)
+    ya, yb = off + wrap_index(y0, h, wrap) * w, off + wrap_index(y0 + 1, h, wrap) * w
+    c00, c10, c01, c11 = (1 - ax) * (1 - ay), ax * (1 - ay), (1 - ax) * ay, ax * ay
+    out0 = c00 * texels[ya + xa, 0] + c10 * texels[ya + xb, 0] + c01 * texels[yb + xa, 0] + c11 * texels[yb + xb, 0]
+    out1 = c00 * texels[ya + xa, 1] + c10 * texels[ya + xb, 1] + c01 * texels[yb + xa, 1] + c11 * texels[yb + xb, 1]
+    out2 = c00 * texels[ya + xa, 2] + c10 * texels[ya + xb, 2] + c01 * texels[yb + xa, 2] + c11 * texels[yb + xb, 2]
+    return out0, out1, out2
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def hit_uv(uvs, tris, tri, u, v):
+    """The texture coordinate at barycentrics (u, v) of triangle tri."""
+    t0, t1, t2 = tris[tri, 0], tris[tri, 1], tris[tri, 2]
+    w = 1.0 - u - v
+    s = w * uvs[t0, 0] + u * uvs[t1, 0] + v * uvs[t2, 0]
+    r = w * uvs[t0, 1] + u * uvs[t1, 1] + v * uvs[t2, 1]
+    return s, r
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def reflectance_at(refl, mat_texture, uvs, tris, tex_info, tex_uv, texels, m, tri, u, v):
+    """Material m's reflectance at barycentrics (u, v) of triangle tri: its
+    constant, or (texture id >= 0) the texel there."""
+    t = mat_texture[m]
+    if t < 0:
+        return np.float64(refl[m, 0]), np.float64(refl[m, 1]), np.float64(refl[m, 2])
+    s, r = hit_uv(uvs, tris, tri, np.float64(u), np.float64(v))
+    return texel(tex_info, tex_uv, texels, t, s, r)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def fold_texels(surf, prim, u, v, weight):
+    """Hit points' weights times the texel of their textured materials
+    (`weight` (n, 3) float32, changed in place; rows of untextured
+    materials are left as they are)."""
+    for i in range(prim.shape[0]):
+        tri = prim[i]
+        m = surf.tri_material[tri]
+        t = surf.mat_texture[m]
+        if t < 0:
+            continue
+        s, r = hit_uv(surf.uvs, surf.triangles, tri, np.float64(u[i]), np.float64(v[i]))
+        c0, c1, c2 = texel(surf.tex_info, surf.tex_uv, surf.texels, t, s, r)
+        weight[i, 0] *= c0
+        weight[i, 1] *= c1
+        weight[i, 2] *= c2
+
+
+@nb.njit(cache=True, error_model="numpy")
+def lookup_many(info, uv_map, texels, t, s, r):
+    """Texture t at many coordinates: (n, 3) float64 (tests, timings)."""
+    out = np.empty((s.shape[0], 3))
+    for i in range(s.shape[0]):
+        out[i, 0], out[i, 1], out[i, 2] = texel(info, uv_map, texels, t, s[i], r[i])
+    return out
