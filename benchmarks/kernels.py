@@ -115,7 +115,7 @@ def _eye_bounces(scene, accel, surf, iterations: int):
         while len(batch):
             prim, _t, u, v = accel.intersect(batch.origin, batch.direction)
             parts.append((batch, prim, u, v))
-            h, _emitted, batch, _ends = trace.advance_eye(surf, batch, prim, u, v, MAX_DEPTH)
+            h, _emitted, batch, _ends, _shadows = trace.advance_eye(surf, batch, prim, u, v, MAX_DEPTH)
             hits.append(h)
         first_hits = first_hits if first_hits is not None else HitPoints.concat(hits)
     batch = RayBatch.concat([p[0] for p in parts])
@@ -233,8 +233,13 @@ def run(args) -> dict:
     parts = set(args.only.split(","))
     inputs = _record_inputs(scene, accel, surf, args, parts)
     cases = _cases(scene, accel, surf, inputs, args, trace, hash_gather)
-    old = _cases(scene, accel, surf, inputs, args, *_load_against(args.against)) \
-        if args.against else {}
+    old = {}
+    if args.against:
+        old_trace, old_hash = _load_against(args.against)
+        # That checkout's kernels read its own SurfaceData: the fields it has.
+        fields = old_trace.paths.SurfaceData._fields
+        old_surf = old_trace.paths.SurfaceData(*(getattr(surf, f) for f in fields))
+        old = _cases(scene, accel, old_surf, inputs, args, old_trace, old_hash)
     results: dict = {}
     for name, (call, repeats) in cases.items():
         out = _flat(call())

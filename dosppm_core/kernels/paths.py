@@ -167,9 +167,11 @@ def roulette(flux, i, r0, r1, r2, scale, ur, depth):
     old largest component (at most DEEP_SURVIVAL from surface DEEP_DEPTH
     on), and is reweighted by 1/p. Returns (survives, the new flux)."""
     old_max = max(flux[i, 0], flux[i, 1], flux[i, 2])
-    nf0 = flux[i, 0] * r0 * scale
-    nf1 = flux[i, 1] * r1 * scale
-    nf2 = flux[i, 2] * r2 * scale
+    # float32 products, as when r was read from the float32 material row:
+    # an untextured scene traces bit for bit as before textures.
+    nf0 = flux[i, 0] * np.float32(r0) * scale
+    nf1 = flux[i, 1] * np.float32(r1) * scale
+    nf2 = flux[i, 2] * np.float32(r2) * scale
     p = min(1.0, max(nf0, nf1, nf2) / old_max) if old_max > 0 else 0.0
     if depth >= DEEP_DEPTH:
         p = min(p, DEEP_SURVIVAL)
