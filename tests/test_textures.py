@@ -299,16 +299,18 @@ def test_textured_plane_radiance_is_texel_irradiance_over_pi():
     assert np.abs(got[one_texel] / expected[one_texel] - 1).max() < 0.01
 
 
-def _with_textured_material(scene, name: str, texture: tx.Texture, uv_of=None):
+def _with_textured_material(scene, name, texture, uv_of=None):
     """`scene` with material `name`'s reflectance read from `texture`
-    instead, every vertex given uv_of(vertices) (default (0, 0))."""
+    instead (or each of several names from its texture), every vertex
+    given uv_of(vertices) (default (0, 0))."""
+    names, textures = ([name], [texture]) if isinstance(name, str) else (name, texture)
     m = scene.materials
-    k = m.names.index(name)
     m.texture = np.full(len(m.kind), -1, np.int32)
-    m.texture[k] = 0
     m.reflectance = m.reflectance.copy()
-    m.reflectance[k] = 1.0
-    scene.textures = tx.TextureTable.from_textures([texture])
+    for t, n in enumerate(names):
+        m.texture[m.names.index(n)] = t
+        m.reflectance[m.names.index(n)] = 1.0
+    scene.textures = tx.TextureTable.from_textures(textures)
     uv = np.zeros((len(scene.vertices), 2)) if uv_of is None else uv_of(scene.vertices.astype(np.float64))
     scene.uvs = uv.astype(np.float32)
     return scene
@@ -349,23 +351,28 @@ def test_constant_texture_renders_the_constant_reflectance(material):
 
 
 def _checker_box():
-    """The Cornell box with its white surfaces checkered (uv from the
-    vertices' positions, squares of 100 mm)."""
+    """The Cornell box with its white surfaces checkered (squares of 100
+    mm), its red and green walls bilinear gradients of their colours (uv
+    from the vertices' positions)."""
     scene = _small("cornell-box", 32)
     board = tx.checkerboard("board", (0.9, 0.9, 0.9), (0.1, 0.1, 0.4),
                             (1 / 100, 0.0, 0.0, 0.0, 1 / 100, 0.0))
-    scene = _with_textured_material(scene, "white", board, lambda v: np.c_[v[:, 0] + v[:, 2], v[:, 1]])
-    return scene
+    ramp = np.linspace(0.2, 1.0, 8)[None, :, None]
+    red = tx.bitmap("red", ramp * [0.6, 0.05, 0.05], uv_map=(0.0, 0.0, 0.0, 1 / 560, 0.0, 0.0))
+    green = tx.bitmap("green", ramp * [0.1, 0.4, 0.08], uv_map=(0.0, 0.0, 0.0, 1 / 560, 0.0, 0.0))
+    return _with_textured_material(scene, ["white", "red", "green"], [board, red, green],
+                                   lambda v: np.c_[v[:, 0] + v[:, 2], v[:, 1]])
 
 
 def test_textured_scene_chunked_equals_unchunked(chunk_store):
-    """The real subdivider into 4 chunks (UVs in the chunk files), OSPPM
-    from the store: the unchunked image up to float noise."""
+    """The real subdivider into 4 chunks (UVs and textures in the chunk
+    files), OSPPM from the store: the unchunked image up to float noise."""
     scene = _checker_box()
     settings = RenderSettings(seed=11, photons_per_iteration=30_000)
     ref = _render_iterations(scene)
     store = chunk_store(scene, chunks=4)
     assert store.chunk_count == 4
+    assert len(store.header.textures) == 3 and len(store.header.textures.texels) == 0
     o = OutOfCoreRenderer(store, settings, pipelined=False)
     try:
         for _ in range(3):
@@ -377,3 +384,36 @@ def test_textured_scene_chunked_equals_unchunked(chunk_store):
     assert np.mean(rel > 1e-4) < 0.02 and rel.max() < 0.01
     plain = _render_iterations(_small("cornell-box", 32))
     assert np.mean(np.abs(plain - ref) > 0.1 * plain) > 0.1      # the checkerboard shows
+
+
+def test_a_chunk_carries_only_its_textures_in_its_checked_file(chunk_store):
+    """Each chunk file holds the textures its triangles' materials read,
+    no others; their bytes count in its memory estimate; a damaged texel
+    fails the chunk's checksum like any of its bytes."""
+    from dosppm_core.chunks.store import StoreError
+    from dosppm_core.chunks.subdivide import chunk_memory_bytes
+    scene = _checker_box()
+    store = chunk_store(scene, chunks=4)
+    carried = []
+    for k in range(store.chunk_count):
+        g = store.load(k)
+        used = scene.materials.texture[np.unique(g.tri_material)]
+        assert sorted(g.tex_ids.tolist()) == sorted(set(used[used >= 0].tolist()))
+        for j, t in enumerate(g.tex_ids):       # the very texels of the scene's table
+            a, w, h = scene.textures.info[t, 1:4]
+            b, bw, bh = g.tex_info[j, 1:4]
+            np.testing.assert_array_equal(g.texels[b:b + bw * bh], scene.textures.texels[a:a + w * h])
+        assert store.chunk_memory[k] == chunk_memory_bytes(len(g.triangles), len(g.vertices), True) \
+            + g.texture_bytes
+        carried.append(len(g.tex_ids))
+    assert min(carried) < 3                     # some chunk leaves a texture out
+    k = int(np.argmax(carried))
+    entry = store.manifest["chunks"][k]
+    path = os.path.join(store.path, entry["file"])
+    with open(path, "r+b") as f:
+        f.seek(entry["arrays"]["texels"][0] + 4)
+        byte = f.read(1)
+        f.seek(-1, 1)
+        f.write(bytes([byte[0] ^ 0x40]))
+    with pytest.raises(StoreError, match="checksum mismatch"):
+        store.load(k)

@@ -6,6 +6,10 @@
     ...                      vertices float32 (nv, 3), triangles int32 (nt, 3),
                              tri_material int32 (nt,), global_id int32 (nt,),
                              and, if its triangles are textured, uv float32 (nv, 2)
+                             and the textures they read (the store's header
+                             keeps only their sizes): tex_ids int32 (k,),
+                             tex_info int32 (k, 6), tex_uv float64 (k, 6),
+                             texels float32 (n, 3) (`scene.textures`)
 
 The manifest (msgpack, no pickle) holds: format "dosppm-chunks", version,
 the store key, the chunk tree (`ChunkTree.to_wire`), the portals, the scene
@@ -44,12 +48,22 @@ ALIGN = 64
 ARRAYS = (("vertices", "<f4", 3), ("triangles", "<i4", 3),
           ("tri_material", "<i4", 0), ("global_id", "<i4", 0))
 # Present only in the chunks of textured scenes: the vertices' texture
-# coordinates. A file without it is laid out exactly as before.
+# coordinates, and the textures the chunk's triangles read (their ids in
+# the scene's table, info rows, to_uv maps, texels). A chunk without them
+# is laid out exactly as before, so old stores read unchanged.
 UV_ARRAY = ("uv", "<f4", 2)
+TEXTURE_ARRAYS = (("tex_ids", "<i4", 0), ("tex_info", "<i4", 6), ("tex_uv", "<f8", 6),
+                  ("texels", "<f4", 3))
 
 
-def _arrays(uv: bool) -> tuple:
-    return ARRAYS + (UV_ARRAY,) if uv else ARRAYS
+def _arrays(uv: bool, textures: int = 0) -> tuple:
+    return ARRAYS + ((UV_ARRAY,) if uv else ()) + (TEXTURE_ARRAYS if textures else ())
+
+
+def _rows(vertices: int, textures: int, texels: int) -> dict:
+    """Rows of each array not counted in triangles."""
+    return {"vertices": vertices, "uv": vertices, "tex_ids": textures, "tex_info": textures,
+            "tex_uv": textures, "texels": texels}
 
 
 @dataclass
@@ -60,15 +74,27 @@ class ChunkGeometry:
     tri_material: np.ndarray  # int32 (nt,)
     global_id: np.ndarray    # int32 (nt,)
     uv: np.ndarray = None    # float32 (nv, 2), or (0, 2): an untextured chunk
+    # The textures its triangles read, as in a `TextureTable` (ids: their
+    # rows in the scene's); empty when it reads none or the chunk was cut
+    # in memory (the scene header's table holds them then).
+    tex_ids: np.ndarray = None   # int32 (k,)
+    tex_info: np.ndarray = None  # int32 (k, 6)
+    tex_uv: np.ndarray = None    # float64 (k, 6)
+    texels: np.ndarray = None    # float32 (n, 3)
 
     def __post_init__(self):
-        if self.uv is None:
-            self.uv = np.zeros((0, 2), np.float32)
+        for name, dtype, cols in (UV_ARRAY,) + TEXTURE_ARRAYS:
+            if getattr(self, name) is None:
+                setattr(self, name, np.zeros((0, cols) if cols else 0, dtype))
 
     @property
     def nbytes(self) -> int:
         return sum(a.nbytes for a in (self.vertices, self.triangles, self.tri_material, self.global_id,
-                                      self.uv))
+                                      self.uv, self.tex_ids, self.tex_info, self.tex_uv, self.texels))
+
+    @property
+    def texture_bytes(self) -> int:
+        return int(self.tex_ids.nbytes + self.tex_info.nbytes + self.tex_uv.nbytes + self.texels.nbytes)
 
 
 class StoreError(ValueError):
@@ -173,11 +199,12 @@ class Portals:
 
 
 # -- chunk files ---------------------------------------------------------------
-def chunk_layout(triangles: int, vertices: int, uv: bool = False) -> tuple[dict, int]:
+def chunk_layout(triangles: int, vertices: int, uv: bool = False, textures: int = 0,
+                 texels: int = 0) -> tuple[dict, int]:
     """{array name: (offset, nbytes)} and the file size, arrays 64-byte aligned."""
-    rows = {"vertices": vertices, "uv": vertices}
+    rows = _rows(vertices, textures, texels)
     out, offset = {}, 0
-    for name, dtype, cols in _arrays(uv):
+    for name, dtype, cols in _arrays(uv, textures):
         nbytes = rows.get(name, triangles) * max(cols, 1) * np.dtype(dtype).itemsize
         out[name] = (offset, nbytes)
         offset += -(-nbytes // ALIGN) * ALIGN
@@ -188,11 +215,11 @@ def write_chunk_file(path: str, geometry) -> dict:
     """Write one chunk's arrays; returns its manifest entry (less the file
     name and memory estimate, which the caller adds)."""
     nt, nv = int(geometry.triangles.shape[0]), int(geometry.vertices.shape[0])
-    uv = len(geometry.uv) > 0
-    layout, size = chunk_layout(nt, nv, uv)
+    uv, k, n = len(geometry.uv) > 0, len(geometry.tex_ids), len(geometry.texels)
+    layout, size = chunk_layout(nt, nv, uv, k, n)
     h = hashlib.sha256()
     with open(path, "wb") as f:
-        for name, dtype, _cols in _arrays(uv):
+        for name, dtype, _cols in _arrays(uv, k):
             offset, nbytes = layout[name]
             pad = b"\0" * (offset - f.tell())
             data = np.ascontiguousarray(getattr(geometry, name), dtype).tobytes()
@@ -203,8 +230,11 @@ def write_chunk_file(path: str, geometry) -> dict:
         pad = b"\0" * (size - f.tell())
         f.write(pad)
         h.update(pad)
-    return {"triangles": nt, "vertices": nv, "file_bytes": size, "sha256": h.hexdigest(),
-            "arrays": {k: list(v) for k, v in layout.items()}}
+    entry = {"triangles": nt, "vertices": nv, "file_bytes": size, "sha256": h.hexdigest(),
+             "arrays": {name: list(v) for name, v in layout.items()}}
+    if k:
+        entry.update(textures=k, texels=n)
+    return entry
 
 
 def partial_path(path: str) -> str:
@@ -325,9 +355,10 @@ class ChunkStore:
         else:
             buf = _read_checked(file, entry)
         nt, nv = entry["triangles"], entry["vertices"]
-        rows = {"vertices": nv, "uv": nv}
+        k = entry.get("textures", 0)
+        rows = _rows(nv, k, entry.get("texels", 0))
         arrays = {}
-        for name, dtype, cols in _arrays("uv" in entry["arrays"]):
+        for name, dtype, cols in _arrays("uv" in entry["arrays"], k):
             offset, nbytes = entry["arrays"][name]
             a = buf[offset:offset + nbytes].view(dtype)
             arrays[name] = a.reshape(rows.get(name, nt), cols) if cols else a
@@ -369,7 +400,8 @@ def _check_entries(path: str, doc: dict, chunk_count: int, check_files: bool = T
     for k, e in enumerate(entries):
         try:
             nt, nv = int(e["triangles"]), int(e["vertices"])
-            layout, size = chunk_layout(nt, nv, "uv" in e["arrays"])
+            layout, size = chunk_layout(nt, nv, "uv" in e["arrays"], int(e.get("textures", 0)),
+                                        int(e.get("texels", 0)))
             ok = (e["file"] == chunk_file_name(k) and int(e["file_bytes"]) == size
                   and set(e["arrays"]) == set(layout)
                   and all(tuple(e["arrays"][n]) == layout[n] for n in layout)

@@ -32,6 +32,7 @@ import numpy as np
 from dosppm_core.chunks import store as chunkstore
 from dosppm_core.chunks.portals import INSERT_MARGIN
 from dosppm_core.chunks.store import ChunkGeometry
+from dosppm_core.chunks.textures import attach_textures, store_header
 from dosppm_core.chunks.tree import LEAF, ChunkTree
 from dosppm_core.scene.loaders import load_source
 from dosppm_core.scene.model import SceneError
@@ -542,7 +543,8 @@ def subdivide(source, out: str, budget_bytes: int | None = None, grid: int = DEF
         margin = INSERT_MARGIN * source.header.diagonal()
         _insert_source(source, kd, margin, spill, block)
         seconds["insertion"], t = time.perf_counter() - t, time.perf_counter()
-        written = _finish_chunks(kd, spill, margin, partial, budget_bytes, chunks is not None)
+        written = _finish_chunks(kd, spill, margin, partial, budget_bytes, chunks is not None,
+                                 source.header)
         shutil.rmtree(spill.folder)
         seconds["chunk files"], t = time.perf_counter() - t, time.perf_counter()
         tree = kd.tree()
@@ -594,7 +596,7 @@ def _insert_source(source, kd: KdBuilder, margin: float, spill: Spill, block: in
 
 
 def _finish_chunks(kd: KdBuilder, spill: Spill, margin: float, partial: str,
-                   budget_bytes, forced: bool) -> dict:
+                   budget_bytes, forced: bool, header) -> dict:
     """Write each leaf's chunk file (as leaf-<node>.bin); a leaf over the
     budget is split and its records re-inserted into its two halves."""
     written = {}
@@ -602,8 +604,9 @@ def _finish_chunks(kd: KdBuilder, spill: Spill, margin: float, partial: str,
     while todo:
         n = todo.pop()
         records = spill.take(n)
-        geometry = dedup_geometry(records)
-        need = chunk_memory_bytes(len(geometry.triangles), len(geometry.vertices), len(geometry.uv) > 0)
+        geometry = attach_textures(dedup_geometry(records), header)
+        need = chunk_memory_bytes(len(geometry.triangles), len(geometry.vertices), len(geometry.uv) > 0) \
+            + geometry.texture_bytes
         if budget_bytes is not None and need > budget_bytes:
             if forced:
                 raise SceneError(f"chunk at {kd.where(n)} needs {format_bytes(need)}, over the "
@@ -643,7 +646,7 @@ def _manifest(source, digest, key, tree, portals, entries, budget_bytes, bins, g
               chunks) -> dict:
     return {"format": chunkstore.FORMAT, "version": chunkstore.FORMAT_VERSION, "key": key,
             "tree": tree.to_wire(), "portals": portals.to_wire(),
-            "header": source.header.to_wire(), "source_hash": digest,
+            "header": store_header(source.header).to_wire(), "source_hash": digest,
             "source_triangles": int(source.count), "budget_bytes": budget_bytes,
             "grid": list(g.shape), "grid_bins": int(bins), "chunks_forced": chunks,
             "insert_margin": INSERT_MARGIN * source.header.diagonal(),

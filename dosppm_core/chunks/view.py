@@ -11,11 +11,14 @@ only by floating-point noise.
 """
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from dosppm_core.accel import Accelerator
 from dosppm_core.chunks.portals import PORTAL_EPS, enter, intersect_in_chunk
 from dosppm_core.chunks.store import ChunkGeometry
+from dosppm_core.chunks.textures import chunk_surface_textures
 from dosppm_core.chunks.tree import ChunkTree
 from dosppm_core.jobs import ESCAPED, STORED, HitPoints, PhotonDeposits, RayBatch, ShadowRays
 from dosppm_core.kernels.paths import ELSEWHERE
@@ -31,9 +34,10 @@ class ChunkView:
         self.index, self.tree, self.geometry = index, tree, geometry
         self.eps = PORTAL_EPS * header.diagonal()
         self.total_power = header.lights.total_power    # BSDF-sampled direct-light rays weigh by it
-        m = header.materials
+        texture_ids, textures = chunk_surface_textures(geometry, header)
+        m = dataclasses.replace(header.materials, texture=texture_ids)
         self.surf = SurfaceData.from_arrays(geometry.vertices, geometry.triangles, geometry.tri_material,
-                                            m, header.spawn_epsilon(), geometry.uv, header.textures)
+                                            m, header.spawn_epsilon(), geometry.uv, textures)
         # An empty chunk (air between walls) still routes rays; Embree
         # needs one triangle, so give it one that no ray can reach.
         verts, tris = geometry.vertices, geometry.triangles

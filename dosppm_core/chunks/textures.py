@@ -1,0 +1,58 @@
+"""Textures out of core: a chunk carries only the textures its triangles
+read, in its own file (so they are checked by its SHA-256 and fetched
+with it), and their bytes count in its memory estimate; the store's
+header keeps every texture's info row and to_uv map but no texels.
+
+A chunk cut in memory (tests, `MemoryChunks`) carries none and reads the
+scene header's full table instead."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from dosppm_core.chunks.store import ChunkGeometry
+from dosppm_core.scene.model import SceneHeader
+from dosppm_core.scene.textures import TextureTable
+
+
+def attach_textures(geometry: ChunkGeometry, header: SceneHeader) -> ChunkGeometry:
+    """`geometry` with the textures its triangles' materials read (a subset
+    of the header's table, with their ids in it)."""
+    table, texture = header.textures, header.materials.texture
+    if not len(table) or not len(geometry.tri_material):
+        return geometry
+    used = texture[np.unique(geometry.tri_material)]
+    ids = np.unique(used[used >= 0]).astype(np.int32)
+    if not len(ids):
+        return geometry
+    sub, _ = table.subset(ids)
+    return dataclasses.replace(geometry, tex_ids=ids, tex_info=sub.info, tex_uv=sub.uv_map,
+                               texels=sub.texels)
+
+
+def store_header(header: SceneHeader) -> SceneHeader:
+    """The header a store's manifest keeps: the textures without texels
+    (the chunks hold those), so the server and every tracer's copy stay
+    small however large the scene's images."""
+    t = header.textures
+    if not len(t.texels):
+        return header
+    bare = TextureTable(t.info, t.uv_map, np.zeros((0, 3), np.float32), list(t.names))
+    return dataclasses.replace(header, textures=bare)
+
+
+def chunk_surface_textures(geometry: ChunkGeometry, header: SceneHeader):
+    """(per-material texture ids, TextureTable) a resident chunk's kernels
+    read: the chunk's own textures, renumbered, when it carries them; the
+    header's table when it holds the texels; else none (-1 for every
+    material: a texture the chunk lacks is never indexed out of bounds)."""
+    texture = header.materials.texture
+    if len(geometry.tex_ids):
+        local = np.full(len(header.textures), -1, np.int32)
+        local[geometry.tex_ids] = np.arange(len(geometry.tex_ids), dtype=np.int32)
+        ids = np.where(texture >= 0, local[np.maximum(texture, 0)], -1).astype(np.int32)
+        return ids, TextureTable(geometry.tex_info, geometry.tex_uv, geometry.texels, [])
+    if len(header.textures.texels):
+        return texture, header.textures
+    return np.full(len(texture), -1, np.int32), TextureTable.empty()
