@@ -191,6 +191,11 @@ def _mesh(mi, name: str, vertices: np.ndarray, faces: np.ndarray, props):
 
 
 def _bsdf(mats, mid: int) -> dict:
+    if mats.texture[mid] >= 0:
+        # Its reflectance row is (1, 1, 1), the texel being folded in by the
+        # kernels: exporting that would render another scene.
+        raise SceneError(f"material {mats.names[mid]!r}: a textured material has no Mitsuba "
+                         "mapping here (reference a Mitsuba .xml scene directly)")
     kind, tint = int(mats.kind[mid]), _spectrum(mats.reflectance[mid])
     if kind == GLASS:
         return {"type": "dielectric", "int_ior": float(mats.ior[mid]), "ext_ior": 1.0,

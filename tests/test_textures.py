@@ -215,6 +215,36 @@ def test_shape_uvs_match_mitsuba(tmp_path, kind):
     np.testing.assert_allclose(ours, theirs, atol=3e-3 if kind in ("sphere", "disk", "cylinder") else 1e-5)
 
 
+def test_tilted_cylinder_uvs_match_mitsuba(tmp_path):
+    """A cylinder from p0 to p1: u starts where Mitsuba's frame of the axis
+    puts phi = 0 (compared modulo 1, the seam being anywhere), v runs 0..1
+    from p0 to p1."""
+    pytest.importorskip("mitsuba")
+    p0, p1, radius = np.array([0.2, -0.1, 0.3]), np.array([0.5, 0.8, -0.4]), 0.7
+    xml = (f'<shape type="cylinder"><point name="p0" value="{",".join(map(str, p0))}"/>'
+           f'<point name="p1" value="{",".join(map(str, p1))}"/><float name="radius" value="{radius}"/>BSDF</shape>')
+    scene = load_scene(_textured_shape_xml(tmp_path, xml))
+    axis = p1 - p0
+    e1 = np.cross(axis, [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(axis / np.linalg.norm(axis), e1)
+    rng = np.random.default_rng(8)
+    phi, t = rng.uniform(0, 2 * np.pi, 30), rng.uniform(0.05, 0.95, 30)
+    radial = np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2
+    points = p0 + t[:, None] * axis + radius * radial
+    o, d = points + 5 * radial, -radial
+    ours = _our_uv(scene, o, d)
+    theirs = _mitsuba_uv({"type": "cylinder", "p0": mi_point(p0), "p1": mi_point(p1), "radius": radius}, o, d)
+    du = np.abs(ours[:, 0] - theirs[:, 0]) % 1.0
+    assert np.all(np.minimum(du, 1 - du) < 3e-3), np.c_[ours[:, 0], theirs[:, 0]]
+    np.testing.assert_allclose(ours[:, 1], theirs[:, 1], atol=1e-4)
+
+
+def mi_point(p):
+    import mitsuba as mi
+    return mi.ScalarPoint3f(*map(float, p))
+
+
 def test_untextured_shapes_store_no_uvs(tmp_path):
     path = _textured_shape_xml(tmp_path, '<shape type="sphere"><bsdf type="diffuse"/></shape>')
     scene = load_scene(path)
@@ -232,6 +262,19 @@ def test_mitsuba_texture_interp_scene_loads():
     assert t.info[:, tx.INFO_WRAP].tolist() == [0, 1, 2, 0, 1, 2]
     np.testing.assert_allclose(t.uv_map, np.tile([2, 0, -0.5, 0, 2, -0.5], (6, 1)))
     assert t.info[0, tx.INFO_WIDTH] > 1 and scene.uvs.shape == (len(scene.vertices), 2)
+    # One image file, one texel block, shared by the six textures (and by a chunk's subset).
+    assert len(t.texels) == t.info[0, tx.INFO_WIDTH] * t.info[0, tx.INFO_HEIGHT]
+    assert not t.info[:, tx.INFO_OFFSET].any()
+    sub, remap = t.subset([1, 4])
+    assert len(sub.texels) == len(t.texels) and remap.tolist() == [-1, 0, -1, -1, 1, -1]
+
+
+def test_the_reference_export_refuses_a_textured_material():
+    """Its reflectance row is (1, 1, 1): exporting it would render another scene."""
+    pytest.importorskip("mitsuba")
+    from dosppm_core import reference
+    with pytest.raises(SceneError, match="'white': a textured material has no Mitsuba mapping"):
+        reference.scene_to_mitsuba_dict(_checker_box(), 4)
 
 
 def test_a_texture_on_an_unread_parameter_is_refused(tmp_path):

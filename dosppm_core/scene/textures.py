@@ -96,22 +96,24 @@ class TextureTable:
         if not textures:
             return cls.empty()
         info = np.zeros((len(textures), 6), np.int32)
-        offset = 0
+        offset, blocks, placed = 0, [], {}
         for k, t in enumerate(textures):
             h, w = t.texels.shape[:2]
-            info[k] = (t.kind, offset, w, h, t.filter, t.wrap)
-            offset += h * w
+            # Textures sharing one texel array (one image file read with
+            # several filters or wrap modes) share one block.
+            if id(t.texels) not in placed:
+                placed[id(t.texels)] = offset
+                blocks.append(t.texels.reshape(-1, 3))
+                offset += h * w
+            info[k] = (t.kind, placed[id(t.texels)], w, h, t.filter, t.wrap)
         if offset >= 2 ** 31:
             raise SceneError(f"textures hold {offset:,} texels: more than the int32 offsets allow")
-        texels = np.concatenate([t.texels.reshape(-1, 3) for t in textures]).astype(np.float32)
+        texels = np.concatenate(blocks).astype(np.float32)
         uv_map = np.array([t.uv_map for t in textures], np.float64).reshape(-1, 6)
         return cls(info, uv_map, texels, [t.name for t in textures])
 
     def __len__(self) -> int:
         return int(self.info.shape[0])
-
-    def texture_bytes(self, k: int) -> int:
-        return int(self.info[k, INFO_WIDTH]) * int(self.info[k, INFO_HEIGHT]) * 12
 
     def subset(self, ids) -> tuple["TextureTable", np.ndarray]:
         """The table of textures `ids` only, and the map old id -> new id
@@ -119,14 +121,16 @@ class TextureTable:
         ids = np.unique(np.asarray(ids, np.int64))
         remap = np.full(len(self), -1, np.int32)
         remap[ids] = np.arange(len(ids), dtype=np.int32)
-        parts, info, offset = [], np.zeros((len(ids), 6), np.int32), 0
+        parts, info, offset, placed = [], np.zeros((len(ids), 6), np.int32), 0, {}
         for j, k in enumerate(ids):
             a = int(self.info[k, INFO_OFFSET])
-            n = int(self.info[k, INFO_WIDTH]) * int(self.info[k, INFO_HEIGHT])
-            parts.append(self.texels[a:a + n])
+            if a not in placed:             # a block shared in the table stays shared
+                n = int(self.info[k, INFO_WIDTH]) * int(self.info[k, INFO_HEIGHT])
+                parts.append(self.texels[a:a + n])
+                placed[a] = offset
+                offset += n
             info[j] = self.info[k]
-            info[j, INFO_OFFSET] = offset
-            offset += n
+            info[j, INFO_OFFSET] = placed[a]
         texels = np.concatenate(parts) if parts else np.zeros((0, 3), np.float32)
         return TextureTable(info, self.uv_map[ids].copy(), texels,
                             [self.names[k] for k in ids]), remap

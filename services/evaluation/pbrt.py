@@ -232,6 +232,8 @@ def light_lines(scene: Scene) -> list[str]:
 def surface_lines(scene: Scene, mid: int) -> list[str]:
     """The material of `mid` (named `m<mid>`) and, if it glows, its area light."""
     mats, out = scene.materials, []
+    if mats.texture[mid] >= 0:
+        raise PbrtError(f"material {mats.names[mid]!r}: textured materials have no pbrt mapping here")
     if np.max(mats.emission[mid]) > 0:
         out.append(f'  AreaLightSource "diffuse" "rgb L" [{_vec(mats.emission[mid])}]')
     tint = np.asarray(mats.reflectance[mid], float)

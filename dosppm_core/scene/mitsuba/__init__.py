@@ -24,7 +24,13 @@ bsdf        diffuse (reflectance); twosided (one nested BSDF);
             roughconductor (distribution="ggx", alpha or alpha_u = alpha_v,
             material="none", specular_reflectance, sample_visible) -> glossy;
             dielectric (int_ior, ext_ior as numbers or Mitsuba's names;
-            specular_reflectance equal to specular_transmittance) -> glass
+            specular_reflectance equal to specular_transmittance) -> glass;
+            the colour of each may be a texture
+texture     bitmap (filename: PNG, JPEG, BMP, ... or EXR; filter_type
+            bilinear or nearest, wrap_mode repeat, mirror or clamp, raw,
+            to_uv); checkerboard (color0, color1, to_uv); nested in a BSDF
+            under the parameter's name, or a ``<ref name id>``. Not on
+            roughness (alpha)
 emitter     area (radiance) in a shape or referenced by one; point (position
             or to_world, intensity); spot (to_world, intensity,
             cutoff_angle, beam_width)
@@ -63,6 +69,10 @@ Decisions:
   1e-4), spheres icospheres. A cylinder whose to_world shears it or scales
   its cross-section unevenly is refused: Mitsuba only warns, and renders a
   cylinder read off the transform rather than the transformed one.
+* Textures read the hit's uv as Mitsuba does: an OBJ's or PLY's own
+  coordinates (an OBJ's v turned to 1 - v, as Mitsuba's reader does), the
+  built-in shapes' analytic (u, v) at their vertices, and (b1, b2) on a
+  mesh without coordinates. 8-bit images are sRGB-decoded unless ``raw``.
 * roughconductor accepts only GGX. Mitsuba's default is Beckmann, so a file
   must say ``<string name="distribution" value="ggx"/>``: swapping the lobe
   silently would make comparisons against Mitsuba disagree.

@@ -23,6 +23,7 @@ class ReaderState:
         self.material_ids: dict = {}        # (id(bsdf), id(emitter)) -> builder material id
         self.radiance: dict = {}            # id(area emitter) -> RGB radiance
         self.textures: dict = {}            # id(texture Obj) -> builder texture id
+        self.images: dict = {}              # (real path, raw) -> texels read
         self.loose_area_emitters: list = []
 
     def children(self, obj: Obj, allowed) -> list:

@@ -8,6 +8,8 @@ which returns either a constant RGB or a texture id, and fails on a
 texture nested under a name the BSDF does not read."""
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 from dosppm_core.scene import textures as tx
@@ -47,10 +49,13 @@ def _bitmap(reader: ReaderState, obj: Obj) -> tx.Texture:
         if value not in allowed:
             obj.take(name, ("string",)).node.fail(
                 f"{name} {value!r} is unsupported (known: {', '.join(allowed)})")
-    try:
-        texels = tx.read_image(path, raw=raw)
-    except ValueError as exc:
-        node.fail(str(exc))
+    key = (os.path.realpath(path), raw)
+    if key not in reader.images:     # one file, one texel block, however many textures read it
+        try:
+            reader.images[key] = tx.read_image(path, raw=raw)
+        except ValueError as exc:
+            node.fail(str(exc))
+    texels = reader.images[key]
     return tx.bitmap(obj.name(), texels, filter_type, wrap_mode, _uv_map(obj))
 
 
