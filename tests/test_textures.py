@@ -93,6 +93,7 @@ def test_exr_texels_are_linear(tmp_path):
     np.testing.assert_array_equal(tx.read_image(str(tmp_path / "t.exr")), rgb)
 
 
+@pytest.mark.reference
 @pytest.mark.parametrize("filter_type", ["bilinear", "nearest"])
 @pytest.mark.parametrize("wrap", ["repeat", "mirror", "clamp"])
 def test_lookup_matches_mitsuba(tmp_path, filter_type, wrap):
@@ -190,6 +191,7 @@ def _shape_rays(kind: str):
     return _rays_at((np.array([f[0] for f in faces]), np.array([f[1] for f in faces])))
 
 
+@pytest.mark.reference
 @pytest.mark.parametrize("kind", ["rectangle", "cube", "sphere", "disk", "cylinder", "obj", "ply"])
 def test_shape_uvs_match_mitsuba(tmp_path, kind):
     """The texture coordinate at ray hits on each shape, ours (interpolated
@@ -215,6 +217,7 @@ def test_shape_uvs_match_mitsuba(tmp_path, kind):
     np.testing.assert_allclose(ours, theirs, atol=3e-3 if kind in ("sphere", "disk", "cylinder") else 1e-5)
 
 
+@pytest.mark.reference
 def test_tilted_cylinder_uvs_match_mitsuba(tmp_path):
     """A cylinder from p0 to p1: u starts where Mitsuba's frame of the axis
     puts phi = 0 (compared modulo 1, the seam being anywhere), v runs 0..1
@@ -269,6 +272,7 @@ def test_mitsuba_texture_interp_scene_loads():
     assert len(sub.texels) == len(t.texels) and remap.tolist() == [-1, 0, -1, -1, 1, -1]
 
 
+@pytest.mark.reference
 def test_the_reference_export_refuses_a_textured_material():
     """Its reflectance row is (1, 1, 1): exporting it would render another scene."""
     pytest.importorskip("mitsuba")
@@ -460,3 +464,48 @@ def test_a_chunk_carries_only_its_textures_in_its_checked_file(chunk_store):
         f.write(bytes([byte[0] ^ 0x40]))
     with pytest.raises(StoreError, match="checksum mismatch"):
         store.load(k)
+
+
+GI_SCENE = """<scene version="3.0.0">
+  <integrator type="path"><integer name="max_depth" value="-1"/></integrator>
+  <sensor type="perspective">
+    <float name="fov" value="50"/>
+    <transform name="to_world"><lookat origin="0, 1.2, 3.2" target="0, 0.6, 0" up="0, 1, 0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="48"/><integer name="height" value="48"/>
+      <rfilter type="box"/></film>
+  </sensor>
+  <shape type="rectangle">
+    <transform name="to_world"><rotate x="1" angle="-90"/><scale value="2"/></transform>
+    <bsdf type="diffuse">
+      <texture type="checkerboard" name="reflectance">
+        <rgb name="color0" value="0.9, 0.15, 0.1"/><rgb name="color1" value="0.05, 0.1, 0.7"/>
+        <transform name="to_uv"><scale value="3"/></transform>
+      </texture>
+    </bsdf>
+  </shape>
+  <shape type="rectangle">
+    <transform name="to_world"><scale value="2"/><translate y="2" z="-1.5"/></transform>
+    <bsdf type="diffuse"><rgb name="reflectance" value="0.8"/></bsdf>
+  </shape>
+  <shape type="rectangle">
+    <transform name="to_world"><rotate x="1" angle="90"/><scale value="0.3"/><translate y="2.2" z="0.5"/></transform>
+    <emitter type="area"><rgb name="radiance" value="20"/></emitter>
+  </shape>
+</scene>"""
+
+
+@pytest.mark.reference
+def test_light_off_a_textured_floor_matches_mitsuba(tmp_path, mi):
+    """A checkered floor (red and blue squares) lights a white wall: the
+    wall's indirect light comes through photons that bounced off the floor,
+    so it is right only if photons read the texel where they land. Ours
+    (SPPM) against Mitsuba's path tracer, per 8x8-pixel block."""
+    path = tmp_path / "gi.xml"
+    path.write_text(GI_SCENE)
+    theirs = np.array(mi.render(mi.load_file(str(path)), spp=512))
+    ours = render(load_scene(str(path)), RenderSettings(seed=3, photons_per_iteration=50_000), iterations=100)
+
+    def blocks(img):
+        return img.reshape(6, 8, 6, 8, 3).mean((1, 3))
+    np.testing.assert_allclose(ours.mean((0, 1)), theirs.mean((0, 1)), rtol=0.01)
+    np.testing.assert_allclose(blocks(ours), blocks(theirs), rtol=0.04, atol=1e-3)
