@@ -24,7 +24,7 @@ import numpy as np
 from dosppm_core.jobs import ABSORBED, CONTINUES, ESCAPED, MAX_DEPTH, STORED
 from dosppm_core.kernels.bsdf import is_specular, sample_bsdf
 from dosppm_core.kernels.rng import next_float
-from dosppm_core.kernels.texture import reflectance_at
+from dosppm_core.kernels.texture import texel_at
 
 # `prim` of a ray whose hit lies in another chunk (it left through a
 # portal): the bounce kernels skip its row, so a chunk's batch need not be
@@ -307,7 +307,9 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
         if not ok:
             end[i] = ABSORBED
             continue
-        r0, r1, r2 = reflectance_at(refl, mtex, uvs, tris, tinfo, tuv, texels, m, tri, u[i], v[i])
+        r0, r1, r2 = np.float64(refl[m, 0]), np.float64(refl[m, 1]), np.float64(refl[m, 2])
+        if mtex[m] >= 0:
+            r0, r1, r2 = texel_at(uvs, tris, tinfo, tuv, texels, mtex[m], tri, u[i], v[i])
         ok, f0, f1, f2 = roulette(flux, i, r0, r1, r2, scale, ur, depth[i])
         if not ok:
             end[i] = ABSORBED
@@ -466,7 +468,9 @@ def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp,
         # with it the depth limit is only a safety net. It decides on the
         # reflectance alone, not the eta^2 of refraction (pbrt's etaScale):
         # that factor leaving glass would kill 56% of the paths through it.
-        r0, r1, r2 = reflectance_at(refl, mtex, uvs, tris, tinfo, tuv, texels, m, tri, u[i], v[i])
+        r0, r1, r2 = np.float64(refl[m, 0]), np.float64(refl[m, 1]), np.float64(refl[m, 2])
+        if mtex[m] >= 0:
+            r0, r1, r2 = texel_at(uvs, tris, tinfo, tuv, texels, mtex[m], tri, u[i], v[i])
         ok, f0, f1, f2 = roulette(weight, i, r0, r1, r2, 1.0, ur, depth[i])
         if not ok:
             end[i] = ABSORBED
