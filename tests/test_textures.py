@@ -509,3 +509,29 @@ def test_light_off_a_textured_floor_matches_mitsuba(tmp_path, mi):
         return img.reshape(6, 8, 6, 8, 3).mean((1, 3))
     np.testing.assert_allclose(ours.mean((0, 1)), theirs.mean((0, 1)), rtol=0.01)
     np.testing.assert_allclose(blocks(ours), blocks(theirs), rtol=0.04, atol=1e-3)
+
+
+def test_a_tracer_without_the_store_fetches_a_chunks_textures_with_it(chunk_store, tmp_path):
+    """A tracer on another node fetches chunk files by id (services.tracer.fetch):
+    the textures come in the same file, under the same SHA-256 check."""
+    from types import SimpleNamespace
+
+    from dosppm_core.chunks.store import StoreError
+    from services.tracer.fetch import FetchedStore
+    store = chunk_store(_checker_box(), chunks=4)
+    k = int(np.argmax([e.get("textures", 0) for e in store.manifest["chunks"]]))
+    entry = store.manifest["chunks"][k]
+    with open(os.path.join(store.path, entry["file"]), "rb") as f:
+        data = bytearray(f.read())
+
+    def serve(chunk):
+        return [SimpleNamespace(sha256=entry["sha256"], file_bytes=len(data), offset=0,
+                                data=np.frombuffer(bytes(data), np.uint8))]
+    fetched = FetchedStore(store.manifest, str(tmp_path / "node"), serve).load(k)
+    there = store.load(k)
+    assert len(fetched.tex_ids) > 0
+    for name in ("tex_ids", "tex_info", "tex_uv", "texels", "uv"):
+        np.testing.assert_array_equal(getattr(fetched, name), getattr(there, name))
+    data[entry["arrays"]["texels"][0]] ^= 0x01          # one damaged texel in transit
+    with pytest.raises(StoreError, match="fails its SHA-256 check"):
+        FetchedStore(store.manifest, str(tmp_path / "other"), serve).load(k)
