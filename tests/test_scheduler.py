@@ -11,6 +11,7 @@ from services import wire
 from services.server import checkpoint
 from services.server.held import DEPOSIT_BYTES, HeldDeposits
 from services.server.balance import assign_chunks
+from services.server.options import ServerOptions
 from services.server.state import ServerState
 from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
 from tests.helpers.scenes import small_scene
@@ -32,7 +33,7 @@ def new_state(cells=(2, 2, 1), photons_per_job=512):
     return ServerState(provider.header, provider.tree,
                        RenderSettings(photons_per_job=photons_per_job, tile_pixels=256,
                                       photons_per_iteration=10_000),
-                       "k", min_photon_jobs=50, queue_target_rays=4096)
+                       "k", options=ServerOptions(min_photon_jobs=50, queue_target_rays=4096))
 
 
 @pytest.fixture()
@@ -310,8 +311,8 @@ def _waiting_state(timeout_s):
     scene = small_scene("cornell-box", 32)
     provider = MemoryChunks(scene, uniform_tree(root_box(scene), (2, 1, 1)))
     return ServerState(provider.header, provider.tree, RenderSettings(photons_per_job=512, tile_pixels=256),
-                       "k", min_photon_jobs=8, min_tracers=3, min_tracers_timeout_s=timeout_s,
-                       tracer_timeout_s=1e6)     # no evictions: the wait is under test
+                       "k", options=ServerOptions(min_photon_jobs=8, min_tracers=3, min_tracers_timeout_s=timeout_s,
+                                                 tracer_timeout_s=1e6))     # no evictions: the wait is under test
 
 
 def _jobs(outs):

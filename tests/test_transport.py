@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from services import transport
-from services.tracer.node import TracerError, TracerProcess
+from services.tracer.node import TracerError, TracerOptions, TracerProcess
 from services.wire import PROTOCOL_VERSION, encode
 from tests.test_wire import _register_from_the_future, _valid, assert_same_message, frame_views, sample_fields
 
@@ -208,7 +208,7 @@ def test_a_tracer_replaces_its_server_connection(ctx):
     and the old one is closed without lingering."""
     server = transport.router(ctx)
     endpoint = server.bind("tcp://127.0.0.1:*")
-    tracer = TracerProcess(endpoint, bind="tcp://127.0.0.1:*", tracer_id="swap", context=ctx)
+    tracer = TracerProcess(TracerOptions(endpoint, bind="tcp://127.0.0.1:*", tracer_id="swap"), context=ctx)
     tracer._open()
     try:
         tracer._poller = transport.Poller(tracer.dealer, tracer.router)
@@ -234,8 +234,8 @@ def test_results_wait_no_longer_than_the_servers_silence_allows(ctx):
     probe = transport.router(ctx)
     nobody = probe.bind("tcp://127.0.0.1:*")
     probe.close(linger_ms=0)                  # a port nothing listens on
-    tracer = TracerProcess(nobody, bind="tcp://127.0.0.1:*", tracer_id="cut", context=ctx,
-                           connect_timeout_s=3.0)
+    tracer = TracerProcess(TracerOptions(nobody, bind="tcp://127.0.0.1:*", tracer_id="cut",
+                                         connect_timeout_s=3.0), context=ctx)
     tracer._open()
     try:
         frames = encode("heartbeat", status={})

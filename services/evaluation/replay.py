@@ -36,7 +36,7 @@ import time
 
 import numpy as np
 
-from services.tracer.node import TracerProcess
+from services.tracer.node import TracerOptions, TracerProcess
 from services.tracer.state import SERVER, TracerState, concat_credit
 from services.wire import Out
 
@@ -203,7 +203,7 @@ def cpu_shares(r: dict, cpu: float) -> dict:
 
 
 def _tracer_main(args) -> int:
-    tp = ReplayTracer(args.tracer, store=args.store, threads=1, tracer_id=f"replay-{os.getpid()}")
+    tp = ReplayTracer(TracerOptions(args.tracer, store=args.store, threads=1, tracer_id=f"replay-{os.getpid()}"))
     tp.run()
     state = getattr(tp, "state", None)
     counters = state and dict(state.counters, **({} if state.epochs is None else

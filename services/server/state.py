@@ -42,7 +42,7 @@ from collections import deque
 
 import numpy as np
 
-from dosppm_core.chunks.pacing import FIRST_QUEUE_RAYS, default_queue_memory, eye_iterations_in_flight
+from dosppm_core.chunks.pacing import default_queue_memory, eye_iterations_in_flight
 from dosppm_core.chunks.view import start_chunks
 from dosppm_core.jobs import END_NAMES, RayBatch
 from dosppm_core.settings import RenderSettings
@@ -54,6 +54,7 @@ from services.server.costs import thread_cpu
 from services.server.epoch_state import EpochStateMixin
 from services.server.held import COMPLETE, DEPOSIT_BYTES, DISCARDED, IN_FLIGHT, HeldDeposits, JobStatus
 from services.server.job_messages import JobMessages
+from services.server.options import ServerOptions
 from services.server.records import EyeIteration, Job, TracerInfo, Update  # noqa: F401 (Update: the shell's)
 from services.wire import JOB_MESSAGES, MAX_EMITTED, PROTOCOL_VERSION, Out
 
@@ -87,29 +88,21 @@ STATUS_KEYS = ("load", "resident", "busy_s", "steps", "rays_traced", "photons_tr
 
 class ServerState(EpochStateMixin):
     def __init__(self, header, tree, settings: RenderSettings, store_key: str,
-                 manifest: dict | None = None, min_photon_jobs: int = 1000,
-                 queue_target_rays: int = FIRST_QUEUE_RAYS, min_tracers: int = 1,
-                 concurrent: bool = True, client_batching: bool = True,
-                 tracer_timeout_s: float = 10.0, min_tracers_timeout_s: float | None = None,
-                 held_bytes: float | None = None, gather_at: str = "server"):
-        """`concurrent`, `client_batching` False: two of the paper's
-        optimisations off (Figure 15). The render starts once `min_tracers`
-        have registered or, with one, `min_tracers_timeout_s` after the first
-        tick (None: never). `held_bytes`: --queue-memory (`HeldDeposits`).
-        `gather_at`: "server" (the paper's: deposits sent, held, gathered
-        here) or "tracers" (by epochs: services/server/epoch_state.py)."""
+                 manifest: dict | None = None, options: ServerOptions | None = None):
+        """`options`: the scheduling ones are read here (services/server/options.py)."""
+        o = options or ServerOptions()
         settings = settings.for_image(int(header.camera.width) * int(header.camera.height))
         settings.validate()
         if settings.photons_per_job > MAX_EMITTED:
             raise ValueError(f"photons_per_job must be at most {MAX_EMITTED:,} in the service")
         self.header, self.tree, self.settings = header, tree, settings
         self.store_key, self.manifest = store_key, manifest
-        self.min_photon_jobs, self.queue_target = int(min_photon_jobs), int(queue_target_rays)
-        self.min_tracers, self.min_tracers_timeout_s = int(min_tracers), min_tracers_timeout_s
+        self.min_photon_jobs, self.queue_target = int(o.min_photon_jobs), int(o.queue_target_rays)
+        self.min_tracers, self.min_tracers_timeout_s = int(o.min_tracers), o.min_tracers_timeout_s
         self._waiting_since: float | None = None
         self.start_note: str | None = None    # why the render started short of min_tracers
-        self.concurrent, self.client_batching = bool(concurrent), bool(client_batching)
-        self.tracer_timeout_s = float(tracer_timeout_s)
+        self.concurrent, self.client_batching = bool(o.concurrent), bool(o.client_batching)
+        self.tracer_timeout_s = float(o.tracer_timeout_s)
         self.job_timeout_s = max(30.0, 3 * self.tracer_timeout_s)
         self._now = 0.0
         self.discarded: set[int] = set()          # job ids whose late results are ignored
@@ -131,13 +124,13 @@ class ServerState(EpochStateMixin):
         self._photon_pending: deque = deque()         # job ids created, not yet sent
         self.photon_jobs_in_flight = 0
         self.eyes: dict[int, EyeIteration] = {}          # in flight, by index (oldest first)
-        self.eye_in_flight = eye_iterations_in_flight(self.n_pixels, held_bytes or default_queue_memory())
+        self.eye_in_flight = eye_iterations_in_flight(self.n_pixels, o.held_bytes or default_queue_memory())
         self.photons_before = self.iterations_before = 0    # from a resumed checkpoint
         self._eye_restart = False
         self.eye_started = 0
         self.eye_completed = 0
         self._photons_at_eye_start = 0
-        self.held = HeldDeposits(settings.photon_batch, held_bytes or default_queue_memory())
+        self.held = HeldDeposits(settings.photon_batch, o.held_bytes or default_queue_memory())
         self._ready_emitted, self._ready_jobs = 0, []    # photon paths and jobs complete since the last batch
         self.updates: deque[Update] = deque()
         self._last_heartbeat, self._balanced_at = -1e30, None     # _balanced_at: see _rebalance
@@ -145,7 +138,7 @@ class ServerState(EpochStateMixin):
         self.path_ends = np.zeros(len(END_NAMES), np.int64)
         self._latencies: deque = deque(maxlen=LATENCIES_KEPT)     # of the last photon jobs complete
         self.job_making_cpu_s = 0.0     # a part of the server's cost per photon (costs.py)
-        self._init_epochs(gather_at, min_tracers)
+        self._init_epochs(o.gather_at, o.min_tracers)
 
     # -- tracers -------------------------------------------------------------------
     def welcome_fields(self, t: TracerInfo) -> dict:
