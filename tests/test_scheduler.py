@@ -9,7 +9,7 @@ from dosppm_core.jobs import PhotonDeposits
 from dosppm_core.settings import RenderSettings
 from services import wire
 from services.server import checkpoint
-from services.server.held import DEPOSIT_BYTES, HeldDeposits
+from services.server.held import DEPOSIT_BYTES, DISCARDED, HeldDeposits
 from services.server.balance import assign_chunks
 from services.server.options import ServerOptions
 from services.server.state import ServerState
@@ -221,7 +221,11 @@ def test_eviction_re_emits_the_same_photons_under_new_job_ids(state):
     sent = dict(state.jobs)
     out = state.evict("b", "test")
     assert {o.type for o in out} == {"peers"} and state.owners == [["a"]] * 4
-    assert all(j in state.discarded for j, job in sent.items() if job.sent)
+    gone = [j for j, job in sent.items() if job.sent]
+    assert gone and not set(gone) & set(state.jobs)
+    # Their late deposits are stale: the status the results handler consults.
+    photon = np.array([j for j in gone if sent[j].kind == "photon"], np.int64)
+    assert len(photon) and np.all(state._job_status(photon) == DISCARDED)
     again = {}
     for o in state.tick(1.0):
         if o.type == "photon_job":
@@ -249,7 +253,7 @@ def test_job_messages_an_idle_tracer_never_got_are_re_emitted_at_once(state):
     (a new session) and the jobs in flight are re-emitted, long before the
     30 s watchdog. A busy tracer, or one that acknowledged everything, is
     left alone."""
-    from services.server.state import JOB_MESSAGE_LOST_S
+    from services.server.membership import JOB_MESSAGE_LOST_S
     _register(state, "a")
     state.cull_box = np.array([[-1e9] * 3, [1e9] * 3])
     state.eye_completed = 1
