@@ -23,7 +23,7 @@ from dosppm_core.settings import RenderSettings
 from services import config, transport
 from services.cli.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, fail, warnings_as_lines
 from services.inproc import InProcessCluster
-from services.malloc import SERVER_MMAP_THRESHOLD_BYTES, return_large_blocks
+from dosppm_core.malloc import SERVER_MMAP_THRESHOLD_BYTES, return_large_blocks
 from services.progress import COMPILING, ProgressReporter, kernels_cached, stderr_lines
 from services.server import checkpoint
 from services.server.node import ServerProcess
@@ -58,7 +58,7 @@ def run_server(scene: str, v: dict, quiet: bool = False, spawn_tracers: int = 0)
             warm_kernels_apart()
         except RuntimeError as e:
             return fail(str(e))
-    return_large_blocks(SERVER_MMAP_THRESHOLD_BYTES)      # services/malloc.py
+    return_large_blocks(SERVER_MMAP_THRESHOLD_BYTES)      # dosppm_core/malloc.py
     limits = _limits(v)
     reporter = ProgressReporter(config.stop_limit(limits.seconds, limits.photons, limits.iterations),
                                 v["log"], quiet=quiet)

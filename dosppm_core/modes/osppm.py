@@ -22,7 +22,8 @@ import time
 import numpy as np
 
 from dosppm_core.chunks import pacing
-from dosppm_core.chunks.cache import ChunkCache, release_freed_memory_to_the_os
+from dosppm_core.chunks.cache import ChunkCache
+from dosppm_core.malloc import return_large_blocks
 from dosppm_core.chunks.schedule import EYE, PHOTON, SHADOW, ChunkScheduler
 from dosppm_core.chunks.view import (start_chunks, trace_eye_in_chunk, trace_photons_in_chunk,
                                      trace_shadows_in_chunk)
@@ -138,7 +139,7 @@ class OutOfCoreRenderer:
         if memory_bytes < cost.max():
             raise ValueError(f"memory limit {memory_bytes:.0f} B is below the largest chunk "
                              f"({cost.max():.0f} B)")
-        release_freed_memory_to_the_os()
+        return_large_blocks(replace=False)      # dosppm_core/malloc.py
         self.cache = ChunkCache(self.provider, memory_bytes, threads=s.threads)
         self.paced = self.paced and memory_bytes < cost.sum()     # all resident: nothing to hide
         return cache_bytes
