@@ -17,9 +17,11 @@ settings to every tracer at registration.
 from __future__ import annotations
 
 import argparse
+import atexit
 import logging
 import os
 
+from services import transport
 from services.cli import bench, compare, evaluate, keys, reference, render, scenes, server, subdivide, tracer
 from services.cli.errors import fail
 from services.config import ConfigError
@@ -47,6 +49,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     return_large_blocks()           # before any chunk is loaded (dosppm_core/malloc.py)
+    # At exit, before the interpreter frees the arrays zmq sends from
+    # (in-process callers, such as tests, keep the context until then).
+    atexit.register(transport.finish_process)
     logging.basicConfig(level=os.environ.get("DOSPPM_LOG_LEVEL", "WARNING").upper(),
                         format="dosppm %(name)s: %(levelname)s: %(message)s")
     args = build_parser().parse_args(argv)
