@@ -54,8 +54,13 @@ class EmissionMixin:
     @thread_cpu("job_making_cpu_s")
     def _make_photon_jobs(self) -> None:
         wanted = self._photon_jobs_wanted()
-        while self.photon_jobs_in_flight < wanted:
+        while self.photon_jobs_in_flight < wanted and self._epoch_room():
             self._photon_pending.append(self._new_job("photon", self.settings.photons_per_job))
+
+    def _epoch_room(self) -> bool:
+        """Gathering at the tracers, no job is made past OPEN_EPOCHS epochs
+        from the next to apply: what tracers hold stays bounded."""
+        return self.epochs is None or self.epochs.room_for(self.next_job)
 
     def _emitters(self) -> list[TracerInfo]:
         """The tracers serving a chunk a light lies in: photon paths start

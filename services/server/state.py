@@ -68,7 +68,8 @@ COUNTERS = ("photons_emitted", "photons_completed", "photons_committed", "photon
             "stale_paths", "over_credited_jobs", "results", "updates", "rebalanced", "photons_discarded",
             "jobs_discarded", "tracers_evicted", "eye_iterations_restarted", "deposits_discarded",
             "deposits_stale", "deposits_late", "refused", "tracers_rejoined", "jobs_timed_out",
-            "welcomes_resent", "job_messages_lost", "jobs_abandoned", "photons_abandoned")
+            "welcomes_resent", "job_messages_lost", "jobs_abandoned", "photons_abandoned",
+            "epoch_rounds_timed_out")
 LATENCIES_KEPT = 64           # photon jobs' latencies the deadline's estimate takes the median of
 EVICTIONS_SHOWN = 20    # the last evictions in the status, with their reasons
 
@@ -326,10 +327,16 @@ class ServerState(MembershipMixin, EmissionMixin, EyeScheduleMixin, EpochStateMi
         nothing waiting to go to a peer (no one is working on it), and all
         jobs in flight are discarded and re-emitted. Correctness never
         depends on it: a job presumed lost that was only slow has its late
-        results ignored."""
+        results ignored. So can a gather's request or a tracer's answer: an
+        epoch round unanswered as long is discarded with the jobs in flight
+        (its jobs made again: a round cannot be asked twice, as a tracer
+        drops an epoch's deposits once it has answered its sums)."""
         limit = STALL_S if self._all_idle(now) else self.job_timeout_s
         if any(job.sent and now - job.progress_s > limit for job in self.jobs.values()):
             self.counters["jobs_timed_out"] += 1
+            self._discard_jobs_in_flight()
+        elif self.epochs is not None and self.epochs.round_waiting_since(now) > limit:
+            self.counters["epoch_rounds_timed_out"] += 1
             self._discard_jobs_in_flight()
 
     def _discard_jobs_in_flight(self) -> None:
