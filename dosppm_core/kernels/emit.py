@@ -5,9 +5,10 @@ import numba as nb
 import numpy as np
 
 from dosppm_core.kernels.bsdf import cosine_hemisphere, to_world
+from dosppm_core.kernels.envmap import env_eval, env_sample
 from dosppm_core.kernels.paths import offset_origin
 from dosppm_core.kernels.rng import EYE_STREAM, next_float, path_state
-from dosppm_core.scene.model import LIGHT_POINT, LIGHT_TRIANGLE
+from dosppm_core.scene.model import LIGHT_DIRECTIONAL, LIGHT_ENV, LIGHT_POINT, LIGHT_SPOT, LIGHT_TRIANGLE
 
 EMIT_EPS_REL = 2e-5   # the bounces' spawn offset relative to |p| (tracing.EPS_REL)
 
@@ -88,7 +89,7 @@ def select_light(cdf, u):
 
 
 @nb.njit(cache=True, parallel=True, error_model="numpy")
-def emit_photons(kind, p0, p1, p2, value, cone, power, cdf, seed, jobs, starts, eps):
+def emit_photons(kind, p0, p1, p2, value, cone, power, cdf, seed, jobs, starts, eps, env):
     """Photons of the emission jobs `jobs` (rng keys), job m's photons
     being rows [starts[m], starts[m + 1]); lights chosen in proportion to
     power. A photon depends only on (seed, its job's key, its index in the
@@ -99,7 +100,9 @@ def emit_photons(kind, p0, p1, p2, value, cone, power, cdf, seed, jobs, starts, 
     Each photon's flux is radiant power / pdf, so the image is the sum over
     photons divided by the number emitted (eq. 5's N_e). Surface photons
     start `eps` off their light along its normal (Embree's tnear is 0).
-    Returns origin, direction, flux, rng state, and the light of each.
+    Photons of infinite lights start outside the scene (`_emit_infinite`;
+    `env` is `kernels.envmap.env_arrays`). Returns origin, direction,
+    flux, rng state, and the light of each.
     """
     count = starts[-1]
     origin = np.empty((count, 3), np.float32)
@@ -127,8 +130,17 @@ def emit_photons(kind, p0, p1, p2, value, cone, power, cdf, seed, jobs, starts, 
             o = (p0[li, 0], p0[li, 1], p0[li, 2])
             d = (r * math.cos(phi), r * math.sin(phi), z)
             scale = 4.0 * math.pi
-        else:
+        elif kind[li] == LIGHT_SPOT:
             o, d, scale = _emit_spot(p0[li], p1[li], cone[li], u1, u2)
+        else:
+            o, d, rgb = _emit_infinite(kind[li], p0[li], p1[li], cone[li, 0], value[li], env, u1, u2, u3, u4)
+            for k in range(3):
+                origin[i, k] = o[k]
+                direction[i, k] = d[k]
+                flux[i, k] = rgb[k] / p_sel
+            states[i] = st
+            light[i] = li
+            continue
         for k in range(3):
             origin[i, k] = o[k]
             direction[i, k] = d[k]
@@ -173,3 +185,27 @@ def _emit_spot(pos, axis, cone, u1, u2):
     theta = math.acos(min(1.0, z))
     fall = 1.0 if theta <= beam else max(0.0, (cutoff - theta) / (cutoff - beam))
     return (pos[0], pos[1], pos[2]), d, fall * 2.0 * math.pi * (1.0 - cos_cut)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _emit_infinite(kind, axis, centre, radius, value, env, u1, u2, u3, u4):
+    """A photon of a directional light (travelling along `axis`) or of
+    the environment (arriving from a direction w drawn by luminance,
+    pdf p): it leaves a uniform point of the disc of the bounding sphere's
+    radius R facing w, a plane tangent to the sphere outside it, along -w.
+    Every point of the scene then receives these photons at the density
+    that parallel light of its direction has, so flux = pi R^2 E, or
+    pi R^2 L(w) / p. Returns origin, direction, flux (RGB)."""
+    if kind == LIGHT_DIRECTIONAL:
+        w0, w1, w2 = -axis[0], -axis[1], -axis[2]
+        l0, l1, l2, pdf = value[0], value[1], value[2], 1.0
+    else:
+        w0, w1, w2, pdf = env_sample(env, u1, u2)
+        l0, l1, l2 = env_eval(env, w0, w1, w2)
+    disc = math.pi * radius * radius
+    if not pdf > 0.0:
+        pdf, disc = 1.0, 0.0
+    dx, dy = concentric_disk(u3, u4)
+    x0, x1, x2 = to_world(dx, dy, 1.0, w0, w1, w2)      # the disc point, lifted by R along w
+    o = (centre[0] + radius * x0, centre[1] + radius * x1, centre[2] + radius * x2)
+    return o, (-w0, -w1, -w2), (l0 * disc / pdf, l1 * disc / pdf, l2 * disc / pdf)
