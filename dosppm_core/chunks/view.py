@@ -75,6 +75,15 @@ def start_chunks(tree: ChunkTree, batch: RayBatch, keep_lost: bool = False, chun
     return routed, 0 if lost is None else len(lost)
 
 
+def start_eye_paths(tree: ChunkTree, batch: RayBatch, env):
+    """`start_chunks` for new eye rays: ({chunk: rays}, how many miss the
+    scene, (pixel, rgb) those see of the environment `env`)."""
+    routed, lost = start_chunks(tree, batch, keep_lost=True)
+    if lost is None:
+        return routed, 0, escaped_light(None, batch.slice(0, 0))
+    return routed, len(lost), escaped_light(env, lost)
+
+
 def _entered(tree: ChunkTree, batch: RayBatch) -> np.ndarray:
     """The chunk each new ray starts in (-1: it misses the scene), its
     tmin set to where it enters."""

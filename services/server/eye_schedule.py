@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from dosppm_core.chunks.view import start_chunks
-from dosppm_core.jobs import RayBatch
+from dosppm_core.chunks.view import start_eye_paths
+from dosppm_core.jobs import HitPoints, RayBatch
 from dosppm_core.trace import eye_ray_job
 from services.credit import new_job
 from services.server.job_messages import JobMessages
@@ -44,9 +44,10 @@ class EyeScheduleMixin:
     def _route(self, j: int, batch: RayBatch, parts: JobMessages) -> None:
         """Split a new eye job's paths by start chunk into `parts` per
         (tracer, chunk), each with its share of the job's credit; paths
-        that miss the scene end here."""
-        routed, lost = start_chunks(self.tree, batch)
+        that miss the scene end here, seeing the environment."""
+        routed, lost, seen = start_eye_paths(self.tree, batch, self._env)
         self.path_ends[1] += lost           # ESCAPED, before any tracer saw them
+        self.eyes[self.jobs[j].eye_iteration].results.add(HitPoints.empty(), *seen)
         exp, kept = new_job(len(routed))
         share = (np.array([j], np.int64), np.array([exp], np.int64))
         for k, part in routed.items():
