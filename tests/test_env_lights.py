@@ -230,7 +230,7 @@ def test_envmap_lookup_matches_mitsuba():
     to_world = mi.ScalarTransform4f().rotate(axis.tolist(), 40)
     emitter = mi.load_dict({"type": "envmap", "filename": MUSEUM, "scale": 2.0, "to_world": to_world})
     from dosppm_core.scene.envmap import load_image
-    tex = texels_from_image(load_image(MUSEUM, "test"), 2.0)
+    tex = texels_from_image(load_image(MUSEUM), 2.0)
     env = (tex, np.array(to_world.matrix)[:3, :3], *distribution(tex))
     rng = np.random.default_rng(1)
     for _ in range(500):
@@ -363,3 +363,32 @@ def test_mitsuba_test_scenes_get_past_their_emitter(name):
         dp.load(path)
     except SceneError as e:
         assert "<emitter" not in str(e), str(e)
+
+
+# -- through the render service ------------------------------------------------------------
+@pytest.mark.slow
+@needs_museum
+def test_render_service_with_two_chunks_renders_the_envmap_scene(tmp_path):
+    """`dosppm render scene.xml --chunks 2` (a server and two tracer
+    processes): the tracers get the map in the scene header, and the image
+    equals single-process SPPM within the noise between two seeds."""
+    from dosppm_core.film import read_exr
+    from tests.helpers.cli import run_dosppm
+    from tests.helpers.cluster import ITERATIONS, assert_same_within_noise, settings
+    path = _museum_scene(tmp_path, size=32)
+    out = tmp_path / "img.exr"
+    proc = run_dosppm("render", path, "--chunks", "2", "--tracers", "2", "--photons", "240000",
+                      "--photons-per-iteration", "40000", "--seed", "5", "--threads", "1",
+                      "--min-photon-jobs", "16", "--http", "off", "--out", str(out),
+                      "--store-cache", str(tmp_path / "stores"), timeout=400)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    img = read_exr(str(out))[0]
+    scene = dp.load(path)
+    refs = {}
+    for seed in (5, 9):
+        r = Renderer(scene, settings(seed))
+        for _ in range(ITERATIONS):
+            r.run_iteration()
+        refs[seed] = r.image()
+        r.close()
+    assert_same_within_noise(img, refs[5], refs[9])

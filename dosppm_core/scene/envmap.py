@@ -15,14 +15,15 @@ Sampling (`distribution`) is piecewise constant in solid angle over the
 luminance of its four corners times its solid angle dphi (cos theta_i -
 cos theta_i+1), the sin(theta) weighting in closed form. Every direction
 whose bilinear radiance is non-zero lies in a patch of positive weight.
+
+Bad input raises ValueError (the scene readers turn it into a SceneError
+naming the element): the model imports this module, not the reverse.
 """
 from __future__ import annotations
 
 import math
 
 import numpy as np
-
-from dosppm_core.scene.model import SceneError
 
 # Mitsuba's luminance() of linear sRGB.
 LUMINANCE = np.array([0.212671, 0.715160, 0.072169])
@@ -32,7 +33,7 @@ def texels_from_image(rgb, scale: float = 1.0) -> np.ndarray:
     """(H, W, 3) linear RGB, lat-long, as Mitsuba reads it -> texels."""
     img = np.asarray(rgb, np.float64)
     if img.ndim != 3 or img.shape[2] != 3 or img.shape[0] < 3 or img.shape[1] < 2:
-        raise SceneError(f"environment map must be at least 2x3 RGB pixels, got shape {img.shape}")
+        raise ValueError(f"environment map must be at least 2x3 RGB pixels, got shape {img.shape}")
     img = np.concatenate([img, img[:, :1]], axis=1) * float(scale)
     return np.ascontiguousarray(img, np.float32)
 
@@ -42,15 +43,15 @@ def constant_texels(radiance) -> np.ndarray:
     return np.ascontiguousarray(np.broadcast_to(np.asarray(radiance, np.float32), (2, 2, 3)))
 
 
-def load_image(path: str, where: str) -> np.ndarray:
+def load_image(path: str) -> np.ndarray:
     """An EXR environment map's linear RGB (H, W, 3)."""
     from dosppm_core.film import FilmError, read_exr
     if not path.lower().endswith(".exr"):
-        raise SceneError(f"{where}: environment maps are read from OpenEXR files only, got {path!r}")
+        raise ValueError(f"environment maps are read from OpenEXR files only, got {path!r}")
     try:
         rgb, _layers = read_exr(path)
     except FilmError as e:
-        raise SceneError(f"{where}: {e}") from None
+        raise ValueError(str(e)) from None
     return rgb
 
 

@@ -78,7 +78,10 @@ def _envmap(reader: ReaderState, obj: Obj) -> None:
     scale = get_float(obj, "scale", 1.0)
     rotation = get_matrix(obj)[:3, :3]
     finish(obj)
-    texels = envmap.texels_from_image(envmap.load_image(path, obj.where()), scale)
+    try:
+        texels = envmap.texels_from_image(envmap.load_image(path), scale)
+    except ValueError as e:
+        obj.node.fail(str(e))
     reader.builder.set_environment(texels, rotation, obj.where())
 
 
