@@ -392,3 +392,49 @@ def test_render_service_with_two_chunks_renders_the_envmap_scene(tmp_path):
         refs[seed] = r.image()
         r.close()
     assert_same_within_noise(img, refs[5], refs[9])
+
+
+@needs_museum
+def test_toml_environment_reads_as_the_xml_envmap(tmp_path):
+    """The TOML `environment` light (file, scale, rotate) and `directional`
+    give the light table Mitsuba's XML does."""
+    shapes_xml = _sphere("0.5")
+    xml = dp.load(_xml(tmp_path, f"""<emitter type="envmap"><string name="filename" value="{MUSEUM}"/>
+        <float name="scale" value="1.5"/><transform name="to_world"><rotate y="1" angle="30"/></transform></emitter>
+        <emitter type="directional"><vector name="direction" value="0, -1, 0"/><rgb name="irradiance" value="2"/>
+        </emitter>""", shapes_xml))
+    toml = tmp_path / "scene.toml"
+    toml.write_text(f"""[camera]
+position = [0, 0.3, 4]
+look_at = [0, 0, 0]
+up = [0, 1, 0]
+fov = 35
+width = 32
+height = 32
+
+[materials.grey]
+type = "diffuse"
+reflectance = 0.5
+
+[[shapes]]
+type = "sphere"
+material = "grey"
+scale = 0.8
+
+[[lights]]
+type = "environment"
+file = "{MUSEUM}"
+scale = 1.5
+rotate = [0, 1, 0, 30]
+
+[[lights]]
+type = "directional"
+direction = [0, -1, 0]
+irradiance = 2
+""")
+    ours = dp.load(str(toml))
+    a, b = xml.lights, ours.lights
+    np.testing.assert_array_equal(a.env_texels, b.env_texels)
+    np.testing.assert_allclose(a.env_to_world, b.env_to_world, atol=1e-12)
+    assert sorted(a.kind.tolist()) == sorted(b.kind.tolist()) == [LIGHT_DIRECTIONAL, LIGHT_ENV]
+    np.testing.assert_allclose(np.sort(a.power), np.sort(b.power), rtol=1e-3)   # spheres of like radius
