@@ -438,3 +438,29 @@ irradiance = 2
     np.testing.assert_allclose(a.env_to_world, b.env_to_world, atol=1e-12)
     assert sorted(a.kind.tolist()) == sorted(b.kind.tolist()) == [LIGHT_DIRECTIONAL, LIGHT_ENV]
     np.testing.assert_allclose(np.sort(a.power), np.sort(b.power), rtol=1e-3)   # spheres of like radius
+
+
+@needs_museum
+@pytest.mark.parametrize("floor", ["diffuse", "glossy"])
+def test_lights_add_up_with_an_environment_and_an_area_light(tmp_path, floor):
+    """Light is linear: a scene under museum.exr and a lamp renders the
+    sum of the two lit apart. Mixed, shadow rays choose between infinite
+    and tree-sampled lights (diffuse floor), or by power with MIS against
+    the BSDF (glossy floor: both the map and the lamp are found by BSDF
+    rays too); each estimate divides by its own mixture."""
+    bsdf = ('<bsdf type="diffuse"><rgb name="reflectance" value="0.6"/></bsdf>' if floor == "diffuse" else
+            '<bsdf type="roughconductor"><string name="distribution" value="ggx"/>'
+            '<float name="alpha" value="0.3"/><string name="material" value="none"/></bsdf>')
+    lamp = """<shape type="rectangle"><transform name="to_world"><scale value="0.3"/><rotate x="1" angle="90"/>
+        <translate y="1.2"/></transform><emitter type="area"><rgb name="radiance" value="8"/></emitter></shape>"""
+    env = f'<emitter type="envmap"><string name="filename" value="{MUSEUM}"/></emitter>'
+    base = f"""<shape type="rectangle"><transform name="to_world"><scale value="2"/><rotate x="1" angle="-90"/>
+        <translate y="-0.5"/></transform>{bsdf}</shape>""" + _sphere("0.5", radius=0.5)
+    images = {}
+    for name, emitter, shapes in (("both", env, base + lamp), ("env", env, base), ("lamp", "", base + lamp)):
+        path = _xml(tmp_path, emitter, shapes, size=32, origin="0, 1.5, 3", fov=50, name=f"{name}.xml")
+        images[name] = _render(dp.load(path), 48, photons_per_iteration=20_000)
+    summed = images["env"] + images["lamp"]
+    assert abs(images["both"].mean() / summed.mean() - 1) < 0.02
+    t_both, t_sum = (x.reshape(4, 8, 4, 8, 3).mean(axis=(1, 3, 4)) for x in (images["both"], summed))
+    assert np.abs(t_both / t_sum - 1).max() < 0.06
