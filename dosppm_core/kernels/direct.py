@@ -34,8 +34,8 @@ under triangle lights keep power alone: the one-sample MIS above needs
 the light technique's pdf where a BSDF-sampled ray finds an emitter.
 
 Infinite lights (directional, environment) have no place in the tree: a
-fixed share of the choices (`infinite_share`: all of them when every
-light is infinite, half when the scene has both) picks among them by
+fixed share of the choices (`trace._infinite_arrays`: all of them when
+every light is infinite, half when the scene has both) picks among them by
 power, and the estimate divides by the whole mixture's probability. A
 directional light is a delta light (a shadow ray toward it, past the
 scene's bounding sphere); the environment is sampled by its luminance
@@ -286,8 +286,8 @@ def _chosen_light_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, li
                       infinite, env, st, ul, u1, u2, eps_rel, out):
     """A shadow ray to a point on a light chosen from the defensive mixture
     a p_tree + (1 - a) p_cell of the light tree at the hit point and the
-    lights its cell learned from the photons (`light_cache`), or, in the
-    share `infinite_share` of the choices, an infinite light by power.
+    lights its cell learned from the photons (`light_cache`), or, in a
+    fixed share of the choices, an infinite light by power.
     Writes row i of `out`, returns whether it may contribute."""
     tree = (lights[8], lights[9], lights[10], lights[11], lights[12], lights[13])
     row, share, total = read_cell(cache, p0, p1, p2, n0, n1, n2)
