@@ -65,6 +65,7 @@ from dosppm_core.scene.model import (
     LIGHT_DIRECTIONAL,
     LIGHT_ENV,
     LIGHT_POINT,
+    LIGHT_PROJECTOR,
     LIGHT_SPOT,
     LIGHT_TRIANGLE,
     MIRROR,
@@ -223,6 +224,12 @@ def _delta_emitters(mi, scene: Scene) -> dict:
                     origin=pos, target=_vec(lights.p0[i] + axis), up=_vec(_any_perpendicular(axis))),
                 "cutoff_angle": math.degrees(lights.cone[i, 2]),
                 "beam_width": math.degrees(lights.cone[i, 3])}
+        elif lights.kind[i] == LIGHT_PROJECTOR:
+            axis = np.asarray(lights.p1[i], float)
+            out[f"light_{i}"] = {
+                "type": "projector", "irradiance": value, "fov": math.degrees(2 * math.atan(lights.cone[i, 0])),
+                "to_world": mi.ScalarTransform4f().look_at(
+                    origin=pos, target=_vec(lights.p0[i] + axis), up=_vec(np.cross(axis, lights.p2[i])))}
         elif lights.kind[i] == LIGHT_DIRECTIONAL:
             out[f"light_{i}"] = {"type": "directional", "direction": pos, "irradiance": value}
         elif lights.kind[i] == LIGHT_ENV:

@@ -464,3 +464,52 @@ def test_lights_add_up_with_an_environment_and_an_area_light(tmp_path, floor):
     assert abs(images["both"].mean() / summed.mean() - 1) < 0.02
     t_both, t_sum = (x.reshape(4, 8, 4, 8, 3).mean(axis=(1, 3, 4)) for x in (images["both"], summed))
     assert np.abs(t_both / t_sum - 1).max() < 0.06
+
+
+# -- the projector -------------------------------------------------------------------------
+PROJECTOR = """<emitter type="projector"><float name="fov" value="90"/><rgb name="irradiance" value="0.5, 1, 2"/>
+    <transform name="to_world"><lookat origin="0, 1, 0" target="0, 0, 0" up="0, 0, 1"/></transform></emitter>"""
+
+
+def test_projector_photons_give_pi_e_on_its_image_plane(tmp_path):
+    """Mitsuba's projector: its image plane at distance 1 (here y = 0,
+    |x|, |z| < 1 for a 90 degree fov) receives pi E, nothing outside."""
+    scene = dp.load(_xml(tmp_path, PROJECTOR, _sphere("0.5", radius=1.5)))
+    inside = _flux_through_square(scene, 200_000, half=0.9)
+    np.testing.assert_allclose(inside, math.pi * np.array([0.5, 1.0, 2.0]), rtol=0.03)
+    ring = _flux_through_square(scene, 200_000, half=1.5) * 9 - _flux_through_square(scene, 200_000, half=1.0) * 4
+    np.testing.assert_allclose(ring, 0.0, atol=1e-9)
+
+
+@pytest.mark.parametrize("direct", ["nee", "photons"])
+def test_projector_on_a_diffuse_plane(tmp_path, direct):
+    """A plane of albedo a at distance 1: radiance a E inside the frustum's
+    footprint, 0 outside it."""
+    plane = """<shape type="rectangle"><transform name="to_world"><scale value="1.6"/><rotate x="1" angle="-90"/>
+        </transform><bsdf type="diffuse"><rgb name="reflectance" value="0.6"/></bsdf></shape>"""
+    scene = dp.load(_xml(tmp_path, PROJECTOR, plane, size=32, origin="0, 3, 0", fov=60, up="0, 0, 1"))
+    img = _render(scene, 16, direct=direct)
+    # The view spans |x| < 3 tan 30 = 1.73: the footprint |x| < 1 is the middle 58%.
+    mid, rim = img[10:22, 10:22], np.concatenate([img[:, :3], img[:, -3:]])
+    np.testing.assert_allclose(mid.mean((0, 1)), 0.6 * np.array([0.5, 1.0, 2.0]), rtol=0.03)
+    assert rim.max() < (1e-6 if direct == "nee" else 0.05)
+
+
+@needs_shared_scenes
+def test_mitsuba_projector_scene_matches_its_reference():
+    """Mitsuba's test_projector_constant_direct (a plane, no indirect
+    light): the mean of its reference image within 1% with shadow rays."""
+    from dosppm_core.film import read_exr
+    folder = os.path.join(MITSUBA_DATA, "tests", "scenes", "projector")
+    ref = read_exr(os.path.join(folder, "refs", "test_projector_constant_ref_rgb.exr"))[0]
+    img = _render(dp.load(os.path.join(folder, "test_projector_constant_direct.xml")), 8)
+    np.testing.assert_allclose(img.mean((0, 1)), ref.mean((0, 1)), rtol=0.01)
+
+
+def test_textured_projector_is_refused_at_its_texture(tmp_path):
+    emitter = """<emitter type="projector"><float name="fov" value="40"/>
+        <texture type="bitmap" name="irradiance"><string name="filename" value="x.png"/></texture></emitter>"""
+    with pytest.raises(SceneError) as err:
+        dp.load(_xml(tmp_path, emitter, _sphere("0.5")))
+    assert "\n" not in str(err.value)
+    assert str(err.value).startswith(f"{tmp_path / 'scene.xml'}:3: <texture type=\"bitmap\""), str(err.value)

@@ -430,7 +430,6 @@ BAD = [  # (snippet, line offset, element as written, what the message says)
     ('<bsdf type="diffuse" id="t"><texture type="bitmap" name="reflectance"/></bsdf>', 0,
      '<texture type="bitmap" name="reflectance">', "unsupported plugin"),
     ('<emitter type="envmap"/>', 0, '<emitter type="envmap">', "missing parameter 'filename'"),
-    ('<emitter type="projector"/>', 0, '<emitter type="projector">', "unsupported plugin"),
     ('<sensor type="radiancemeter"/>', 0, '<sensor type="radiancemeter">', "unsupported plugin"),
     ('<shape type="sdfgrid"/>', 0, '<shape type="sdfgrid">', "unsupported plugin"),
     ('<shape type="cube">\n  <ref id="nope"/></shape>', 1, '<ref id="nope">', "unknown id 'nope'"),

@@ -59,7 +59,7 @@ from dosppm_core.kernels.light_cache import cell_pmf, pick_in_cell, read_cell
 from dosppm_core.kernels.light_tree import sample_tree, tree_pmf
 from dosppm_core.kernels.paths import offset_origin
 from dosppm_core.kernels.rng import next_float
-from dosppm_core.scene.model import GLOSSY, LIGHT_DIRECTIONAL, LIGHT_ENV, LIGHT_POINT, LIGHT_TRIANGLE
+from dosppm_core.scene.model import GLOSSY, LIGHT_DIRECTIONAL, LIGHT_ENV, LIGHT_POINT, LIGHT_PROJECTOR, LIGHT_TRIANGLE
 
 C_LIGHT = 0.5          # share of light samples at glossy hit points (MIS); 1 elsewhere
 FIRST_HIT = 1e37       # tmax of a BSDF-sampled ray: finite (the wire refuses inf), past any scene
@@ -95,6 +95,24 @@ def spot_falloff(cone, cos_t):
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
+def projector_profile(axis, x_axis, cone, v0, v1, v2):
+    """A projector's intensity over its irradiance in unit direction v:
+    pi / cos^3 inside its frustum (a constant image plane at distance 1
+    gets pi E, as in Mitsuba), 0 outside."""
+    cz = axis[0] * v0 + axis[1] * v1 + axis[2] * v2
+    if not cz > 0.0:
+        return 0.0
+    y0 = axis[1] * x_axis[2] - axis[2] * x_axis[1]
+    y1 = axis[2] * x_axis[0] - axis[0] * x_axis[2]
+    y2 = axis[0] * x_axis[1] - axis[1] * x_axis[0]
+    x = (x_axis[0] * v0 + x_axis[1] * v1 + x_axis[2] * v2) / cz
+    y = (y0 * v0 + y1 * v1 + y2 * v2) / cz
+    if abs(x) > cone[0] or abs(y) > cone[1]:
+        return 0.0
+    return math.pi / (cz * cz * cz)
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
 def _sample_light(lights, li, p0, p1, p2, u1, u2):
     """A point y on light li seen from x = p: (y, unit wi from x to y,
     distance, the light's Le * G factor per colour channel scale (a scalar
@@ -120,6 +138,8 @@ def _sample_light(lights, li, p0, p1, p2, u1, u2):
         g = cos_y * area / dist2 if cos_y > 0.0 else 0.0
     elif kind[li] == LIGHT_POINT:
         g = 1.0 / dist2
+    elif kind[li] == LIGHT_PROJECTOR:
+        g = projector_profile(lp1[li], lp2[li], cone[li], -w0, -w1, -w2) / dist2
     else:
         axis = lp1[li]
         g = spot_falloff(cone[li], -(axis[0] * w0 + axis[1] * w1 + axis[2] * w2)) / dist2

@@ -34,7 +34,7 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
-from dosppm_core.scene.model import LIGHT_DIRECTIONAL, LIGHT_ENV, LIGHT_POINT, LIGHT_TRIANGLE
+from dosppm_core.scene.model import LIGHT_DIRECTIONAL, LIGHT_ENV, LIGHT_POINT, LIGHT_PROJECTOR, LIGHT_TRIANGLE
 
 BUCKETS = 12
 _ONE_MINUS = 0.9999999999999999
@@ -89,6 +89,11 @@ def _light_bounds(kind, p0, p1, p2, value, cone):
             phi[i] = intensity
             if kind[i] == LIGHT_POINT:
                 cones[i, 3], cones[i, 4] = -1.0, 0.0
+            elif kind[i] == LIGHT_PROJECTOR:        # the frustum's cone; phi bounds pi E / cos^3
+                cos_o = 1.0 / math.sqrt(1.0 + cone[i, 0] ** 2 + cone[i, 1] ** 2)
+                cones[i, 0], cones[i, 1], cones[i, 2] = p1[i, 0], p1[i, 1], p1[i, 2]
+                cones[i, 3], cones[i, 4] = cos_o, math.cos(0.01)
+                phi[i] = math.pi * intensity / cos_o ** 3
             else:                               # spot: full to the beam, falling off to the cutoff
                 cones[i, 0], cones[i, 1], cones[i, 2] = p1[i, 0], p1[i, 1], p1[i, 2]
                 cones[i, 3] = math.cos(cone[i, 3])

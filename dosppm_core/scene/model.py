@@ -24,7 +24,7 @@ MATERIAL_KINDS = {"diffuse": DIFFUSE, "mirror": MIRROR, "glass": GLASS, "glossy"
 # Light kinds, as stored in `LightTable.kind`. Directional and environment
 # lights are infinitely far: their photons leave a disc outside the scene's
 # bounding sphere, and their shadow rays run to past that sphere.
-LIGHT_TRIANGLE, LIGHT_POINT, LIGHT_SPOT, LIGHT_DIRECTIONAL, LIGHT_ENV = 0, 1, 2, 3, 4
+LIGHT_TRIANGLE, LIGHT_POINT, LIGHT_SPOT, LIGHT_DIRECTIONAL, LIGHT_ENV, LIGHT_PROJECTOR = 0, 1, 2, 3, 4, 5
 # The bounding sphere of the infinite lights' discs: the scene box's, this
 # much larger (Mitsuba enlarges its own by 1 + RayEpsilon).
 SPHERE_MARGIN = 1e-3
@@ -191,7 +191,10 @@ class LightTable:
     Triangle lights store their vertices in p0..p2 and radiance in `value`;
     point and spot lights store position in p0, intensity (W/sr) in `value`,
     and spots their unit axis in p1 and (cos cutoff, cos beam, cutoff rad,
-    beam rad) in `cone`. The infinite lights store the scene's bounding
+    beam rad) in `cone`; a projector (Mitsuba's, untextured) its unit
+    axis in p1, its image's x axis in p2, the irradiance its image plane at
+    distance 1 has in `value` (its intensity is pi value / cos^3) and the
+    half extents (tan x, tan y) of its frustum in cone[0:2]. The infinite lights store the scene's bounding
     sphere, centre in p1 and radius in cone[0]: a directional light its unit
     direction of travel in p0 and irradiance (W/m^2) in `value`, the
     environment (at most one row) its mean radiance in `value`, its texels
@@ -255,7 +258,7 @@ class Scene:
     def bounds(self) -> np.ndarray:
         """(2, 3) float64 box of the geometry and the point/spot lights."""
         pts = [self.vertices.astype(np.float64)]
-        delta = (self.lights.kind == LIGHT_POINT) | (self.lights.kind == LIGHT_SPOT)
+        delta = np.isin(self.lights.kind, (LIGHT_POINT, LIGHT_SPOT, LIGHT_PROJECTOR))
         if np.any(delta):
             pts.append(self.lights.p0[delta])
         allp = np.concatenate(pts)
@@ -427,6 +430,23 @@ class SceneBuilder:
             raise SceneError(f"{where}.to_world: an environment takes a rotation only")
         self._environment = (np.maximum(t, 0.0), r)
 
+    def add_projector_light(self, position, axis, x_axis, irradiance, tan_half_fov: float, where: str) -> None:
+        """Mitsuba's projector with a constant irradiance (a square image):
+        the plane at distance 1 along `axis`, within +-tan_half_fov, gets
+        pi x `irradiance`."""
+        pos, val = _rgb(position, f"{where}.position"), _rgb(irradiance, f"{where}.irradiance")
+        z, x = np.asarray(axis, np.float64), np.asarray(x_axis, np.float64)
+        if np.any(val < 0):
+            raise SceneError(f"{where}.irradiance: must be non-negative")
+        if not (math.isfinite(tan_half_fov) and tan_half_fov > 0):
+            raise SceneError(f"{where}.fov: must lie in (0, 180) degrees")
+        z = z / np.linalg.norm(z)
+        x = x - z * (x @ z)
+        if not np.linalg.norm(x) > 1e-9:
+            raise SceneError(f"{where}.to_world: degenerate")
+        cone = np.array([tan_half_fov, tan_half_fov, 0.0, 0.0])
+        self._delta_lights.append((LIGHT_PROJECTOR, pos, z, val, cone, x / np.linalg.norm(x)))
+
     # -- building ---------------------------------------------------------
     def build(self) -> Scene:
         if self.camera is None:
@@ -484,7 +504,7 @@ def light_table(p0, p1, p2, radiance, delta_lights=(), directional=(), environme
 
     p0, p1, p2: (n, 3) corners of the emissive triangles, each emitting
     `radiance` (n, 3) on its counter-clockwise front; `delta_lights`:
-    (kind, position, axis, intensity, cone) tuples as `SceneBuilder`
+    (kind, position, axis, intensity, cone[, x axis]) tuples as `SceneBuilder`
     collects them. Triangles come first, in the order given, so a writer
     that streams its triangles (a generated soup) can build the same table
     as `SceneBuilder` from its emissive triangles alone. `directional`:
@@ -498,9 +518,9 @@ def light_table(p0, p1, p2, radiance, delta_lights=(), directional=(), environme
     rows = [p0, p1, p2, radiance, np.zeros((n, 4))]
     # One-sided Lambertian emitter: flux = pi * L * area per channel.
     power = [math.pi * area * radiance.mean(axis=1)]
-    for kind, pos, axis, val, cone in delta_lights:
+    for kind, pos, axis, val, cone, *x_axis in delta_lights:
         rows_kind.append(np.array([kind], np.int32))
-        for i, x in enumerate((pos, axis, np.zeros(3), val, cone)):
+        for i, x in enumerate((pos, axis, x_axis[0] if x_axis else np.zeros(3), val, cone)):
             rows[i] = np.concatenate([rows[i], np.asarray(x, np.float64)[None]])
         power.append(np.array([np.mean(val) * _delta_solid_angle(kind, np.asarray(cone))]))
     env = _infinite_rows(directional, environment, sphere, rows_kind, rows, power)
@@ -544,6 +564,8 @@ def _delta_solid_angle(kind: int, cone: np.ndarray) -> float:
     light; for a spot, the full cone to the beam plus the linear ramp."""
     if kind == LIGHT_POINT:
         return 4 * math.pi
+    if kind == LIGHT_PROJECTOR:       # pi E over the image plane at distance 1
+        return math.pi * 4 * cone[0] * cone[1]
     cutoff, beam = cone[2], cone[3]
     full = 2 * math.pi * (1 - math.cos(beam))
     # Ramp: integral of 2 pi sin(t) (cutoff - t) / (cutoff - beam) dt over

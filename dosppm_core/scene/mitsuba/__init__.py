@@ -27,7 +27,9 @@ bsdf        diffuse (reflectance); twosided (one nested BSDF);
             specular_reflectance equal to specular_transmittance) -> glass
 emitter     area (radiance) in a shape or referenced by one; point (position
             or to_world, intensity); spot (to_world, intensity,
-            cutoff_angle, beam_width); directional (direction or to_world,
+            cutoff_angle, beam_width); projector (to_world, fov or
+            focal_length, fov_axis, a constant irradiance, scale: no
+            texture); directional (direction or to_world,
             irradiance); constant (radiance); envmap (filename of a
             lat-long OpenEXR, scale, to_world a rotation); one of constant
             and envmap per scene

@@ -1,13 +1,18 @@
 """Emitters: `area` (its radiance becomes the emission of the material of
-the shape holding or referencing it), `point`, `spot`, and the infinitely
-distant ones: `directional`, `constant` and `envmap` (`scene.envmap`)."""
+the shape holding or referencing it), `point`, `spot`, `projector` (a
+constant irradiance; a textured one is refused at its <texture>), and the
+infinitely distant ones: `directional`, `constant` and `envmap`
+(`scene.envmap`)."""
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
 from dosppm_core.scene.mitsuba.objects import Obj
 from dosppm_core.scene import envmap
 from dosppm_core.scene.mitsuba.params import finish, get_float, get_matrix, get_point, get_rgb, get_str, required
+from dosppm_core.scene.mitsuba.sensors import field_of_view
 from dosppm_core.scene.mitsuba.state import ReaderState
 from dosppm_core.scene.mitsuba.xmltree import resolve
 
@@ -85,4 +90,17 @@ def _envmap(reader: ReaderState, obj: Obj) -> None:
     reader.builder.set_environment(texels, rotation, obj.where())
 
 
-INFINITE = {"directional": _directional, "constant": _constant, "envmap": _envmap}
+def _projector(reader: ReaderState, obj: Obj) -> None:
+    """Mitsuba's projector with a constant irradiance: a square image, so
+    every fov_axis but diagonal means the same fov."""
+    irradiance = np.multiply(get_rgb(obj, "irradiance", 1.0), get_float(obj, "scale", 1.0))
+    fov, _axis = field_of_view(obj, 1, 1)
+    m = get_matrix(obj)
+    finish(obj)
+    reader.builder.add_projector_light(m[:3, 3], m[:3, :3] @ np.array([0.0, 0.0, 1.0]),
+                                       m[:3, :3] @ np.array([1.0, 0.0, 0.0]), irradiance,
+                                       math.tan(math.radians(fov) / 2), obj.where())
+
+
+# Read apart from point and spot (no `intensity`).
+INFINITE = {"directional": _directional, "constant": _constant, "envmap": _envmap, "projector": _projector}
