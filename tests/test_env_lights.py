@@ -26,7 +26,7 @@ from dosppm_core.modes.sppm import Renderer
 from dosppm_core.scene.envmap import distribution, texels_from_image
 from dosppm_core.scene.model import LIGHT_DIRECTIONAL, LIGHT_ENV, SceneError, SceneHeader
 from dosppm_core.settings import RenderSettings
-from dosppm_core.trace import emit_photon_jobs, environment
+from dosppm_core.trace import emit_photon_job, emit_photon_jobs, environment, trace_photon_jobs
 from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
 from tests.helpers.paths import SHARED_SCENES, needs_shared_scenes
 
@@ -513,3 +513,39 @@ def test_textured_projector_is_refused_at_its_texture(tmp_path):
         dp.load(_xml(tmp_path, emitter, _sphere("0.5")))
     assert "\n" not in str(err.value)
     assert str(err.value).startswith(f"{tmp_path / 'scene.xml'}:3: <texture type=\"bitmap\""), str(err.value)
+
+
+def test_environment_photons_are_culled_at_the_hit_point_box(tmp_path):
+    """A close view of the sphere under a constant sky: most photons from
+    the sky's disc land outside the hit points' box and are culled, and the
+    image is the one rendered with every photon kept (culling drops only
+    deposits no hit point could gather)."""
+    floor = """<shape type="rectangle"><transform name="to_world"><scale value="6"/><rotate x="1" angle="-90"/>
+        <translate y="-0.8"/></transform><bsdf type="diffuse"><rgb name="reflectance" value="0.5"/></bsdf></shape>"""
+    scene = dp.load(_xml(tmp_path, '<emitter type="constant"/>', _sphere("0.6") + floor, size=16,
+                         origin="0, 0, 2.5", fov=20))
+    images = {}
+    for cull in (True, False):
+        r = Renderer(scene, RenderSettings(seed=2, photons_per_iteration=20_000, cull=cull))
+        for _ in range(3):
+            r.run_iteration()
+        images[cull] = r.image()
+        if cull:    # most of an iteration's deposits fall outside the box
+            jobs = [emit_photon_job(scene, 2, 99, 20_000, r.surf.eps_abs)]
+            deposits, _ends, culled = trace_photon_jobs(r.accel, r.surf, jobs, r.sppm.cull_box(), 256, 1)
+            assert culled > 2 * len(deposits) > 0
+        r.close()
+    np.testing.assert_allclose(images[True], images[False], rtol=1e-5, atol=1e-7)
+
+
+def test_server_starts_infinite_light_photons_in_every_chunk(tmp_path):
+    """Photons of a sky enter the scene anywhere: every chunk's tracers
+    emit (a lamp's photons start in its own chunk)."""
+    from services.server.balance import light_chunks
+    lamp = """<shape type="rectangle"><transform name="to_world"><scale value="0.2"/><rotate x="1" angle="90"/>
+        <translate x="0.5" y="1" z="0.5"/></transform><emitter type="area"><rgb name="radiance" value="1"/>
+        </emitter></shape>"""
+    for emitter, expect in (("", [7]), ('<emitter type="constant"/>', list(range(8)))):
+        scene = dp.load(_xml(tmp_path, emitter, _sphere("0.5") + lamp, name=f"{len(expect)}.xml"))
+        tree = uniform_tree(root_box(scene), (2, 2, 2))
+        assert light_chunks(scene.header(), tree) == expect
