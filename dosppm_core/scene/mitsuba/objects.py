@@ -19,7 +19,7 @@ VALUE_TAGS = {"float", "integer", "boolean", "string", "point", "vector", "rgb",
 PLUGINS = {
     "shape": {"obj", "ply", "rectangle", "cube", "sphere", "disk", "cylinder", "shapegroup", "instance"},
     "bsdf": {"diffuse", "twosided", "conductor", "roughconductor", "dielectric"},
-    "emitter": {"area", "point", "spot"},
+    "emitter": {"area", "point", "spot", "directional", "constant", "envmap", "projector"},
     "texture": {"bitmap", "checkerboard"},
     "sensor": {"perspective", "thinlens", "orthographic"},
     "film": {"hdrfilm"},
