@@ -134,6 +134,10 @@ def later_part(message: str) -> bool:
     plugin of a family and type in `LATER`, or a conductor's eta and k."""
     if re.search(r': <\w+ name="(eta|k)">: unsupported parameter of <bsdf type="(rough)?conductor">$', message):
         return True     # a conductor's complex index of refraction: the materials part
+    if re.search(r': <string name="material">: unsupported attribute: named conductor ', message):
+        return True     # a named conductor (its eta and k): the materials part
+    if re.search(r': <texture type="[^"]*"[^>]*>: not allowed inside <emitter type="(spot|projector|area)"', message):
+        return True     # a textured emitter: the lights part (the textures part reads BSDFs' textures)
     found = re.search(r': <(\w+) type="([^"]*)"[^>]*>: unsupported plugin$', message)
     if not found:
         return False
