@@ -28,9 +28,10 @@ bsdf        diffuse (reflectance); twosided (one nested BSDF);
             the colour of each may be a texture
 texture     bitmap (filename: PNG, JPEG, BMP, ... or EXR; filter_type
             bilinear or nearest, wrap_mode repeat, mirror or clamp, raw,
-            to_uv); checkerboard (color0, color1, to_uv); nested in a BSDF
-            under the parameter's name, or a ``<ref name id>``. Not on
-            roughness (alpha)
+            to_uv); checkerboard (color0, color1, to_uv); mesh_attribute
+            (name vertex_<p> or face_<p> of a PLY's <p>_0.. properties);
+            nested in a BSDF under the parameter's name, or a ``<ref name
+            id>``. Not on roughness (alpha)
 emitter     area (radiance) in a shape or referenced by one; point (position
             or to_world, intensity); spot (to_world, intensity,
             cutoff_angle, beam_width); projector (to_world, fov or

@@ -22,6 +22,7 @@ import functools
 
 import numpy as np
 
+from dosppm_core.scene.mitsuba.attributes import shape_attribute
 from dosppm_core.scene.mitsuba.bsdfs import material_id
 from dosppm_core.scene.mitsuba.objects import Obj
 from dosppm_core.scene.mitsuba.params import (
@@ -58,6 +59,10 @@ def read_shape(reader: ReaderState, obj: Obj, outer: np.ndarray | None = None) -
         emitter.node.fail("an emitter inside a shapegroup (Mitsuba does not instance emitters)")
     material = material_id(reader, bsdf, emitter, obj)
     vertices, faces, uv = shape_geometry(reader, obj, reader.builder.textured(material))
+    path = _mesh_path(reader, obj) if obj.type in ("obj", "ply") else None
+    own = shape_attribute(reader, material, obj, path, vertices, faces)
+    if own is not None:
+        vertices, faces, uv, material = own
     to_world = get_matrix(obj)
     if obj.type == "sphere":
         to_world = _sphere_frame(obj, to_world)
@@ -101,15 +106,18 @@ def shape_geometry(reader: ReaderState, obj: Obj, with_uv: bool = False):
     one of the built-in shapes'; uv is None unless `with_uv` (and the file
     has some)."""
     if obj.type in ("obj", "ply"):
-        filename = required(obj, "filename", get_str)
         get_bool(obj, "face_normals")         # our normals are always the faces'
-        path = resolve(obj.take("filename", ("string",)).node, filename, reader.root_dir, reader.paths)
-        vertices, faces, uv = _load_mesh_file(path, obj.node)
+        vertices, faces, uv = _load_mesh_file(_mesh_path(reader, obj), obj.node)
         return vertices, faces, uv if with_uv else None
     if with_uv:
         return _TEXTURED[obj.type]()
     vertices, faces = _BUILT_IN[obj.type]()
     return vertices, faces, None
+
+
+def _mesh_path(reader: ReaderState, obj: Obj) -> str:
+    filename = required(obj, "filename", get_str)
+    return resolve(obj.take("filename", ("string",)).node, filename, reader.root_dir, reader.paths)
 
 
 def _load_mesh_file(path: str, node: Node):

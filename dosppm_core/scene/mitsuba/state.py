@@ -24,6 +24,7 @@ class ReaderState:
         self.radiance: dict = {}            # id(area emitter) -> RGB radiance
         self.textures: dict = {}            # id(texture Obj) -> builder texture id
         self.images: dict = {}              # (real path, raw) -> texels read
+        self.attribute_ids: dict = {}       # stand-in texture id -> (mesh attribute name, node)
         self.loose_area_emitters: list = []
 
     def children(self, obj: Obj, allowed) -> list:

@@ -1,5 +1,6 @@
-"""Texture plugins: bitmap (filename, filter_type, wrap_mode, raw, to_uv)
-and checkerboard (color0, color1, to_uv), nested in a BSDF under a
+"""Texture plugins: bitmap (filename, filter_type, wrap_mode, raw, to_uv),
+checkerboard (color0, color1, to_uv) and mesh_attribute (name; see
+`attributes`), nested in a BSDF under a
 parameter's name or referenced by id (`<ref name="reflectance" id="tex"/>`).
 
 One <texture> object is one texture of the scene however often it is
@@ -23,9 +24,17 @@ def read_texture(reader: ReaderState, obj: Obj) -> int:
     """The builder's id of the texture `obj` describes (read once)."""
     if id(obj) not in reader.textures:
         reader.children(obj, ())          # no textures of textures
-        texture = _bitmap(reader, obj) if obj.type == "bitmap" else _checkerboard(obj)
+        if obj.type == "mesh_attribute":
+            # A one-texel stand-in: each PLY shape reading it gets a texture
+            # of its own (`attributes.shape_attribute`).
+            name = required(obj, "name", get_str)
+            texture = tx.bitmap(obj.name(), np.zeros((1, 1, 3)))
+        else:
+            texture = _bitmap(reader, obj) if obj.type == "bitmap" else _checkerboard(obj)
         finish(obj)
         reader.textures[id(obj)] = reader.builder.add_texture(texture)
+        if obj.type == "mesh_attribute":
+            reader.attribute_ids[reader.textures[id(obj)]] = (name, obj.node)
     return reader.textures[id(obj)]
 
 
