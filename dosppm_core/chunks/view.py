@@ -18,6 +18,7 @@ from dosppm_core.chunks.portals import PORTAL_EPS, enter, intersect_in_chunk
 from dosppm_core.chunks.store import ChunkGeometry
 from dosppm_core.chunks.tree import ChunkTree
 from dosppm_core.jobs import ESCAPED, STORED, HitPoints, PhotonDeposits, RayBatch, ShadowRays
+from dosppm_core.kernels.materials import bsdf_rows
 from dosppm_core.kernels.paths import ELSEWHERE
 from dosppm_core.scene.model import SceneHeader
 from dosppm_core.trace import END_KINDS, SurfaceData, advance_eye, emit_photon_jobs, scatter_photons, shadow_results
@@ -34,7 +35,7 @@ class ChunkView:
         m = header.materials
         self.surf = SurfaceData(geometry.vertices, geometry.triangles, geometry.tri_material,
                                 m.kind, m.reflectance, m.emission, m.ior, m.roughness,
-                                m.two_sided, header.spawn_epsilon())
+                                m.two_sided, header.spawn_epsilon(), bsdf_rows(m))
         # An empty chunk (air between walls) still routes rays; Embree
         # needs one triangle, so give it one that no ray can reach.
         verts, tris = geometry.vertices, geometry.triangles

@@ -162,7 +162,7 @@ def learn_first_hits(cache, direction, weight, depth, pixel, prim, u, v, surf):
     < 0) at a non-specular surface it can light; returns how many found
     no room."""
     keys, count, rest, light, flux, grid = cache
-    verts, tris, tri_mat, kinds, _refl, _emit, _ior, _rough, two_sided, _eps = surf
+    verts, tris, tri_mat, kinds, _refl, _emit, _ior, _rough, two_sided, _eps, _bsdf = surf
     dropped = 0
     if keys.shape[0] == 0:
         return dropped
