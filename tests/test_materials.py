@@ -169,7 +169,7 @@ def test_smooth_plastic_white_furnace():
 
 def test_rough_plastic_white_furnace():
     """A white-based rough plastic tends to the smooth plastic as alpha -> 0
-    (albedo within 1.5% at alpha 0.01) and darkens as alpha grows: Mitsuba's
+    (albedo within 3% at alpha 0.01) and darkens as alpha grows: Mitsuba's
     model loses what the coating's microfacets mask (0.69 at alpha 0.3 seen
     from cos 0.95, as Mitsuba's own sampler measures; test above)."""
     rng = np.random.default_rng(4)
@@ -177,7 +177,7 @@ def test_rough_plastic_white_furnace():
         smooth = _albedo(*_row(Material("s", "plastic", (1.0,) * 3, ior=1.49)), cos_o, rng)
         albedo = [_albedo(*_row(Material("w", "roughplastic", (1.0,) * 3, ior=1.49, roughness=a)),
                           cos_o, rng)[0] for a in (0.01, 0.1, 0.3, 1.0)]
-        assert albedo[0] == pytest.approx(smooth[0], rel=0.015)
+        assert albedo[0] == pytest.approx(smooth[0], rel=0.03)
         assert albedo == sorted(albedo, reverse=True) and albedo[-1] > 0.2
 
 
