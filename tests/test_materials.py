@@ -183,10 +183,10 @@ def test_rough_plastic_white_furnace():
 
 @pytest.mark.parametrize("case", CASES)
 def test_reciprocity(case):
-    """f(wo, wi) = f(wi, wo) for the reflecting kinds; a rough dielectric's
-    transmission obeys f(wo, wi) / eta_i^2 = f(wi, wo) / eta_o^2 in radiance
-    transport, and is symmetric in importance transport times eta^2 the
-    other way (Veach's adjoint)."""
+    """f(wo, wi) = f(wi, wo) for reflection; a rough dielectric's
+    transmission obeys Veach's f(wi -> wo) / eta_o^2 = f(wo -> wi) / eta_i^2
+    (eta_x: the index on x's side) in radiance transport, and importance
+    transport is its adjoint: f_importance(wi, wo) = f_radiance(wo, wi)."""
     mat, _d = CASES[case]
     kind, row = _row(mat)
     rng = np.random.default_rng(5)
@@ -196,9 +196,8 @@ def test_reciprocity(case):
         if wo[2] * wi[2] > 0:
             np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-9)
         else:
-            # eta of wo's side over eta of wi's side, squared: radiance carries 1/eta^2
             eta_o = mat.ior if wo[2] < 0 else 1.0
             eta_i = mat.ior if wi[2] < 0 else 1.0
-            np.testing.assert_allclose(a * eta_o ** 2, b * eta_i ** 2, rtol=1e-5, atol=1e-9)
+            np.testing.assert_allclose(a * eta_i ** 2, b * eta_o ** 2, rtol=1e-5, atol=1e-9)
             imp = np.array(eval_colour(kind, row, 0.0, 0.0, 1.0, *wi, *wo, False))
             np.testing.assert_allclose(a, imp, rtol=1e-5, atol=1e-9)
