@@ -352,3 +352,34 @@ def side_float(state, salt):
 def passes_mask(bsdf, m, u):
     """Whether a ray passes straight through material m (a `mask`) for u."""
     return bsdf[m, B_OPACITY] < 1.0 and u >= opacity(bsdf[m])
+
+
+@nb.njit(cache=True, error_model="numpy")
+def hit_point_sample(kind, row, n0, n1, n2, w0, w1, w2, u1, u2, u3):
+    """A direction from the hit point's BSDF (`hit_point_eval`) for direct
+    light: a smooth plastic's base by its cosine, else `sample_colour`.
+    Returns (ok, wi, weight rgb)."""
+    if kind == PLASTIC:
+        x, y, z = cosine_hemisphere(u2, u3)
+        i0, i1, i2 = to_world(x, y, z, n0, n1, n2)
+        return True, i0, i1, i2, 1.0, 1.0, 1.0
+    ok, i0, i1, i2, t0, t1, t2, eta_scale, _delta = sample_colour(kind, row, n0, n1, n2, w0, w1, w2,
+                                                                  u1, u2, u3, True)
+    return ok, i0, i1, i2, t0 * eta_scale, t1 * eta_scale, t2 * eta_scale
+
+
+@nb.njit(cache=True, error_model="numpy")
+def hit_point_pdf(kind, row, n0, n1, n2, w0, w1, w2, i0, i1, i2):
+    """Density of `hit_point_sample`."""
+    if kind == PLASTIC:
+        return max(0.0, dot(n0, n1, n2, i0, i1, i2)) * INV_PI
+    return pdf_colour(kind, row, n0, n1, n2, w0, w1, w2, i0, i1, i2)
+
+
+def gather_tint(materials) -> np.ndarray:
+    """(m, 3) float64: what a gather multiplies a hit point's sum of
+    f * flux by at the end: the reflectance of the older kinds (their f is
+    a scalar times it), 1 for the coloured ones (their f is already RGB)."""
+    tint = np.array(materials.reflectance, np.float64)
+    tint[np.isin(materials.kind, (ROUGH_DIELECTRIC, PLASTIC, ROUGH_PLASTIC))] = 1.0
+    return tint

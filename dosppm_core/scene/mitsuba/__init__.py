@@ -24,7 +24,13 @@ bsdf        diffuse (reflectance); twosided (one nested BSDF);
             roughconductor (distribution="ggx", alpha or alpha_u = alpha_v,
             material="none", specular_reflectance, sample_visible) -> glossy;
             dielectric (int_ior, ext_ior as numbers or Mitsuba's names;
-            specular_reflectance equal to specular_transmittance) -> glass
+            specular_reflectance equal to specular_transmittance) -> glass;
+            roughdielectric (distribution ggx or beckmann, alpha, int_ior,
+            ext_ior, specular_reflectance, specular_transmittance);
+            plastic (int_ior, ext_ior, diffuse_reflectance,
+            specular_reflectance, nonlinear); roughplastic (the same plus
+            distribution and alpha); mask (constant opacity, one nested
+            BSDF); principled and principledthin are refused
 emitter     area (radiance) in a shape or referenced by one; point (position
             or to_world, intensity); spot (to_world, intensity,
             cutoff_angle, beam_width)

@@ -1,6 +1,8 @@
 """BSDFs to `Material`s: diffuse; twosided (one nested BSDF); conductor
 (material="none") -> mirror; roughconductor (GGX only) -> glossy;
-dielectric (one tint) -> glass. One <bsdf> object is one material; a
+dielectric (one tint) -> glass; roughdielectric (GGX or Beckmann),
+plastic and roughplastic -> their kinds; mask (a constant opacity) -> its
+nested material with `opacity`. One <bsdf> object is one material; a
 shape's (bsdf, area emitter) pair becomes one builder material, since
 emission belongs to the material."""
 from __future__ import annotations
@@ -11,7 +13,7 @@ import numpy as np
 
 from dosppm_core.scene.mitsuba.emitters import area_radiance
 from dosppm_core.scene.mitsuba.objects import Obj
-from dosppm_core.scene.mitsuba.params import finish, get_bool, get_float, get_rgb
+from dosppm_core.scene.mitsuba.params import finish, get_bool, get_float, get_rgb, get_str
 from dosppm_core.scene.mitsuba.state import ReaderState
 from dosppm_core.scene.model import Material
 
@@ -30,7 +32,9 @@ def bsdf_material(reader: ReaderState, obj: Obj) -> Material:
     """The material a <bsdf> describes: one object, one material."""
     if id(obj) not in reader.bsdfs:
         convert = {"diffuse": _diffuse, "twosided": _twosided, "conductor": _conductor,
-                   "roughconductor": _roughconductor, "dielectric": _dielectric}[obj.type]
+                   "roughconductor": _roughconductor, "dielectric": _dielectric,
+                   "roughdielectric": _roughdielectric, "plastic": _plastic,
+                   "roughplastic": _roughplastic, "mask": _mask}[obj.type]
         material = convert(reader, obj)
         finish(obj)
         material.validate(obj.where())
@@ -65,10 +69,24 @@ def _diffuse(reader: ReaderState, obj: Obj) -> Material:
 
 
 def _twosided(reader: ReaderState, obj: Obj) -> Material:
+    # Every kind takes it: the reflecting ones (plastics included) become
+    # alike on both sides; dielectrics are two-sided already.
     inner = reader.children(obj, {"bsdf"})
     if len(inner) != 1:
         obj.node.fail("needs exactly one BSDF (separate front and back BSDFs are unsupported)")
     return dataclasses.replace(bsdf_material(reader, inner[0]), name=obj.name(), two_sided=True)
+
+
+def _mask(reader: ReaderState, obj: Obj) -> Material:
+    """Mitsuba's mask: the nested BSDF with probability `opacity` (default
+    0.5), else the ray passes straight through."""
+    inner = reader.children(obj, {"bsdf"})
+    if len(inner) != 1:
+        obj.node.fail("needs exactly one nested BSDF")
+    opacity = get_float(obj, "opacity", 0.5)
+    if not 0.0 <= opacity <= 1.0:
+        obj.node.fail(f"opacity must lie in [0, 1], got {opacity}")
+    return dataclasses.replace(bsdf_material(reader, inner[0]), name=obj.name(), opacity=opacity)
 
 
 def _conductor(reader: ReaderState, obj: Obj) -> Material:
@@ -108,6 +126,47 @@ def _dielectric(reader: ReaderState, obj: Obj) -> Material:
     if not np.allclose(tint, get_rgb(obj, "specular_transmittance", 1.0)):
         obj.node.fail("specular_reflectance and specular_transmittance differ; our glass has one tint")
     return Material(obj.name(), "glass", tint, ior=eta, two_sided=True)
+
+
+def _distribution(obj: Obj) -> str:
+    """Mitsuba's microfacet distribution name (its default: Beckmann)."""
+    prop = obj.take("distribution", ("string",))
+    name = "beckmann" if prop is None else prop.value.lower()
+    if name not in ("ggx", "beckmann"):
+        prop.node.fail(f"distribution {prop.value!r} is unknown (ggx or beckmann)")
+    get_bool(obj, "sample_visible")       # a sampling strategy: the image is the same
+    return name
+
+
+def _roughdielectric(reader: ReaderState, obj: Obj) -> Material:
+    reader.children(obj, ())
+    distribution = _distribution(obj)
+    eta = _ior(obj, "int_ior", "bk7") / _ior(obj, "ext_ior", "air")
+    if eta == 1.0:
+        obj.node.fail("int_ior and ext_ior must differ")
+    return Material(obj.name(), "roughdielectric", get_rgb(obj, "specular_transmittance", 1.0),
+                    ior=eta, roughness=_alpha(obj), two_sided=True, distribution=distribution,
+                    specular=get_rgb(obj, "specular_reflectance", 1.0))
+
+
+def _plastic(reader: ReaderState, obj: Obj) -> Material:
+    reader.children(obj, ())
+    eta = _ior(obj, "int_ior", "polypropylene") / _ior(obj, "ext_ior", "air")
+    return Material(obj.name(), "plastic", get_rgb(obj, "diffuse_reflectance", 0.5), ior=eta,
+                    specular=get_rgb(obj, "specular_reflectance", 1.0),
+                    nonlinear=bool(get_bool(obj, "nonlinear", False)), two_sided=False)
+
+
+def _roughplastic(reader: ReaderState, obj: Obj) -> Material:
+    reader.children(obj, ())
+    distribution = _distribution(obj)
+    eta = _ior(obj, "int_ior", "polypropylene") / _ior(obj, "ext_ior", "air")
+    if eta == 1.0:
+        obj.node.fail("int_ior and ext_ior must differ")
+    return Material(obj.name(), "roughplastic", get_rgb(obj, "diffuse_reflectance", 0.5), ior=eta,
+                    roughness=_alpha(obj), specular=get_rgb(obj, "specular_reflectance", 1.0),
+                    nonlinear=bool(get_bool(obj, "nonlinear", False)), distribution=distribution,
+                    two_sided=False)
 
 
 def _ior(obj: Obj, name: str, default: str) -> float:
