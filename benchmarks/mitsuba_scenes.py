@@ -26,7 +26,14 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
 from dosppm_core.scene.mitsuba import load_mitsuba_xml  # noqa: E402
-from dosppm_core.scene.mitsuba.objects import PLUGINS, Expander, Obj, upgrade_names, version  # noqa: E402
+from dosppm_core.scene.mitsuba.objects import (  # noqa: E402
+    PLUGINS,
+    REFUSED,
+    Expander,
+    Obj,
+    upgrade_names,
+    version,
+)
 from dosppm_core.scene.mitsuba.shapes import shape_geometry  # noqa: E402
 from dosppm_core.scene.mitsuba.state import ReaderState  # noqa: E402
 from dosppm_core.scene.mitsuba.xmltree import parse_xml  # noqa: E402
@@ -131,11 +138,14 @@ def reason(message: str) -> str:
 def later_part(message: str) -> bool:
     """Whether a refusal is of a plugin a later part of issue 33 builds
     (textures, materials, lights, media, other shapes): an unsupported
-    plugin of a family and type in `LATER`."""
-    found = re.search(r': <(\w+) type="([^"]*)"[^>]*>: unsupported plugin$', message)
+    plugin of a family and type in `LATER`, or one refused with its reason
+    (`objects.REFUSED`: principled, out of scope)."""
+    found = re.search(r': <(\w+) type="([^"]*)"[^>]*>: (.+)$', message)
     if not found:
         return False
-    tag, kind = found.groups()
+    tag, kind, why = found.groups()
+    if why != "unsupported plugin" and why != REFUSED.get((tag, kind)):
+        return False
     return tag in LATER and (LATER[tag] is None or kind in LATER[tag])
 
 
