@@ -34,7 +34,7 @@ import math
 import numba as nb
 import numpy as np
 
-from dosppm_core.kernels.bsdf import INV_PI, cosine_hemisphere, dot, to_world
+from dosppm_core.kernels.bsdf import INV_PI, cosine_hemisphere, dot, eval_bsdf, to_world
 from dosppm_core.kernels.microfacet import (
     DISTRIBUTIONS,
     TABLE_RES,
@@ -47,8 +47,8 @@ from dosppm_core.kernels.microfacet import (
     smith_g1,
     visible_pdf,
 )
-from dosppm_core.kernels.rng import mix64
-from dosppm_core.scene.model import PLASTIC, ROUGH_DIELECTRIC, ROUGH_PLASTIC
+from dosppm_core.kernels.rng import mix64, next_float
+from dosppm_core.scene.model import DIFFUSE, PLASTIC, ROUGH_DIELECTRIC, ROUGH_PLASTIC
 
 # Columns of a material's row in `bsdf_rows`.
 B_REFL, B_SPEC, B_ETA, B_ALPHA, B_DIST, B_NONLINEAR = 0, 3, 6, 7, 8, 9
@@ -383,3 +383,27 @@ def gather_tint(materials) -> np.ndarray:
     tint = np.array(materials.reflectance, np.float64)
     tint[np.isin(materials.kind, (ROUGH_DIELECTRIC, PLASTIC, ROUGH_PLASTIC))] = 1.0
     return tint
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def gather_f(kind, alpha, bsdf, mat, n0, n1, n2, w0, w1, w2, i0, i1, i2):
+    """What a gather weighs a photon from wi by at a hit point of material
+    mat (rgb): the older kinds' scalar f (their reflectance multiplies the
+    sum at the end, `gather_tint`), the coloured kinds' `hit_point_eval`.
+    Inlined into the gathers' loops, so no call takes an array per photon."""
+    if kind == DIFFUSE:     # the common case
+        return INV_PI, INV_PI, INV_PI
+    if is_coloured(kind):
+        return hit_point_eval(kind, bsdf[mat], n0, n1, n2, w0, w1, w2, i0, i1, i2)
+    f = eval_bsdf(kind, alpha, n0, n1, n2, w0, w1, w2, i0, i1, i2)
+    return f, f, f
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def photon_mask(bsdf, m, state):
+    """(state, whether a photon passes through material m): the draw is
+    made only at a mask, so other scenes keep their random streams."""
+    if bsdf[m, B_OPACITY] < 1.0:
+        state, u = next_float(state)
+        return state, u >= opacity(bsdf[m])
+    return state, False

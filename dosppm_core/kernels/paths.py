@@ -29,6 +29,7 @@ from dosppm_core.kernels.materials import (
     is_coloured,
     is_transmissive,
     passes_mask,
+    photon_mask,
     plastic_specular_probability,
     sample_colour,
     side_float,
@@ -272,8 +273,8 @@ def scatter_photons(rays, hits, surf, cull_box, max_depth, deposit_from, eps_rel
 def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, eps_rel, end, culled,
                    dep, nxt):
     """The photon bounce of rows [a, e): deposits and continuing paths are
-    written densely from row a. Returns where each ended (dc, gc)."""
-    # The tuples are unpacked here, once per block, not per ray in the helpers.
+    written densely from row a. Returns where each ended (dc, gc). The
+    tuples are unpacked here, once per block, not per ray in the helpers."""
     direction, flux, depth, states, job, pixel = rays
     verts, tris, tri_mat, kinds, refl, _emit, ior, rough, two_sided, eps_abs, bsdf = surf
     prim, u, v = hits
@@ -287,19 +288,11 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
             continue
         p0, p1, p2, n0, n1, n2, w0, w1, w2, m, kind, front = hit_setup(
             verts, tris, tri_mat, kinds, tri, u[i], v[i], direction[i, 0], direction[i, 1], direction[i, 2])
-        st = states[i]
-        if bsdf[m, B_OPACITY] < 1.0:     # a mask: the draw only where there is one
-            st, um = next_float(st)
-            if passes_mask(bsdf, m, um):
-                if depth[i] + 1 >= max_depth:
-                    end[i] = MAX_DEPTH
-                    continue
-                new_f[gc, 0], new_f[gc, 1], new_f[gc, 2] = flux[i, 0], flux[i, 1], flux[i, 2]
-                write_spawn(new_o, new_d, gc, p0, p1, p2, n0, n1, n2, -w0, -w1, -w2, eps_rel, eps_abs)
-                new_st[gc], new_depth[gc], new_job[gc], new_pix[gc] = st, depth[i] + 1, job[i], pixel[i]
-                gc += 1
-                end[i] = CONTINUES
-                continue
+        st, through = photon_mask(bsdf, m, states[i])
+        if through:
+            gc = _photon_pass_through(i, gc, st, p0, p1, p2, n0, n1, n2, w0, w1, w2, rays, max_depth,
+                                      eps_rel, eps_abs, end, nxt)
+            continue
         if not is_specular(kind):
             if not front and not two_sided[m]:
                 end[i] = ABSORBED
@@ -336,6 +329,26 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
         gc += 1
         end[i] = CONTINUES
     return dc, gc
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _photon_pass_through(i, gc, st, p0, p1, p2, n0, n1, n2, w0, w1, w2, rays, max_depth, eps_rel,
+                         eps_abs, end, nxt):
+    """Photon i goes on straight through a mask's hole, as one bounce (so
+    a photon lighting a floor through leaves is deposited there: shadow
+    rays stop at masks). Returns the next free row of `nxt`. Not inlined:
+    numba's inliner bound this body's unpacked `flux` to the caller's
+    `direction` (garbage flux through masks); the call is rare anyway."""
+    _direction, flux, depth, _states, job, pixel = rays
+    new_o, new_d, new_f, new_st, new_depth, new_job, new_pix = nxt
+    if depth[i] + 1 >= max_depth:
+        end[i] = MAX_DEPTH
+        return gc
+    new_f[gc, 0], new_f[gc, 1], new_f[gc, 2] = flux[i, 0], flux[i, 1], flux[i, 2]
+    write_spawn(new_o, new_d, gc, p0, p1, p2, n0, n1, n2, -w0, -w1, -w2, eps_rel, eps_abs)
+    new_st[gc], new_depth[gc], new_job[gc], new_pix[gc] = st, depth[i] + 1, job[i], pixel[i]
+    end[i] = CONTINUES
+    return gc + 1
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
@@ -504,7 +517,7 @@ def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp,
         end[i] = CONTINUES
 
 
-@nb.njit(inline="always", cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy")
 def _pass_through(i, p0, p1, p2, n0, n1, n2, w0, w1, w2, depth, states, weight, max_depth,
                   eps_rel, eps_abs, end, nxt):
     """Eye path i goes on straight through a mask's hole, as one bounce."""

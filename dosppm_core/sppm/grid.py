@@ -13,9 +13,8 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
-from dosppm_core.kernels.bsdf import INV_PI, eval_bsdf
-from dosppm_core.kernels.materials import bsdf_rows, gather_tint, hit_point_eval, is_coloured
-from dosppm_core.scene.model import DIFFUSE, ROUGH_DIELECTRIC
+from dosppm_core.kernels.materials import bsdf_rows, gather_f, gather_tint
+from dosppm_core.scene.model import ROUGH_DIELECTRIC
 
 CELL_FACTOR = 2.0  # cell size in median radii
 _P1, _P2, _P3 = 73856093, 19349663, 83492791
@@ -198,16 +197,9 @@ def gather_photons(ph_pos, ph_in, ph_flux, start, entry_hp, slot_key, entry_pos,
                 kind = int(rows[h, HP_KIND])
                 if n0 * wi0 + n1 * wi1 + n2 * wi2 <= 0.0 and kind != ROUGH_DIELECTRIC:
                     continue
-                if kind == DIFFUSE:   # the common case, without the call
-                    f0 = f1 = f2 = INV_PI
-                elif is_coloured(kind):
-                    f0, f1, f2 = hit_point_eval(kind, bsdf[int(rows[h, HP_MAT])], n0, n1, n2,
-                                                rows[h, HP_OUT], rows[h, HP_OUT + 1], rows[h, HP_OUT + 2],
-                                                wi0, wi1, wi2)
-                else:
-                    f0 = f1 = f2 = eval_bsdf(kind, np.float64(rows[h, HP_ALPHA]), n0, n1, n2,
-                                             rows[h, HP_OUT], rows[h, HP_OUT + 1], rows[h, HP_OUT + 2],
-                                             wi0, wi1, wi2)
+                f0, f1, f2 = gather_f(kind, np.float64(rows[h, HP_ALPHA]), bsdf, int(rows[h, HP_MAT]),
+                                      n0, n1, n2, rows[h, HP_OUT], rows[h, HP_OUT + 1], rows[h, HP_OUT + 2],
+                                      wi0, wi1, wi2)
                 # The hit point's reflectance (the older kinds') times eye
                 # weight is the same for every photon: it multiplies the sum
                 # once, at the end (materials.gather_tint).

@@ -51,8 +51,7 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from dosppm_core.kernels.bsdf import eval_bsdf
-from dosppm_core.kernels.materials import bsdf_rows, gather_tint, hit_point_eval, is_coloured
+from dosppm_core.kernels.materials import bsdf_rows, gather_f, gather_tint
 from dosppm_core.scene.model import ROUGH_DIELECTRIC
 from dosppm_core.kernels.rng import mix64
 
@@ -377,11 +376,11 @@ def _gather_range(first_hp, end_hp, hp, hp_radius, grid, cells, materials, stamp
         shading = (hp_n[h, 0], hp_n[h, 1], hp_n[h, 2], mat_kind[mat], np.float64(mat_rough[mat]),
                    mat_refl[mat, 0], mat_refl[mat, 1], mat_refl[mat, 2])
         m[h], phi[h, 0], phi[h, 1], phi[h, 2] = _gather_hit_point(
-            h, hp_radius[h], hp, shading, mat_bsdf[mat], grid, cells, stamp)
+            h, hp_radius[h], hp, shading, (mat_bsdf, mat), grid, cells, stamp)
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _gather_hit_point(h, r, hp, shading, bsdf, grid, cells, stamp):
+def _gather_hit_point(h, r, hp, shading, material, grid, cells, stamp):
     """(M, Phi) of hit point h of radius r: the columns of cells its sphere
     overlaps, in each the occupied cells (found in the bitmap, their records
     by rank), and their kept photons' distance and BRDF tests. The
@@ -390,7 +389,7 @@ def _gather_hit_point(h, r, hp, shading, bsdf, grid, cells, stamp):
     hp_pos, _hp_n, hp_out, hp_weight, _hp_mat = hp
     lo, cell, dims, axes, slack, bitmap, first = grid
     c_pos, c_in, _c_n, c_flux, c_count, c_shared = cells
-    n0, n1, n2, kind, rough, refl0, refl1, refl2 = shading
+    (n0, n1, n2, kind, rough, refl0, refl1, refl2), (bsdf, mat) = shading, material
     words = (dims[2] + 63) // 64
     x, y, z = np.float64(hp_pos[h, axes[0]]), np.float64(hp_pos[h, axes[1]]), np.float64(hp_pos[h, axes[2]])
     reach = r * (1.0 + _RADIUS_SLACK) + slack
@@ -432,14 +431,8 @@ def _gather_hit_point(h, r, hp, shading, bsdf, grid, cells, stamp):
                             or (n0 * c_in[k, 0] + n1 * c_in[k, 1] + n2 * c_in[k, 2] <= 0.0
                                 and kind != ROUGH_DIELECTRIC)):
                         continue    # outside the sphere, or from behind the surface (grid.py)
-                    if is_coloured(kind):
-                        f0, f1, f2 = hit_point_eval(kind, bsdf, n0, n1, n2,
-                                                    hp_out[h, 0], hp_out[h, 1], hp_out[h, 2],
-                                                    c_in[k, 0], c_in[k, 1], c_in[k, 2])
-                    else:
-                        f0 = f1 = f2 = eval_bsdf(kind, rough, n0, n1, n2,
-                                                 hp_out[h, 0], hp_out[h, 1], hp_out[h, 2],
-                                                 c_in[k, 0], c_in[k, 1], c_in[k, 2])
+                    f0, f1, f2 = gather_f(kind, rough, bsdf, mat, n0, n1, n2, hp_out[h, 0], hp_out[h, 1],
+                                          hp_out[h, 2], c_in[k, 0], c_in[k, 1], c_in[k, 2])
                     cnt = c_count[k]
                     acc_m += cnt
                     if f0 + f1 + f2 > 0.0:
