@@ -36,7 +36,6 @@ import numpy as np
 
 from dosppm_core.kernels.bsdf import INV_PI, cosine_hemisphere, dot, eval_bsdf, to_world
 from dosppm_core.kernels.microfacet import (
-    DISTRIBUTIONS,
     TABLE_RES,
     coating_table,
     distribution_d,
@@ -84,10 +83,6 @@ def bsdf_rows(materials) -> np.ndarray:
             rows[i, B_TABLE:] = table
             rows[i, B_INTERNAL] = internal
     return rows
-
-
-def distribution_id(name: str) -> int:
-    return DISTRIBUTIONS[name]
 
 
 @nb.njit(cache=True, error_model="numpy")

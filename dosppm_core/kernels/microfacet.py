@@ -20,8 +20,7 @@ import numpy as np
 
 from dosppm_core.kernels.bsdf import basis, dot
 
-GGX, BECKMANN = 0, 1
-DISTRIBUTIONS = {"ggx": GGX, "beckmann": BECKMANN}
+GGX, BECKMANN = 0, 1           # indices into scene.model.MICROFACETS
 TABLE_RES = 64          # Mitsuba's MI_ROUGH_TRANSMITTANCE_RES
 INV_SQRT_PI = 1.0 / math.sqrt(math.pi)
 

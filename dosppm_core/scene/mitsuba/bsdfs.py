@@ -13,7 +13,7 @@ import numpy as np
 
 from dosppm_core.scene.mitsuba.emitters import area_radiance
 from dosppm_core.scene.mitsuba.objects import Obj
-from dosppm_core.scene.mitsuba.params import finish, get_bool, get_float, get_rgb, get_str
+from dosppm_core.scene.mitsuba.params import finish, get_bool, get_float, get_rgb
 from dosppm_core.scene.mitsuba.state import ReaderState
 from dosppm_core.scene.model import Material
 
