@@ -15,7 +15,8 @@ mirror     `conductor`, material "none", specular_reflectance
 glossy     `roughconductor`, ggx, alpha = roughness, material "none"
 glass      `dielectric`, int_ior = ior, ext_ior = 1, reflectance tints
            specular_reflectance and specular_transmittance
-roughdielectric, plastic, roughplastic: Mitsuba's own, distribution and
+roughdielectric, plastic, roughplastic, conductor, roughconductor (eta,
+           k): Mitsuba's own, distribution and
            alpha, int_ior = ior, ext_ior = 1, reflectance is the transmit
            tint / the diffuse_reflectance, specular the other tint
 opacity    < 1: wrapped in `mask`
@@ -63,6 +64,7 @@ import numpy as np
 
 from dosppm_core.film import FilmError, one_line, read_exr, write_exr
 from dosppm_core.scene.model import (
+    CONDUCTOR,
     DIFFUSE,
     GLASS,
     GLOSSY,
@@ -72,6 +74,7 @@ from dosppm_core.scene.model import (
     MICROFACETS,
     MIRROR,
     PLASTIC,
+    ROUGH_CONDUCTOR,
     ROUGH_DIELECTRIC,
     ROUGH_PLASTIC,
     Scene,
@@ -207,7 +210,7 @@ def _bsdf(mats, mid: int) -> dict:
 
 def _opaque_bsdf(mats, mid: int) -> dict:
     kind, tint = int(mats.kind[mid]), _spectrum(mats.reflectance[mid])
-    if kind in (ROUGH_DIELECTRIC, PLASTIC, ROUGH_PLASTIC):
+    if ROUGH_DIELECTRIC <= kind <= ROUGH_CONDUCTOR:
         return _coloured_bsdf(mats, mid, kind, tint)
     if kind == GLASS:
         return {"type": "dielectric", "int_ior": float(mats.ior[mid]), "ext_ior": 1.0,
@@ -230,6 +233,12 @@ def _coloured_bsdf(mats, mid: int, kind: int, tint: dict) -> dict:
     if kind == ROUGH_DIELECTRIC:
         return {"type": "roughdielectric", "int_ior": ior, "ext_ior": 1.0, **rough,
                 "specular_transmittance": tint, "specular_reflectance": spec}
+    if kind in (CONDUCTOR, ROUGH_CONDUCTOR):
+        bsdf = {"type": "conductor", "eta": _spectrum(mats.conductor_eta[mid]),
+                "k": _spectrum(mats.conductor_k[mid]), "specular_reflectance": spec}
+        if kind == ROUGH_CONDUCTOR:
+            bsdf.update(rough, type="roughconductor")
+        return {"type": "twosided", "bsdf": bsdf} if mats.two_sided[mid] else bsdf
     bsdf = {"type": "plastic" if kind == PLASTIC else "roughplastic", "int_ior": ior, "ext_ior": 1.0,
             "diffuse_reflectance": tint, "specular_reflectance": spec,
             "nonlinear": bool(mats.nonlinear[mid])}
@@ -302,9 +311,10 @@ def reference_key(scene: Scene, spp: int, max_depth: int = DEFAULT_MAX_DEPTH,
     mats = scene.materials
     # The columns of the coloured kinds and masks count only where used, so
     # the keys (and cached references) of other scenes stay as they were.
-    newer = np.isin(mats.kind, (ROUGH_DIELECTRIC, PLASTIC, ROUGH_PLASTIC)).any() or (mats.opacity < 1).any()
+    newer = ((mats.kind >= ROUGH_DIELECTRIC).any() or (mats.opacity < 1).any())
+    later = ("specular", "distribution", "nonlinear", "opacity", "conductor_eta", "conductor_k")
     arrays.update({f"mat.{k}": v for k, v in vars(mats).items()
-                   if k != "names" and (newer or k not in ("specular", "distribution", "nonlinear", "opacity"))})
+                   if k != "names" and (newer or k not in later)})
     arrays.update({f"light.{k}": v for k, v in vars(scene.lights).items()})
     for name in sorted(arrays):
         arr = np.ascontiguousarray(arrays[name])

@@ -34,6 +34,10 @@ BSDFS = {
     "plastic": '<bsdf type="plastic"><rgb name="diffuse_reflectance" value="0.2, 0.5, 0.3"/>'
                '<boolean name="nonlinear" value="true"/></bsdf>',
     "roughdielectric": '<bsdf type="roughdielectric"><float name="alpha" value="0.5"/></bsdf>',
+    "roughconductor": '<bsdf type="roughconductor"><float name="alpha" value="0.1"/>'
+                      '<spectrum name="eta" value="0.789"/><spectrum name="k" value="6.15"/></bsdf>',
+    "conductor": '<bsdf type="conductor"><rgb name="eta" value="0.2, 0.9, 1.1"/>'
+                 '<rgb name="k" value="3.9, 2.4, 2.2"/></bsdf>',
 }
 
 
@@ -61,6 +65,11 @@ def test_reader_maps_the_new_bsdfs(tmp_path):
     assert np.allclose(m.reflectance[rp], 0.5) and m.ior[rp] == pytest.approx(1.49 / 1.000277)
     p = by_kind[MATERIAL_KINDS["plastic"]]
     assert m.two_sided[p] and m.opacity[p] == 1.0
+    scene = load_mitsuba_xml(_write(tmp_path, SCENE.format(bsdf=BSDFS["roughconductor"], extra="")))
+    m = scene.materials
+    rc = list(m.kind).index(MATERIAL_KINDS["roughconductor"])
+    assert m.distribution[rc] == 1 and np.allclose(m.conductor_eta[rc], 0.789)    # Beckmann by default
+    assert np.allclose(m.conductor_k[rc], 6.15) and not m.two_sided[rc]
 
 
 def test_scene_header_wire_carries_the_new_columns(tmp_path):
@@ -128,8 +137,8 @@ def _render_pair(mi, path, iterations, spp):
 @pytest.mark.parametrize("bsdf", list(BSDFS))
 def test_sphere_renders_as_mitsuba(mi, tmp_path, bsdf):
     """A sphere of each kind under an area and a point light: the image
-    mean within 4% of Mitsuba's path tracer, and the sphere's bright half
-    (4x4-pixel blocks) within 10% block by block (median). The rough
+    mean within 4% of Mitsuba's path tracer, and its blocks of 4x4 pixels
+    brighter than the mean block within 10% of Mitsuba's (median). The rough
     dielectric is the noisiest (its hit points gather what the sphere
     transmits, the point light's caustics inside it): a broad alpha of 0.5,
     and 6% (three seeds of ours spread +-4% about Mitsuba's 16k spp)."""
@@ -137,8 +146,8 @@ def test_sphere_renders_as_mitsuba(mi, tmp_path, bsdf):
     assert ours.mean() == pytest.approx(ref.mean(), rel=0.06 if bsdf == "roughdielectric" else 0.04)
     blocks = lambda a: a.mean(2).reshape(8, 4, 8, 4).mean((1, 3))     # noqa: E731
     b_ours, b_ref = blocks(ours), blocks(ref)
-    bright = b_ref > 0.3 * b_ref.max()
-    assert bright.sum() >= 6
+    bright = b_ref > b_ref.mean()
+    assert bright.sum() >= 4
     assert np.median(np.abs(b_ours[bright] / b_ref[bright] - 1)) < 0.1
 
 

@@ -40,6 +40,18 @@ CASES = {
         {"type": "roughdielectric", "distribution": "ggx", "alpha": 0.2, "int_ior": 1.5, "ext_ior": 1.0,
          "specular_transmittance": {"type": "rgb", "value": [0.9, 0.8, 0.7]},
          "specular_reflectance": {"type": "rgb", "value": [0.6, 0.7, 0.8]}}),
+    "roughconductor-beckmann": (
+        Material("g", "roughconductor", (1, 1, 1), roughness=0.15, distribution="beckmann",
+                 conductor_eta=(0.789,) * 3, conductor_k=(6.15,) * 3),
+        {"type": "roughconductor", "distribution": "beckmann", "alpha": 0.15,
+         "eta": 0.789, "k": 6.15}),
+    "roughconductor-ggx-coloured": (
+        Material("h", "roughconductor", (1, 1, 1), roughness=0.3, specular=(0.9, 0.8, 0.7),
+                 conductor_eta=(0.2, 0.9, 1.1), conductor_k=(3.9, 2.4, 2.2)),
+        {"type": "roughconductor", "distribution": "ggx", "alpha": 0.3,
+         "specular_reflectance": {"type": "rgb", "value": [0.9, 0.8, 0.7]},
+         "eta": {"type": "rgb", "value": [0.2, 0.9, 1.1]},
+         "k": {"type": "srgb", "color": [3.9, 2.4, 2.2], "unbounded": True}}),
 }
 
 
@@ -55,7 +67,7 @@ def _directions(rng, kind, count):
     """(wo, wi) pairs in the frame z = normal; both sides for a dielectric."""
     for _ in range(count):
         wo, wi = _unit(rng.normal(size=3)), _unit(rng.normal(size=3))
-        if kind != MATERIAL_KINDS["roughdielectric"]:
+        if kind != MATERIAL_KINDS["roughdielectric"]:   # the others reflect on their front only
             wo[2], wi[2] = abs(wo[2]), abs(wi[2])
         yield wo, wi
 
@@ -201,3 +213,21 @@ def test_reciprocity(case):
             np.testing.assert_allclose(a * eta_i ** 2, b * eta_o ** 2, rtol=1e-5, atol=1e-9)
             imp = np.array(eval_colour(kind, row, 0.0, 0.0, 1.0, *wi, *wo, False))
             np.testing.assert_allclose(a, imp, rtol=1e-5, atol=1e-9)
+
+
+@pytest.mark.reference
+def test_smooth_conductor_weight_matches_mitsuba(mi):
+    """A smooth conductor's mirror direction carries its Fresnel of the
+    complex index eta + i k per channel, as Mitsuba's conductor samples it."""
+    kind, row = _row(Material("c", "conductor", (1, 1, 1), conductor_eta=(0.2, 0.9, 1.1),
+                              conductor_k=(3.9, 2.4, 2.2), specular=(0.9, 0.8, 0.7)))
+    bsdf = mi.load_dict({"type": "conductor", "eta": {"type": "rgb", "value": [0.2, 0.9, 1.1]},
+                         "k": {"type": "srgb", "color": [3.9, 2.4, 2.2], "unbounded": True},
+                         "specular_reflectance": {"type": "rgb", "value": [0.9, 0.8, 0.7]}})
+    for cos_o in (0.99, 0.7, 0.3, 0.05):
+        wo = np.array([np.sqrt(1 - cos_o ** 2), 0.0, cos_o])
+        si, ctx = _mitsuba(mi, wo, mi.TransportMode.Radiance)
+        _bs, ref = bsdf.sample(ctx, si, 0.5, mi.Point2f(0.5, 0.5))
+        ok, i0, i1, i2, t0, t1, t2, _es, delta = sample_colour(kind, row, 0.0, 0.0, 1.0, *wo, 0.5, 0.5, 0.5, True)
+        assert ok and delta and np.allclose([i0, i1, i2], [-wo[0], 0.0, cos_o])
+        np.testing.assert_allclose([t0, t1, t2], np.array(ref), rtol=1e-4)

@@ -419,9 +419,10 @@ BAD = [  # (snippet, line offset, element as written, what the message says)
      '<float name="roughness">', 'unsupported parameter of <bsdf type="diffuse" id="d">'),
     ('<bsdf type="conductor" id="c"><string name="material" value="Au"/></bsdf>', 0,
      '<string name="material">', "unsupported attribute: named conductor 'Au'"),
-    ('<bsdf type="roughconductor" id="r"/>', 0, '<bsdf type="roughconductor" id="r">', "beckmann"),
-    ('<bsdf type="roughconductor" id="r">\n<string name="distribution" value="beckmann"/></bsdf>', 1,
-     '<string name="distribution">', "only GGX"),
+    ('<bsdf type="roughconductor" id="r">\n<string name="distribution" value="phong"/></bsdf>', 1,
+     '<string name="distribution">', "distribution 'phong' is unknown (ggx or beckmann)"),
+    ('<bsdf type="conductor" id="r">\n<spectrum name="k" value="400:1, 700:2"/></bsdf>', 1,
+     '<spectrum name="k">', "a conductor's eta and k as a spectrum list are unsupported"),
     ('<bsdf type="roughconductor" id="r"><string name="distribution" value="ggx"/>\n'
      '<float name="alpha_u" value="0.1"/><float name="alpha_v" value="0.2"/></bsdf>', 0,
      '<bsdf type="roughconductor" id="r">', "anisotropic"),

@@ -47,12 +47,21 @@ from dosppm_core.kernels.microfacet import (
     visible_pdf,
 )
 from dosppm_core.kernels.rng import mix64, next_float
-from dosppm_core.scene.model import DIFFUSE, PLASTIC, ROUGH_DIELECTRIC, ROUGH_PLASTIC
+from dosppm_core.scene.model import (
+    CONDUCTOR,
+    DIFFUSE,
+    PLASTIC,
+    ROUGH_CONDUCTOR,
+    ROUGH_DIELECTRIC,
+    ROUGH_PLASTIC,
+)
 
 # Columns of a material's row in `bsdf_rows`.
 B_REFL, B_SPEC, B_ETA, B_ALPHA, B_DIST, B_NONLINEAR = 0, 3, 6, 7, 8, 9
 B_SPEC_WEIGHT, B_INTERNAL, B_OPACITY, B_TABLE = 10, 11, 12, 13
-B_COLS = B_TABLE + TABLE_RES
+B_CETA = B_TABLE + TABLE_RES      # a conductor's complex index: eta (3), then k (3)
+B_CK = B_CETA + 3
+B_COLS = B_CK + 3
 
 
 def bsdf_rows(materials) -> np.ndarray:
@@ -68,6 +77,8 @@ def bsdf_rows(materials) -> np.ndarray:
     rows[:, B_DIST] = materials.distribution
     rows[:, B_NONLINEAR] = materials.nonlinear
     rows[:, B_OPACITY] = materials.opacity
+    rows[:, B_CETA:B_CETA + 3] = materials.conductor_eta
+    rows[:, B_CK:B_CK + 3] = materials.conductor_k
     for i in range(m):
         k = int(materials.kind[i])
         if k not in (PLASTIC, ROUGH_PLASTIC):
@@ -80,7 +91,7 @@ def bsdf_rows(materials) -> np.ndarray:
             rows[i, B_INTERNAL] = fresnel_diffuse_reflectance(1.0 / eta)
         else:
             table, internal = coating_table(int(materials.distribution[i]), rows[i, B_ALPHA], eta)
-            rows[i, B_TABLE:] = table
+            rows[i, B_TABLE:B_TABLE + TABLE_RES] = table
             rows[i, B_INTERNAL] = internal
     return rows
 
@@ -88,7 +99,7 @@ def bsdf_rows(materials) -> np.ndarray:
 @nb.njit(cache=True, error_model="numpy")
 def is_coloured(kind):
     """The kinds this module evaluates (a BSDF not of the form f * reflectance)."""
-    return kind == ROUGH_DIELECTRIC or kind == PLASTIC or kind == ROUGH_PLASTIC
+    return kind >= ROUGH_DIELECTRIC and kind <= ROUGH_CONDUCTOR
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -145,8 +156,10 @@ def eval_colour(kind, row, n0, n1, n2, w0, w1, w2, i0, i1, i2, radiance):
         f = _rough_dielectric(row, cos_o, cos_i, n0, n1, n2, w0, w1, w2, i0, i1, i2, radiance)
         tint = B_SPEC if cos_o * cos_i > 0.0 else B_REFL
         return f * row[tint], f * row[tint + 1], f * row[tint + 2]
-    if cos_o <= 0.0 or cos_i <= 0.0:
+    if cos_o <= 0.0 or cos_i <= 0.0 or kind == CONDUCTOR:
         return 0.0, 0.0, 0.0
+    if kind == ROUGH_CONDUCTOR:
+        return _rough_conductor(row, cos_o, cos_i, n0, n1, n2, w0, w1, w2, i0, i1, i2)
     eta = row[B_ETA]
     scale = INV_PI / (eta * eta)
     spec = 0.0
@@ -159,6 +172,43 @@ def eval_colour(kind, row, n0, n1, n2, w0, w1, w2, i0, i1, i2, radiance):
     return (spec * row[B_SPEC] + scale * _base(row, 0, internal),
             spec * row[B_SPEC + 1] + scale * _base(row, 1, internal),
             spec * row[B_SPEC + 2] + scale * _base(row, 2, internal))
+
+
+@nb.njit(cache=True, error_model="numpy")
+def fresnel_conductor(cos_i, eta, k):
+    """Mitsuba's fresnel_conductor (after Moeller's Optics): the unpolarised
+    reflectance of a conductor of complex index eta + i k."""
+    c2 = cos_i * cos_i
+    s2 = 1.0 - c2
+    t1 = eta * eta - k * k - s2
+    a2pb2 = math.sqrt(max(0.0, t1 * t1 + 4.0 * k * k * eta * eta))
+    a = math.sqrt(max(0.0, 0.5 * (a2pb2 + t1)))
+    term1, term2 = a2pb2 + c2, 2.0 * cos_i * a
+    r_s = (term1 - term2) / (term1 + term2)
+    term3, term4 = a2pb2 * c2 + s2 * s2, term2 * s2
+    return 0.5 * (r_s + r_s * (term3 - term4) / (term3 + term4))
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _conductor_tint(row, cos_h):
+    """F(cos_h) times the specular tint, per channel."""
+    return (fresnel_conductor(cos_h, row[B_CETA], row[B_CK]) * row[B_SPEC],
+            fresnel_conductor(cos_h, row[B_CETA + 1], row[B_CK + 1]) * row[B_SPEC + 1],
+            fresnel_conductor(cos_h, row[B_CETA + 2], row[B_CK + 2]) * row[B_SPEC + 2])
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _rough_conductor(row, cos_o, cos_i, n0, n1, n2, w0, w1, w2, i0, i1, i2):
+    """Mitsuba's roughconductor: F(wo.h) D G / (4 cos_o cos_i), tinted."""
+    h0, h1, h2 = w0 + i0, w1 + i1, w2 + i2
+    hl = math.sqrt(h0 * h0 + h1 * h1 + h2 * h2)
+    h0, h1, h2 = h0 / hl, h1 / hl, h2 / hl
+    dist, alpha = int(row[B_DIST]), row[B_ALPHA]
+    wo_h = dot(w0, w1, w2, h0, h1, h2)
+    g = smith_g1(dist, alpha, cos_o, wo_h) * smith_g1(dist, alpha, cos_i, dot(i0, i1, i2, h0, h1, h2))
+    k = distribution_d(dist, alpha, dot(n0, n1, n2, h0, h1, h2)) * g / (4.0 * cos_o * cos_i)
+    f0, f1, f2 = _conductor_tint(row, wo_h)
+    return f0 * k, f1 * k, f2 * k
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -215,8 +265,16 @@ def pdf_colour(kind, row, n0, n1, n2, w0, w1, w2, i0, i1, i2):
     cos_i = dot(n0, n1, n2, i0, i1, i2)
     if kind == ROUGH_DIELECTRIC:
         return _rough_dielectric_pdf(row, cos_o, cos_i, n0, n1, n2, w0, w1, w2, i0, i1, i2)
-    if cos_o <= 0.0 or cos_i <= 0.0:
+    if cos_o <= 0.0 or cos_i <= 0.0 or kind == CONDUCTOR:
         return 0.0
+    if kind == ROUGH_CONDUCTOR:
+        h0, h1, h2 = w0 + i0, w1 + i1, w2 + i2
+        hl = math.sqrt(h0 * h0 + h1 * h1 + h2 * h2)
+        wo_h = dot(w0, w1, w2, h0, h1, h2) / hl
+        if wo_h <= 0.0:
+            return 0.0
+        return visible_pdf(int(row[B_DIST]), row[B_ALPHA], cos_o, dot(n0, n1, n2, h0, h1, h2) / hl,
+                           wo_h) * cos_o / (4.0 * cos_o * wo_h)
     q = _plastic_probability(row, kind, cos_o)
     p = (1.0 - q) * cos_i * INV_PI
     if kind == ROUGH_PLASTIC:
@@ -264,6 +322,8 @@ def sample_colour(kind, row, n0, n1, n2, w0, w1, w2, u1, u2, u3, radiance):
     cos_o = dot(n0, n1, n2, w0, w1, w2)
     if cos_o <= 0.0:
         return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, False
+    if kind == CONDUCTOR or kind == ROUGH_CONDUCTOR:
+        return _sample_conductor(kind, row, n0, n1, n2, w0, w1, w2, cos_o, u2, u3)
     q = _plastic_probability(row, kind, cos_o)
     if kind == PLASTIC and u1 < q:
         k = fresnel(cos_o, row[B_ETA])[0] / q
@@ -283,6 +343,27 @@ def sample_colour(kind, row, n0, n1, n2, w0, w1, w2, u1, u2, u3, radiance):
     f0, f1, f2 = eval_colour(kind, row, n0, n1, n2, w0, w1, w2, i0, i1, i2, radiance)
     k = cos_i / pdf
     return True, i0, i1, i2, f0 * k, f1 * k, f2 * k, 1.0, False
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _sample_conductor(kind, row, n0, n1, n2, w0, w1, w2, cos_o, u2, u3):
+    """A smooth conductor's mirror direction (weight F s, delta), or
+    Mitsuba's roughconductor sample: a visible normal m, the reflection
+    about it, weight F(wo.m) G1(wi, m) s."""
+    if kind == CONDUCTOR:
+        f0, f1, f2 = _conductor_tint(row, cos_o)
+        k = 2.0 * cos_o
+        return True, k * n0 - w0, k * n1 - w1, k * n2 - w2, f0, f1, f2, 1.0, True
+    dist, alpha = int(row[B_DIST]), row[B_ALPHA]
+    m0, m1, m2 = sample_visible(dist, alpha, n0, n1, n2, w0, w1, w2, u2, u3)
+    c = dot(w0, w1, w2, m0, m1, m2)
+    i0, i1, i2 = 2.0 * c * m0 - w0, 2.0 * c * m1 - w1, 2.0 * c * m2 - w2
+    cos_i = dot(n0, n1, n2, i0, i1, i2)
+    g = smith_g1(dist, alpha, cos_i, dot(i0, i1, i2, m0, m1, m2)) if cos_i > 0.0 else 0.0
+    if not g > 0.0:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, False
+    f0, f1, f2 = _conductor_tint(row, c)
+    return True, i0, i1, i2, f0 * g, f1 * g, f2 * g, 1.0, False
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -376,7 +457,7 @@ def gather_tint(materials) -> np.ndarray:
     f * flux by at the end: the reflectance of the older kinds (their f is
     a scalar times it), 1 for the coloured ones (their f is already RGB)."""
     tint = np.array(materials.reflectance, np.float64)
-    tint[np.isin(materials.kind, (ROUGH_DIELECTRIC, PLASTIC, ROUGH_PLASTIC))] = 1.0
+    tint[(materials.kind >= ROUGH_DIELECTRIC) & (materials.kind <= ROUGH_CONDUCTOR)] = 1.0
     return tint
 
 

@@ -19,9 +19,10 @@ import numpy as np
 
 # Material kinds, as stored in `MaterialTable.kind` and read by the kernels.
 DIFFUSE, MIRROR, GLASS, GLOSSY = 0, 1, 2, 3
-ROUGH_DIELECTRIC, PLASTIC, ROUGH_PLASTIC = 4, 5, 6
+ROUGH_DIELECTRIC, PLASTIC, ROUGH_PLASTIC, CONDUCTOR, ROUGH_CONDUCTOR = 4, 5, 6, 7, 8
 MATERIAL_KINDS = {"diffuse": DIFFUSE, "mirror": MIRROR, "glass": GLASS, "glossy": GLOSSY,
-                  "roughdielectric": ROUGH_DIELECTRIC, "plastic": PLASTIC, "roughplastic": ROUGH_PLASTIC}
+                  "roughdielectric": ROUGH_DIELECTRIC, "plastic": PLASTIC, "roughplastic": ROUGH_PLASTIC,
+                  "conductor": CONDUCTOR, "roughconductor": ROUGH_CONDUCTOR}
 MICROFACETS = ("ggx", "beckmann")     # `Material.distribution`, ids as kernels.microfacet
 
 # Light kinds, as stored in `LightTable.kind`.
@@ -77,6 +78,8 @@ class Material:
     distribution: str = "ggx"
     nonlinear: bool = False
     opacity: float = 1.0
+    conductor_eta: tuple = (0.0, 0.0, 0.0)
+    conductor_k: tuple = (1.0, 1.0, 1.0)
 
     def validate(self, where: str) -> None:
         if self.kind not in MATERIAL_KINDS:
@@ -97,6 +100,8 @@ class Material:
         if self.distribution not in MICROFACETS:
             raise SceneError(f"{where}.distribution: must be one of {', '.join(MICROFACETS)}, "
                              f"got {self.distribution!r}")
+        if np.any(_rgb(self.conductor_eta, f"{where}.eta") < 0) or np.any(_rgb(self.conductor_k, f"{where}.k") < 0):
+            raise SceneError(f"{where}: a conductor's eta and k must be non-negative")
         if not (math.isfinite(self.opacity) and 0.0 <= self.opacity <= 1.0):
             raise SceneError(f"{where}.opacity: must lie in [0, 1], got {self.opacity!r}")
 
@@ -192,6 +197,8 @@ class MaterialTable:
     distribution: np.ndarray = None  # int32 (m,): index into MICROFACETS
     nonlinear: np.ndarray = None     # bool (m,)
     opacity: np.ndarray = None       # float32 (m,): Mitsuba's mask
+    conductor_eta: np.ndarray = None  # float32 (m, 3): real part of a conductor's index
+    conductor_k: np.ndarray = None    # float32 (m, 3): its imaginary part
 
     def __post_init__(self):
         # Tables made before these columns (tests, older callers) get the
@@ -205,6 +212,10 @@ class MaterialTable:
             self.nonlinear = np.zeros(m, np.bool_)
         if self.opacity is None:
             self.opacity = np.ones(m, np.float32)
+        if self.conductor_eta is None:
+            self.conductor_eta = np.zeros((m, 3), np.float32)
+        if self.conductor_k is None:
+            self.conductor_k = np.ones((m, 3), np.float32)
 
     @classmethod
     def from_materials(cls, mats: list[Material]) -> "MaterialTable":
@@ -220,6 +231,8 @@ class MaterialTable:
             distribution=np.array([MICROFACETS.index(m.distribution) for m in mats], np.int32),
             nonlinear=np.array([m.nonlinear for m in mats], np.bool_),
             opacity=np.array([m.opacity for m in mats], np.float32),
+            conductor_eta=np.array([_rgb(m.conductor_eta, m.name) for m in mats], np.float32).reshape(-1, 3),
+            conductor_k=np.array([_rgb(m.conductor_k, m.name) for m in mats], np.float32).reshape(-1, 3),
         )
 
 

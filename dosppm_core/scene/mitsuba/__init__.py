@@ -20,9 +20,9 @@ shape       obj, ply (filename, face_normals); rectangle; cube; sphere
             emitters) and instance (to_world, one ``<ref>`` to a group),
             flattened into copies of the group's triangles
 bsdf        diffuse (reflectance); twosided (one nested BSDF);
-            conductor (material="none", specular_reflectance) -> mirror;
-            roughconductor (distribution="ggx", alpha or alpha_u = alpha_v,
-            material="none", specular_reflectance, sample_visible) -> glossy;
+            conductor (material="none", specular_reflectance, eta, k);
+            roughconductor (distribution, alpha or alpha_u = alpha_v,
+            material="none", specular_reflectance, eta, k, sample_visible);
             dielectric (int_ior, ext_ior as numbers or Mitsuba's names;
             specular_reflectance equal to specular_transmittance) -> glass;
             roughdielectric (distribution ggx or beckmann, alpha, int_ior,
@@ -69,9 +69,10 @@ Decisions:
   1e-4), spheres icospheres. A cylinder whose to_world shears it or scales
   its cross-section unevenly is refused: Mitsuba only warns, and renders a
   cylinder read off the transform rather than the transformed one.
-* roughconductor accepts only GGX. Mitsuba's default is Beckmann, so a file
-  must say ``<string name="distribution" value="ggx"/>``: swapping the lobe
-  silently would make comparisons against Mitsuba disagree.
+* conductor and roughconductor take eta and k (one value, rgb or a
+  constant spectrum; not a named material) and both distributions, Beckmann
+  being Mitsuba's default; a GGX roughconductor without eta and k is our
+  "glossy", one without them a perfect mirror's Fresnel of 1.
 * The front of a surface is its triangle winding (counter-clockwise), which
   emission and one-sided BSDFs use, and flip_normals reverses. Under a
   mirroring to_world Mitsuba keeps the front of rectangles and cubes outward

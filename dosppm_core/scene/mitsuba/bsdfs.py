@@ -1,6 +1,7 @@
 """BSDFs to `Material`s: diffuse; twosided (one nested BSDF); conductor
-(material="none") -> mirror; roughconductor (GGX only) -> glossy;
-dielectric (one tint) -> glass; roughdielectric (GGX or Beckmann),
+(material="none") -> mirror; roughconductor (GGX) -> glossy;
+dielectric (one tint) -> glass; conductor and roughconductor with eta
+and k, or Beckmann -> their kinds; roughdielectric (GGX or Beckmann),
 plastic and roughplastic -> their kinds; mask (a constant opacity) -> its
 nested material with `opacity`. One <bsdf> object is one material; a
 shape's (bsdf, area emitter) pair becomes one builder material, since
@@ -11,6 +12,7 @@ import dataclasses
 
 import numpy as np
 
+from dosppm_core.scene.mitsuba.colour import prop_rgb
 from dosppm_core.scene.mitsuba.emitters import area_radiance
 from dosppm_core.scene.mitsuba.objects import Obj
 from dosppm_core.scene.mitsuba.params import finish, get_bool, get_float, get_rgb
@@ -90,24 +92,52 @@ def _mask(reader: ReaderState, obj: Obj) -> Material:
 
 
 def _conductor(reader: ReaderState, obj: Obj) -> Material:
+    """Mitsuba's conductor: a perfect mirror (our "mirror") without eta and
+    k, else Fresnel of the complex index eta + i k ("conductor")."""
     reader.children(obj, ())
     _no_metal(obj)
-    return Material(obj.name(), "mirror", get_rgb(obj, "specular_reflectance", 1.0), two_sided=False)
+    tint = get_rgb(obj, "specular_reflectance", 1.0)
+    eta_k = _eta_k(obj)
+    if eta_k is None:
+        return Material(obj.name(), "mirror", tint, two_sided=False)
+    return Material(obj.name(), "conductor", (1.0, 1.0, 1.0), specular=tint, conductor_eta=eta_k[0],
+                    conductor_k=eta_k[1], two_sided=False)
 
 
 def _roughconductor(reader: ReaderState, obj: Obj) -> Material:
+    """Mitsuba's roughconductor: our GGX "glossy" when it is GGX with a
+    Fresnel of 1 (no eta, k), else "roughconductor" (Beckmann or GGX,
+    visible normals, Fresnel of eta + i k)."""
     reader.children(obj, ())
     _no_metal(obj)
-    prop = obj.take("distribution", ("string",))
-    if prop is None or prop.value != "ggx":
-        # Mitsuba's default is Beckmann: swapping the lobe silently would make
-        # comparisons against Mitsuba disagree.
-        (prop.node if prop else obj.node).fail(
-            f"distribution {prop.value if prop else 'beckmann (Mitsuba default)'!r} is unsupported; "
-            'only GGX: add <string name="distribution" value="ggx"/>')
-    get_bool(obj, "sample_visible")       # a sampling strategy: the image is the same
-    return Material(obj.name(), "glossy", get_rgb(obj, "specular_reflectance", 1.0),
-                    roughness=_alpha(obj), two_sided=False)
+    distribution = _distribution(obj)
+    tint = get_rgb(obj, "specular_reflectance", 1.0)
+    eta_k = _eta_k(obj)
+    if eta_k is None and distribution == "ggx":
+        return Material(obj.name(), "glossy", tint, roughness=_alpha(obj), two_sided=False)
+    eta, k = eta_k if eta_k is not None else ((0.0,) * 3, (1.0,) * 3)
+    return Material(obj.name(), "roughconductor", (1.0, 1.0, 1.0), roughness=_alpha(obj),
+                    distribution=distribution, specular=tint, conductor_eta=eta, conductor_k=k,
+                    two_sided=False)
+
+
+def _eta_k(obj: Obj):
+    """(eta, k) RGB of a conductor, or None when neither is given (Mitsuba's
+    defaults then, 0 and 1, make a perfect mirror). Values are unbounded:
+    one number, an rgb, or a constant spectrum (a spectrum list would be
+    clamped to [0, 1] as a reflectance, so it is refused)."""
+    props = [obj.take(n, ("float", "integer", "rgb", "spectrum")) for n in ("eta", "k")]
+    if props == [None, None]:
+        return None
+    out = []
+    for prop, default in zip(props, (0.0, 1.0)):
+        if prop is None:
+            out.append((default,) * 3)
+            continue
+        if prop.kind == "spectrum" and prop.value[0] != "constant":
+            prop.node.fail("a conductor's eta and k as a spectrum list are unsupported (give one value or rgb)")
+        out.append(tuple(float(c) for c in prop_rgb(prop)))
+    return out
 
 
 def _alpha(obj: Obj) -> float:
