@@ -77,7 +77,8 @@ def test_scene_header_wire_carries_the_new_columns(tmp_path):
     scene = load_mitsuba_xml(_write(tmp_path, SCENE.format(bsdf=BSDFS["plastic"], extra="")))
     wire = msgpack.unpackb(msgpack.packb(scene.header().to_wire()))
     back = SceneHeader.from_wire(wire).materials
-    for col in ("kind", "reflectance", "specular", "distribution", "nonlinear", "opacity", "ior"):
+    for col in ("kind", "reflectance", "specular", "distribution", "nonlinear", "opacity", "ior",
+                "conductor_eta", "conductor_k"):
         assert np.array_equal(getattr(back, col), getattr(scene.materials, col)), col
 
 
