@@ -139,7 +139,9 @@ def later_part(message: str) -> bool:
     """Whether a refusal is of a plugin a later part of issue 33 builds
     (textures, materials, lights, media, other shapes): an unsupported
     plugin of a family and type in `LATER`, or one refused with its reason
-    (`objects.REFUSED`: principled, out of scope)."""
+    (`objects.REFUSED`: principled, out of scope), or a conductor's eta and k."""
+    if re.search(r': <\w+ name="(eta|k)">: unsupported parameter of <bsdf type="(rough)?conductor">$', message):
+        return True     # a conductor's complex index of refraction: the materials part
     found = re.search(r': <(\w+) type="([^"]*)"[^>]*>: (.+)$', message)
     if not found:
         return False

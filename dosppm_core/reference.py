@@ -68,7 +68,10 @@ from dosppm_core.scene.model import (
     DIFFUSE,
     GLASS,
     GLOSSY,
+    LIGHT_DIRECTIONAL,
+    LIGHT_ENV,
     LIGHT_POINT,
+    LIGHT_PROJECTOR,
     LIGHT_SPOT,
     LIGHT_TRIANGLE,
     MICROFACETS,
@@ -261,7 +264,29 @@ def _delta_emitters(mi, scene: Scene) -> dict:
                     origin=pos, target=_vec(lights.p0[i] + axis), up=_vec(_any_perpendicular(axis))),
                 "cutoff_angle": math.degrees(lights.cone[i, 2]),
                 "beam_width": math.degrees(lights.cone[i, 3])}
+        elif lights.kind[i] == LIGHT_PROJECTOR:
+            axis = np.asarray(lights.p1[i], float)
+            out[f"light_{i}"] = {
+                "type": "projector", "irradiance": value, "fov": math.degrees(2 * math.atan(lights.cone[i, 0])),
+                "to_world": mi.ScalarTransform4f().look_at(
+                    origin=pos, target=_vec(lights.p0[i] + axis), up=_vec(np.cross(axis, lights.p2[i])))}
+        elif lights.kind[i] == LIGHT_DIRECTIONAL:
+            out[f"light_{i}"] = {"type": "directional", "direction": pos, "irradiance": value}
+        elif lights.kind[i] == LIGHT_ENV:
+            out[f"light_{i}"] = _environment(mi, lights)
     return out
+
+
+def _environment(mi, lights) -> dict:
+    """Mitsuba's constant for a uniform map, else its envmap of our texels
+    (less the wrap column, which Mitsuba adds back) and rotation."""
+    texels = lights.env_texels
+    if np.all(texels == texels[0, 0]):
+        return {"type": "constant", "radiance": _spectrum(texels[0, 0])}
+    rotation = np.eye(4)
+    rotation[:3, :3] = lights.env_to_world
+    return {"type": "envmap", "bitmap": mi.Bitmap(np.ascontiguousarray(texels[:, :-1])),
+            "to_world": mi.ScalarTransform4f(rotation)}
 
 
 def _spectrum(rgb) -> dict:
@@ -315,7 +340,7 @@ def reference_key(scene: Scene, spp: int, max_depth: int = DEFAULT_MAX_DEPTH,
     later = ("specular", "distribution", "nonlinear", "opacity", "conductor_eta", "conductor_k")
     arrays.update({f"mat.{k}": v for k, v in vars(mats).items()
                    if k != "names" and (newer or k not in later)})
-    arrays.update({f"light.{k}": v for k, v in vars(scene.lights).items()})
+    arrays.update({f"light.{k}": v for k, v in scene.lights.wire_fields().items()})
     for name in sorted(arrays):
         arr = np.ascontiguousarray(arrays[name])
         h.update(f"{name}:{arr.dtype.str}:{arr.shape};".encode())

@@ -3,15 +3,17 @@ aggregate. Chunked and distributed modes call the same steps; only what
 happens to the continuing rays between steps differs."""
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from dosppm_core.accel import Accelerator
 from dosppm_core.jobs import STORED, HitPoints, PhotonDeposits, RayBatch, ShadowRays
-from dosppm_core.kernels import direct, emit, light_cache, paths
+from dosppm_core.kernels import direct, emit, envmap, light_cache, paths
 from dosppm_core.kernels.light_cache import LightCache
 from dosppm_core.kernels.light_tree import build_light_tree
 from dosppm_core.kernels.paths import SurfaceData
-from dosppm_core.scene.model import LIGHT_TRIANGLE, LightTable, Scene
+from dosppm_core.scene.model import LIGHT_DIRECTIONAL, LIGHT_ENV, LIGHT_TRIANGLE, LightTable, Scene
 
 NO_CULL = np.array([[-np.inf] * 3, [np.inf] * 3])
 EPS_REL = 2e-5   # spawn offset relative to |p|: ~300 float32 ulps
@@ -34,7 +36,8 @@ def emit_photon_jobs(scene: Scene, seed: int, keys, counts, eps_abs: float) -> R
     starts = np.zeros(len(counts) + 1, np.int64)
     np.cumsum(counts, out=starts[1:])
     o, d, f, st, light = emit.emit_photons(L.kind, L.p0, L.p1, L.p2, L.value, L.cone, L.power,
-                                           L.cdf, np.uint64(seed), keys, starts, eps_abs)
+                                           L.cdf, np.uint64(seed), keys, starts, eps_abs,
+                                           envmap.env_arrays(L))
     # A photon path's pixel is -1 - its light: its first hit teaches the
     # light cache (`kernels.light_cache`) which light reaches there.
     return RayBatch(o, d, f, -1 - light, np.zeros(len(light), np.int32), st,
@@ -78,18 +81,19 @@ def scatter_photons(surf: SurfaceData, batch: RayBatch, prim, u, v,
 
 
 def eye_step(accel: Accelerator, surf: SurfaceData, batch: RayBatch, max_depth: int,
-             lights: tuple | None = None):
+             lights: tuple | None = None, env: "Environment | None" = None):
     """One bounce of eye paths. Returns (hit points, emitted (pixel, rgb),
     continuing batch, end counts, shadow rays)."""
     prim, _t, u, v = accel.intersect(batch.origin, batch.direction)
-    return advance_eye(surf, batch, prim, u, v, max_depth, lights)
+    return advance_eye(surf, batch, prim, u, v, max_depth, lights, env)
 
 
 def advance_eye(surf: SurfaceData, batch: RayBatch, prim, u, v, max_depth: int,
-                lights: tuple | None = None):
+                lights: tuple | None = None, env: "Environment | None" = None):
     """The eye-path bounce at known hits, for any aggregate. With `lights`
     (`light_arrays`), each hit point also samples a light: its path goes
-    on as a shadow ray, and ends (STORED) when that ray does."""
+    on as a shadow ray, and ends (STORED) when that ray does. With `env`,
+    paths that leave the scene see the environment."""
     kernel = paths.advance_eye_paths if len(batch) >= paths.SERIAL_BELOW else paths.advance_eye_paths_serial
     ends, (lit, rgb), (h, hpos, hn), (g, no, nd, nw, st) = kernel(
         (batch.direction, batch.weight, batch.depth, batch.rng), (prim, u, v), surf,
@@ -101,23 +105,75 @@ def advance_eye(surf: SurfaceData, batch: RayBatch, prim, u, v, max_depth: int,
     if lights is not None and len(hits):
         shadows = shadow_rays(surf, lights, hits, batch.rng[h], batch.job[h])
         ends[STORED] -= len(shadows)
-    return hits, (batch.pixel[lit], rgb), nxt, ends, shadows
+    seen = (batch.pixel[lit], rgb)
+    if env is not None:
+        seen = _concat_light(seen, escaped_light(env, batch.take(np.flatnonzero(prim == -1))))
+    return hits, seen, nxt, ends, shadows
+
+
+# -- infinite lights ----------------------------------------------------------------
+class Environment(NamedTuple):
+    """The environment light as the eye passes need it: the map's kernel
+    arrays (`kernels.envmap.env_arrays`), and the probability that the
+    light technique of glossy hit points (by power) picks it."""
+    arrays: tuple
+    p_select: float
+
+
+def environment(lights: LightTable) -> Environment | None:
+    """The scene's environment light, None if it has none."""
+    rows = np.flatnonzero(lights.kind == LIGHT_ENV)
+    if not len(rows) or not lights.power[rows[0]] > 0:
+        return None
+    return Environment(envmap.env_arrays(lights), float(lights.power[rows[0]] / lights.total_power))
+
+
+def escaped_light(env: Environment | None, paths: RayBatch):
+    """(pixel, rgb) that eye paths leaving the scene bring: their weight
+    times the environment's radiance in their direction. Emission seen
+    along an eye path always counts (it only passes specular surfaces),
+    so the environment does too."""
+    if env is None or not len(paths):
+        return np.empty(0, np.int32), np.empty((0, 3), np.float32)
+    return paths.pixel, envmap.escaped_radiance(env.arrays, paths.direction, paths.weight)
+
+
+def _concat_light(a, b):
+    if not len(b[0]):
+        return a
+    return np.concatenate([a[0], b[0]]), np.concatenate([a[1], b[1]])
+
+
+def _infinite_arrays(lights: LightTable) -> tuple:
+    """`kernels.direct`'s `infinite`: the cdf by power over the infinite
+    lights, the share of light choices given to them (all when there are
+    no others, half when there are), the environment's arrays."""
+    inf = (lights.kind == LIGHT_DIRECTIONAL) | (lights.kind == LIGHT_ENV)
+    power = np.where(inf, lights.power, 0.0)
+    total = power.sum()
+    cdf = np.cumsum(power) / total if total > 0 else np.zeros_like(power)
+    if total > 0:
+        cdf[np.flatnonzero(inf)[-1]:] = 1.0
+    share = 0.0 if not total > 0 else 1.0 if np.all(inf | ~(lights.power > 0)) else 0.5
+    return (cdf, np.array([share]), *envmap.env_arrays(lights))
 
 
 # -- direct light -----------------------------------------------------------------
 LIGHT_CACHE = 14      # light_arrays()[LIGHT_CACHE]: the light cache's arrays the eye passes read
 LEARN = 15            # light_arrays()[LEARN]: those the photons teach (the same, or the live ones)
+INFINITE = 16         # light_arrays()[INFINITE]: the infinite lights (`_infinite_arrays`)
 
 
 def light_arrays(lights: LightTable, cache: LightCache | None = None) -> tuple:
     """The light table as the tuple the direct-light kernel reads: its rows,
     its light tree's arrays (flat: numba's parallel loops refuse a tuple
-    nested in their arguments) and the arrays of the light cache that the
-    photons' first hits teach (`kernels.light_cache`; none: the tree alone)."""
+    nested in their arguments), the arrays of the light cache that the
+    photons' first hits teach (`kernels.light_cache`; none: the tree alone)
+    and those of the infinite lights."""
     L = lights
     cache = cache if cache is not None else LightCache.empty()
     return (L.kind, L.p0, L.p1, L.p2, L.value, L.cone, L.power, L.cdf, *build_light_tree(L), cache.read,
-            cache.arrays())
+            cache.arrays(), _infinite_arrays(L))
 
 
 def freeze_light_cache(lights: tuple | None) -> None:
@@ -133,29 +189,39 @@ def shadow_rays(surf: SurfaceData, lights: tuple, hits: HitPoints, states, jobs)
     ray to a light sample, or on glossy surfaces under triangle lights a
     BSDF-sampled one, by one-sample MIS); hit points whose sample cannot
     contribute get none."""
-    mis = bool(np.any(lights[0] == LIGHT_TRIANGLE))
+    mis = bool(np.any((lights[0] == LIGHT_TRIANGLE) | ((lights[0] == LIGHT_ENV) & (lights[6] > 0))))
     kernel = direct.sample_direct if len(hits) >= paths.SERIAL_BELOW else direct.sample_direct_serial
     rows, o, d, tmax, rgb, pdf = kernel(
         (hits.position, hits.normal, hits.outgoing, hits.weight, hits.material),
-        np.ascontiguousarray(states), surf, lights[:LIGHT_CACHE], lights[LIGHT_CACHE], mis, EPS_REL)
+        np.ascontiguousarray(states), surf, lights[:LIGHT_CACHE], lights[LIGHT_CACHE], lights[INFINITE],
+        mis, EPS_REL)
     return ShadowRays(o, d, rgb, tmax, pdf, hits.pixel[rows], job=np.asarray(jobs)[rows])
 
 
-def shadow_results(shadows: ShadowRays, prim, t, surf: SurfaceData, total_power: float, ended=None):
+def shadow_results(shadows: ShadowRays, prim, t, surf: SurfaceData, total_power: float, ended=None,
+                   env: Environment | None = None):
     """(pixel, rgb) that the ended rays among `shadows` bring, given their
     first hits in [0, tmax] (`prim` -1: none): a shadow ray with no hit
-    reached its light; a BSDF-sampled one brings what its hit emits.
+    reached its light; a BSDF-sampled one brings what its hit emits, or,
+    with `env`, what the environment sends if it left the scene.
     `ended` (bool) limits it to rays that end here (not leaving a chunk)."""
     ended = np.ones(len(shadows), bool) if ended is None else ended
     lit = ended & (shadows.pdf == 0) & (prim < 0)
     found = np.flatnonzero(ended & (shadows.pdf > 0) & (prim >= 0))
     rgb = direct.emitter_radiance(shadows.direction[found], shadows.radiance[found], shadows.pdf[found],
                                   prim[found], t[found], surf, float(total_power))
-    return (np.concatenate([shadows.pixel[lit], shadows.pixel[found]]),
-            np.concatenate([shadows.radiance[lit], rgb]))
+    out = (np.concatenate([shadows.pixel[lit], shadows.pixel[found]]),
+           np.concatenate([shadows.radiance[lit], rgb]))
+    if env is not None:
+        away = np.flatnonzero(ended & (shadows.pdf > 0) & (prim < 0))
+        sky = envmap.escaped_mis_radiance(env.arrays, shadows.direction[away], shadows.radiance[away],
+                                          shadows.pdf[away], direct.C_LIGHT, env.p_select)
+        out = _concat_light(out, (shadows.pixel[away], sky))
+    return out
 
 
-def trace_shadows(accel: Accelerator, surf: SurfaceData, lights: tuple, shadows: ShadowRays):
+def trace_shadows(accel: Accelerator, surf: SurfaceData, lights: tuple, shadows: ShadowRays,
+                  env: Environment | None = None):
     """Direct-light rays against one aggregate holding the whole scene.
     Returns ((pixel, rgb) of the light they found, end counts)."""
     ends = np.zeros(END_KINDS, np.int64)
@@ -163,7 +229,7 @@ def trace_shadows(accel: Accelerator, surf: SurfaceData, lights: tuple, shadows:
     if not len(shadows):
         return (np.empty(0, np.int32), np.empty((0, 3), np.float32)), ends
     prim, t, _u, _v = accel.intersect(shadows.origin, shadows.direction, shadows.tmax)
-    return shadow_results(shadows, prim, t, surf, lights[6].sum()), ends
+    return shadow_results(shadows, prim, t, surf, lights[6].sum(), env=env), ends
 
 
 def trace_photons(accel, surf, batch, cull_box, max_depth, deposit_from: int = 0, lights: tuple | None = None):
@@ -207,20 +273,21 @@ def trace_photon_jobs(accel, surf, jobs, cull_box, max_depth, min_batch: int = 3
     return PhotonDeposits.concat(deposits), ends, culled
 
 
-def trace_eye(accel, surf, batch, max_depth, lights: tuple | None = None):
+def trace_eye(accel, surf, batch, max_depth, lights: tuple | None = None, env: Environment | None = None):
     """Follow eye paths until each stores a hit point or ends; with
-    `lights`, trace each hit point's shadow ray too. Returns (hit points,
-    (pixel, rgb) of light seen directly and, with `lights`, direct light
-    at hit points, end counts)."""
+    `lights`, trace each hit point's shadow ray too; with `env`, paths
+    leaving the scene see it. Returns (hit points, (pixel, rgb) of light
+    seen directly and, with `lights`, direct light at hit points, end
+    counts)."""
     hits, pix, rgb, shadows, ends = [], [], [], [], np.zeros(END_KINDS, np.int64)
     while len(batch):
-        h, (p, e), batch, c, s = eye_step(accel, surf, batch, max_depth, lights)
+        h, (p, e), batch, c, s = eye_step(accel, surf, batch, max_depth, lights, env)
         hits.append(h)
         pix.append(p)
         rgb.append(e)
         shadows.append(s)
         ends += c
-    (p, e), c = trace_shadows(accel, surf, lights, ShadowRays.concat(shadows))
+    (p, e), c = trace_shadows(accel, surf, lights, ShadowRays.concat(shadows), env)
     pix.append(p)
     rgb.append(e)
     ends += c

@@ -10,6 +10,7 @@ from collections import deque
 from dosppm_core.settings import RenderSettings
 from services import wire
 from services.ledger import Ledger
+from services.server.options import ServerOptions
 from services.server.state import ServerState
 from services.server.statistics import ServerStatistics
 from services.tracer.epochs import EpochDeposits
@@ -31,8 +32,9 @@ class InProcessCluster:
         self.settings = settings
         self.server = ServerState(store.header, store.tree, settings, getattr(store, "key", "memory"),
                                   getattr(store, "manifest", None),
-                                  min_photon_jobs=min_photon_jobs, queue_target_rays=queue_target_rays,
-                                  min_tracers=tracers, tracer_timeout_s=tracer_timeout_s, gather_at=gather_at)
+                                  ServerOptions(min_photon_jobs=min_photon_jobs, queue_target_rays=queue_target_rays,
+                                                min_tracers=tracers, tracer_timeout_s=tracer_timeout_s,
+                                                gather_at=gather_at))
         self.statistics = ServerStatistics(store.header, settings, threads=settings.threads,
                                            ledger=Ledger(settings, (store.header.camera.width, store.header.camera.height)))
         self.tamper = tamper

@@ -23,11 +23,12 @@ from dosppm_core.settings import RenderSettings
 from services import config, transport
 from services.cli.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, fail, warnings_as_lines
 from services.inproc import InProcessCluster
-from services.malloc import SERVER_MMAP_THRESHOLD_BYTES, return_large_blocks
+from dosppm_core.malloc import SERVER_MMAP_THRESHOLD_BYTES, return_large_blocks
 from services.progress import COMPILING, ProgressReporter, kernels_cached, stderr_lines
 from services.server import checkpoint
-from services.server.node import Limits, ServerProcess
-from services.tracer.node import TracerError, TracerProcess
+from services.server.node import ServerProcess
+from services.server.options import Limits, ServerOptions
+from services.tracer.node import TracerError, TracerOptions, TracerProcess
 from services.wire import WireError
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -57,7 +58,7 @@ def run_server(scene: str, v: dict, quiet: bool = False, spawn_tracers: int = 0)
             warm_kernels_apart()
         except RuntimeError as e:
             return fail(str(e))
-    return_large_blocks(SERVER_MMAP_THRESHOLD_BYTES)      # services/malloc.py
+    return_large_blocks(SERVER_MMAP_THRESHOLD_BYTES)      # dosppm_core/malloc.py
     limits = _limits(v)
     reporter = ProgressReporter(config.stop_limit(limits.seconds, limits.photons, limits.iterations),
                                 v["log"], quiet=quiet)
@@ -126,18 +127,17 @@ def _limits(v: dict) -> Limits:
 
 def _server(store, settings, v: dict, http, limits: Limits, reporter, resume, say) -> ServerProcess:
     ckpt = v["checkpoint"] or v["resume"] or (os.path.splitext(v["out"])[0] + ".checkpoint" if v["out"] else None)
-    return ServerProcess(store, settings, bind=v["bind"], http=http, out=v["out"], limits=limits,
-                         snapshot_interval_s=v["snapshot_interval"],
-                         min_photon_jobs=v["min_photon_jobs"], min_tracers=v["min_tracers"],
-                         threads=v["threads"], exposure=v["exposure"],
-                         drain_timeout_s=v["drain_timeout"], reporter=reporter,
-                         concurrent=v["concurrent"], client_batching=v["client_batching"],
-                         tracer_timeout_s=v["tracer_timeout"], checkpoint_dir=ckpt,
-                         checkpoint_interval_s=v["checkpoint_interval"], resume=resume,
-                         curve_secret=v["curve_secret"], curve_clients=v["curve_clients"],
-                         min_tracers_timeout_s=v["min_tracers_timeout"], ledger=v["ledger"], say=say,
-                         held_bytes=config.parse_bytes(v.get("queue_memory"), "--queue-memory"),
-                         gather_at=v.get("gather_at", "server"))
+    options = ServerOptions(
+        bind=v["bind"], http=http, out=v["out"], exposure=v["exposure"], limits=limits,
+        snapshot_interval_s=v["snapshot_interval"], drain_timeout_s=v["drain_timeout"], threads=v["threads"],
+        checkpoint_dir=ckpt, checkpoint_interval_s=v["checkpoint_interval"], ledger=v["ledger"],
+        curve_secret=v["curve_secret"], curve_clients=v["curve_clients"],
+        min_photon_jobs=v["min_photon_jobs"], min_tracers=v["min_tracers"],
+        min_tracers_timeout_s=v["min_tracers_timeout"], tracer_timeout_s=v["tracer_timeout"],
+        concurrent=v["concurrent"], client_batching=v["client_batching"],
+        held_bytes=config.parse_bytes(v.get("queue_memory"), "--queue-memory"),
+        gather_at=v.get("gather_at", "server"))
+    return ServerProcess(store, settings, options, resume=resume, reporter=reporter, say=say)
 
 
 def _write_summary(out: str, summary: dict) -> None:
@@ -222,12 +222,11 @@ def run_tracer(v: dict, quiet: bool = False) -> int:
         say(COMPILING)
         warm_kernels()
     try:
-        tp = TracerProcess(v["server"], bind=v["bind"], advertise=v["advertise"], store=v["store"],
-                           cache_dir=v["cache_dir"], memory_bytes=memory, threads=v["threads"],
-                           queue_memory_bytes=queue_memory,
-                           tracer_id=v["id"], connect_timeout_s=v["retry"], curve_secret=v["curve_secret"],
-                           curve_server_key=v["curve_server_key"], curve_clients=v["curve_clients"],
-                           say=say)
+        tp = TracerProcess(TracerOptions(
+            v["server"], bind=v["bind"], advertise=v["advertise"], store=v["store"], cache_dir=v["cache_dir"],
+            memory_bytes=memory, queue_memory_bytes=queue_memory, threads=v["threads"], tracer_id=v["id"],
+            connect_timeout_s=v["retry"], curve_secret=v["curve_secret"], curve_server_key=v["curve_server_key"],
+            curve_clients=v["curve_clients"]), say=say)
         reason = tp.run()
     except (TracerError, WireError, transport.TransportError) as e:   # a bind refused, say
         return fail(str(e), EXIT_FAILED)

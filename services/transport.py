@@ -46,9 +46,8 @@ Nothing is dropped silently:
 - a bad message is answered with `error` (or `refused`, for a register in
   another version) and logged (`recv_or_reply`); an `error` or `refused` is
   never answered, so two confused peers cannot ping-pong.
-Frames given to `send` must not be modified until sent: with copy=False,
-zmq reads the caller's arrays asynchronously. Received arrays are views of
-zmq's frames (`wire.decode`).
+Frames given to `send` are copied into zmq's buffers (see `Socket.send`).
+Received arrays are views of zmq's frames (`wire.decode`).
 
 Liveness is the roles' business: hung or cut-off processes are found by
 their `heartbeat` messages, and a tracer that hears nothing from the server
@@ -156,11 +155,17 @@ class Socket:
             raise _translated(e) from None
 
     def send(self, frames: list, prefix=(), block: bool = True) -> None:
-        """Send one message zero-copy; `prefix` is the ROUTER envelope (the
-        peer's identity). Raises Unreachable for an unknown identity on a
+        """Send one message; `prefix` is the ROUTER envelope (the peer's
+        identity). Copied into zmq's own buffers: zero-copy sends of
+        Python arrays that were still queued when a process ended, or when
+        a saturated link held them for seconds, crashed it (libzmq's "Bad
+        address (src/tcp.cpp:227)" abort, or a segfault: the server behind
+        a 40 Mbit/s link, tests/test_netns_link.py); the copy costs about
+        a millisecond a 4 MiB eye job message. Raises Unreachable for an
+        unknown identity on a
         ROUTER, WouldBlock when not blocking and the queue is full."""
         try:
-            self._raw.send_multipart([*prefix, *frames], copy=False, flags=0 if block else zmq.NOBLOCK)
+            self._raw.send_multipart([*prefix, *frames], copy=True, flags=0 if block else zmq.NOBLOCK)
         except zmq.ZMQError as e:
             raise _translated(e) from None
 
@@ -280,6 +285,16 @@ def dealer(identity: str | bytes, context: zmq.Context | None = None) -> Socket:
 
 
 # -- CURVE ----------------------------------------------------------------------
+def finish_process() -> None:
+    """Before the process exits: let the shared context's queued messages
+    go (each socket's linger, LINGER_MS at most: a server's goodbyes, a
+    tracer's last results) and stop its I/O thread. Without it the thread
+    dies with the process and LINGER_MS means nothing."""
+    ctx = zmq.Context._instance
+    if ctx is not None and not ctx.closed:
+        ctx.destroy()
+
+
 def make_keys(directory: str, name: str) -> tuple[str, str]:
     """A CURVE key pair as ZeroMQ certificate files: NAME.key_secret (keep
     it on that host only, mode 0600) and NAME.key (public, to hand out)."""

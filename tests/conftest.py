@@ -30,7 +30,7 @@ MARKERS = ("slow", "netns", "docker", "browser", "reference")
 # would skip for want of one of these fails instead. pbrt-v4 is not here:
 # CI never builds it (its tests skip without it, by design).
 REQUIRED = ("chromium", "`ip`", "iproute2", "iptables", "docker", "mitsuba", "shared folder",
-            "../shared", "namespace", "matplotlib")
+            "../shared", "namespace", "matplotlib", "one core")
 _TALLY: dict = collections.defaultdict(collections.Counter)
 _SKIPS: collections.Counter = collections.Counter()
 

@@ -18,6 +18,7 @@ from hypothesis import strategies as st
 
 from dosppm_core.settings import RenderSettings
 from services import wire
+from services.server.options import ServerOptions
 from services.server.state import ServerState
 from services.tracer.state import TracerState
 from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
@@ -32,7 +33,7 @@ def roles():
     scene = small_scene("cornell-box", 16)
     provider = MemoryChunks(scene, uniform_tree(root_box(scene), (2, 1, 1)))
     server = ServerState(provider.header, provider.tree, RenderSettings(photons_per_job=64, tile_pixels=64),
-                         "k", min_photon_jobs=8)
+                         "k", options=ServerOptions(min_photon_jobs=8))
     reg = wire.decode(wire.encode("register", tracer_id="t", capacity={"cores": 1, "memory_bytes": 0},
                                   endpoint="inproc://t", has_store=True, store_key="k"))
     server.on_register("t", reg, 0.0)

@@ -122,3 +122,52 @@ def test_epochs_go_in_order_and_skip_ids_never_used_at_once():
         e.complete(j, rng_key=j, paths=10, cull_box=None)
     assert e.due(first + 6, emitting=True) is None       # ids of it may still be made
     assert e.due(first + 6, emitting=False).index == first // 4 + 1
+
+
+def test_a_stalled_gather_stops_emission_at_the_open_epochs_bound(caustic):
+    """If no epoch's sums come back (a saturated link, a tracer slow to
+    gather), the server stops making photon jobs OPEN_EPOCHS epochs past
+    the next one to apply, so the deposits the tracers hold stay bounded;
+    once the sums flow again the render goes on and counts every photon
+    once. Control: the same cluster with the sums flowing makes jobs past
+    that bound."""
+    from services.server.epochs import OPEN_EPOCHS
+    scene, _ = caustic
+    stalled = {"on": True}
+
+    def drop_sums(sender, dest, msg):
+        return [] if stalled["on"] and msg.type == "epoch_sums" else [msg]
+
+    def cluster(tamper):
+        provider = MemoryChunks(scene, uniform_tree(root_box(scene), (2, 1, 1)))
+        s = dataclasses.replace(_settings(), photon_batch=20_000)
+        return provider, InProcessCluster(provider, s, tracers=2, gather_at="tracers", tamper=tamper)
+
+    provider, c = cluster(drop_sums)
+    try:
+        for _ in range(600):
+            c.round()
+        e = c.server.epochs
+        bound = e.first_id_after(e.next + OPEN_EPOCHS - 1)
+        assert e.counters["epochs_applied"] == 0 and c.server.next_job <= bound
+        assert e.of(c.server.next_job - 1) == e.next + OPEN_EPOCHS - 1     # it filled the room, no more
+        held = sum(t.epochs.rows for t in c.tracers.values())
+        assert held > 0
+        stalled["on"] = False
+        # The round under way waits for answers that were dropped: the
+        # watchdog (all tracers idle) discards it and its epochs are made again.
+        c.run(photons=c.server.counters["photons_emitted"] + 100_000)
+        k = c.server.counters
+        assert k["photons_emitted"] == k["photons_completed"] + k["photons_discarded"]
+        assert k["photons_completed"] == k["photons_committed"] > 0
+        assert ledger.check(provider, c.statistics.ledger.records) == []
+    finally:
+        c.close()
+    _, free = cluster(None)
+    try:
+        for _ in range(600):
+            free.round()
+        assert free.server.epochs.counters["epochs_applied"] > 0
+        assert free.server.epochs.of(free.server.next_job - 1) >= OPEN_EPOCHS
+    finally:
+        free.close()

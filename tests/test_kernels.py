@@ -25,6 +25,7 @@ from dosppm_core.accel import Accelerator
 from dosppm_core.jobs import ABSORBED, ESCAPED, MAX_DEPTH
 from dosppm_core.kernels import bsdf, emit, rng
 from dosppm_core.kernels.emit import EMIT_EPS_REL
+from dosppm_core.kernels.envmap import env_arrays
 from dosppm_core.kernels.paths import ELSEWHERE
 from dosppm_core.scene.model import DIFFUSE, GLASS, GLOSSY, MIRROR, Camera, Material, SceneBuilder
 
@@ -553,7 +554,7 @@ def _emit(scene, count, seed=3, job=0, eps=1e-4):
     L = scene.lights
     o, d, f, _, _light = emit.emit_photons(L.kind, L.p0, L.p1, L.p2, L.value, L.cone, L.power, L.cdf,
                                            np.uint64(seed), np.array([job], np.uint64),
-                                           np.array([0, count], np.int64), eps)
+                                           np.array([0, count], np.int64), eps, env_arrays(L))
     return o.astype(np.float64), d.astype(np.float64), f.astype(np.float64)
 
 
@@ -1075,7 +1076,7 @@ def test_serial_eye_and_direct_kernels_equal_the_parallel_ones():
     light caught in glass; the glossy (MIS) path on a glossy floor."""
     from dosppm_core.kernels import direct, paths
     from dosppm_core.kernels.light_cache import LightCache
-    from dosppm_core.trace import EPS_REL, LIGHT_CACHE, SurfaceData, eye_ray_job, light_arrays
+    from dosppm_core.trace import EPS_REL, INFINITE, LIGHT_CACHE, SurfaceData, eye_ray_job, light_arrays
     from tests.helpers.scenes import small_scene
 
     scene = small_scene("cornell-caustic", 48)
@@ -1095,7 +1096,7 @@ def test_serial_eye_and_direct_kernels_equal_the_parallel_ones():
         if len(h):
             hits = (hpos, hn, -batch.direction[h], batch.weight[h], surf.tri_material[prim[h]])
             dargs = (hits, np.ascontiguousarray(batch.rng[h]), surf, lights[:LIGHT_CACHE], lights[LIGHT_CACHE],
-                     True, EPS_REL)
+                     lights[INFINITE], True, EPS_REL)
             for x, y in zip(direct.sample_direct(*dargs), direct.sample_direct_serial(*dargs)):
                 np.testing.assert_array_equal(x, y)
             hit_points += len(h)

@@ -1,4 +1,4 @@
-"""The C heap keeps no dropped chunk (services/malloc.py): arrays of a
+"""The C heap keeps no dropped chunk (dosppm_core/malloc.py): arrays of a
 chunk's size, each dropped after a small array is made that stays (a
 message, a queue entry), are returned with the fixed mmap threshold and
 pile up on the heap with glibc's default. The default is the control: it
@@ -13,7 +13,7 @@ from tests.helpers.cli import run_python
 
 CHILD = r"""
 import sys, numpy as np
-from services.malloc import return_large_blocks
+from dosppm_core.malloc import return_large_blocks
 fixed = return_large_blocks() if sys.argv[1] == "fixed" else None
 def rss_mib():
     return next(int(l.split()[1]) >> 10 for l in open("/proc/self/status") if l.startswith("VmRSS"))
@@ -45,7 +45,7 @@ def test_dropped_chunk_arrays_are_returned_to_the_system():
 
 CACHE_CHILD = r"""
 import sys
-from services.malloc import return_large_blocks
+from dosppm_core.malloc import return_large_blocks
 return_large_blocks()
 from dosppm_core.chunks import cache
 from dosppm_core.chunks.store import ChunkStore
@@ -82,3 +82,21 @@ def test_chunks_evicted_in_turn_leave_no_heap_behind(tmp_path):
         grown[mode] = int(r.stdout.split()[-1])
     print(f"RSS grown over 40 chunk loads with 2 resident: {grown} MiB")
     assert grown["untrimmed"] >= grown["trimmed"] + 8, grown
+
+
+POLICY_CHILD = r"""
+from dosppm_core import malloc
+from dosppm_core.malloc import SERVER_MMAP_THRESHOLD_BYTES, return_large_blocks
+first = return_large_blocks(SERVER_MMAP_THRESHOLD_BYTES)     # an entry point's choice
+again = return_large_blocks(replace=False)                    # what a library mode (OSPPM) asks
+print(first, again, malloc._fixed)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt: Linux only")
+def test_a_library_mode_keeps_the_policy_its_process_chose():
+    """One malloc policy per process: OSPPM's call (`replace=False`) no
+    longer overrides the threshold the process's entry point set."""
+    r = run_python("-c", POLICY_CHILD, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == ["True", "False", str(128 << 10)]

@@ -432,7 +432,7 @@ BAD = [  # (snippet, line offset, element as written, what the message says)
     ('<shape type="cube" flavour="x"/>', 0, '<shape type="cube">', "unsupported attribute 'flavour'"),
     ('<bsdf type="diffuse" id="t"><texture type="bitmap" name="reflectance"/></bsdf>', 0,
      '<texture type="bitmap" name="reflectance">', "unsupported plugin"),
-    ('<emitter type="envmap"/>', 0, '<emitter type="envmap">', "unsupported plugin"),
+    ('<emitter type="envmap"/>', 0, '<emitter type="envmap">', "missing parameter 'filename'"),
     ('<sensor type="radiancemeter"/>', 0, '<sensor type="radiancemeter">', "unsupported plugin"),
     ('<shape type="sdfgrid"/>', 0, '<shape type="sdfgrid">', "unsupported plugin"),
     ('<shape type="cube">\n  <ref id="nope"/></shape>', 1, '<ref id="nope">', "unknown id 'nope'"),

@@ -10,7 +10,7 @@ from dosppm_core.chunks import pacing
 from dosppm_core.modes.osppm import OutOfCoreRenderer
 from dosppm_core.settings import LIGHT_CACHE_BYTES, RenderSettings
 from dosppm_core.trace import LEARN
-from services.server.state import EMIT_PHOTONS_PER_TICK
+from services.server.emission import EMIT_PHOTONS_PER_TICK
 from services.tracer.state import TracerState
 from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
 from tests.helpers.scenes import small_scene

@@ -9,8 +9,9 @@ from dosppm_core.jobs import PhotonDeposits
 from dosppm_core.settings import RenderSettings
 from services import wire
 from services.server import checkpoint
-from services.server.held import DEPOSIT_BYTES, HeldDeposits
+from services.server.held import DEPOSIT_BYTES, DISCARDED, HeldDeposits
 from services.server.balance import assign_chunks
+from services.server.options import ServerOptions
 from services.server.state import ServerState
 from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
 from tests.helpers.scenes import small_scene
@@ -32,7 +33,7 @@ def new_state(cells=(2, 2, 1), photons_per_job=512):
     return ServerState(provider.header, provider.tree,
                        RenderSettings(photons_per_job=photons_per_job, tile_pixels=256,
                                       photons_per_iteration=10_000),
-                       "k", min_photon_jobs=50, queue_target_rays=4096)
+                       "k", options=ServerOptions(min_photon_jobs=50, queue_target_rays=4096))
 
 
 @pytest.fixture()
@@ -220,7 +221,11 @@ def test_eviction_re_emits_the_same_photons_under_new_job_ids(state):
     sent = dict(state.jobs)
     out = state.evict("b", "test")
     assert {o.type for o in out} == {"peers"} and state.owners == [["a"]] * 4
-    assert all(j in state.discarded for j, job in sent.items() if job.sent)
+    gone = [j for j, job in sent.items() if job.sent]
+    assert gone and not set(gone) & set(state.jobs)
+    # Their late deposits are stale: the status the results handler consults.
+    photon = np.array([j for j in gone if sent[j].kind == "photon"], np.int64)
+    assert len(photon) and np.all(state._job_status(photon) == DISCARDED)
     again = {}
     for o in state.tick(1.0):
         if o.type == "photon_job":
@@ -248,7 +253,7 @@ def test_job_messages_an_idle_tracer_never_got_are_re_emitted_at_once(state):
     (a new session) and the jobs in flight are re-emitted, long before the
     30 s watchdog. A busy tracer, or one that acknowledged everything, is
     left alone."""
-    from services.server.state import JOB_MESSAGE_LOST_S
+    from services.server.membership import JOB_MESSAGE_LOST_S
     _register(state, "a")
     state.cull_box = np.array([[-1e9] * 3, [1e9] * 3])
     state.eye_completed = 1
@@ -310,8 +315,8 @@ def _waiting_state(timeout_s):
     scene = small_scene("cornell-box", 32)
     provider = MemoryChunks(scene, uniform_tree(root_box(scene), (2, 1, 1)))
     return ServerState(provider.header, provider.tree, RenderSettings(photons_per_job=512, tile_pixels=256),
-                       "k", min_photon_jobs=8, min_tracers=3, min_tracers_timeout_s=timeout_s,
-                       tracer_timeout_s=1e6)     # no evictions: the wait is under test
+                       "k", options=ServerOptions(min_photon_jobs=8, min_tracers=3, min_tracers_timeout_s=timeout_s,
+                                                 tracer_timeout_s=1e6))     # no evictions: the wait is under test
 
 
 def _jobs(outs):

@@ -14,7 +14,8 @@ import pytest
 
 from dosppm_core.settings import RenderSettings
 from services import transport, wire
-from services.server.node import Limits, ServerProcess
+from services.server.node import ServerProcess
+from services.server.options import Limits, ServerOptions
 from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
 from tests.helpers.paths import REPO
 from tests.helpers.scenes import small_scene
@@ -25,8 +26,8 @@ def server():
     scene = small_scene("cornell-box", 16)
     store = MemoryChunks(scene, uniform_tree(root_box(scene), (1, 1, 1)))
     store.key, store.manifest, store.path, store.chunk_count = "k", None, "", 1
-    s = ServerProcess(store, RenderSettings(threads=1), bind="tcp://127.0.0.1:*", http=None, out="",
-                      limits=Limits(seconds=600), min_tracers=5)
+    s = ServerProcess(store, RenderSettings(threads=1), ServerOptions(
+        bind="tcp://127.0.0.1:*", http=None, out="", limits=Limits(seconds=600), min_tracers=5))
     t = threading.Thread(target=s.run, daemon=True)
     t.start()
     yield s
@@ -96,9 +97,9 @@ def test_a_snapshot_waiting_for_the_statistics_does_not_stall_the_message_loop(t
     scene = small_scene("cornell-box", 16)
     store = MemoryChunks(scene, uniform_tree(root_box(scene), (1, 1, 1)))
     store.key, store.manifest, store.path, store.chunk_count = "k", None, "", 1
-    s = ServerProcess(store, RenderSettings(threads=1), bind="tcp://127.0.0.1:*", http=None,
-                      out=str(tmp_path / "img.exr"), limits=Limits(seconds=600), min_tracers=5,
-                      snapshot_interval_s=0.2)
+    s = ServerProcess(store, RenderSettings(threads=1), ServerOptions(
+        bind="tcp://127.0.0.1:*", http=None, out=str(tmp_path / "img.exr"), limits=Limits(seconds=600),
+        min_tracers=5, snapshot_interval_s=0.2))
     s.state.eye_completed = 1                        # a snapshot is due at every interval
     t = threading.Thread(target=s.run, daemon=True)
     t.start()

@@ -40,7 +40,8 @@ from services.server.history import (
     progress,
 )
 from services.server.http import StatusServer
-from services.server.node import Limits, ServerProcess
+from services.server.node import ServerProcess
+from services.server.options import Limits, ServerOptions
 from services.server.state import ServerState
 from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
 from tests.helpers.cli import free_port, start_dosppm
@@ -150,7 +151,7 @@ def state():
     scene = small_scene("cornell-box", 32)
     provider = MemoryChunks(scene, uniform_tree(root_box(scene), (2, 2, 1)))
     return ServerState(provider.header, provider.tree, RenderSettings(photons_per_job=512, tile_pixels=256),
-                       "k", min_tracers=2)
+                       "k", options=ServerOptions(min_tracers=2))
 
 
 def _update(history, state, now, phase="render", **counters):
@@ -247,8 +248,8 @@ def test_the_server_process_serves_what_the_page_needs():
     scene = small_scene("cornell-box", 16)
     store = MemoryChunks(scene, uniform_tree(root_box(scene), (1, 1, 1)))
     store.key, store.manifest, store.path, store.chunk_count = "k", None, "", 1
-    server = ServerProcess(store, RenderSettings(threads=1), bind="tcp://127.0.0.1:*", http=("127.0.0.1", 0),
-                           out="", limits=Limits(seconds=600), min_tracers=5)
+    server = ServerProcess(store, RenderSettings(threads=1), ServerOptions(
+        bind="tcp://127.0.0.1:*", http=("127.0.0.1", 0), out="", limits=Limits(seconds=600), min_tracers=5))
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     d = transport.dealer(b"probe")

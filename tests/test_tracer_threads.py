@@ -17,8 +17,9 @@ from dosppm_core.chunks.store import ChunkStore
 from dosppm_core.chunks.subdivide import subdivide
 from dosppm_core.scene.soup import SceneSource
 from dosppm_core.settings import RenderSettings
-from services.server.node import Limits, ServerProcess
-from services.tracer.node import TracerProcess
+from services.server.node import ServerProcess
+from services.server.options import Limits, ServerOptions
+from services.tracer.node import TracerOptions, TracerProcess
 from services.tracer.state import TracerState
 from tests.helpers.scenes import small_scene
 
@@ -35,14 +36,14 @@ class _Recording(TracerState):
 def test_a_one_thread_tracer_runs_its_kernels_on_one_thread(tmp_path, monkeypatch):
     subdivide(SceneSource(small_scene("cornell-box", 16)), str(tmp_path / "s"), chunks=2)
     store = ChunkStore.open(str(tmp_path / "s"))
-    server = ServerProcess(store, RenderSettings(threads=2, photons_per_job=512), bind="tcp://127.0.0.1:*",
-                           http=None, out=str(tmp_path / "out.exr"), limits=Limits(photons=20_000),
-                           min_photon_jobs=8)
+    server = ServerProcess(store, RenderSettings(threads=2, photons_per_job=512), ServerOptions(
+        bind="tcp://127.0.0.1:*", http=None, out=str(tmp_path / "out.exr"), limits=Limits(photons=20_000),
+        min_photon_jobs=8))
     ran = threading.Thread(target=server.run, daemon=True)
     ran.start()
     monkeypatch.setattr(TracerProcess, "state_class", _Recording)
     _Recording.seen = set()
-    tracer = TracerProcess(server.endpoint, store=store.path, threads=1, tracer_id="one")
+    tracer = TracerProcess(TracerOptions(server.endpoint, store=store.path, threads=1, tracer_id="one"))
     assert numba.get_num_threads() == numba.config.NUMBA_NUM_THREADS   # this thread: the default
     serving = threading.Thread(target=tracer.run, daemon=True)
     serving.start()

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from services import transport
-from services.tracer.node import TracerError, TracerProcess
+from services.tracer.node import TracerError, TracerOptions, TracerProcess
 from services.wire import PROTOCOL_VERSION, encode
 from tests.test_wire import _register_from_the_future, _valid, assert_same_message, frame_views, sample_fields
 
@@ -56,9 +56,10 @@ def test_router_dealer_round_trip_of_a_million_rays(ctx, endpoint):
     envelope, job = _recv(tracer)
     assert envelope == [] and job.type == "portal_rays"
     assert_same_message(sent, job)
-    if endpoint.startswith("inproc"):
-        # inproc hands over the sender's buffers: zero copies end to end.
-        assert np.shares_memory(job.batch.origin, sent["batch"].origin)
+    # Sends copy (Socket.send): what arrives never aliases the sender's
+    # arrays, which it may free or reuse the moment send returns, even
+    # over inproc, which would otherwise hand the buffers over.
+    assert not np.shares_memory(job.batch.origin, sent["batch"].origin)
     assert all(a.flags.aligned for a in job.batch.arrays().values())
 
     # Small frames can arrive at odd offsets of libzmq's receive buffer
@@ -208,7 +209,7 @@ def test_a_tracer_replaces_its_server_connection(ctx):
     and the old one is closed without lingering."""
     server = transport.router(ctx)
     endpoint = server.bind("tcp://127.0.0.1:*")
-    tracer = TracerProcess(endpoint, bind="tcp://127.0.0.1:*", tracer_id="swap", context=ctx)
+    tracer = TracerProcess(TracerOptions(endpoint, bind="tcp://127.0.0.1:*", tracer_id="swap"), context=ctx)
     tracer._open()
     try:
         tracer._poller = transport.Poller(tracer.dealer, tracer.router)
@@ -234,8 +235,8 @@ def test_results_wait_no_longer_than_the_servers_silence_allows(ctx):
     probe = transport.router(ctx)
     nobody = probe.bind("tcp://127.0.0.1:*")
     probe.close(linger_ms=0)                  # a port nothing listens on
-    tracer = TracerProcess(nobody, bind="tcp://127.0.0.1:*", tracer_id="cut", context=ctx,
-                           connect_timeout_s=3.0)
+    tracer = TracerProcess(TracerOptions(nobody, bind="tcp://127.0.0.1:*", tracer_id="cut",
+                                         connect_timeout_s=3.0), context=ctx)
     tracer._open()
     try:
         frames = encode("heartbeat", status={})

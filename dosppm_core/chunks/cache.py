@@ -45,19 +45,6 @@ def _trim() -> None:
         pass
 
 
-def release_freed_memory_to_the_os() -> None:
-    """glibc raises its mmap threshold after big frees (up to 32 MiB), so
-    evicted chunk arrays are kept in the heap for reuse and the process
-    grows past its limit over a long render (measured: +17-35 MiB after
-    12 iterations). A fixed 128 KiB threshold serves every large array
-    from mmap, returned on free. No-op off glibc."""
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-        libc.mallopt(-3, 128 * 1024)   # M_MMAP_THRESHOLD
-    except (OSError, AttributeError):
-        pass
-
-
 class ChunkCache:
     """Resident chunks under a memory limit, least recently used evicted,
     with one asynchronous prefetch."""

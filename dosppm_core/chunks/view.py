@@ -21,7 +21,8 @@ from dosppm_core.jobs import ESCAPED, STORED, HitPoints, PhotonDeposits, RayBatc
 from dosppm_core.kernels.materials import bsdf_rows
 from dosppm_core.kernels.paths import ELSEWHERE
 from dosppm_core.scene.model import SceneHeader
-from dosppm_core.trace import END_KINDS, SurfaceData, advance_eye, emit_photon_jobs, scatter_photons, shadow_results
+from dosppm_core.trace import (END_KINDS, SurfaceData, advance_eye, emit_photon_jobs, environment, escaped_light,
+                               scatter_photons, shadow_results)
 
 
 class ChunkView:
@@ -32,6 +33,7 @@ class ChunkView:
         self.index, self.tree, self.geometry = index, tree, geometry
         self.eps = PORTAL_EPS * header.diagonal()
         self.total_power = header.lights.total_power    # BSDF-sampled direct-light rays weigh by it
+        self.env = environment(header.lights)           # what eye paths leaving the scene see
         m = header.materials
         self.surf = SurfaceData(geometry.vertices, geometry.triangles, geometry.tri_material,
                                 m.kind, m.reflectance, m.emission, m.ior, m.roughness,
@@ -74,6 +76,15 @@ def start_chunks(tree: ChunkTree, batch: RayBatch, keep_lost: bool = False, chun
     return routed, 0 if lost is None else len(lost)
 
 
+def start_eye_paths(tree: ChunkTree, batch: RayBatch, env):
+    """`start_chunks` for new eye rays: ({chunk: rays}, how many miss the
+    scene, (pixel, rgb) those see of the environment `env`)."""
+    routed, lost = start_chunks(tree, batch, keep_lost=True)
+    if lost is None:
+        return routed, 0, escaped_light(None, batch.slice(0, 0))
+    return routed, len(lost), escaped_light(env, lost)
+
+
 def _entered(tree: ChunkTree, batch: RayBatch) -> np.ndarray:
     """The chunk each new ray starts in (-1: it misses the scene), its
     tmin set to where it enters."""
@@ -111,10 +122,16 @@ def _merge(into: dict, parts: dict) -> None:
         into.setdefault(k, []).append(b)
 
 
-def _continue_here(view: ChunkView, nxt: RayBatch, outgoing: dict, counts: np.ndarray) -> RayBatch:
-    """Bounced rays start where they were spawned: keep those in this chunk."""
-    routed, lost = start_chunks(view.tree, nxt)
-    counts[ESCAPED] += lost
+def _continue_here(view: ChunkView, nxt: RayBatch, outgoing: dict, counts: np.ndarray,
+                   seen: list | None = None) -> RayBatch:
+    """Bounced rays start where they were spawned: keep those in this chunk.
+    Eye paths (`seen` a list) that leave the scene at once see the
+    environment there, as the unchunked renderer's next step would."""
+    routed, lost = start_chunks(view.tree, nxt, keep_lost=True)
+    if lost is not None:
+        counts[ESCAPED] += len(lost)
+        if seen is not None and view.env is not None:
+            seen.append(escaped_light(view.env, lost))
     here = routed.pop(view.index, RayBatch.empty())
     _merge(outgoing, routed)
     return here
@@ -151,17 +168,28 @@ def trace_eye_in_chunk(view: ChunkView, batch: RayBatch, max_depth: int, lights:
     while len(batch):
         prim, u, v, out = _find_hits(view, batch)
         _merge(outgoing, out)
-        h, (p, e), nxt, ends, s = advance_eye(view.surf, batch, prim, u, v, max_depth, lights)
+        h, (p, e), nxt, ends, s = advance_eye(view.surf, batch, prim, u, v, max_depth, lights, view.env)
         hits.append(h)
         pix.append(p)
         rgb.append(e)
         shadows.append(s)
         counts += ends
-        batch = _continue_here(view, nxt, outgoing, counts)
+        seen = []
+        batch = _continue_here(view, nxt, outgoing, counts, seen)
+        for p, e in seen:
+            pix.append(p)
+            rgb.append(e)
     shadow_out = {}
     if lights is not None:
-        routed, lost = start_chunks(view.tree, ShadowRays.concat(shadows))
-        counts[STORED] += lost    # (none: a hit point lies inside the scene)
+        routed, lost = start_chunks(view.tree, ShadowRays.concat(shadows), keep_lost=True)
+        if lost is not None:
+            # Spawned just outside the scene's box (the top of its highest
+            # surface): nothing can block them, as unchunked tracing finds.
+            counts[STORED] += len(lost)
+            p, e = shadow_results(lost, np.full(len(lost), -1, np.int32), np.zeros(len(lost), np.float32),
+                                  view.surf, view.total_power, env=view.env)
+            pix.append(p)
+            rgb.append(e)
         for k, part in routed.items():
             if k != view.index:
                 shadow_out.setdefault(k, []).append(part)
@@ -191,4 +219,4 @@ def trace_shadows_in_chunk(view: ChunkView, shadows: ShadowRays):
     if len(rows):
         out = shadows.partition(nxt[rows], rows=rows, replace={"tmin": t_exit.astype(np.float32)})
     counts[STORED] = len(shadows) - len(rows)
-    return shadow_results(shadows, prim, t, view.surf, view.total_power, ~leaving), counts, out
+    return shadow_results(shadows, prim, t, view.surf, view.total_power, ~leaving, view.env), counts, out

@@ -33,6 +33,16 @@ is positive for every light that can light the hit point. Glossy hit points
 under triangle lights keep power alone: the one-sample MIS above needs
 the light technique's pdf where a BSDF-sampled ray finds an emitter.
 
+Infinite lights (directional, environment) have no place in the tree: a
+fixed share of the choices (`trace._infinite_arrays`: all of them when
+every light is infinite, half when the scene has both) picks among them by
+power, and the estimate divides by the whole mixture's probability. A
+directional light is a delta light (a shadow ray toward it, past the
+scene's bounding sphere); the environment is sampled by its luminance
+(`kernels.envmap`), and on glossy hit points takes part in the MIS above
+like a triangle light: a BSDF-sampled ray that leaves the scene finds it
+(`kernels.envmap.escaped_mis_radiance`).
+
 The light choice and the point on the light draw from the eye path's own
 random stream at the hit point, so the same seed samples the same light
 whatever chunk or tracer the hit point was found in.
@@ -44,12 +54,13 @@ import numpy as np
 
 from dosppm_core.kernels.bsdf import eval_bsdf, glossy_pdf, sample_bsdf
 from dosppm_core.kernels.emit import select_light
+from dosppm_core.kernels.envmap import env_eval, env_sample
 from dosppm_core.kernels.light_cache import cell_pmf, pick_in_cell, read_cell
 from dosppm_core.kernels.light_tree import sample_tree, tree_pmf
 from dosppm_core.kernels.materials import hit_point_eval, hit_point_pdf, hit_point_sample, is_coloured
 from dosppm_core.kernels.paths import offset_origin
 from dosppm_core.kernels.rng import next_float
-from dosppm_core.scene.model import GLOSSY, LIGHT_POINT, LIGHT_TRIANGLE
+from dosppm_core.scene.model import GLOSSY, LIGHT_DIRECTIONAL, LIGHT_ENV, LIGHT_POINT, LIGHT_PROJECTOR, LIGHT_TRIANGLE
 
 C_LIGHT = 0.5          # share of light samples at glossy hit points (MIS); 1 elsewhere
 FIRST_HIT = 1e37       # tmax of a BSDF-sampled ray: finite (the wire refuses inf), past any scene
@@ -85,11 +96,33 @@ def spot_falloff(cone, cos_t):
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
+def projector_profile(axis, x_axis, cone, v0, v1, v2):
+    """A projector's intensity over its irradiance in unit direction v:
+    pi / cos^3 inside its frustum (a constant image plane at distance 1
+    gets pi E, as in Mitsuba), 0 outside."""
+    cz = axis[0] * v0 + axis[1] * v1 + axis[2] * v2
+    if not cz > 0.0:
+        return 0.0
+    y0 = axis[1] * x_axis[2] - axis[2] * x_axis[1]
+    y1 = axis[2] * x_axis[0] - axis[0] * x_axis[2]
+    y2 = axis[0] * x_axis[1] - axis[1] * x_axis[0]
+    x = (x_axis[0] * v0 + x_axis[1] * v1 + x_axis[2] * v2) / cz
+    y = (y0 * v0 + y1 * v1 + y2 * v2) / cz
+    if abs(x) > cone[0] or abs(y) > cone[1]:
+        return 0.0
+    return math.pi / (cz * cz * cz)
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
 def _sample_light(lights, li, p0, p1, p2, u1, u2):
     """A point y on light li seen from x = p: (y, unit wi from x to y,
     distance, the light's Le * G factor per colour channel scale (a scalar
     times `value`), and whether y lies on a surface (a triangle light))."""
     kind, lp0, lp1, lp2, cone = lights[0], lights[1], lights[2], lights[3], lights[5]
+    if kind[li] == LIGHT_DIRECTIONAL:
+        w0, w1, w2 = -lp0[li, 0], -lp0[li, 1], -lp0[li, 2]
+        dist = _beyond_sphere(lp1[li], cone[li, 0], p0, p1, p2)
+        return p0 + dist * w0, p1 + dist * w1, p2 + dist * w2, w0, w1, w2, dist, 1.0
     if kind[li] == LIGHT_TRIANGLE:
         q0, q1, q2, m0, m1, m2, area = _point_on_triangle(lp0[li], lp1[li], lp2[li], u1, u2)
     else:
@@ -106,21 +139,33 @@ def _sample_light(lights, li, p0, p1, p2, u1, u2):
         g = cos_y * area / dist2 if cos_y > 0.0 else 0.0
     elif kind[li] == LIGHT_POINT:
         g = 1.0 / dist2
+    elif kind[li] == LIGHT_PROJECTOR:
+        g = projector_profile(lp1[li], lp2[li], cone[li], -w0, -w1, -w2) / dist2
     else:
         axis = lp1[li]
         g = spot_falloff(cone[li], -(axis[0] * w0 + axis[1] * w1 + axis[2] * w2)) / dist2
     return q0, q1, q2, w0, w1, w2, dist, g
 
 
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def _beyond_sphere(centre, radius, p0, p1, p2):
+    """How far a shadow ray toward an infinite light runs from p: past the
+    scene's bounding sphere, wherever p is (Mitsuba's 2 max(R, |p - c|))."""
+    d0, d1, d2 = p0 - centre[0], p1 - centre[1], p2 - centre[2]
+    return 2.0 * max(radius, math.sqrt(d0 * d0 + d1 * d1 + d2 * d2))
+
+
 @nb.njit(cache=True, parallel=True, error_model="numpy")
-def sample_direct(hits, states, surf, lights, cache, mis, eps_rel):
+def sample_direct(hits, states, surf, lights, cache, infinite, mis, eps_rel):
     """One direct-light ray per hit point. `hits` is (position, normal,
     outgoing, weight, material) of `jobs.HitPoints`, `states` each eye
     path's rng state at its hit point, `surf` a `SurfaceData`, `lights`
     the LightTable's (kind, p0, p1, p2, value, cone, power, cdf) and its
     light tree's arrays, `cache` the light cache's arrays (frozen: no
-    photon writes them meanwhile), `mis`
-    whether the scene has triangle lights (glossy hit points then use MIS).
+    photon writes them meanwhile), `infinite` (cdf by power over the
+    infinite lights, their share of the choices, then the environment's
+    `kernels.envmap.env_arrays`), `mis` whether the scene has triangle
+    lights or an environment (glossy hit points then use MIS).
 
     Returns (rows, origin, direction, tmax, radiance, pdf) of the rays that
     may contribute (`rows` index the hit points; `jobs.ShadowRays`).
@@ -129,18 +174,18 @@ def sample_direct(hits, states, surf, lights, cache, mis, eps_rel):
     out, keep = _direct_buffers(n)
     total = lights[6].sum()     # once, not per ray: hundreds of lights in some scenes
     for i in nb.prange(n):
-        keep[i] = _direct_ray(i, hits, states, surf, lights, cache, mis, eps_rel, total, out)
+        keep[i] = _direct_ray(i, hits, states, surf, lights, cache, infinite, mis, eps_rel, total, out)
     return _kept_rays(out, keep)
 
 
 @nb.njit(cache=True, error_model="numpy")
-def sample_direct_serial(hits, states, surf, lights, cache, mis, eps_rel):
+def sample_direct_serial(hits, states, surf, lights, cache, infinite, mis, eps_rel):
     """`sample_direct` on this thread."""
     n = hits[0].shape[0]
     out, keep = _direct_buffers(n)
     total = lights[6].sum()
     for i in range(n):
-        keep[i] = _direct_ray(i, hits, states, surf, lights, cache, mis, eps_rel, total, out)
+        keep[i] = _direct_ray(i, hits, states, surf, lights, cache, infinite, mis, eps_rel, total, out)
     return _kept_rays(out, keep)
 
 
@@ -159,8 +204,9 @@ def _kept_rays(out, keep):
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
-def _direct_ray(i, hits, states, surf, lights, cache, mis, eps_rel, total, out):
+def _direct_ray(i, hits, states, surf, lights, cache, infinite, mis, eps_rel, total, out):
     """Hit point i's ray into row i of `out`; whether it may contribute."""
+    env = (infinite[2], infinite[3], infinite[4], infinite[5], infinite[6])
     position, normal, outgoing, weight, material = hits
     m = material[i]
     glossy = mis and surf.kind[m] == GLOSSY
@@ -172,16 +218,16 @@ def _direct_ray(i, hits, states, surf, lights, cache, mis, eps_rel, total, out):
     o0, o1, o2 = outgoing[i, 0], outgoing[i, 1], outgoing[i, 2]
     if is_coloured(surf.kind[m]):
         st, ut = next_float(st)
-        return _coloured_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights, total,
+        return _coloured_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights, env, total,
                              mis, ut, ul, u1, u2, eps_rel, out)
     if glossy:
         st, ut = next_float(st)
         if ut >= C_LIGHT:
             return _bsdf_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, u1, u2, eps_rel, out)
         return _light_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights,
-                          total, glossy, ul, u1, u2, eps_rel, out)
+                          env, total, glossy, ul, u1, u2, eps_rel, out)
     return _chosen_light_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights,
-                             cache, st, ul, u1, u2, eps_rel, out)
+                             cache, infinite, env, st, ul, u1, u2, eps_rel, out)
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
@@ -227,13 +273,16 @@ def _write_ray(i, out, p0, p1, p2, n0, n1, n2, w0, w1, w2, t, scale, weight, ref
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
-def _light_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights, total, glossy,
+def _light_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights, env, total, glossy,
                ul, u1, u2, eps_rel, out):
     """A shadow ray to a point sampled on a light chosen by power; writes
     row i of `out`, returns whether it may contribute."""
     power, cdf, value = lights[6], lights[7], lights[4]
     li = select_light(cdf, ul)
     p_sel = power[li] / total
+    if lights[0][li] == LIGHT_ENV:
+        return _env_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights, env, li,
+                        p_sel, glossy, u1, u2, eps_rel, out)
     q0, q1, q2, w0, w1, w2, dist, g = _sample_light(lights, li, p0, p1, p2, u1, u2)
     if not g > 0.0:
         return False
@@ -259,22 +308,36 @@ def _light_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights, t
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
 def _chosen_light_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights, cache,
-                      st, ul, u1, u2, eps_rel, out):
+                      infinite, env, st, ul, u1, u2, eps_rel, out):
     """A shadow ray to a point on a light chosen from the defensive mixture
     a p_tree + (1 - a) p_cell of the light tree at the hit point and the
-    lights its cell learned from the photons (`light_cache`). Writes
-    row i of `out`, returns whether it may contribute."""
+    lights its cell learned from the photons (`light_cache`), or, in a
+    fixed share of the choices, an infinite light by power.
+    Writes row i of `out`, returns whether it may contribute."""
     tree = (lights[8], lights[9], lights[10], lights[11], lights[12], lights[13])
     row, share, total = read_cell(cache, p0, p1, p2, n0, n1, n2)
     st, um = next_float(st)
-    if um < share:
-        li, p_tree = sample_tree(tree, p0, p1, p2, n0, n1, n2, ul)
-        if li < 0:
-            return False
-    else:
-        li = pick_in_cell(cache, row, total, ul)
+    inf_cdf, q_inf = infinite[0], infinite[1][0]
+    if um < q_inf:
+        li = select_light(inf_cdf, ul)
         p_tree = tree_pmf(tree, li, p0, p1, p2, n0, n1, n2)
+    else:
+        if q_inf > 0.0:
+            um = (um - q_inf) / (1.0 - q_inf)
+        if um < share:
+            li, p_tree = sample_tree(tree, p0, p1, p2, n0, n1, n2, ul)
+            if li < 0:
+                return False
+        else:
+            li = pick_in_cell(cache, row, total, ul)
+            p_tree = tree_pmf(tree, li, p0, p1, p2, n0, n1, n2)
     pmf = share * p_tree + (1.0 - share) * cell_pmf(cache, row, total, li)
+    if q_inf > 0.0:
+        p_inf = inf_cdf[li] - (inf_cdf[li - 1] if li > 0 else 0.0)
+        pmf = q_inf * p_inf + (1.0 - q_inf) * pmf
+    if lights[0][li] == LIGHT_ENV:
+        return _env_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights, env, li,
+                        pmf, False, u1, u2, eps_rel, out)
     q0, q1, q2, w0, w1, w2, dist, g = _sample_light(lights, li, p0, p1, p2, u1, u2)
     if not (g > 0.0 and pmf > 0.0):
         return False
@@ -287,6 +350,38 @@ def _chosen_light_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, li
     if not _aim(i, out, p0, p1, p2, n0, n1, n2, w0, w1, w2, q0, q1, q2, eps_rel, surf.eps_abs):
         return False
     _write_radiance(i, out, f * cos_x * g / pmf, weight, surf.reflectance, m, lights[4][li])
+    return True
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def _env_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights, env, li, p_sel, glossy,
+             u1, u2, eps_rel, out):
+    """A shadow ray toward a direction of the environment drawn by its
+    luminance (light li, picked with probability p_sel), running past
+    the scene's bounding sphere. On a glossy hit point the estimate is
+    one-sample MIS against the BSDF technique, as for triangle lights."""
+    w0, w1, w2, p_dir = env_sample(env, u1, u2)
+    if not (p_dir > 0.0 and p_sel > 0.0):
+        return False
+    cos_x = n0 * w0 + n1 * w1 + n2 * w2
+    alpha = np.float64(surf.roughness[m])
+    f = eval_bsdf(surf.kind[m], alpha, n0, n1, n2, o0, o1, o2, w0, w1, w2)
+    if not f * cos_x > 0.0:
+        return False
+    if glossy:
+        p_bsdf = glossy_pdf(alpha, n0, n1, n2, o0, o1, o2, w0, w1, w2)
+        scale = f * cos_x / (C_LIGHT * p_sel * p_dir + (1.0 - C_LIGHT) * p_bsdf)
+    else:
+        scale = f * cos_x / (p_sel * p_dir)
+    dist = _beyond_sphere(lights[2][li], lights[5][li, 0], p0, p1, p2)
+    if not _aim(i, out, p0, p1, p2, n0, n1, n2, w0, w1, w2, p0 + dist * w0, p1 + dist * w1,
+                p2 + dist * w2, eps_rel, surf.eps_abs):
+        return False
+    l0, l1, l2 = env_eval(env, w0, w1, w2)
+    refl = surf.reflectance
+    out[3][i, 0] = weight[i, 0] * refl[m, 0] * scale * l0
+    out[3][i, 1] = weight[i, 1] * refl[m, 1] * scale * l1
+    out[3][i, 2] = weight[i, 2] * refl[m, 2] * scale * l2
     return True
 
 
@@ -360,47 +455,67 @@ def emitter_radiance(direction, radiance, pdf, prim, t, surf, total_power):
 
 # -- the coloured materials (kernels.materials) --------------------------------------
 @nb.njit(inline="always", cache=True, error_model="numpy")
-def _coloured_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights, total, mis,
+def _coloured_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights, env, total, mis,
                   ut, ul, u1, u2, eps_rel, out):
-    """Direct light at a hit point of a rough dielectric or a plastic: the
-    glossy hit point's one-sample MIS (a light chosen by power, or with
-    probability 1 - C_LIGHT a direction from the hit point's BSDF), with
-    an RGB BSDF. A rough dielectric's normal is its geometric one, so a
-    light behind the surface is reached by transmission (|cos|)."""
+    """Direct light at a hit point of a rough dielectric, a plastic or a
+    conductor: the glossy hit point's one-sample MIS (a light chosen by
+    power, or with probability 1 - C_LIGHT a direction from the hit point's
+    BSDF), with an RGB BSDF. A rough dielectric's normal is its geometric
+    one, so a light behind the surface is reached by transmission (|cos|)."""
     kind, row = surf.kind[m], surf.bsdf[m]
     if mis and ut >= C_LIGHT:
-        ok, w0, w1, w2, _t0, _t1, _t2 = hit_point_sample(kind, row, n0, n1, n2, o0, o1, o2, ul, u1, u2)
-        if not ok:
-            return False
-        wl = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
-        w0, w1, w2 = w0 / wl, w1 / wl, w2 / wl
-        p_bsdf = hit_point_pdf(kind, row, n0, n1, n2, o0, o1, o2, w0, w1, w2)
-        if not p_bsdf > 0.0:
-            return False
-        origin, direction, tmax, radiance, pdfs = out
-        origin[i, 0], origin[i, 1], origin[i, 2] = offset_origin(p0, p1, p2, n0, n1, n2, w0, w1, w2,
-                                                                 eps_rel, surf.eps_abs)
-        direction[i, 0], direction[i, 1], direction[i, 2] = w0, w1, w2
-        tmax[i] = FIRST_HIT
-        pdfs[i] = (1.0 - C_LIGHT) * p_bsdf
-        for k in range(3):
-            radiance[i, k] = weight[i, k]
-        return _tint_row(i, out, kind, row, n0, n1, n2, o0, o1, o2, w0, w1, w2)
+        return _coloured_bsdf_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, kind, row, surf,
+                                  ul, u1, u2, eps_rel, out)
     power, cdf, value = lights[6], lights[7], lights[4]
     li = select_light(cdf, ul)
     p_sel = power[li] / total
-    q0, q1, q2, w0, w1, w2, dist, g = _sample_light(lights, li, p0, p1, p2, u1, u2)
-    if not g > 0.0:
-        return False
-    if mis and lights[0][li] == LIGHT_TRIANGLE:
-        pdf = C_LIGHT * p_sel / g + (1.0 - C_LIGHT) * hit_point_pdf(kind, row, n0, n1, n2, o0, o1, o2,
-                                                                    w0, w1, w2)
+    c = C_LIGHT if mis else 1.0
+    if lights[0][li] == LIGHT_ENV:
+        w0, w1, w2, p_dir = env_sample(env, u1, u2)
+        if not (p_dir > 0.0 and p_sel > 0.0):
+            return False
+        dist = _beyond_sphere(lights[2][li], lights[5][li, 0], p0, p1, p2)
+        q0, q1, q2 = p0 + dist * w0, p1 + dist * w1, p2 + dist * w2
+        p_light = p_sel * p_dir
+        l0, l1, l2 = env_eval(env, w0, w1, w2)
     else:
-        pdf = p_sel / g * (C_LIGHT if mis else 1.0)
+        q0, q1, q2, w0, w1, w2, dist, g = _sample_light(lights, li, p0, p1, p2, u1, u2)
+        if not g > 0.0:
+            return False
+        p_light = p_sel / g
+        l0, l1, l2 = value[li][0], value[li][1], value[li][2]
+    pdf = c * p_light
+    if mis and (lights[0][li] == LIGHT_TRIANGLE or lights[0][li] == LIGHT_ENV):
+        pdf += (1.0 - C_LIGHT) * hit_point_pdf(kind, row, n0, n1, n2, o0, o1, o2, w0, w1, w2)
     if not _aim(i, out, p0, p1, p2, n0, n1, n2, w0, w1, w2, q0, q1, q2, eps_rel, surf.eps_abs):
         return False
+    out[3][i, 0] = weight[i, 0] * l0 / pdf
+    out[3][i, 1] = weight[i, 1] * l1 / pdf
+    out[3][i, 2] = weight[i, 2] * l2 / pdf
+    return _tint_row(i, out, kind, row, n0, n1, n2, o0, o1, o2, w0, w1, w2)
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def _coloured_bsdf_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, kind, row, surf, ul, u1, u2,
+                       eps_rel, out):
+    """A direction from the hit point's BSDF, looking for an emitter (or the
+    environment): radiance W f |cos|, pdf (1 - C_LIGHT) p_bsdf."""
+    ok, w0, w1, w2, _t0, _t1, _t2 = hit_point_sample(kind, row, n0, n1, n2, o0, o1, o2, ul, u1, u2)
+    if not ok:
+        return False
+    wl = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    w0, w1, w2 = w0 / wl, w1 / wl, w2 / wl
+    p_bsdf = hit_point_pdf(kind, row, n0, n1, n2, o0, o1, o2, w0, w1, w2)
+    if not p_bsdf > 0.0:
+        return False
+    origin, direction, tmax, radiance, pdfs = out
+    origin[i, 0], origin[i, 1], origin[i, 2] = offset_origin(p0, p1, p2, n0, n1, n2, w0, w1, w2,
+                                                             eps_rel, surf.eps_abs)
+    direction[i, 0], direction[i, 1], direction[i, 2] = w0, w1, w2
+    tmax[i] = FIRST_HIT
+    pdfs[i] = (1.0 - C_LIGHT) * p_bsdf
     for k in range(3):
-        out[3][i, k] = weight[i, k] * value[li][k] / pdf
+        radiance[i, k] = weight[i, k]
     return _tint_row(i, out, kind, row, n0, n1, n2, o0, o1, o2, w0, w1, w2)
 
 

@@ -5,9 +5,10 @@ import numba as nb
 import numpy as np
 
 from dosppm_core.kernels.bsdf import cosine_hemisphere, to_world
+from dosppm_core.kernels.envmap import env_eval, env_sample
 from dosppm_core.kernels.paths import offset_origin
 from dosppm_core.kernels.rng import EYE_STREAM, next_float, path_state
-from dosppm_core.scene.model import LIGHT_POINT, LIGHT_TRIANGLE
+from dosppm_core.scene.model import LIGHT_DIRECTIONAL, LIGHT_POINT, LIGHT_PROJECTOR, LIGHT_SPOT, LIGHT_TRIANGLE
 
 EMIT_EPS_REL = 2e-5   # the bounces' spawn offset relative to |p| (tracing.EPS_REL)
 
@@ -88,7 +89,7 @@ def select_light(cdf, u):
 
 
 @nb.njit(cache=True, parallel=True, error_model="numpy")
-def emit_photons(kind, p0, p1, p2, value, cone, power, cdf, seed, jobs, starts, eps):
+def emit_photons(kind, p0, p1, p2, value, cone, power, cdf, seed, jobs, starts, eps, env):
     """Photons of the emission jobs `jobs` (rng keys), job m's photons
     being rows [starts[m], starts[m + 1]); lights chosen in proportion to
     power. A photon depends only on (seed, its job's key, its index in the
@@ -99,7 +100,9 @@ def emit_photons(kind, p0, p1, p2, value, cone, power, cdf, seed, jobs, starts, 
     Each photon's flux is radiant power / pdf, so the image is the sum over
     photons divided by the number emitted (eq. 5's N_e). Surface photons
     start `eps` off their light along its normal (Embree's tnear is 0).
-    Returns origin, direction, flux, rng state, and the light of each.
+    Photons of infinite lights start outside the scene (`_emit_infinite`;
+    `env` is `kernels.envmap.env_arrays`). Returns origin, direction,
+    flux, rng state, and the light of each.
     """
     count = starts[-1]
     origin = np.empty((count, 3), np.float32)
@@ -121,14 +124,20 @@ def emit_photons(kind, p0, p1, p2, value, cone, power, cdf, seed, jobs, starts, 
         if kind[li] == LIGHT_TRIANGLE:
             o, d, scale = _emit_triangle(p0[li], p1[li], p2[li], u1, u2, u3, u4, eps)
         elif kind[li] == LIGHT_POINT:
-            z = 1.0 - 2.0 * u1
-            r = math.sqrt(max(0.0, 1.0 - z * z))
-            phi = 2.0 * math.pi * u2
-            o = (p0[li, 0], p0[li, 1], p0[li, 2])
-            d = (r * math.cos(phi), r * math.sin(phi), z)
-            scale = 4.0 * math.pi
-        else:
+            o, d, scale = _emit_point(p0[li], u1, u2)
+        elif kind[li] == LIGHT_SPOT:
             o, d, scale = _emit_spot(p0[li], p1[li], cone[li], u1, u2)
+        elif kind[li] == LIGHT_PROJECTOR:
+            o, d, scale = _emit_projector(p0[li], p1[li], p2[li], cone[li], u1, u2)
+        else:
+            o, d, rgb = _emit_infinite(kind[li], p0[li], p1[li], cone[li, 0], value[li], env, u1, u2, u3, u4)
+            for k in range(3):
+                origin[i, k] = o[k]
+                direction[i, k] = d[k]
+                flux[i, k] = rgb[k] / p_sel
+            states[i] = st
+            light[i] = li
+            continue
         for k in range(3):
             origin[i, k] = o[k]
             direction[i, k] = d[k]
@@ -136,6 +145,15 @@ def emit_photons(kind, p0, p1, p2, value, cone, power, cdf, seed, jobs, starts, 
         states[i] = st
         light[i] = li
     return origin, direction, flux, states, light
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _emit_point(pos, u1, u2):
+    """A uniform direction: flux / pdf = 4 pi I."""
+    z = 1.0 - 2.0 * u1
+    r = math.sqrt(max(0.0, 1.0 - z * z))
+    phi = 2.0 * math.pi * u2
+    return (pos[0], pos[1], pos[2]), (r * math.cos(phi), r * math.sin(phi), z), 4.0 * math.pi
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -173,3 +191,43 @@ def _emit_spot(pos, axis, cone, u1, u2):
     theta = math.acos(min(1.0, z))
     fall = 1.0 if theta <= beam else max(0.0, (cutoff - theta) / (cutoff - beam))
     return (pos[0], pos[1], pos[2]), d, fall * 2.0 * math.pi * (1.0 - cos_cut)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _emit_infinite(kind, axis, centre, radius, value, env, u1, u2, u3, u4):
+    """A photon of a directional light (travelling along `axis`) or of
+    the environment (arriving from a direction w drawn by luminance,
+    pdf p): it leaves a uniform point of the disc of the bounding sphere's
+    radius R facing w, a plane tangent to the sphere outside it, along -w.
+    Every point of the scene then receives these photons at the density
+    that parallel light of its direction has, so flux = pi R^2 E, or
+    pi R^2 L(w) / p. Returns origin, direction, flux (RGB)."""
+    if kind == LIGHT_DIRECTIONAL:
+        w0, w1, w2 = -axis[0], -axis[1], -axis[2]
+        l0, l1, l2, pdf = value[0], value[1], value[2], 1.0
+    else:
+        w0, w1, w2, pdf = env_sample(env, u1, u2)
+        l0, l1, l2 = env_eval(env, w0, w1, w2)
+    disc = math.pi * radius * radius
+    if not pdf > 0.0:
+        pdf, disc = 1.0, 0.0
+    dx, dy = concentric_disk(u3, u4)
+    x0, x1, x2 = to_world(dx, dy, 1.0, w0, w1, w2)      # the disc point, lifted by R along w
+    o = (centre[0] + radius * x0, centre[1] + radius * x1, centre[2] + radius * x2)
+    return o, (-w0, -w1, -w2), (l0 * disc / pdf, l1 * disc / pdf, l2 * disc / pdf)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _emit_projector(pos, axis, x_axis, cone, u1, u2):
+    """Through a uniform point of the projector's image plane at distance
+    1 (its irradiance is constant there): flux / pdf = pi E x the plane's
+    area, as Mitsuba's sample_ray."""
+    x, y = (2.0 * u1 - 1.0) * cone[0], (2.0 * u2 - 1.0) * cone[1]
+    y0 = axis[1] * x_axis[2] - axis[2] * x_axis[1]
+    y1 = axis[2] * x_axis[0] - axis[0] * x_axis[2]
+    y2 = axis[0] * x_axis[1] - axis[1] * x_axis[0]
+    d0 = axis[0] + x * x_axis[0] + y * y0
+    d1 = axis[1] + x * x_axis[1] + y * y1
+    d2 = axis[2] + x * x_axis[2] + y * y2
+    dl = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    return (pos[0], pos[1], pos[2]), (d0 / dl, d1 / dl, d2 / dl), 4.0 * math.pi * cone[0] * cone[1]

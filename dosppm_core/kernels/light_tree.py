@@ -23,7 +23,8 @@ hit points reflect only on the side their normal faces.
 
 The tree is built by pbrt's bucketed cost (power x solid angle of the
 cone x surface area of the box), 12 buckets on each axis. Lights of zero
-power are left out (`leaf_of` -1, probability 0).
+power, and the infinite lights (directional, environment), are left out
+(`leaf_of` -1, probability 0).
 """
 from __future__ import annotations
 
@@ -33,7 +34,7 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
-from dosppm_core.scene.model import LIGHT_POINT, LIGHT_TRIANGLE
+from dosppm_core.scene.model import LIGHT_DIRECTIONAL, LIGHT_ENV, LIGHT_POINT, LIGHT_PROJECTOR, LIGHT_TRIANGLE
 
 BUCKETS = 12
 _ONE_MINUS = 0.9999999999999999
@@ -66,6 +67,8 @@ def _light_bounds(kind, p0, p1, p2, value, cone):
     for i in range(L):
         intensity = (value[i, 0] + value[i, 1] + value[i, 2]) / 3.0
         cones[i, 2] = 1.0                       # w = +z unless set below
+        if kind[i] == LIGHT_DIRECTIONAL or kind[i] == LIGHT_ENV:
+            continue                            # infinitely far: chosen apart (`direct`), not in the tree
         if kind[i] == LIGHT_TRIANGLE:
             for k in range(3):
                 box[i, 0, k] = min(p0[i, k], p1[i, k], p2[i, k])
@@ -86,6 +89,11 @@ def _light_bounds(kind, p0, p1, p2, value, cone):
             phi[i] = intensity
             if kind[i] == LIGHT_POINT:
                 cones[i, 3], cones[i, 4] = -1.0, 0.0
+            elif kind[i] == LIGHT_PROJECTOR:        # the frustum's cone; phi bounds pi E / cos^3
+                cos_o = 1.0 / math.sqrt(1.0 + cone[i, 0] ** 2 + cone[i, 1] ** 2)
+                cones[i, 0], cones[i, 1], cones[i, 2] = p1[i, 0], p1[i, 1], p1[i, 2]
+                cones[i, 3], cones[i, 4] = cos_o, math.cos(0.01)
+                phi[i] = math.pi * intensity / cos_o ** 3
             else:                               # spot: full to the beam, falling off to the cutoff
                 cones[i, 0], cones[i, 1], cones[i, 2] = p1[i, 0], p1[i, 1], p1[i, 2]
                 cones[i, 3] = math.cos(cone[i, 3])

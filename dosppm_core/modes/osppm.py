@@ -22,16 +22,17 @@ import time
 import numpy as np
 
 from dosppm_core.chunks import pacing
-from dosppm_core.chunks.cache import ChunkCache, release_freed_memory_to_the_os
+from dosppm_core.chunks.cache import ChunkCache
+from dosppm_core.malloc import return_large_blocks
 from dosppm_core.chunks.schedule import EYE, PHOTON, SHADOW, ChunkScheduler
-from dosppm_core.chunks.view import (start_chunks, trace_eye_in_chunk, trace_photons_in_chunk,
+from dosppm_core.chunks.view import (start_eye_paths, trace_eye_in_chunk, trace_photons_in_chunk,
                                      trace_shadows_in_chunk)
 from dosppm_core.jobs import ESCAPED, HitPoints, PhotonDeposits, RayBatch, ShadowRays
 from dosppm_core.kernels.light_cache import LightCache, share_of_memory
 from dosppm_core.modes.deadline import Deadline, Rate, that_fit
 from dosppm_core.settings import Progress, RenderSettings
 from dosppm_core.sppm.iteration import EyePass, SPPMIteration
-from dosppm_core.trace import NO_CULL, emit_photon_job, eye_ray_job, freeze_light_cache, light_arrays
+from dosppm_core.trace import NO_CULL, emit_photon_job, environment, eye_ray_job, freeze_light_cache, light_arrays
 
 
 TRACE_STEP_RAYS = 262_144      # photon rays traced at once in a chunk, at most (client batching up to this)
@@ -103,6 +104,7 @@ class OutOfCoreRenderer:
         self.eps_abs = self.header.spawn_epsilon()
         self.lights = light_arrays(self.header.lights, LightCache(self.header.bounds, cache_bytes, frozen=True)) \
             if s.direct == "nee" else None
+        self.env = environment(self.header.lights)
         self.iteration = 0
         self.eye_iterations = 0                   # installed
         self.next_photon_job = 0
@@ -138,7 +140,7 @@ class OutOfCoreRenderer:
         if memory_bytes < cost.max():
             raise ValueError(f"memory limit {memory_bytes:.0f} B is below the largest chunk "
                              f"({cost.max():.0f} B)")
-        release_freed_memory_to_the_os()
+        return_large_blocks(replace=False)      # dosppm_core/malloc.py
         self.cache = ChunkCache(self.provider, memory_bytes, threads=s.threads)
         self.paced = self.paced and memory_bytes < cost.sum()     # all resident: nothing to hide
         return cache_bytes
@@ -346,8 +348,10 @@ class OutOfCoreRenderer:
 
     # -- chunk queues --------------------------------------------------------
     def _enqueue(self, kind: str, batch: RayBatch, eye_iteration: int | None = None) -> None:
-        routed, lost = start_chunks(self.tree, batch)
+        routed, lost, seen = start_eye_paths(self.tree, batch, self.env if kind == EYE else None)
         self.sppm.path_ends[ESCAPED] += lost
+        if len(seen[0]):        # eye rays that miss the scene see the environment
+            self._eyes[eye_iteration].add(HitPoints.empty(), *seen)
         for k, b in routed.items():
             self._push(kind, k, b, eye_iteration)
 

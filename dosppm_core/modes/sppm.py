@@ -17,8 +17,8 @@ from dosppm_core.modes.deadline import Deadline, Rate, that_fit
 from dosppm_core.scene.model import Scene
 from dosppm_core.settings import Progress, RenderSettings
 from dosppm_core.sppm.iteration import EyePass, SPPMIteration
-from dosppm_core.trace import (SurfaceData, emit_photon_job, eye_ray_job, freeze_light_cache, light_arrays,
-                               trace_eye, trace_photon_jobs)
+from dosppm_core.trace import (SurfaceData, emit_photon_job, environment, eye_ray_job, freeze_light_cache,
+                               light_arrays, trace_eye, trace_photon_jobs)
 
 
 class Renderer:
@@ -32,6 +32,7 @@ class Renderer:
         self.surf = SurfaceData.from_scene(scene)
         self.lights = light_arrays(scene.lights, LightCache(scene.bounds(), self.settings.light_cache, frozen=True)) \
             if self.settings.direct == "nee" else None
+        self.env = environment(scene.lights)
         self.sppm = SPPMIteration(scene.header(), self.settings)
         self.iteration = 0
         self.next_photon_job = 0
@@ -78,7 +79,7 @@ class Renderer:
             batch = eye_ray_job(self.scene, s.seed, self.iteration, start,
                                 min(s.tile_pixels, n_pix - start))
             hits, (pixels, rgb), _ends = trace_eye(self.accel, self.surf, batch, s.max_depth,
-                                                   self.lights)
+                                                   self.lights, self.env)
             eye.add(hits, pixels, rgb)
         self.sppm.install_eye_pass(eye)
 

@@ -35,6 +35,8 @@ from dosppm_core.scene.model import (
     DIFFUSE,
     GLASS,
     GLOSSY,
+    LIGHT_DIRECTIONAL,
+    LIGHT_ENV,
     LIGHT_POINT,
     LIGHT_SPOT,
     LIGHT_TRIANGLE,
@@ -55,5 +57,5 @@ from dosppm_core.scene.model import (
 __all__ = [
     "Scene", "SceneBuilder", "SceneHeader", "SceneError", "Camera", "Material", "MaterialTable",
     "LightTable", "light_table", "MATERIAL_KINDS", "DIFFUSE", "MIRROR", "GLASS", "GLOSSY",
-    "LIGHT_TRIANGLE", "LIGHT_POINT", "LIGHT_SPOT", "SPAWN_EPSILON", "load_scene", "load_source",
+    "LIGHT_TRIANGLE", "LIGHT_POINT", "LIGHT_SPOT", "LIGHT_DIRECTIONAL", "LIGHT_ENV", "SPAWN_EPSILON", "load_scene", "load_source",
 ]

@@ -25,8 +25,13 @@ MATERIAL_KINDS = {"diffuse": DIFFUSE, "mirror": MIRROR, "glass": GLASS, "glossy"
                   "conductor": CONDUCTOR, "roughconductor": ROUGH_CONDUCTOR}
 MICROFACETS = ("ggx", "beckmann")     # `Material.distribution`, ids as kernels.microfacet
 
-# Light kinds, as stored in `LightTable.kind`.
-LIGHT_TRIANGLE, LIGHT_POINT, LIGHT_SPOT = 0, 1, 2
+# Light kinds, as stored in `LightTable.kind`. Directional and environment
+# lights are infinitely far: their photons leave a disc outside the scene's
+# bounding sphere, and their shadow rays run to past that sphere.
+LIGHT_TRIANGLE, LIGHT_POINT, LIGHT_SPOT, LIGHT_DIRECTIONAL, LIGHT_ENV, LIGHT_PROJECTOR = 0, 1, 2, 3, 4, 5
+# The bounding sphere of the infinite lights' discs: the scene box's, this
+# much larger (Mitsuba enlarges its own by 1 + RayEpsilon).
+SPHERE_MARGIN = 1e-3
 
 
 # Absolute part of a spawned ray's offset from its surface, as a fraction of
@@ -243,8 +248,18 @@ class LightTable:
     Triangle lights store their vertices in p0..p2 and radiance in `value`;
     point and spot lights store position in p0, intensity (W/sr) in `value`,
     and spots their unit axis in p1 and (cos cutoff, cos beam, cutoff rad,
-    beam rad) in `cone`. `power` is the emitted flux per row (RGB mean), and
-    `cdf` its normalised running sum.
+    beam rad) in `cone`; a projector (Mitsuba's, untextured) its unit
+    axis in p1, its image's x axis in p2, the irradiance its image plane at
+    distance 1 has in `value` (its intensity is pi value / cos^3) and the
+    half extents (tan x, tan y) of its frustum in cone[0:2]. The infinite lights store the scene's bounding
+    sphere, centre in p1 and radius in cone[0]: a directional light its unit
+    direction of travel in p0 and irradiance (W/m^2) in `value`, the
+    environment (at most one row) its mean radiance in `value`, its texels
+    in `env_texels` (Mitsuba's layout: rows from theta 0 to pi, the first
+    column repeated at the end; scale applied) and its rotation in
+    `env_to_world`. `power` is the emitted flux per row (RGB mean; pi R^2
+    times the irradiance, or the integral of the radiance over the sphere,
+    for the infinite ones), and `cdf` its normalised running sum.
     """
     kind: np.ndarray     # int32 (L,)
     p0: np.ndarray       # float64 (L, 3)
@@ -254,10 +269,31 @@ class LightTable:
     cone: np.ndarray     # float64 (L, 4)
     power: np.ndarray    # float64 (L,)
     cdf: np.ndarray      # float64 (L,)
+    # A black 2x2 map when the scene has no environment: the kernels' types stay one.
+    env_texels: np.ndarray = field(default_factory=lambda: np.zeros((2, 2, 3), np.float32))
+    env_to_world: np.ndarray = field(default_factory=lambda: np.eye(3))
 
     @property
     def total_power(self) -> float:
         return float(self.power.sum())
+
+    @property
+    def has_environment(self) -> bool:
+        return bool(np.any(self.kind == LIGHT_ENV))
+
+    def env_distribution(self):
+        """The environment's sampling tables (`scene.envmap.distribution`),
+        built once."""
+        cached = self.__dict__.get("_env_distribution")
+        if cached is None or cached[0] is not self.env_texels:
+            from dosppm_core.scene.envmap import distribution
+            cached = (self.env_texels, distribution(self.env_texels))
+            self.__dict__["_env_distribution"] = cached
+        return cached[1]
+
+    def wire_fields(self) -> dict:
+        """The fields (no caches): what the wire and content keys carry."""
+        return {k: v for k, v in vars(self).items() if not k.startswith("_")}
 
 
 @dataclass
@@ -279,7 +315,7 @@ class Scene:
     def bounds(self) -> np.ndarray:
         """(2, 3) float64 box of the geometry and the point/spot lights."""
         pts = [self.vertices.astype(np.float64)]
-        delta = self.lights.kind != LIGHT_TRIANGLE
+        delta = np.isin(self.lights.kind, (LIGHT_POINT, LIGHT_SPOT, LIGHT_PROJECTOR))
         if np.any(delta):
             pts.append(self.lights.p0[delta])
         allp = np.concatenate(pts)
@@ -318,7 +354,7 @@ class SceneHeader:
     def to_wire(self) -> dict:
         """msgpack-ready dict: arrays as (dtype, shape, raw bytes)."""
         return {"materials": {k: _pack(v) for k, v in vars(self.materials).items()},
-                "lights": {k: _pack(v) for k, v in vars(self.lights).items()},
+                "lights": {k: _pack(v) for k, v in self.lights.wire_fields().items()},
                 "camera": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(self.camera).items()},
                 "bounds": _pack(self.bounds), "name": self.name, "source": self.source,
                 "render_settings": dict(self.render_settings)}
@@ -368,6 +404,8 @@ class SceneBuilder:
     _material_ids: dict = field(default_factory=dict)
     _meshes: list = field(default_factory=list)
     _delta_lights: list = field(default_factory=list)
+    _directional: list = field(default_factory=list)
+    _environment: tuple | None = None
     camera: Camera | None = None
 
     def add_material(self, material: Material, where: str | None = None) -> int:
@@ -426,6 +464,46 @@ class SceneBuilder:
         cone = np.array([math.cos(c), math.cos(b), c, b])
         self._delta_lights.append((LIGHT_SPOT, pos, axis / np.linalg.norm(axis), val, cone))
 
+    def add_directional_light(self, direction, irradiance, where: str) -> None:
+        """Mitsuba's directional: parallel light travelling along
+        `direction`, of `irradiance` (W/m^2) on a plane facing it."""
+        d, val = _rgb(direction, f"{where}.direction"), _rgb(irradiance, f"{where}.irradiance")
+        if np.any(val < 0):
+            raise SceneError(f"{where}.irradiance: must be non-negative")
+        if not np.linalg.norm(d) > 0:
+            raise SceneError(f"{where}.direction: must not be zero")
+        self._directional.append((d / np.linalg.norm(d), val))
+
+    def set_environment(self, texels, to_world, where: str) -> None:
+        """The environment light: `texels` as `LightTable.env_texels`
+        (`scene.envmap`), `to_world` a 3x3 rotation. At most one."""
+        if self._environment is not None:
+            raise SceneError(f"{where}: only one environment emitter (envmap or constant) per scene")
+        t = np.ascontiguousarray(texels, np.float32)
+        r = np.asarray(to_world, np.float64)
+        if t.ndim != 3 or t.shape[0] < 2 or t.shape[1] < 2 or t.shape[2] != 3 or not np.all(np.isfinite(t)):
+            raise SceneError(f"{where}: environment texels must be finite, (H >= 2, W >= 2, 3)")
+        if r.shape != (3, 3) or not np.allclose(r @ r.T, np.eye(3), atol=1e-5) or np.linalg.det(r) < 0:
+            raise SceneError(f"{where}.to_world: an environment takes a rotation only")
+        self._environment = (np.maximum(t, 0.0), r)
+
+    def add_projector_light(self, position, axis, x_axis, irradiance, tan_half_fov: float, where: str) -> None:
+        """Mitsuba's projector with a constant irradiance (a square image):
+        the plane at distance 1 along `axis`, within +-tan_half_fov, gets
+        pi x `irradiance`."""
+        pos, val = _rgb(position, f"{where}.position"), _rgb(irradiance, f"{where}.irradiance")
+        z, x = np.asarray(axis, np.float64), np.asarray(x_axis, np.float64)
+        if np.any(val < 0):
+            raise SceneError(f"{where}.irradiance: must be non-negative")
+        if not (math.isfinite(tan_half_fov) and tan_half_fov > 0):
+            raise SceneError(f"{where}.fov: must lie in (0, 180) degrees")
+        z = z / np.linalg.norm(z)
+        x = x - z * (x @ z)
+        if not np.linalg.norm(x) > 1e-9:
+            raise SceneError(f"{where}.to_world: degenerate")
+        cone = np.array([tan_half_fov, tan_half_fov, 0.0, 0.0])
+        self._delta_lights.append((LIGHT_PROJECTOR, pos, z, val, cone, x / np.linalg.norm(x)))
+
     # -- building ---------------------------------------------------------
     def build(self) -> Scene:
         if self.camera is None:
@@ -463,18 +541,32 @@ class SceneBuilder:
         emit = mtable.emission.astype(np.float64)[mats]
         lit = np.flatnonzero(emit.max(axis=1) > 0)
         p0, p1, p2 = (verts[tris[lit, k]] for k in range(3))
-        return light_table(p0, p1, p2, emit[lit], self._delta_lights)
+        # The sphere of the infinite lights: that of the box Scene.bounds() gives.
+        pts = np.concatenate([verts] + [d[1][None] for d in self._delta_lights])
+        lo, hi = pts.min(0), pts.max(0)
+        sphere = (0.5 * (lo + hi), bounding_radius(lo, hi))
+        return light_table(p0, p1, p2, emit[lit], self._delta_lights, self._directional,
+                           self._environment, sphere)
 
 
-def light_table(p0, p1, p2, radiance, delta_lights=()) -> LightTable:
+def bounding_radius(lo, hi) -> float:
+    """The radius of the infinite lights' sphere around box (lo, hi)."""
+    r = 0.5 * float(np.linalg.norm(np.asarray(hi, np.float64) - lo))
+    return max(r * (1 + SPHERE_MARGIN), 1e-6)
+
+
+def light_table(p0, p1, p2, radiance, delta_lights=(), directional=(), environment=None,
+                sphere=None) -> LightTable:
     """The light table of emissive triangles and point/spot lights.
 
     p0, p1, p2: (n, 3) corners of the emissive triangles, each emitting
     `radiance` (n, 3) on its counter-clockwise front; `delta_lights`:
-    (kind, position, axis, intensity, cone) tuples as `SceneBuilder`
+    (kind, position, axis, intensity, cone[, x axis]) tuples as `SceneBuilder`
     collects them. Triangles come first, in the order given, so a writer
     that streams its triangles (a generated soup) can build the same table
-    as `SceneBuilder` from its emissive triangles alone.
+    as `SceneBuilder` from its emissive triangles alone. `directional`:
+    (unit direction, irradiance) pairs; `environment`: (texels, rotation)
+    or None; both need `sphere`, (centre, radius) around the scene.
     """
     p0, p1, p2, radiance = (np.asarray(a, np.float64).reshape(-1, 3) for a in (p0, p1, p2, radiance))
     n = len(p0)
@@ -483,18 +575,45 @@ def light_table(p0, p1, p2, radiance, delta_lights=()) -> LightTable:
     rows = [p0, p1, p2, radiance, np.zeros((n, 4))]
     # One-sided Lambertian emitter: flux = pi * L * area per channel.
     power = [math.pi * area * radiance.mean(axis=1)]
-    for kind, pos, axis, val, cone in delta_lights:
+    for kind, pos, axis, val, cone, *x_axis in delta_lights:
         rows_kind.append(np.array([kind], np.int32))
-        for i, x in enumerate((pos, axis, np.zeros(3), val, cone)):
+        for i, x in enumerate((pos, axis, x_axis[0] if x_axis else np.zeros(3), val, cone)):
             rows[i] = np.concatenate([rows[i], np.asarray(x, np.float64)[None]])
         power.append(np.array([np.mean(val) * _delta_solid_angle(kind, np.asarray(cone))]))
+    env = _infinite_rows(directional, environment, sphere, rows_kind, rows, power)
     power = np.concatenate(power)
     total = power.sum()
     cdf = np.cumsum(power) / total if total > 0 else np.zeros_like(power)
     if cdf.size:
         cdf[-1] = 1.0
-    return LightTable(np.concatenate(rows_kind), rows[0], rows[1], rows[2], rows[3],
-                      rows[4], power, cdf)
+    table = LightTable(np.concatenate(rows_kind), rows[0], rows[1], rows[2], rows[3],
+                       rows[4], power, cdf)
+    if env is not None:
+        table.env_texels, table.env_to_world = env
+    return table
+
+
+def _infinite_rows(directional, environment, sphere, rows_kind, rows, power):
+    """Append the directional and environment rows (`light_table`);
+    returns the environment's (texels, rotation) or None. Their flux is
+    what crosses the sphere's disc: pi R^2 E, or pi R^2 times the integral
+    of the radiance over directions."""
+    if not directional and environment is None:
+        return None
+    centre, radius = np.asarray(sphere[0], np.float64), float(sphere[1])
+    disc = math.pi * radius * radius
+    cone = np.array([radius, 0.0, 0.0, 0.0])
+    entries = [(LIGHT_DIRECTIONAL, d, e, disc * np.mean(e)) for d, e in directional]
+    if environment is not None:
+        from dosppm_core.scene.envmap import radiance_integral
+        integral = radiance_integral(environment[0])
+        entries.append((LIGHT_ENV, np.zeros(3), integral / (4 * math.pi), disc * np.mean(integral)))
+    for kind, direction, value, flux in entries:
+        rows_kind.append(np.array([kind], np.int32))
+        for i, x in enumerate((direction, centre, np.zeros(3), value, cone)):
+            rows[i] = np.concatenate([rows[i], np.asarray(x, np.float64)[None]])
+        power.append(np.array([flux]))
+    return environment
 
 
 def _delta_solid_angle(kind: int, cone: np.ndarray) -> float:
@@ -502,6 +621,8 @@ def _delta_solid_angle(kind: int, cone: np.ndarray) -> float:
     light; for a spot, the full cone to the beam plus the linear ramp."""
     if kind == LIGHT_POINT:
         return 4 * math.pi
+    if kind == LIGHT_PROJECTOR:       # pi E over the image plane at distance 1
+        return math.pi * 4 * cone[0] * cone[1]
     cutoff, beam = cone[2], cone[3]
     full = 2 * math.pi * (1 - math.cos(beam))
     # Ramp: integral of 2 pi sin(t) (cutoff - t) / (cutoff - beam) dt over

@@ -16,7 +16,7 @@ import tomllib
 
 import numpy as np
 
-from dosppm_core.scene import shapes
+from dosppm_core.scene import envmap, shapes
 from dosppm_core.scene.model import Camera, Material, Scene, SceneBuilder, SceneError
 
 _TOP_KEYS = ("camera", "materials", "shapes", "lights", "render")
@@ -52,6 +52,8 @@ _PRIMITIVES = {
 _LIGHT_KEYS = {
     "point": ("type", "position", "intensity"),
     "spot": ("type", "position", "target", "intensity", "cutoff_angle", "beam_width"),
+    "directional": ("type", "direction", "irradiance"),
+    "environment": ("type", "radiance", "file", "scale", "rotate"),
 }
 _REQUIRED = object()
 
@@ -79,7 +81,7 @@ def scene_from_document(doc: dict, path: str, name: str, base_dir: str) -> Scene
             for i, shape in enumerate(_entries(doc, "shapes", path))}
     lights = _entries(doc, "lights", path)
     for i, light in enumerate(lights):
-        _read_light(light, builder, path, f"lights[{i}]")
+        _read_light(light, builder, path, f"lights[{i}]", base_dir)
     if not lights and not any(max(materials[name].emission) > 0 for name in used):
         raise SceneError(f"{path}: lights: the scene has no light; add a [[lights]] entry "
                          f"or give a shape a material with an emission")
@@ -392,12 +394,19 @@ def _read_rotations(shape: dict, path: str, where: str) -> list[np.ndarray]:
     return rotations
 
 
-def _read_light(light: dict, builder: SceneBuilder, path: str, where: str) -> None:
+def _read_light(light: dict, builder: SceneBuilder, path: str, where: str, base_dir: str) -> None:
     kind = _string(light, "type", path, where)
     if kind not in _LIGHT_KEYS:
         raise SceneError(f"{path}: {where}.type: unknown light type {kind!r} "
                          f"(known: {', '.join(_LIGHT_KEYS)})")
     _check_typed_keys(light, _LIGHT_KEYS, kind, "light", path, where)
+    if kind == "directional":
+        builder.add_directional_light(_vec3(light, "direction", path, where),
+                                      _rgb(light, "irradiance", path, where, _REQUIRED), f"{path}: {where}")
+        return
+    if kind == "environment":
+        _read_environment(light, builder, path, where, base_dir)
+        return
     position = _vec3(light, "position", path, where)
     intensity = _rgb(light, "intensity", path, where, _REQUIRED)
     if kind == "point":
@@ -407,6 +416,26 @@ def _read_light(light: dict, builder: SceneBuilder, path: str, where: str) -> No
     beam = _number(light, "beam_width", path, where) if "beam_width" in light else None
     builder.add_spot_light(position, _vec3(light, "target", path, where), intensity,
                            _number(light, "cutoff_angle", path, where, 20.0), beam, f"{path}: {where}")
+
+
+def _read_environment(light: dict, builder: SceneBuilder, path: str, where: str, base_dir: str) -> None:
+    """A uniform `radiance`, or a lat-long OpenEXR `file` (Mitsuba's
+    envmap layout) times `scale`, turned by `rotate`."""
+    scale = _number(light, "scale", path, where, 1.0)
+    rotation = np.eye(3)
+    for r in _read_rotations(light, path, where):
+        rotation = r @ rotation
+    if "file" in light and "radiance" in light:
+        raise SceneError(f"{path}: {where}: give file or radiance, not both")
+    if "file" not in light:
+        texels = envmap.constant_texels(np.multiply(_rgb(light, "radiance", path, where, 1.0), scale))
+    else:
+        file = os.path.join(base_dir, _string(light, "file", path, where))
+        try:
+            texels = envmap.texels_from_image(envmap.load_image(file), scale)
+        except ValueError as e:
+            raise SceneError(f"{path}: {where}.file: {e}") from None
+    builder.set_environment(texels, rotation, f"{path}: {where}")
 
 
 def _read_render(doc: dict, path: str) -> dict:

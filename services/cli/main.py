@@ -17,13 +17,15 @@ settings to every tracer at registration.
 from __future__ import annotations
 
 import argparse
+import atexit
 import logging
 import os
 
+from services import transport
 from services.cli import bench, compare, evaluate, keys, reference, render, scenes, server, subdivide, tracer
 from services.cli.errors import fail
 from services.config import ConfigError
-from services.malloc import return_large_blocks
+from dosppm_core.malloc import return_large_blocks
 
 # Each subcommand's module: `add_parser(sub)` registers it, with its `run`.
 COMMANDS = (render, scenes, subdivide, bench, reference, compare, evaluate, server, tracer, keys)
@@ -46,7 +48,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    return_large_blocks()           # before any chunk is loaded (services/malloc.py)
+    return_large_blocks()           # before any chunk is loaded (dosppm_core/malloc.py)
+    # At exit, before the interpreter frees the arrays zmq sends from
+    # (in-process callers, such as tests, keep the context until then).
+    atexit.register(transport.finish_process)
     logging.basicConfig(level=os.environ.get("DOSPPM_LOG_LEVEL", "WARNING").upper(),
                         format="dosppm %(name)s: %(levelname)s: %(message)s")
     args = build_parser().parse_args(argv)

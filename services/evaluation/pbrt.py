@@ -63,6 +63,7 @@ from dosppm_core.scene.model import (
     MIRROR,
     Camera,
     Scene,
+    SceneError,
 )
 
 BINARY_ENV = "DOSPPM_PBRT"
@@ -217,6 +218,8 @@ def camera_lines(cam: Camera) -> list[str]:
 def light_lines(scene: Scene) -> list[str]:
     """Point and spot lights; area lights go with their triangles."""
     lights, out = scene.lights, []
+    if np.any(lights.kind > LIGHT_SPOT):
+        raise SceneError(f"{scene.source}: directional, environment and projector lights have no pbrt mapping here")
     for i in np.flatnonzero(lights.kind == LIGHT_POINT):
         out.append(f'LightSource "point" "point3 from" [{_vec(lights.p0[i])}] '
                    f'"rgb I" [{_vec(lights.value[i])}]')

@@ -36,11 +36,12 @@ import time
 
 import numpy as np
 
-from services.tracer.node import TracerProcess
+from services.tracer.node import TracerError, TracerOptions, TracerProcess
 from services.tracer.state import SERVER, TracerState, concat_credit
 from services.wire import Out
 
 RECORDED_STEPS = 16
+REPLAY_RETRY_S = 10.0
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
@@ -105,22 +106,33 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def run(scene: str, tracers: int, seconds: float, work: str, extra=()) -> dict:
+def run(scene: str, tracers: int, seconds: float, work: str, extra=(), hosts: dict | None = None) -> dict:
     """One server and `tracers` synthetic tracers for `seconds`; returns the
-    server's summary (its JSON) and the tracers' recorded rates."""
+    server's summary (its JSON) and the tracers' recorded rates. `hosts`:
+    {"server": (namespace, address), "tracers": [namespace, ...]} to run
+    each process in its own network namespace (services/evaluation/netns.py)
+    instead of all on 127.0.0.1."""
     from dosppm_core.chunks.subdivide import open_or_subdivide
     from dosppm_core.scene import builtin
     from dosppm_core.scene.soup import SceneSource
     store = open_or_subdivide(SceneSource(builtin.make(scene)), os.path.join(work, "store"), chunks=1)
-    endpoint = f"tcp://127.0.0.1:{_free_port()}"
+    port = _free_port()
+    endpoint = f"tcp://127.0.0.1:{port}"
+    wrap = {"server": [], "tracers": [[] for _ in range(tracers)]}
+    bind = endpoint
+    if hosts is not None:
+        endpoint, bind = f"tcp://{hosts['server'][1]}:{port}", f"tcp://0.0.0.0:{port}"
+        wrap = {"server": ["ip", "netns", "exec", hosts["server"][0]],
+                "tracers": [["ip", "netns", "exec", ns] for ns in hosts["tracers"][:tracers]]}
     out = os.path.join(work, f"replay-{time.monotonic_ns()}.exr")
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [ROOT, os.environ.get("PYTHONPATH")])))
-    server = subprocess.Popen([sys.executable, *os.environ.get("DOSPPM_REPLAY_PROFILE", "").split(), "-m", "services.cli", "server", store.path, "--bind", endpoint,
+    server = subprocess.Popen([*wrap["server"], sys.executable, *os.environ.get("DOSPPM_REPLAY_PROFILE", "").split(),
+                               "-m", "services.cli", "server", store.path, "--bind", bind,
                                "--time", str(seconds), "--min-tracers", str(tracers), "--out", out,
                                "--http", "off", "--quiet", *extra], env=env)
-    procs = [subprocess.Popen([sys.executable, "-m", "services.evaluation.replay", "--tracer", endpoint,
+    procs = [subprocess.Popen([*w, sys.executable, "-m", "services.evaluation.replay", "--tracer", endpoint,
                                "--store", store.path], env=env, stdout=subprocess.PIPE, text=True)
-             for _ in range(tracers)]
+             for w in wrap["tracers"]]
     try:
         server.wait(timeout=seconds * 10 + 300)
         # Each synthetic tracer prints its counters as it ends.
@@ -203,8 +215,15 @@ def cpu_shares(r: dict, cpu: float) -> dict:
 
 
 def _tracer_main(args) -> int:
-    tp = ReplayTracer(args.tracer, store=args.store, threads=1, tracer_id=f"replay-{os.getpid()}")
-    tp.run()
+    # A server behind a saturated link may exit before its shutdown gets
+    # through (benchmarks/slow_link.py): give up after REPLAY_RETRY_S of
+    # silence, not a worker's minute, and still report.
+    tp = ReplayTracer(TracerOptions(args.tracer, store=args.store, threads=1, tracer_id=f"replay-{os.getpid()}",
+                                    connect_timeout_s=REPLAY_RETRY_S))
+    try:
+        tp.run()
+    except TracerError as e:
+        print(f"replay tracer: {e}", file=sys.stderr)
     state = getattr(tp, "state", None)
     counters = state and dict(state.counters, **({} if state.epochs is None else
                                                  {"epoch_" + k: v for k, v in state.epochs.counters.items()}))

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dosppm_core.scene.model import LIGHT_TRIANGLE
+from dosppm_core.scene.model import LIGHT_DIRECTIONAL, LIGHT_ENV, LIGHT_TRIANGLE
 
 # Re-assign at most this often, and only when the busiest tracer's share
 # of the rays would fall by at least MIN_GAIN: every move makes the new
@@ -39,6 +39,8 @@ def light_chunks(header, tree) -> list[int]:
     photon paths start there, so the tracers serving them make the photon
     jobs' photons and keep most of them in their own queues."""
     lights = header.lights
+    if np.any((lights.kind == LIGHT_DIRECTIONAL) | (lights.kind == LIGHT_ENV)):
+        return list(range(tree.chunk_count))     # their photons enter the scene anywhere
     centre = np.where((lights.kind == LIGHT_TRIANGLE)[:, None],
                       (lights.p0 + lights.p1 + lights.p2) / 3, lights.p0)
     k = tree.locate(centre, np.zeros_like(centre))

@@ -72,7 +72,7 @@ class EpochStateMixin:
             e = update.epoch
             if update.request is None or self.epochs.open.get(e.index) is not e:
                 return []                  # discarded meanwhile
-            self.epochs.ask(e, update.request["phase"], self.tracers)
+            self.epochs.ask(e, update.request["phase"], self.tracers, self._now)
             return [Out(tid, "gather", update.request) for tid in self.tracers]
         if update.kind == "epoch":
             self.epochs.applied(update.epoch)

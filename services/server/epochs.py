@@ -28,6 +28,11 @@ import numpy as np
 from dosppm_core.trace import NO_CULL
 
 SUMS_BYTES_PER_PHOTON = 8.0      # at most, into the server (issue 32), with every hit point reached
+# Epochs photon jobs may be made in, from the next one to apply: the one
+# being gathered and two filling behind it keep the tracers busy while a
+# gather's rounds travel, and bound what they hold to about three epochs'
+# deposits however slowly the gathers go (a saturated link, a slow tracer).
+OPEN_EPOCHS = 3
 DENSE_SUMS_BYTES = 32            # M and Phi (f64) of one hit point, from one tracer
 
 
@@ -45,6 +50,7 @@ class Epoch:
     made: int = 0                   # photon jobs made in it, not yet complete or dropped
     jobs: dict = field(default_factory=dict)   # complete: id -> (rng key, paths, cull box)
     phase: str | None = None        # the round asked, None before the first
+    asked_s: float | None = None    # when that round was asked
     waiting: set = field(default_factory=set)  # tracers whose answer to it is not in
     sums: dict = field(default_factory=dict)   # the round's answers, by tracer (`total`)
     fit: tuple | None = None        # radii fitted by its pilot, stored when it is applied
@@ -73,6 +79,10 @@ class Epochs:
 
     def first_id_after(self, epoch: int) -> int:
         return (int(epoch) + 1) * self.jobs_per_epoch
+
+    def room_for(self, j: int) -> bool:
+        """Whether photon job id `j` may be made now (OPEN_EPOCHS)."""
+        return self.of(j) < self.next + OPEN_EPOCHS
 
     def made(self, j: int) -> None:
         self._epoch(self.of(j)).made += 1
@@ -117,10 +127,15 @@ class Epochs:
         self.asking = True
         return e
 
-    def ask(self, e: Epoch, phase: str, tracers) -> None:
+    def ask(self, e: Epoch, phase: str, tracers, now: float) -> None:
         """Round `phase` of epoch `e` goes to `tracers`; answers are added up."""
-        e.phase, e.waiting, e.sums = phase, set(tracers), {}
+        e.phase, e.waiting, e.sums, e.asked_s = phase, set(tracers), {}, now
         self.counters["epoch_rounds"] += 1
+
+    def round_waiting_since(self, now: float) -> float:
+        """Seconds the round under way has waited for answers (0: none waits)."""
+        waiting = [now - e.asked_s for e in self.open.values() if e.waiting and e.asked_s is not None]
+        return max(waiting, default=0.0)
 
     def answer(self, tid: str, msg) -> Epoch | None:
         """A tracer's `epoch_sums`; the epoch once every answer to its round

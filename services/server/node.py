@@ -27,19 +27,18 @@ import signal
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass
 
 import numpy as np
 
-from dosppm_core.chunks.pacing import FIRST_QUEUE_RAYS
 from dosppm_core.film import encode_png, tonemap_srgb8, write_exr, write_png
 from dosppm_core.kernels import run_serially
 from dosppm_core.modes.deadline import grace_s
 from dosppm_core.settings import Progress, RenderSettings
-from services import config, transport, wire
+from services import transport, wire
 from services.ledger import Ledger
 from services.server import checkpoint, costs
 from services.server.history import StatusHistory, progress
+from services.server.options import ServerOptions
 from services.server.http import StatusServer
 from services.server.state import ServerState, Update
 from services.server.statistics import ServerStatistics
@@ -54,48 +53,25 @@ MAX_UPDATES_QUEUED = 2       # statistics updates waiting before emission pauses
 FINISH_S = 1.2
 
 
-@dataclass
-class Limits:
-    seconds: float | None = None
-    photons: float | None = None
-    iterations: int | None = None
-
-    def reached(self, seconds: float, photons: int, iterations: int) -> bool:
-        return ((self.seconds is not None and seconds >= self.seconds)
-                or (self.photons is not None and photons >= self.photons)
-                or (self.iterations is not None and iterations >= self.iterations))
-
-
 class ServerProcess:
-    def __init__(self, store, settings: RenderSettings, bind: str = "tcp://127.0.0.1:5555",
-                 http: tuple[str, int] | None = ("127.0.0.1", 8080), out: str = "out.exr",
-                 limits: Limits | None = None, snapshot_interval_s: float = 60.0,
-                 min_photon_jobs: int = 1000, min_tracers: int = 1,
-                 queue_target_rays: int = FIRST_QUEUE_RAYS, threads: int = 2, exposure: float = 0.0,
-                 drain_timeout_s: float = 60.0, reporter=None, context: transport.Context | None = None,
-                 concurrent: bool = True, client_batching: bool = True, tracer_timeout_s: float = 10.0,
-                 checkpoint_dir: str | None = None, checkpoint_interval_s: float = 60.0,
-                 resume: dict | None = None, curve_secret: str | None = None,
-                 curve_clients: str | None = None, min_tracers_timeout_s: float | None = None,
-                 ledger: str | None = None, say=None, held_bytes: float | None = None, gather_at="server"):
-        """`say` prints a line for the user (what the server waits for);
-        `ledger`: a file to record every update applied in (services/ledger.py)."""
+    def __init__(self, store, settings: RenderSettings, options: ServerOptions | None = None,
+                 resume: dict | None = None, reporter=None, say=None, context: transport.Context | None = None):
+        """`options`: services/server/options.py; `resume`: a checkpoint's
+        document; `reporter` takes progress lines, `say` lines for the user
+        (what the server waits for)."""
+        o = self.options = options or ServerOptions()
         self.store, self.settings = store, settings
         self.say = say or (lambda *parts: None)
         self._said_waiting: str | None = None
-        self.out, self.exposure, self.reporter = out, exposure, reporter
-        self.limits = limits or Limits(seconds=config.SECONDS)
-        self.snapshot_interval_s, self.drain_timeout_s = snapshot_interval_s, drain_timeout_s
-        self.state = ServerState(store.header, store.tree, settings, store.key, store.manifest,
-                                 min_photon_jobs=min_photon_jobs, queue_target_rays=queue_target_rays,
-                                 min_tracers=min_tracers, concurrent=concurrent,
-                                 client_batching=client_batching, tracer_timeout_s=tracer_timeout_s,
-                                 min_tracers_timeout_s=min_tracers_timeout_s, held_bytes=held_bytes, gather_at=gather_at)
-        book = None if ledger is None else Ledger(
-            settings, (store.header.camera.width, store.header.camera.height), ledger,
+        self.out, self.exposure, self.reporter = o.out, o.exposure, reporter
+        self.limits = o.limits
+        self.snapshot_interval_s, self.drain_timeout_s = o.snapshot_interval_s, o.drain_timeout_s
+        self.state = ServerState(store.header, store.tree, settings, store.key, store.manifest, o)
+        book = None if o.ledger is None else Ledger(
+            settings, (store.header.camera.width, store.header.camera.height), o.ledger,
             resume_at=None if resume is None else resume.get("ledger_records"))
-        self.statistics = ServerStatistics(store.header, settings, threads=threads, ledger=book)
-        self.checkpoint_dir, self.checkpoint_interval_s = checkpoint_dir, checkpoint_interval_s
+        self.statistics = ServerStatistics(store.header, settings, threads=o.threads, ledger=book)
+        self.checkpoint_dir, self.checkpoint_interval_s = o.checkpoint_dir, o.checkpoint_interval_s
         if resume is not None:
             checkpoint.restore(self.statistics.stats, resume)
             if "ledger_totals" in resume:
@@ -103,13 +79,13 @@ class ServerProcess:
             self.state.resume(resume, first_job=resume.get("claimed_first_job"))
         self.router = transport.router(context)
         self.auth = None
-        if curve_secret:   # CURVE: encrypted, and only listed tracers get in
-            if not curve_clients:
+        if o.curve_secret:   # CURVE: encrypted, and only listed tracers get in
+            if not o.curve_clients:
                 raise ValueError("--curve-secret needs --curve-clients (the tracers' public keys)")
-            self.auth = transport.start_authenticator(curve_clients, context)
-            transport.curve_server(self.router, curve_secret)
-        self.endpoint = self.router.bind(bind)
-        self.http = StatusServer(self._status_snapshot, self._preview_png, *http) if http else None
+            self.auth = transport.start_authenticator(o.curve_clients, context)
+            transport.curve_server(self.router, o.curve_secret)
+        self.endpoint = self.router.bind(o.bind)
+        self.http = StatusServer(self._status_snapshot, self._preview_png, *o.http) if o.http else None
         self._outbox: dict[str, deque] = {}
         self._lost: list[str] = []
         self._updates: queue.Queue = queue.Queue()

@@ -2,8 +2,11 @@
 from its sockets.
 
 `ServerState` is fed decoded messages and clock ticks and returns `Out`
-records to send; the I/O shell (`server.py`) moves frames and runs the
-statistics updates it hands over. What it does:
+records to send; the I/O shell (`node.py`) moves frames and runs the
+statistics updates it hands over. Its parts, one module each: membership
+(membership.py), emission (emission.py), eye scheduling (eye_schedule.py),
+the gather at the tracers (epoch_state.py), and here the job records,
+exact accounting, batching, the clock and the status. What it does:
 
 - Registration: tracers join at any time; chunks are assigned round robin
   (c >= n: tracer i serves chunks i, i + n, ...; c < n: chunk k is shared
@@ -42,30 +45,21 @@ from collections import deque
 
 import numpy as np
 
-from dosppm_core.chunks.pacing import FIRST_QUEUE_RAYS, default_queue_memory, eye_iterations_in_flight
-from dosppm_core.chunks.view import start_chunks
-from dosppm_core.jobs import END_NAMES, RayBatch
+from dosppm_core.chunks.pacing import default_queue_memory, eye_iterations_in_flight
+from dosppm_core.jobs import END_NAMES
 from dosppm_core.settings import RenderSettings
-from dosppm_core.trace import NO_CULL, eye_ray_job
-from services.credit import by_job, new_job
-from services.server.balance import (FIRST_REBALANCE_S, REBALANCE_INTERVAL_S, assign_chunks, light_chunks,
-                                     rebalanced)
-from services.server.costs import thread_cpu
+from dosppm_core.trace import NO_CULL, environment
+from services.credit import by_job
+from services.server.balance import light_chunks
+from services.server.emission import EmissionMixin
 from services.server.epoch_state import EpochStateMixin
+from services.server.eye_schedule import EyeScheduleMixin
 from services.server.held import COMPLETE, DEPOSIT_BYTES, DISCARDED, IN_FLIGHT, HeldDeposits, JobStatus
-from services.server.job_messages import JobMessages
+from services.server.membership import HEARTBEAT_INTERVAL_S, MembershipMixin
+from services.server.options import ServerOptions
 from services.server.records import EyeIteration, Job, TracerInfo, Update  # noqa: F401 (Update: the shell's)
 from services.wire import JOB_MESSAGES, MAX_EMITTED, PROTOCOL_VERSION, Out
 
-MESSAGE_RAYS = 32_768         # a tracer's credit is never below this (rays)
-TOTAL_CREDIT_RAYS = 1 << 20   # rays queued at all tracers together, at most (see `credit`)
-EMIT_PHOTONS_PER_TICK = 1 << 17   # so long queues (`credit_of`) do not hold the loop from heartbeats
-JOBS_PER_MESSAGE = 16     # photon jobs a tracer emits in one kernel call (one per job costs more)
-MAX_TRACERS = 1024            # registrations beyond this are refused (memory stays bounded)
-HEARTBEAT_INTERVAL_S = 1.0
-# A job message an idle tracer has not acknowledged this long after it was
-# sent is lost (see `_check_delivery`).
-JOB_MESSAGE_LOST_S = 4.0
 # A job untouched this long while every tracer is idle is lost (`_watchdog`).
 STALL_S = 4.0
 # What the state counts (status "counters", OUT.json).
@@ -74,7 +68,8 @@ COUNTERS = ("photons_emitted", "photons_completed", "photons_committed", "photon
             "stale_paths", "over_credited_jobs", "results", "updates", "rebalanced", "photons_discarded",
             "jobs_discarded", "tracers_evicted", "eye_iterations_restarted", "deposits_discarded",
             "deposits_stale", "deposits_late", "refused", "tracers_rejoined", "jobs_timed_out",
-            "welcomes_resent", "job_messages_lost", "jobs_abandoned", "photons_abandoned")
+            "welcomes_resent", "job_messages_lost", "jobs_abandoned", "photons_abandoned",
+            "epoch_rounds_timed_out")
 LATENCIES_KEPT = 64           # photon jobs' latencies the deadline's estimate takes the median of
 EVICTIONS_SHOWN = 20    # the last evictions in the status, with their reasons
 
@@ -85,34 +80,26 @@ STATUS_KEYS = ("load", "resident", "busy_s", "steps", "rays_traced", "photons_tr
                "bytes_to_peers", "outbox", "outbox_rays", "rays_by_chunk", "waiting")
 
 
-class ServerState(EpochStateMixin):
+class ServerState(MembershipMixin, EmissionMixin, EyeScheduleMixin, EpochStateMixin):
     def __init__(self, header, tree, settings: RenderSettings, store_key: str,
-                 manifest: dict | None = None, min_photon_jobs: int = 1000,
-                 queue_target_rays: int = FIRST_QUEUE_RAYS, min_tracers: int = 1,
-                 concurrent: bool = True, client_batching: bool = True,
-                 tracer_timeout_s: float = 10.0, min_tracers_timeout_s: float | None = None,
-                 held_bytes: float | None = None, gather_at: str = "server"):
-        """`concurrent`, `client_batching` False: two of the paper's
-        optimisations off (Figure 15). The render starts once `min_tracers`
-        have registered or, with one, `min_tracers_timeout_s` after the first
-        tick (None: never). `held_bytes`: --queue-memory (`HeldDeposits`).
-        `gather_at`: "server" (the paper's: deposits sent, held, gathered
-        here) or "tracers" (by epochs: services/server/epoch_state.py)."""
+                 manifest: dict | None = None, options: ServerOptions | None = None):
+        """`options`: the scheduling ones are read here (services/server/options.py)."""
+        o = options or ServerOptions()
         settings = settings.for_image(int(header.camera.width) * int(header.camera.height))
         settings.validate()
         if settings.photons_per_job > MAX_EMITTED:
             raise ValueError(f"photons_per_job must be at most {MAX_EMITTED:,} in the service")
         self.header, self.tree, self.settings = header, tree, settings
+        self._env = environment(header.lights)     # what eye rays missing the scene see
         self.store_key, self.manifest = store_key, manifest
-        self.min_photon_jobs, self.queue_target = int(min_photon_jobs), int(queue_target_rays)
-        self.min_tracers, self.min_tracers_timeout_s = int(min_tracers), min_tracers_timeout_s
+        self.min_photon_jobs, self.queue_target = int(o.min_photon_jobs), int(o.queue_target_rays)
+        self.min_tracers, self.min_tracers_timeout_s = int(o.min_tracers), o.min_tracers_timeout_s
         self._waiting_since: float | None = None
         self.start_note: str | None = None    # why the render started short of min_tracers
-        self.concurrent, self.client_batching = bool(concurrent), bool(client_batching)
-        self.tracer_timeout_s = float(tracer_timeout_s)
+        self.concurrent, self.client_batching = bool(o.concurrent), bool(o.client_batching)
+        self.tracer_timeout_s = float(o.tracer_timeout_s)
         self.job_timeout_s = max(30.0, 3 * self.tracer_timeout_s)
         self._now = 0.0
-        self.discarded: set[int] = set()          # job ids whose late results are ignored
         self.evicted: list[dict] = []
         self.rejoined: dict[str, float] = {}      # tracer id -> when it last registered again (status page)
         self.light_chunks = light_chunks(header, tree)     # their tracers emit the photon jobs
@@ -131,13 +118,13 @@ class ServerState(EpochStateMixin):
         self._photon_pending: deque = deque()         # job ids created, not yet sent
         self.photon_jobs_in_flight = 0
         self.eyes: dict[int, EyeIteration] = {}          # in flight, by index (oldest first)
-        self.eye_in_flight = eye_iterations_in_flight(self.n_pixels, held_bytes or default_queue_memory())
+        self.eye_in_flight = eye_iterations_in_flight(self.n_pixels, o.held_bytes or default_queue_memory())
         self.photons_before = self.iterations_before = 0    # from a resumed checkpoint
         self._eye_restart = False
         self.eye_started = 0
         self.eye_completed = 0
         self._photons_at_eye_start = 0
-        self.held = HeldDeposits(settings.photon_batch, held_bytes or default_queue_memory())
+        self.held = HeldDeposits(settings.photon_batch, o.held_bytes or default_queue_memory())
         self._ready_emitted, self._ready_jobs = 0, []    # photon paths and jobs complete since the last batch
         self.updates: deque[Update] = deque()
         self._last_heartbeat, self._balanced_at = -1e30, None     # _balanced_at: see _rebalance
@@ -145,133 +132,34 @@ class ServerState(EpochStateMixin):
         self.path_ends = np.zeros(len(END_NAMES), np.int64)
         self._latencies: deque = deque(maxlen=LATENCIES_KEPT)     # of the last photon jobs complete
         self.job_making_cpu_s = 0.0     # a part of the server's cost per photon (costs.py)
-        self._init_epochs(gather_at, min_tracers)
+        self._init_epochs(o.gather_at, o.min_tracers)
 
-    # -- tracers -------------------------------------------------------------------
-    def welcome_fields(self, t: TracerInfo) -> dict:
-        s = self.settings
-        return dict(tracer_index=t.index, settings={"max_depth": s.max_depth, "seed": s.seed, "direct": s.direct,
-                                                    "client_batching": self.client_batching,
-                                                    "session": t.session, **self.epoch_settings()},
-                    scene=self.header.to_wire(), tree=self.tree.to_wire(), store_key=self.store_key,
-                    chunks=[k for k, o in enumerate(self.owners) if t.id in o],
-                    manifest=None if t.store_key == self.store_key else self.manifest)
-
-    def on_register(self, tid: str, msg, now: float) -> list[Out]:
-        """A tracer joins (or rejoins under the same id): welcome it and
-        hand every tracer the new chunk table."""
-        t = self.tracers.get(tid)
-        cap = msg.capacity
-        if t is None and len(self.tracers) >= MAX_TRACERS:
-            self.counters["refused"] += 1
-            return [Out(tid, "refused", dict(reason=f"the server takes at most {MAX_TRACERS} tracers"))]
-        if t is None:
-            t = TracerInfo(tid, next(self._indices), msg.endpoint, cap["cores"], cap["memory_bytes"],
-                           msg.store_key, now, msg.public_key)
-            self.tracers[tid] = t
-        else:
-            # A tracer registering again has forgotten its queues (it was
-            # cut off, or lost our welcome): its share of the work in flight
-            # is gone, so every job in flight is discarded and re-emitted.
-            t.endpoint, t.store_key, t.last_seen_s = msg.endpoint, msg.store_key, now
-            t.public_key = msg.public_key
-            t.queued = t.sent_since_report = 0
-            self.counters["tracers_rejoined"] += 1
-            self.rejoined[tid] = now
-            self._discard_jobs_in_flight()
-        self._welcomed(t, now)
-        self._reassign()
-        return [Out(tid, "welcome", self.welcome_fields(t)), *self._peer_tables(), *self._joined_epochs(tid),
-                *self._drop_messages()]
-
-    def _reassign(self) -> None:
-        ids = [t.id for t in sorted(self.tracers.values(), key=lambda t: t.index)]
-        by_id = assign_chunks(self.tree.chunk_count, ids)
-        if by_id != self.owners:
-            self.owners = by_id
-            self.table_version += 1
-
-    def _rebalance(self, now: float) -> list[Out]:
-        """Chunks re-assigned by the work the tracers report (balance.py)."""
-        if not (self.started and self.emitting):
-            return []
-        if self._balanced_at is None:
-            self._balanced_at = now - REBALANCE_INTERVAL_S + FIRST_REBALANCE_S
-        if now - self._balanced_at < REBALANCE_INTERVAL_S:
-            return []
-        self._balanced_at = now
-        tracers = sorted(self.tracers.values(), key=lambda t: t.index)
-        new = rebalanced(self.owners, {t.id: t.status for t in tracers}, {t.id: t.cores for t in tracers})
-        if new is None:
-            return []
-        self.owners, self.table_version = new, self.table_version + 1
-        self.counters["rebalanced"] += 1
-        return self._peer_tables()
-
-    def _peer_tables(self) -> list[Out]:
-        peers = [[self.tracers[i].endpoint for i in o] for o in self.owners]
-        keys = {t.endpoint: t.public_key for t in self.tracers.values() if t.public_key}
-        return [Out(tid, "peers", dict(table_version=self.table_version, peers=peers, keys=keys))
-                for tid in self.tracers]
-
+    # -- messages ------------------------------------------------------------------
     def on_message(self, tid: str, msg, now: float) -> list[Out]:
+        """A message of a registered tracer, by its handler in `HANDLERS`
+        (registration is `on_register`: it is the one an unknown id may send)."""
         t = self.tracers.get(tid)
         if t is None:
             return [Out(tid, "error", dict(reason=f"{msg.type}: tracer {tid!r} is not registered",
                                            about=msg.type))]
         t.last_seen_s = now
-        if msg.type == "heartbeat":
-            t.status, t.status_s = dict(msg.status), now
-            return self._check_welcomed(t, now) or self._check_delivery(t, now)
-        elif msg.type == "results":
-            return self._counted(self._on_results(t, msg), now)
-        elif msg.type == "epoch_sums":
-            return self._on_epoch_sums(tid, msg)
-        return []
+        handler = self.HANDLERS.get(msg.type)
+        return [] if handler is None else handler(self, t, msg, now)
+
+    def _on_heartbeat(self, t: TracerInfo, msg, now: float) -> list[Out]:
+        t.status, t.status_s = dict(msg.status), now
+        return self._check_welcomed(t, now) or self._check_delivery(t, now)
+
+    def _on_results_message(self, t: TracerInfo, msg, now: float) -> list[Out]:
+        return self._counted(self._on_results(t, msg), now)
+
+    def _on_epoch_sums_message(self, t: TracerInfo, msg, now: float) -> list[Out]:
+        return self._on_epoch_sums(t.id, msg)
+
+    HANDLERS = {"heartbeat": _on_heartbeat, "results": _on_results_message,
+                "epoch_sums": _on_epoch_sums_message}
 
     # -- results and exact accounting ----------------------------------------------------
-    def _check_welcomed(self, t: TracerInfo, now: float) -> list[Out]:
-        """A tracer whose heartbeats do not echo its latest welcome never got
-        it (lost with a connection libzmq replaced): it still holds queues
-        of its old session. Welcome it again."""
-        echoed = t.status.get("session")
-        if echoed is None or echoed == t.session or now - t.welcomed_s < 2 * HEARTBEAT_INTERVAL_S:
-            return []
-        self.counters["welcomes_resent"] += 1
-        return self._welcome_again(t, now)
-
-    def _check_delivery(self, t: TracerInfo, now: float) -> list[Out]:
-        """Job messages can vanish without an error, queued in a connection
-        libzmq replaces after a cut. A tracer counts the job messages it got
-        since its welcome; one that is idle while a job message sent to it
-        JOB_MESSAGE_LOST_S ago is still unacknowledged lost it. Rather than
-        wait for the watchdog, welcome it again at once (its count restarts)
-        with the jobs in flight re-emitted. A busy tracer is never suspected:
-        it may simply not have read its socket yet."""
-        got = t.status.get("jobs_received")
-        if got is None:
-            return []
-        while len(t.unacked) > max(0, t.jobs_sent - int(got)):
-            t.unacked.popleft()
-        if not t.unacked or now - t.unacked[0] < JOB_MESSAGE_LOST_S or t.status.get("queue", 1):
-            return []
-        self.counters["job_messages_lost"] += len(t.unacked)
-        return self._welcome_again(t, now)
-
-    def _welcome_again(self, t: TracerInfo, now: float) -> list[Out]:
-        """A new welcome under a new session (heartbeats of the old one are
-        then told apart), with every job in flight re-emitted: the tracer
-        forgets its queues when welcomed."""
-        self._welcomed(t, now)
-        self._discard_jobs_in_flight()
-        return [Out(t.id, "welcome", self.welcome_fields(t)), *self._peer_tables(), *self._drop_messages()]
-
-    def _welcomed(self, t: TracerInfo, now: float) -> None:
-        t.session += 1
-        t.welcomed_s = now
-        t.jobs_sent = 0
-        t.unacked.clear()
-
     def _check_results(self, msg) -> str | None:
         """What the wire cannot know: ranges of chunks, pixels, materials."""
         if msg.chunk is not None and msg.chunk >= self.tree.chunk_count:      # None: an emission
@@ -360,12 +248,6 @@ class ServerState(EpochStateMixin):
         while self.eyes and self.eyes[min(self.eyes)].open_jobs == 0:
             self._finish_eye_iteration(self.eyes.pop(min(self.eyes)))
 
-    def _finish_eye_iteration(self, e: EyeIteration) -> None:
-        hits, emitted_light = e.results.complete()
-        self._eye_update(Update("hits", hits=hits, emitted_light=emitted_light, eye_iteration=e.index))
-        self.counters["hit_points"] += len(hits)
-        self.eye_completed += 1
-
     def _maybe_batch(self, final: bool = False) -> None:
         """Hand over the deposits of complete jobs once `photon_batch` are
         held (server batching); deposits of jobs still in flight wait.
@@ -393,7 +275,7 @@ class ServerState(EpochStateMixin):
                          np.float64).reshape(-1, 2, 3)
         return ids, keys, paths, boxes
 
-    # -- emission ------------------------------------------------------------------------
+    # -- the clock ---------------------------------------------------------------------
     def tick(self, now: float) -> list[Out]:
         """Start eye iterations, top up and send photon jobs, heartbeats."""
         return self._counted(self._tick(now), now)
@@ -437,61 +319,6 @@ class ServerState(EpochStateMixin):
             out += self._send_photon_jobs()
         return out
 
-    @thread_cpu("job_making_cpu_s")
-    def _make_photon_jobs(self) -> None:
-        wanted = self._photon_jobs_wanted()
-        while self.photon_jobs_in_flight < wanted:
-            self._photon_pending.append(self._new_job("photon", self.settings.photons_per_job))
-
-    def _ready_to_start(self, now: float) -> bool:
-        if len(self.tracers) >= self.min_tracers:
-            return True
-        if self._waiting_since is None:
-            self._waiting_since = now
-        timeout = self.min_tracers_timeout_s
-        if timeout is None or not self.tracers or now - self._waiting_since < timeout:
-            return False
-        self.start_note = (f"starting with {len(self.tracers)} of {self.min_tracers} tracers: "
-                           f"waited {timeout:g} s (--min-tracers-timeout)")
-        return True
-
-    def waiting_for(self) -> dict | None:
-        """What keeps the render from running, for the status page and the
-        server's log line: tracers still to register, or chunks no tracer
-        holds (after an eviction); None while it runs."""
-        if not self.started:
-            return {"tracers": self.min_tracers - len(self.tracers), "registered": len(self.tracers),
-                    "min_tracers": self.min_tracers}
-        unowned = [k for k, o in enumerate(self.owners) if not o]
-        return {"chunk_owners": unowned} if unowned else None
-
-    def _alternate(self) -> list[Out]:
-        """The schedule DOSPPM improves on (Figure 15, 'alternating'): an
-        eye pass, then `photons_per_iteration` photons, each waiting for
-        the other to finish."""
-        if self.eyes or self.photon_jobs_in_flight:
-            return self._send_photon_jobs() if self._photon_pending else []
-        if not self.eye_started or self.counters["photons_emitted"] - self._photons_at_eye_start \
-                >= self.settings.photons_per_iteration:
-            return self._maybe_start_eye_iteration()
-        if self.cull_box is None or self.paused:
-            return []
-        left = self.settings.photons_per_iteration
-        while left > 0:
-            count = min(self.settings.photons_per_job, left)
-            self._photon_pending.append(self._new_job("photon", count))
-            left -= count
-        return self._send_photon_jobs()
-
-    # -- tracer failure ----------------------------------------------------------------
-    def _evict_silent(self, now: float) -> list[Out]:
-        """Tracers silent for `tracer_timeout_s` (killed, hung or cut off)
-        are dropped; see `evict`."""
-        out = []
-        for t in [t for t in self.tracers.values() if now - t.last_seen_s > self.tracer_timeout_s]:
-            out += self.evict(t.id, f"silent for {now - t.last_seen_s:.1f} s")
-        return out
-
     def _watchdog(self, now: float) -> None:
         """Messages can vanish without any error (queued in a TCP connection
         that libzmq replaces after a cut, between the server and a tracer or
@@ -501,31 +328,17 @@ class ServerState(EpochStateMixin):
         nothing waiting to go to a peer (no one is working on it), and all
         jobs in flight are discarded and re-emitted. Correctness never
         depends on it: a job presumed lost that was only slow has its late
-        results ignored."""
+        results ignored. So can a gather's request or a tracer's answer: an
+        epoch round unanswered as long is discarded with the jobs in flight
+        (its jobs made again: a round cannot be asked twice, as a tracer
+        drops an epoch's deposits once it has answered its sums)."""
         limit = STALL_S if self._all_idle(now) else self.job_timeout_s
         if any(job.sent and now - job.progress_s > limit for job in self.jobs.values()):
             self.counters["jobs_timed_out"] += 1
             self._discard_jobs_in_flight()
-
-    def _all_idle(self, now: float) -> bool:
-        return bool(self.tracers) and all(
-            now - t.status_s < 2 * HEARTBEAT_INTERVAL_S and t.status.get("queue", 1) == 0
-            and t.status.get("outbox_rays", 1) == 0 for t in self.tracers.values())
-
-    def evict(self, tid: str, reason: str) -> list[Out]:
-        """Drop tracer `tid`: its chunks go to the live tracers (new peer
-        tables), and every job in flight is discarded whole and re-emitted.
-        Any of them may have had paths queued at or travelling to the lost
-        tracer, and the server cannot know which, so none of their deposits
-        or hit points count; photon jobs are re-emitted with the same random
-        streams (the same photons, a new job id) and an eye iteration in
-        flight starts over. Late results of discarded jobs are stale."""
-        self.tracers.pop(tid)
-        self.evicted.append({"id": tid, "reason": reason})
-        self.counters["tracers_evicted"] += 1
-        self._reassign()
-        self._discard_jobs_in_flight()
-        return self._peer_tables() + self._drop_messages()
+        elif self.epochs is not None and self.epochs.round_waiting_since(now) > limit:
+            self.counters["epoch_rounds_timed_out"] += 1
+            self._discard_jobs_in_flight()
 
     def _discard_jobs_in_flight(self) -> None:
         if self.epochs is not None:     # the lost tracer's held deposits go with their epochs
@@ -535,7 +348,6 @@ class ServerState(EpochStateMixin):
             if not job.sent:
                 continue                      # still at the server: nothing lost
             del self.jobs[j]
-            self.discarded.add(j)
             self._job_status.set(j, DISCARDED)
             self.counters["jobs_discarded"] += 1
             if job.kind == "photon":
@@ -546,40 +358,9 @@ class ServerState(EpochStateMixin):
         if self.eyes:
             for j in [j for j, job in self.jobs.items() if job.kind == "eye"]:
                 del self.jobs[j]
-                self.discarded.add(j)
             self.counters["eye_iterations_restarted"] += len(self.eyes)
             self.eyes.clear()                 # the next tick starts a fresh iteration
             self._eye_restart = True
-
-    @property
-    def credit(self) -> int:
-        """Rays a tracer may have queued before it gets no more photon jobs:
-        `queue_target_rays`, shared out when many tracers join, so the
-        photon jobs in the server's outboxes and tracers' pipes stay under
-        TOTAL_CREDIT_RAYS whatever their number (16 tracers: 65,536 each)."""
-        share = TOTAL_CREDIT_RAYS // max(len(self.tracers), 1)
-        return min(self.queue_target, max(MESSAGE_RAYS, share))
-
-    def credit_of(self, t: TracerInfo) -> int:
-        """The server's credit, or the longer queue the tracer asks for to hide its chunk loads."""
-        return max(self.credit, t.queue_target)
-
-    def _photon_jobs_wanted(self) -> int:
-        """`min_photon_jobs` (the paper's 1k), or as many as the queues tracers
-        ask for hold; but no more than the deposits held fit (`HeldDeposits`)."""
-        ppj = self.settings.photons_per_job
-        credit = sum(t.queue_target for t in self.tracers.values())
-        # Out of core a job stays in flight until its last path ends, sweeps
-        # after most of its rays have left the queues: such jobs take no
-        # queue room, so they do not count against the queues asked for.
-        # (Counted, they left the tracers' queues at a fifth of their target.)
-        sent = self.photon_jobs_in_flight - len(self._photon_pending)
-        queued = sum(t.load_estimate for t in self.tracers.values())
-        spent = max(0, sent - -(-queued // ppj)) if credit else 0
-        wanted = max(self.min_photon_jobs, -(-credit // ppj) + spent)
-        c = self.counters
-        per_photon = c["deposits_received"] / c["photon_paths_ended"] if c["photon_paths_ended"] else None
-        return min(wanted, self.held.jobs_that_fit(ppj, per_photon))
 
     def _new_job(self, kind: str, paths: int, eye_iteration: int | None = None,
                  rng_key: int | None = None) -> int:
@@ -593,92 +374,6 @@ class ServerState(EpochStateMixin):
             if self.epochs is not None:
                 self.epochs.made(j)
         return j
-
-    def _least_loaded(self, chunk: int) -> TracerInfo:
-        return min((self.tracers[i] for i in self.owners[chunk]), key=lambda t: t.load_estimate)
-
-    def _maybe_start_eye_iteration(self) -> list[Out]:
-        s = self.settings
-        if len(self.eyes) >= self.eye_in_flight or (
-                self.eye_started and not self._eye_restart and
-                self.counters["photons_emitted"] - self._photons_at_eye_start < s.photons_per_iteration):
-            return []
-        self._eye_restart = False
-        e = EyeIteration(self.eye_started, 0)
-        self.eyes[e.index], self.eye_started = e, self.eye_started + 1
-        self._photons_at_eye_start = self.counters["photons_emitted"]
-        tiles = [(start, min(s.tile_pixels, self.n_pixels - start))
-                 for start in range(0, self.n_pixels, s.tile_pixels)]
-        # Every tile is open before any is routed: a tile whose rays all
-        # miss the scene completes at once, and must not close the iteration.
-        jobs = [self._new_job("eye", count, eye_iteration=e.index) for _, count in tiles]
-        e.open_jobs = len(jobs)
-        parts = JobMessages()
-        for j, (start, count) in zip(jobs, tiles):
-            batch = eye_ray_job(self.header, s.seed, e.index, start, count)
-            batch.job[:] = j
-            self._route(j, batch, parts)
-        return [Out(tid, "eye_job", dict(eye_iteration=e.index, chunk=k, **parts.take((tid, k))))
-                for tid, k in list(parts)]
-
-    def _route(self, j: int, batch: RayBatch, parts: JobMessages) -> None:
-        """Split a new eye job's paths by start chunk into `parts` per
-        (tracer, chunk), each with its share of the job's credit; paths
-        that miss the scene end here."""
-        routed, lost = start_chunks(self.tree, batch)
-        self.path_ends[1] += lost           # ESCAPED, before any tracer saw them
-        exp, kept = new_job(len(routed))
-        share = (np.array([j], np.int64), np.array([exp], np.int64))
-        for k, part in routed.items():
-            t = self._least_loaded(k)
-            t.sent_since_report += len(part)
-            t.rays_sent += len(part)
-            parts.add((t.id, k), part, share)
-        self.jobs[j].sent, self.jobs[j].progress_s, self.jobs[j].sent_s = True, self._now, self._now
-        self._credit(j, kept)               # the server's own share: all of it when none was sent
-
-    def _emitters(self) -> list[TracerInfo]:
-        """The tracers serving a chunk a light lies in: photon paths start
-        there, so most photons they make stay in their own queues."""
-        ids = dict.fromkeys(i for k in self.light_chunks for i in self.owners[k])   # in a fixed order
-        return [self.tracers[i] for i in ids if i in self.tracers]
-
-    @thread_cpu("job_making_cpu_s")
-    def _send_photon_jobs(self) -> list[Out]:
-        """Photon jobs go out as (id, rng key, count), each message to the
-        emitting tracer with the most credit left, and no larger than that
-        room or its share of the pending jobs: emission spreads, and a slow tracer is never sent more than one
-        job past its credit. It queues the photons or passes them on
-        (`TracerState.emit`); they count against its queue until it reports."""
-        out, sent, ppj = [], 0, self.settings.photons_per_job
-        emitters = self._emitters()
-        while self._photon_pending and emitters and sent < EMIT_PHOTONS_PER_TICK and not self.held.full:
-            t = max(emitters, key=lambda t: self.credit_of(t) - t.load_estimate)
-            room = self.credit_of(t) - t.load_estimate
-            if room <= 0:
-                break
-            # Its share of the pending: with 16 in flight one message took all.
-            share = -(-len(self._photon_pending) // len(emitters))
-            n = min(-(-room // ppj), JOBS_PER_MESSAGE, MAX_EMITTED // ppj, share)
-            out.append(self._photon_job(t, [self._photon_pending.popleft() for _ in range(n)]))
-            sent += int(out[-1].fields["counts"].sum())
-        return out
-
-    def _photon_job(self, t: TracerInfo, group: list[int]) -> Out:
-        """The photon_job message of the jobs `group` for tracer `t`, with
-        their whole credit; their photons count as emitted now."""
-        jobs = [self.jobs[j] for j in group]
-        ids = np.array(group, np.int64)
-        counts = np.array([job.paths for job in jobs], np.int64)
-        for job in jobs:       # the cull box for the ledger: the box it is sent with
-            job.sent, job.progress_s, job.sent_s, job.cull_box = True, self._now, self._now, self.cull_box
-        photons = int(counts.sum())
-        t.sent_since_report += photons
-        t.rays_sent += photons
-        self.counters["photons_emitted"] += photons
-        return Out(t.id, "photon_job", dict(
-            job_ids=ids, rng_keys=np.array([job.rng_key for job in jobs], np.int64), counts=counts,
-            cull_box=self.cull_box, credit_job=ids, credit_exp=np.zeros(len(ids), np.int64)))
 
     # -- checkpoints ---------------------------------------------------------------------
     def checkpoint_meta(self) -> dict:
@@ -710,18 +405,6 @@ class ServerState(EpochStateMixin):
         self._eye_restart = True      # hit points first: photons wait for their box
 
     # -- the end ---------------------------------------------------------------------------
-    def stop_emitting(self) -> None:
-        """No new jobs; jobs created but not sent are dropped (never emitted,
-        never counted)."""
-        self.emitting = False
-        for j in self._photon_pending:
-            del self.jobs[j]
-            self._job_status.set(j, DISCARDED)
-            self.photon_jobs_in_flight -= 1
-            if self.epochs is not None:
-                self.epochs.dropped(j)
-        self._photon_pending.clear()
-
     def latency_estimate_s(self) -> float:
         """Seconds from sending a photon job to its completion: the median
         of the last ones complete, or, before any, the age of the oldest in
@@ -767,10 +450,6 @@ class ServerState(EpochStateMixin):
         if self.held.rows or self._ready_emitted:
             self._maybe_batch(final=True)
 
-    def shutdown_messages(self, reason: str) -> list[Out]:
-        return [Out(tid, "shutdown", dict(reason=reason)) for tid in self.tracers]
-
-    # -- status ------------------------------------------------------------------------------
     def status(self) -> dict:
         c = self.counters
         return {"protocol": PROTOCOL_VERSION, "iteration": self.eye_completed,

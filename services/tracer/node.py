@@ -17,6 +17,7 @@ import socket as pysocket
 import threading
 import time
 import uuid
+from dataclasses import dataclass
 
 from dosppm_core.chunks.store import ChunkStore, StoreError
 from dosppm_core.kernels import use_threads
@@ -52,25 +53,40 @@ def default_tracer_id() -> str:
     return f"{pysocket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:6]}"
 
 
+@dataclass
+class TracerOptions:
+    """The flags of `dosppm worker`: the server to join, where peers reach
+    this tracer, its store, cache and memory, and its CURVE keys."""
+    server: str
+    bind: str = "tcp://127.0.0.1:*"
+    advertise: str | None = None
+    store: str | None = None
+    cache_dir: str | None = None
+    memory_bytes: float | None = None
+    queue_memory_bytes: float | None = None
+    threads: int = 1
+    tracer_id: str | None = None
+    connect_timeout_s: float = SERVER_TIMEOUT_S     # --retry
+    curve_secret: str | None = None
+    curve_server_key: str | None = None
+    curve_clients: str | None = None
+
+
 class TracerProcess:
     state_class = TracerState   # the replay harness (services/evaluation/replay.py) swaps it
 
-    def __init__(self, server: str, bind: str = "tcp://127.0.0.1:*", advertise: str | None = None,
-                 store: str | None = None, cache_dir: str | None = None, memory_bytes: float | None = None,
-                 threads: int = 1, tracer_id: str | None = None, context: transport.Context | None = None,
-                 connect_timeout_s: float = SERVER_TIMEOUT_S, curve_secret: str | None = None,
-                 curve_server_key: str | None = None, curve_clients: str | None = None, say=None,
-                 queue_memory_bytes: float | None = None):
+    def __init__(self, options: TracerOptions, context: transport.Context | None = None, say=None):
         """`say` prints a line for the user: the server joined, rejoins."""
+        o = self.options = options
         self.say = say or (lambda *parts: None)
-        self.server_url, self.bind, self.advertise = server, bind, advertise
-        self.store_path, self.cache_dir = store, cache_dir
-        self.memory_bytes, self.threads = memory_bytes, threads
-        self.queue_memory_bytes = queue_memory_bytes
-        self.tracer_id = tracer_id or default_tracer_id()
-        self.connect_timeout_s = connect_timeout_s
-        self.curve = (curve_secret, curve_server_key, curve_clients) if curve_secret else None
-        if self.curve and not (curve_server_key and curve_clients):
+        self.server_url, self.bind, self.advertise = o.server, o.bind, o.advertise
+        self.store_path, self.cache_dir = o.store, o.cache_dir
+        self.memory_bytes, self.threads = o.memory_bytes, o.threads
+        self.queue_memory_bytes = o.queue_memory_bytes
+        self.tracer_id = o.tracer_id or default_tracer_id()
+        self.connect_timeout_s = o.connect_timeout_s
+        self.curve = (o.curve_secret, o.curve_server_key, o.curve_clients) if o.curve_secret else None
+        if self.curve and not (o.curve_server_key and o.curve_clients):
             raise TracerError("--curve-secret needs --curve-server-key and --curve-clients")
         self.peer_keys: dict[str, str] = {}
         self.public_key: str | None = None

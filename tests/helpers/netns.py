@@ -1,92 +1,39 @@
-"""Shared by the multi-host tests (tests/test_netns.py,
-tests/test_netns_faults.py): hosts as Linux network namespaces on a
-private bridge (RECIPES.md, "Several hosts on one machine"), processes
-started in them, and a status poller that runs inside a host.
-
-No default route anywhere: nothing leaves the machine. Every namespace
-made is deleted again, whatever happens (processes and iptables rules in
-a namespace die with it)."""
+"""Shared by the multi-host tests (tests/test_netns*.py): hosts as Linux
+network namespaces on a private bridge (services/evaluation/netns.py, the
+recipe in RECIPES.md), processes started in them, and a status poller
+that runs inside a host. Processes and iptables rules in a namespace die
+with it."""
 from __future__ import annotations
 
 import contextlib
 import os
-import shutil
 import signal
 import subprocess
-import sys
 
 import pytest
 
+from services.evaluation.netns import NetnsUnavailable, delete_namespaces, ip, netns_unavailable  # noqa: F401
+from services.evaluation.netns import lan as _lan
 from tests.helpers.cli import run_dosppm
 from tests.helpers.paths import REPO
 
 
-def ip(*args, check=True):
-    return subprocess.run(["ip", *args], capture_output=True, text=True, timeout=20, check=check)
-
-
-def netns_unavailable(prefix: str) -> str | None:
-    """Why this machine cannot run the multi-host tests, or None."""
-    if not sys.platform.startswith("linux"):
-        return "network namespaces need Linux"
-    if os.geteuid() != 0:
-        return "creating network namespaces needs root"
-    if shutil.which("ip") is None:
-        return "the `ip` command (iproute2) is not installed"
-    probe = f"{prefix}-probe"
-    try:
-        r = ip("netns", "add", probe, check=False)
-    except (OSError, subprocess.SubprocessError) as e:
-        return f"cannot create a network namespace (`ip netns add` failed: {e})"
-    if r.returncode != 0:
-        return f"cannot create a network namespace: {r.stderr.strip()}"
-    ip("netns", "del", probe, check=False)
-    return None
-
-
-def delete_namespaces(names) -> None:
-    for ns in names:
-        ip("netns", "del", ns, check=False)
-
-
 @contextlib.contextmanager
 def lan(prefix: str, hosts: dict[str, str]):
-    """A bridge in namespace <prefix>-lan and one namespace <prefix>-<host>
-    per host with a veth `eth0` into it (the bridge's end is `v-<host>`,
-    in the bridge namespace); yields {host: (namespace, address)}. Skips
-    the test where namespaces cannot be made."""
-    why = netns_unavailable(prefix)
-    if why:
-        pytest.skip(why)
-    bridge_ns = f"{prefix}-lan"
-    made = []
+    """services/evaluation/netns.lan for a test: skipped where namespaces
+    cannot be made, failed (with the command) where building the bridge
+    fails. Yields {host: (namespace, address)}."""
     try:
-        ip("netns", "add", bridge_ns)
-        made.append(bridge_ns)
-        ip("-n", bridge_ns, "link", "set", "lo", "up")
-        ip("-n", bridge_ns, "link", "add", "br0", "type", "bridge")
-        ip("-n", bridge_ns, "link", "set", "br0", "up")
-        out = {}
-        for h, addr in hosts.items():
-            ns = f"{prefix}-{h}"
-            ip("netns", "add", ns)
-            made.append(ns)
-            ip("-n", ns, "link", "set", "lo", "up")
-            ip("link", "add", f"v-{h}", "netns", bridge_ns, "type", "veth", "peer", "name", "eth0", "netns", ns)
-            ip("-n", bridge_ns, "link", "set", f"v-{h}", "master", "br0", "up")
-            ip("-n", ns, "addr", "add", f"{addr}/24", "dev", "eth0")
-            ip("-n", ns, "link", "set", "eth0", "up")
-            out[h] = (ns, addr)
+        ctx = _lan(prefix, hosts)
+        out = ctx.__enter__()
+    except NetnsUnavailable as e:
+        pytest.skip(str(e))
     except subprocess.CalledProcessError as e:
-        delete_namespaces(reversed(made))
         pytest.fail(f"building the bridge failed: {' '.join(e.cmd)}: {e.stderr.strip()}")
-    except BaseException:
-        delete_namespaces(reversed(made))
-        raise
     try:
         yield out
     finally:
-        delete_namespaces(reversed(made))
+        ctx.__exit__(None, None, None)
 
 
 class Procs:

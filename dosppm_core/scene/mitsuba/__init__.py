@@ -33,7 +33,12 @@ bsdf        diffuse (reflectance); twosided (one nested BSDF);
             BSDF); principled and principledthin are refused
 emitter     area (radiance) in a shape or referenced by one; point (position
             or to_world, intensity); spot (to_world, intensity,
-            cutoff_angle, beam_width)
+            cutoff_angle, beam_width); projector (to_world, fov or
+            focal_length, fov_axis, a constant irradiance, scale: no
+            texture); directional (direction or to_world,
+            irradiance); constant (radiance); envmap (filename of a
+            lat-long OpenEXR, scale, to_world a rotation); one of constant
+            and envmap per scene
 sensor      perspective, thinlens (fov or focal_length, fov_axis, to_world,
             near_clip, far_clip, focus_distance, aperture_radius);
             orthographic (to_world, whose scale sizes the view, near_clip,

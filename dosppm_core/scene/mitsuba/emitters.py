@@ -1,12 +1,20 @@
 """Emitters: `area` (its radiance becomes the emission of the material of
-the shape holding or referencing it), `point` and `spot`."""
+the shape holding or referencing it), `point`, `spot`, `projector` (a
+constant irradiance; a textured one is refused at its <texture>), and the
+infinitely distant ones: `directional`, `constant` and `envmap`
+(`scene.envmap`)."""
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
 from dosppm_core.scene.mitsuba.objects import Obj
-from dosppm_core.scene.mitsuba.params import finish, get_float, get_matrix, get_point, get_rgb
+from dosppm_core.scene import envmap
+from dosppm_core.scene.mitsuba.params import finish, get_float, get_matrix, get_point, get_rgb, get_str, required
+from dosppm_core.scene.mitsuba.sensors import field_of_view
 from dosppm_core.scene.mitsuba.state import ReaderState
+from dosppm_core.scene.mitsuba.xmltree import resolve
 
 
 def area_radiance(reader: ReaderState, emitter: Obj) -> tuple:
@@ -26,6 +34,9 @@ def read_emitter(reader: ReaderState, obj: Obj) -> None:
         reader.loose_area_emitters.append(obj)
         return
     reader.children(obj, ())
+    if obj.type in INFINITE:
+        INFINITE[obj.type](reader, obj)
+        return
     intensity = get_rgb(obj, "intensity", 1.0)
     if obj.type == "point":
         position = get_point(obj, "position")
@@ -42,3 +53,54 @@ def read_emitter(reader: ReaderState, obj: Obj) -> None:
     finish(obj)
     target = m[:3, 3] + m[:3, :3] @ np.array([0.0, 0.0, 1.0])
     reader.builder.add_spot_light(m[:3, 3], target, intensity, cutoff, beam, obj.where())
+
+
+def _directional(reader: ReaderState, obj: Obj) -> None:
+    """Mitsuba's directional: `direction`, or to_world's +z, and irradiance."""
+    irradiance = get_rgb(obj, "irradiance", 1.0)
+    direction = get_point(obj, "direction")
+    to_world = obj.take("to_world", ("transform",))
+    if direction is not None and to_world is not None:
+        obj.node.fail("give direction or to_world, not both")
+    if direction is None:
+        m = np.eye(4) if to_world is None else to_world.value
+        direction = m[:3, :3] @ np.array([0.0, 0.0, 1.0])
+    finish(obj)
+    reader.builder.add_directional_light(direction, irradiance, obj.where())
+
+
+def _constant(reader: ReaderState, obj: Obj) -> None:
+    """Mitsuba's constant: one radiance from every direction."""
+    radiance = get_rgb(obj, "radiance", 1.0)
+    finish(obj)
+    reader.builder.set_environment(envmap.constant_texels(radiance), np.eye(3), obj.where())
+
+
+def _envmap(reader: ReaderState, obj: Obj) -> None:
+    """Mitsuba's envmap: a lat-long EXR (filename), scale, to_world (a rotation)."""
+    filename = required(obj, "filename", get_str)
+    path = resolve(obj.take("filename", ("string",)).node, filename, reader.root_dir, reader.paths)
+    scale = get_float(obj, "scale", 1.0)
+    rotation = get_matrix(obj)[:3, :3]
+    finish(obj)
+    try:
+        texels = envmap.texels_from_image(envmap.load_image(path), scale)
+    except ValueError as e:
+        obj.node.fail(str(e))
+    reader.builder.set_environment(texels, rotation, obj.where())
+
+
+def _projector(reader: ReaderState, obj: Obj) -> None:
+    """Mitsuba's projector with a constant irradiance: a square image, so
+    every fov_axis but diagonal means the same fov."""
+    irradiance = np.multiply(get_rgb(obj, "irradiance", 1.0), get_float(obj, "scale", 1.0))
+    fov, _axis = field_of_view(obj, 1, 1)
+    m = get_matrix(obj)
+    finish(obj)
+    reader.builder.add_projector_light(m[:3, 3], m[:3, :3] @ np.array([0.0, 0.0, 1.0]),
+                                       m[:3, :3] @ np.array([1.0, 0.0, 0.0]), irradiance,
+                                       math.tan(math.radians(fov) / 2), obj.where())
+
+
+# Read apart from point and spot (no `intensity`).
+INFINITE = {"directional": _directional, "constant": _constant, "envmap": _envmap, "projector": _projector}

@@ -20,7 +20,7 @@ PLUGINS = {
     "shape": {"obj", "ply", "rectangle", "cube", "sphere", "disk", "cylinder", "shapegroup", "instance"},
     "bsdf": {"diffuse", "twosided", "conductor", "roughconductor", "dielectric", "roughdielectric",
              "plastic", "roughplastic", "mask"},
-    "emitter": {"area", "point", "spot"},
+    "emitter": {"area", "point", "spot", "directional", "constant", "envmap", "projector"},
     "sensor": {"perspective", "thinlens", "orthographic"},
     "film": {"hdrfilm"},
     "rfilter": {"box", "tent", "gaussian", "mitchell", "catmullrom", "lanczos"},

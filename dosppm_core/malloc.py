@@ -1,6 +1,10 @@
-"""The C heap of a dosppm process: chunks are loaded and dropped over and
-over (a tracer with more chunks than fit, OSPPM, the subdivider), and
-glibc's default keeps the memory of dropped chunks.
+"""The C heap of a dosppm process, one policy for every role: chunks are
+loaded and dropped over and over (a tracer with more chunks than fit,
+OSPPM, the subdivider), and glibc's default keeps the memory of dropped
+chunks. Rendering processes (tracers, OSPPM, `dosppm render`'s children)
+fix the mmap threshold at MMAP_THRESHOLD_BYTES, the server at
+SERVER_MMAP_THRESHOLD_BYTES; the chunk cache also trims after an eviction
+(chunks/cache.py).
 
 glibc serves a large block with mmap and returns it on free, but each time
 such a block is freed it raises its threshold for mmap to that block's size
@@ -29,13 +33,22 @@ MMAP_THRESHOLD_BYTES = 4 << 20
 SERVER_MMAP_THRESHOLD_BYTES = 128 << 10
 
 
-def return_large_blocks(threshold: int = MMAP_THRESHOLD_BYTES) -> bool:
+_fixed: int | None = None      # the threshold this process was given
+
+
+def return_large_blocks(threshold: int = MMAP_THRESHOLD_BYTES, replace: bool = True) -> bool:
     """Fix glibc's mmap threshold for this process, unless the user set one
-    (MALLOC_MMAP_THRESHOLD_); False where the C library is not glibc."""
-    if "MALLOC_MMAP_THRESHOLD_" in os.environ:
+    (MALLOC_MMAP_THRESHOLD_). `replace` False: only if the process has no
+    policy yet (a library mode such as OSPPM keeps the one its entry point
+    chose). False where the C library is not glibc."""
+    global _fixed
+    if "MALLOC_MMAP_THRESHOLD_" in os.environ or (_fixed is not None and not replace):
         return False
     try:
         libc = ctypes.CDLL("libc.so.6")
-        return bool(libc.mallopt(M_MMAP_THRESHOLD, int(threshold)))
+        ok = bool(libc.mallopt(M_MMAP_THRESHOLD, int(threshold)))
     except (OSError, AttributeError):
         return False
+    if ok:
+        _fixed = int(threshold)
+    return ok
