@@ -26,7 +26,14 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
 from dosppm_core.scene.mitsuba import load_mitsuba_xml  # noqa: E402
-from dosppm_core.scene.mitsuba.objects import PLUGINS, Expander, Obj, upgrade_names, version  # noqa: E402
+from dosppm_core.scene.mitsuba.objects import (  # noqa: E402
+    PLUGINS,
+    REFUSED,
+    Expander,
+    Obj,
+    upgrade_names,
+    version,
+)
 from dosppm_core.scene.mitsuba.shapes import shape_geometry  # noqa: E402
 from dosppm_core.scene.mitsuba.state import ReaderState  # noqa: E402
 from dosppm_core.scene.mitsuba.xmltree import parse_xml  # noqa: E402
@@ -131,17 +138,22 @@ def reason(message: str) -> str:
 def later_part(message: str) -> bool:
     """Whether a refusal is of a plugin a later part of issue 33 builds
     (textures, materials, lights, media, other shapes): an unsupported
-    plugin of a family and type in `LATER`, or a conductor's eta and k."""
+    plugin of a family and type in `LATER`, or one refused with its reason
+    (`objects.REFUSED`: principled, out of scope), or a conductor's eta and k."""
     if re.search(r': <\w+ name="(eta|k)">: unsupported parameter of <bsdf type="(rough)?conductor">$', message):
         return True     # a conductor's complex index of refraction: the materials part
     if re.search(r': <string name="material">: unsupported attribute: named conductor ', message):
         return True     # a named conductor (its eta and k): the materials part
     if re.search(r': <texture type="[^"]*"[^>]*>: not allowed inside <emitter type="(spot|projector|area)"', message):
         return True     # a textured emitter: the lights part (the textures part reads BSDFs' textures)
-    found = re.search(r': <(\w+) type="([^"]*)"[^>]*>: unsupported plugin$', message)
+    if re.search(r': <texture type="[^"]*" name="opacity">: not allowed inside <bsdf type="mask">', message):
+        return True     # a textured mask: opacity read from a texture, not built yet
+    found = re.search(r': <(\w+) type="([^"]*)"[^>]*>: (.+)$', message)
     if not found:
         return False
-    tag, kind = found.groups()
+    tag, kind, why = found.groups()
+    if why != "unsupported plugin" and why != REFUSED.get((tag, kind)):
+        return False
     return tag in LATER and (LATER[tag] is None or kind in LATER[tag])
 
 

@@ -15,7 +15,12 @@ mirror     `conductor`, material "none", specular_reflectance
 glossy     `roughconductor`, ggx, alpha = roughness, material "none"
 glass      `dielectric`, int_ior = ior, ext_ior = 1, reflectance tints
            specular_reflectance and specular_transmittance
-two_sided  diffuse/mirror/glossy wrapped in `twosided` (glass never is)
+roughdielectric, plastic, roughplastic, conductor, roughconductor (eta,
+           k): Mitsuba's own, distribution and
+           alpha, int_ior = ior, ext_ior = 1, reflectance is the transmit
+           tint / the diffuse_reflectance, specular the other tint
+opacity    < 1: wrapped in `mask`
+two_sided  reflecting kinds wrapped in `twosided` (dielectrics never are)
 emission   `area` emitter (one-sided, along the CCW winding normal)
 point      `point`, intensity
 spot       `spot`, cutoff_angle, beam_width, intensity
@@ -59,6 +64,7 @@ import numpy as np
 
 from dosppm_core.film import FilmError, one_line, read_exr, write_exr
 from dosppm_core.scene.model import (
+    CONDUCTOR,
     DIFFUSE,
     GLASS,
     GLOSSY,
@@ -68,7 +74,12 @@ from dosppm_core.scene.model import (
     LIGHT_PROJECTOR,
     LIGHT_SPOT,
     LIGHT_TRIANGLE,
+    MICROFACETS,
     MIRROR,
+    PLASTIC,
+    ROUGH_CONDUCTOR,
+    ROUGH_DIELECTRIC,
+    ROUGH_PLASTIC,
     Scene,
     SceneError,
 )
@@ -194,12 +205,21 @@ def _mesh(mi, name: str, vertices: np.ndarray, faces: np.ndarray, props):
 
 
 def _bsdf(mats, mid: int) -> dict:
+    bsdf = _opaque_bsdf(mats, mid)
+    if float(mats.opacity[mid]) < 1.0:
+        return {"type": "mask", "opacity": float(mats.opacity[mid]), "bsdf": bsdf}
+    return bsdf
+
+
+def _opaque_bsdf(mats, mid: int) -> dict:
     if mats.texture[mid] >= 0:
         # Its reflectance row is (1, 1, 1), the texel being folded in by the
         # kernels: exporting that would render another scene.
         raise SceneError(f"material {mats.names[mid]!r}: a textured material has no Mitsuba "
                          "mapping here (reference a Mitsuba .xml scene directly)")
     kind, tint = int(mats.kind[mid]), _spectrum(mats.reflectance[mid])
+    if ROUGH_DIELECTRIC <= kind <= ROUGH_CONDUCTOR:
+        return _coloured_bsdf(mats, mid, kind, tint)
     if kind == GLASS:
         return {"type": "dielectric", "int_ior": float(mats.ior[mid]), "ext_ior": 1.0,
                 "specular_reflectance": tint, "specular_transmittance": tint}
@@ -212,6 +232,26 @@ def _bsdf(mats, mid: int) -> dict:
                 "alpha": float(mats.roughness[mid]), "specular_reflectance": tint}
     else:
         raise SceneError(f"material {mats.names[mid]!r}: kind {kind} has no Mitsuba mapping")
+    return {"type": "twosided", "bsdf": bsdf} if mats.two_sided[mid] else bsdf
+
+
+def _coloured_bsdf(mats, mid: int, kind: int, tint: dict) -> dict:
+    spec, ior = _spectrum(mats.specular[mid]), float(mats.ior[mid])
+    rough = {"distribution": MICROFACETS[int(mats.distribution[mid])], "alpha": float(mats.roughness[mid])}
+    if kind == ROUGH_DIELECTRIC:
+        return {"type": "roughdielectric", "int_ior": ior, "ext_ior": 1.0, **rough,
+                "specular_transmittance": tint, "specular_reflectance": spec}
+    if kind in (CONDUCTOR, ROUGH_CONDUCTOR):
+        bsdf = {"type": "conductor", "eta": _spectrum(mats.conductor_eta[mid]),
+                "k": _spectrum(mats.conductor_k[mid]), "specular_reflectance": spec}
+        if kind == ROUGH_CONDUCTOR:
+            bsdf.update(rough, type="roughconductor")
+        return {"type": "twosided", "bsdf": bsdf} if mats.two_sided[mid] else bsdf
+    bsdf = {"type": "plastic" if kind == PLASTIC else "roughplastic", "int_ior": ior, "ext_ior": 1.0,
+            "diffuse_reflectance": tint, "specular_reflectance": spec,
+            "nonlinear": bool(mats.nonlinear[mid])}
+    if kind == ROUGH_PLASTIC:
+        bsdf.update(rough)
     return {"type": "twosided", "bsdf": bsdf} if mats.two_sided[mid] else bsdf
 
 
@@ -298,7 +338,13 @@ def reference_key(scene: Scene, spp: int, max_depth: int = DEFAULT_MAX_DEPTH,
     h = hashlib.sha256()
     arrays = {"vertices": scene.vertices, "triangles": scene.triangles,
               "tri_material": scene.tri_material}
-    arrays.update({f"mat.{k}": v for k, v in vars(scene.materials).items() if k != "names"})
+    mats = scene.materials
+    # The columns of the coloured kinds and masks count only where used, so
+    # the keys (and cached references) of other scenes stay as they were.
+    newer = ((mats.kind >= ROUGH_DIELECTRIC).any() or (mats.opacity < 1).any())
+    later = ("specular", "distribution", "nonlinear", "opacity", "conductor_eta", "conductor_k")
+    arrays.update({f"mat.{k}": v for k, v in vars(mats).items()
+                   if k != "names" and (newer or k not in later)})
     arrays.update({f"light.{k}": v for k, v in scene.lights.wire_fields().items()})
     for name in sorted(arrays):
         arr = np.ascontiguousarray(arrays[name])

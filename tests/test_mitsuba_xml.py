@@ -412,14 +412,17 @@ TEMPLATE = """\
 SNIPPET_LINE = 10
 
 BAD = [  # (snippet, line offset, element as written, what the message says)
-    ('<bsdf type="plastic" id="p"/>', 0, '<bsdf type="plastic" id="p">', "unsupported plugin"),
+    ('<bsdf type="hair" id="p"/>', 0, '<bsdf type="hair" id="p">', "unsupported plugin"),
+    ('<bsdf type="principled" id="p"/>', 0, '<bsdf type="principled" id="p">',
+     "the principled BSDF is unsupported (out of scope)"),
     ('<bsdf type="diffuse" id="d">\n<float name="roughness" value="0.1"/>\n</bsdf>', 1,
      '<float name="roughness">', 'unsupported parameter of <bsdf type="diffuse" id="d">'),
     ('<bsdf type="conductor" id="c"><string name="material" value="Au"/></bsdf>', 0,
      '<string name="material">', "unsupported attribute: named conductor 'Au'"),
-    ('<bsdf type="roughconductor" id="r"/>', 0, '<bsdf type="roughconductor" id="r">', "beckmann"),
-    ('<bsdf type="roughconductor" id="r">\n<string name="distribution" value="beckmann"/></bsdf>', 1,
-     '<string name="distribution">', "only GGX"),
+    ('<bsdf type="roughconductor" id="r">\n<string name="distribution" value="phong"/></bsdf>', 1,
+     '<string name="distribution">', "distribution 'phong' is unknown (ggx or beckmann)"),
+    ('<bsdf type="conductor" id="r">\n<spectrum name="k" value="400:1, 700:2"/></bsdf>', 1,
+     '<spectrum name="k">', "a conductor's eta and k as a spectrum list are unsupported"),
     ('<bsdf type="roughconductor" id="r"><string name="distribution" value="ggx"/>\n'
      '<float name="alpha_u" value="0.1"/><float name="alpha_v" value="0.2"/></bsdf>', 0,
      '<bsdf type="roughconductor" id="r">', "anisotropic"),
@@ -462,6 +465,13 @@ BAD = [  # (snippet, line offset, element as written, what the message says)
      'cannot occur inside <rgb name="reflectance">'),
     ('<shape type="cube">', 1, "", "malformed XML: mismatched tag"),
     ('<sensor type="perspective"/>', 0, '<sensor type="perspective">', "a second sensor"),
+    ('<bsdf type="roughplastic" id="p"><string name="distribution" value="phong"/></bsdf>', 0,
+     '<string name="distribution">', "distribution 'phong' is unknown"),
+    ('<bsdf type="mask" id="p"><float name="opacity" value="2"/><bsdf type="diffuse"/></bsdf>', 0,
+     '<bsdf type="mask" id="p">', "opacity must lie in [0, 1]"),
+    ('<bsdf type="roughdielectric" id="p"><float name="int_ior" value="1"/>'
+     '<float name="ext_ior" value="1"/></bsdf>', 0, '<bsdf type="roughdielectric" id="p">',
+     "int_ior and ext_ior must differ"),
 ]
 
 
@@ -482,9 +492,9 @@ def test_template_itself_loads(tmp_path):
 
 
 def test_error_inside_an_include_names_the_included_file(tmp_path):
-    write(tmp_path, '<scene version="3.0.0">\n\n  <bsdf type="plastic"/>\n</scene>\n', name="frag.xml")
+    write(tmp_path, '<scene version="3.0.0">\n\n  <bsdf type="hair"/>\n</scene>\n', name="frag.xml")
     path = write(tmp_path, TEMPLATE.format(snippet='<include filename="frag.xml"/>'))
-    with pytest.raises(SceneError, match=r"frag\.xml:3: <bsdf type=\"plastic\">: unsupported plugin$"):
+    with pytest.raises(SceneError, match=r"frag\.xml:3: <bsdf type=\"hair\">: unsupported plugin$"):
         load_mitsuba_xml(path)
 
 

@@ -8,7 +8,7 @@ import pytest
 import trimesh
 
 from dosppm_core.scene import loaders, shapes
-from dosppm_core.scene.model import GLASS, LIGHT_POINT, LIGHT_SPOT, LIGHT_TRIANGLE, SceneError
+from dosppm_core.scene.model import GLASS, LIGHT_POINT, LIGHT_SPOT, LIGHT_TRIANGLE, MATERIAL_KINDS, SceneError
 from dosppm_core.scene.tomlfile import load_toml
 
 EXAMPLE = os.path.join(os.path.dirname(__file__), "..", "examples", "cornell.toml")
@@ -312,3 +312,7 @@ def test_the_documented_example_loads(tmp_path):
     assert sorted(scene.lights.kind.tolist()) == [LIGHT_TRIANGLE] * 2 + [LIGHT_POINT, LIGHT_SPOT]
     assert scene.render_settings == {"iterations": 200, "output": "cornell.exr"}
     assert scene.camera.fov_axis == "smaller"
+    m = scene.materials
+    lacquer, leaves = m.names.index("lacquer"), m.names.index("leaves")
+    assert m.kind[lacquer] == MATERIAL_KINDS["roughplastic"] and m.ior[lacquer] == np.float32(1.49)
+    assert m.opacity[leaves] == 0.5 and m.kind[m.names.index("frosted")] == MATERIAL_KINDS["roughdielectric"]

@@ -12,7 +12,7 @@ import math
 import numba as nb
 import numpy as np
 
-from dosppm_core.scene.model import DIFFUSE, GLASS, GLOSSY, MIRROR
+from dosppm_core.scene.model import CONDUCTOR, DIFFUSE, GLASS, GLOSSY, MIRROR
 
 INV_PI = np.float32(1.0 / math.pi)
 
@@ -178,4 +178,6 @@ def _sample_glass(ior, n0, n1, n2, w0, w1, w2, cos_o, u1, radiance):
 
 @nb.njit(cache=True, error_model="numpy")
 def is_specular(kind):
-    return kind == MIRROR or kind == GLASS
+    """Eye paths pass through these (no hit point); a smooth conductor
+    (kernels.materials) is one of them."""
+    return kind == MIRROR or kind == GLASS or kind == CONDUCTOR

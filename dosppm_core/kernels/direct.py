@@ -57,6 +57,7 @@ from dosppm_core.kernels.emit import select_light
 from dosppm_core.kernels.envmap import env_eval, env_sample
 from dosppm_core.kernels.light_cache import cell_pmf, pick_in_cell, read_cell
 from dosppm_core.kernels.light_tree import sample_tree, tree_pmf
+from dosppm_core.kernels.materials import hit_point_eval, hit_point_pdf, hit_point_sample, is_coloured
 from dosppm_core.kernels.paths import offset_origin
 from dosppm_core.kernels.rng import next_float
 from dosppm_core.scene.model import GLOSSY, LIGHT_DIRECTIONAL, LIGHT_ENV, LIGHT_POINT, LIGHT_PROJECTOR, LIGHT_TRIANGLE
@@ -215,6 +216,10 @@ def _direct_ray(i, hits, states, surf, lights, cache, infinite, mis, eps_rel, to
     p0, p1, p2 = np.float64(position[i, 0]), np.float64(position[i, 1]), np.float64(position[i, 2])
     n0, n1, n2 = normal[i, 0], normal[i, 1], normal[i, 2]
     o0, o1, o2 = outgoing[i, 0], outgoing[i, 1], outgoing[i, 2]
+    if is_coloured(surf.kind[m]):
+        st, ut = next_float(st)
+        return _coloured_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights, env, total,
+                             mis, ut, ul, u1, u2, eps_rel, out)
     if glossy:
         st, ut = next_float(st)
         if ut >= C_LIGHT:
@@ -446,3 +451,80 @@ def emitter_radiance(direction, radiance, pdf, prim, t, surf, total_power):
         for j in range(3):
             rgb[i, j] = radiance[i, j] * emit[m, j] * k
     return rgb
+
+
+# -- the coloured materials (kernels.materials) --------------------------------------
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def _coloured_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights, env, total, mis,
+                  ut, ul, u1, u2, eps_rel, out):
+    """Direct light at a hit point of a rough dielectric, a plastic or a
+    conductor: the glossy hit point's one-sample MIS (a light chosen by
+    power, or with probability 1 - C_LIGHT a direction from the hit point's
+    BSDF), with an RGB BSDF. A rough dielectric's normal is its geometric
+    one, so a light behind the surface is reached by transmission (|cos|)."""
+    kind, row = surf.kind[m], surf.bsdf[m]
+    if mis and ut >= C_LIGHT:
+        return _coloured_bsdf_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, kind, row, surf,
+                                  ul, u1, u2, eps_rel, out)
+    power, cdf, value = lights[6], lights[7], lights[4]
+    li = select_light(cdf, ul)
+    p_sel = power[li] / total
+    c = C_LIGHT if mis else 1.0
+    if lights[0][li] == LIGHT_ENV:
+        w0, w1, w2, p_dir = env_sample(env, u1, u2)
+        if not (p_dir > 0.0 and p_sel > 0.0):
+            return False
+        dist = _beyond_sphere(lights[2][li], lights[5][li, 0], p0, p1, p2)
+        q0, q1, q2 = p0 + dist * w0, p1 + dist * w1, p2 + dist * w2
+        p_light = p_sel * p_dir
+        l0, l1, l2 = env_eval(env, w0, w1, w2)
+    else:
+        q0, q1, q2, w0, w1, w2, dist, g = _sample_light(lights, li, p0, p1, p2, u1, u2)
+        if not g > 0.0:
+            return False
+        p_light = p_sel / g
+        l0, l1, l2 = value[li][0], value[li][1], value[li][2]
+    pdf = c * p_light
+    if mis and (lights[0][li] == LIGHT_TRIANGLE or lights[0][li] == LIGHT_ENV):
+        pdf += (1.0 - C_LIGHT) * hit_point_pdf(kind, row, n0, n1, n2, o0, o1, o2, w0, w1, w2)
+    if not _aim(i, out, p0, p1, p2, n0, n1, n2, w0, w1, w2, q0, q1, q2, eps_rel, surf.eps_abs):
+        return False
+    out[3][i, 0] = weight[i, 0] * l0 / pdf
+    out[3][i, 1] = weight[i, 1] * l1 / pdf
+    out[3][i, 2] = weight[i, 2] * l2 / pdf
+    return _tint_row(i, out, kind, row, n0, n1, n2, o0, o1, o2, w0, w1, w2)
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def _coloured_bsdf_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, kind, row, surf, ul, u1, u2,
+                       eps_rel, out):
+    """A direction from the hit point's BSDF, looking for an emitter (or the
+    environment): radiance W f |cos|, pdf (1 - C_LIGHT) p_bsdf."""
+    ok, w0, w1, w2, _t0, _t1, _t2 = hit_point_sample(kind, row, n0, n1, n2, o0, o1, o2, ul, u1, u2)
+    if not ok:
+        return False
+    wl = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    w0, w1, w2 = w0 / wl, w1 / wl, w2 / wl
+    p_bsdf = hit_point_pdf(kind, row, n0, n1, n2, o0, o1, o2, w0, w1, w2)
+    if not p_bsdf > 0.0:
+        return False
+    origin, direction, tmax, radiance, pdfs = out
+    origin[i, 0], origin[i, 1], origin[i, 2] = offset_origin(p0, p1, p2, n0, n1, n2, w0, w1, w2,
+                                                             eps_rel, surf.eps_abs)
+    direction[i, 0], direction[i, 1], direction[i, 2] = w0, w1, w2
+    tmax[i] = FIRST_HIT
+    pdfs[i] = (1.0 - C_LIGHT) * p_bsdf
+    for k in range(3):
+        radiance[i, k] = weight[i, k]
+    return _tint_row(i, out, kind, row, n0, n1, n2, o0, o1, o2, w0, w1, w2)
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def _tint_row(i, out, kind, row, n0, n1, n2, o0, o1, o2, w0, w1, w2):
+    """Multiply row i's radiance by f(wo, wi) |cos| (rgb); whether it may contribute."""
+    f0, f1, f2 = hit_point_eval(kind, row, n0, n1, n2, o0, o1, o2, w0, w1, w2)
+    c = abs(n0 * w0 + n1 * w1 + n2 * w2)
+    out[3][i, 0] *= f0 * c
+    out[3][i, 1] *= f1 * c
+    out[3][i, 2] *= f2 * c
+    return out[3][i, 0] + out[3][i, 1] + out[3][i, 2] > 0.0

@@ -23,6 +23,18 @@ import numpy as np
 
 from dosppm_core.jobs import ABSORBED, CONTINUES, ESCAPED, MAX_DEPTH, STORED
 from dosppm_core.kernels.bsdf import is_specular, sample_bsdf
+from dosppm_core.kernels.materials import (
+    B_OPACITY,
+    bsdf_rows,
+    is_coloured,
+    is_transmissive,
+    passes_mask,
+    photon_mask,
+    plastic_specular_probability,
+    sample_colour,
+    side_float,
+)
+from dosppm_core.scene.model import PLASTIC
 from dosppm_core.kernels.rng import next_float
 from dosppm_core.kernels.texture import texel_at
 
@@ -46,6 +58,7 @@ class SurfaceData(NamedTuple):
     roughness: np.ndarray       # GGX alpha
     two_sided: np.ndarray
     eps_abs: float              # absolute part of the spawn offset (Scene.spawn_epsilon)
+    bsdf: np.ndarray            # (M, B_COLS) float64: materials.bsdf_rows, for the coloured kinds
     # Textures (`kernels.texture`): empty arrays in an untextured scene.
     uvs: np.ndarray             # float32 (V, 2) or (0, 2)
     mat_texture: np.ndarray     # int32 (M,): the texture giving reflectance, -1 for none
@@ -62,7 +75,7 @@ class SurfaceData(NamedTuple):
     def from_arrays(cls, vertices, triangles, tri_material, m, eps_abs, uvs, textures) -> "SurfaceData":
         """From geometry arrays, a `MaterialTable` m and a `TextureTable`."""
         return cls(vertices, triangles, tri_material, m.kind, m.reflectance, m.emission, m.ior,
-                   m.roughness, m.two_sided, eps_abs, np.ascontiguousarray(uvs, np.float32),
+                   m.roughness, m.two_sided, eps_abs, bsdf_rows(m), np.ascontiguousarray(uvs, np.float32),
                    np.ascontiguousarray(m.texture, np.int32), textures.info, textures.uv_map,
                    textures.texels)
 
@@ -118,11 +131,25 @@ def hit_setup(verts, tris, tri_material, kinds, tri, u, v, d0, d1, d2):
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
-def sample_scatter(two_sided, ior, rough, m, kind, n0, n1, n2, w0, w1, w2, u1, u2, u3, radiance):
-    """`sample_bsdf` with material m's parameters."""
-    return sample_bsdf(kind, two_sided[m], np.float64(ior[m]),
-                       np.float64(rough[m]), n0, n1, n2, w0, w1, w2,
-                       u1, u2, u3, radiance)
+def sample_scatter(two_sided, ior, rough, refl, bsdf, m, kind, n0, n1, n2, w0, w1, w2,
+                   u1, u2, u3, radiance):
+    """`sample_bsdf` (or `materials.sample_colour`) with material m's
+    parameters. Returns (ok, direction, throughput rgb, eta_scale): the
+    path's weight is multiplied by throughput * eta_scale, where eta_scale
+    is the eta^2 of radiance refracted (Russian roulette ignores it)."""
+    if is_coloured(kind):
+        if not is_transmissive(kind) and n0 * w0 + n1 * w1 + n2 * w2 < 0.0:
+            if not two_sided[m]:
+                return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0
+            n0, n1, n2 = -n0, -n1, -n2
+        ok, d0, d1, d2, t0, t1, t2, eta_scale, _delta = sample_colour(
+            kind, bsdf[m], n0, n1, n2, w0, w1, w2, u1, u2, u3, radiance)
+        return ok, d0, d1, d2, t0, t1, t2, eta_scale
+    ok, d0, d1, d2, scale, _spec = sample_bsdf(kind, two_sided[m], np.float64(ior[m]),
+                                               np.float64(rough[m]), n0, n1, n2, w0, w1, w2,
+                                               u1, u2, u3, radiance)
+    k, eta_scale = (1.0, scale) if radiance else (scale, 1.0)
+    return ok, d0, d1, d2, refl[m, 0] * k, refl[m, 1] * k, refl[m, 2] * k, eta_scale
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
@@ -161,17 +188,15 @@ DEEP_SURVIVAL = 0.9
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
-def roulette(flux, i, r0, r1, r2, scale, ur, depth):
+def roulette(flux, i, t0, t1, t2, ur, depth):
     """Russian roulette on the scattered flux (or an eye path's weight)
-    times reflectance r: a path survives with the ratio p of its new to
-    old largest component (at most DEEP_SURVIVAL from surface DEEP_DEPTH
-    on), and is reweighted by 1/p. Returns (survives, the new flux)."""
+    flux * t: a path survives with the ratio p of its new to old largest
+    component (at most DEEP_SURVIVAL from surface DEEP_DEPTH on), and is
+    reweighted by 1/p. Returns (survives, the new flux)."""
     old_max = max(flux[i, 0], flux[i, 1], flux[i, 2])
-    # float32 products, as when r was read from the float32 material row:
-    # an untextured scene traces bit for bit as before textures.
-    nf0 = flux[i, 0] * np.float32(r0) * scale
-    nf1 = flux[i, 1] * np.float32(r1) * scale
-    nf2 = flux[i, 2] * np.float32(r2) * scale
+    nf0 = flux[i, 0] * t0
+    nf1 = flux[i, 1] * t1
+    nf2 = flux[i, 2] * t2
     p = min(1.0, max(nf0, nf1, nf2) / old_max) if old_max > 0 else 0.0
     if depth >= DEEP_DEPTH:
         p = min(p, DEEP_SURVIVAL)
@@ -265,10 +290,10 @@ def scatter_photons(rays, hits, surf, cull_box, max_depth, deposit_from, eps_rel
 def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, eps_rel, end, culled,
                    dep, nxt):
     """The photon bounce of rows [a, e): deposits and continuing paths are
-    written densely from row a. Returns where each ended (dc, gc)."""
-    # The tuples are unpacked here, once per block, not per ray in the helpers.
+    written densely from row a. Returns where each ended (dc, gc). The
+    tuples are unpacked here, once per block, not per ray in the helpers."""
     direction, flux, depth, states, job, pixel = rays
-    (verts, tris, tri_mat, kinds, refl, _emit, ior, rough, two_sided, eps_abs,
+    (verts, tris, tri_mat, kinds, refl, _emit, ior, rough, two_sided, eps_abs, bsdf,
      uvs, mtex, tinfo, tuv, texels) = surf
     prim, u, v = hits
     dep_pos, dep_in, dep_n, dep_f, dep_job = dep
@@ -281,6 +306,11 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
             continue
         p0, p1, p2, n0, n1, n2, w0, w1, w2, m, kind, front = hit_setup(
             verts, tris, tri_mat, kinds, tri, u[i], v[i], direction[i, 0], direction[i, 1], direction[i, 2])
+        st, through = photon_mask(bsdf, m, states[i])
+        if through:
+            gc = _photon_pass_through(i, gc, st, p0, p1, p2, n0, n1, n2, w0, w1, w2, rays, max_depth,
+                                      eps_rel, eps_abs, end, nxt)
+            continue
         if not is_specular(kind):
             if not front and not two_sided[m]:
                 end[i] = ABSORBED
@@ -298,19 +328,19 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
         if depth[i] + 1 >= max_depth:
             end[i] = MAX_DEPTH
             continue
-        st, u1 = next_float(states[i])
+        st, u1 = next_float(st)
         st, u2 = next_float(st)
         st, u3 = next_float(st)
         st, ur = next_float(st)
-        ok, d0, d1, d2, scale, _spec = sample_scatter(two_sided, ior, rough, m, kind,
-                                                      n0, n1, n2, w0, w1, w2, u1, u2, u3, False)
+        ok, d0, d1, d2, t0, t1, t2, _es = sample_scatter(two_sided, ior, rough, refl, bsdf, m, kind,
+                                                         n0, n1, n2, w0, w1, w2, u1, u2, u3, False)
         if not ok:
             end[i] = ABSORBED
             continue
-        r0, r1, r2 = np.float64(refl[m, 0]), np.float64(refl[m, 1]), np.float64(refl[m, 2])
-        if mtex[m] >= 0:
-            r0, r1, r2 = texel_at(uvs, tris, tinfo, tuv, texels, mtex[m], tri, u[i], v[i])
-        ok, f0, f1, f2 = roulette(flux, i, r0, r1, r2, scale, ur, depth[i])
+        if mtex[m] >= 0:    # the texel tints the throughput (a textured material's row is white)
+            x0, x1, x2 = texel_at(uvs, tris, tinfo, tuv, texels, mtex[m], tri, u[i], v[i])
+            t0, t1, t2 = t0 * x0, t1 * x1, t2 * x2
+        ok, f0, f1, f2 = roulette(flux, i, t0, t1, t2, ur, depth[i])
         if not ok:
             end[i] = ABSORBED
             continue
@@ -320,6 +350,26 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
         gc += 1
         end[i] = CONTINUES
     return dc, gc
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _photon_pass_through(i, gc, st, p0, p1, p2, n0, n1, n2, w0, w1, w2, rays, max_depth, eps_rel,
+                         eps_abs, end, nxt):
+    """Photon i goes on straight through a mask's hole, as one bounce (so
+    a photon lighting a floor through leaves is deposited there: shadow
+    rays stop at masks). Returns the next free row of `nxt`. Not inlined:
+    numba's inliner bound this body's unpacked `flux` to the caller's
+    `direction` (garbage flux through masks); the call is rare anyway."""
+    _direction, flux, depth, _states, job, pixel = rays
+    new_o, new_d, new_f, new_st, new_depth, new_job, new_pix = nxt
+    if depth[i] + 1 >= max_depth:
+        end[i] = MAX_DEPTH
+        return gc
+    new_f[gc, 0], new_f[gc, 1], new_f[gc, 2] = flux[i, 0], flux[i, 1], flux[i, 2]
+    write_spawn(new_o, new_d, gc, p0, p1, p2, n0, n1, n2, -w0, -w1, -w2, eps_rel, eps_abs)
+    new_st[gc], new_depth[gc], new_job[gc], new_pix[gc] = st, depth[i] + 1, job[i], pixel[i]
+    end[i] = CONTINUES
+    return gc + 1
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
@@ -431,7 +481,7 @@ def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp,
     """The eye bounce of rows [a, e), each written to its own row."""
     # The tuples are unpacked here, once per block, not per ray in the helpers.
     direction, weight, depth, states = rays
-    (verts, tris, tri_mat, kinds, refl, emit, ior, rough, two_sided, eps_abs,
+    (verts, tris, tri_mat, kinds, refl, emit, ior, rough, two_sided, eps_abs, bsdf,
      uvs, mtex, tinfo, tuv, texels) = surf
     prim, u, v = hits
     hp_pos, hp_n = hp
@@ -446,35 +496,61 @@ def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp,
         if front:  # one-sided emitters, as in Mitsuba
             for k in range(3):
                 emitted[i, k] = weight[i, k] * emit[m, k]
+        if bsdf[m, B_OPACITY] < 1.0 and passes_mask(bsdf, m, side_float(states[i], 0)):
+            _pass_through(i, p0, p1, p2, n0, n1, n2, w0, w1, w2, depth, states, weight, max_depth,
+                          eps_rel, eps_abs, end, nxt)
+            continue
+        coat = False
         if not is_specular(kind):
             if not front and not two_sided[m]:
                 end[i] = ABSORBED
                 continue
-            write_facing(hp_pos, hp_n, i, p0, p1, p2, n0, n1, n2, front)
-            end[i] = STORED
-            continue
+            if kind == PLASTIC:     # the coating's mirror with probability q (kernels.materials)
+                s = 1.0 if front else -1.0
+                coat = side_float(states[i], 1) < plastic_specular_probability(
+                    bsdf[m], s * n0, s * n1, s * n2, w0, w1, w2)
+            if not coat:
+                # A rough dielectric's hit point keeps its geometric normal: the side decides eta.
+                write_facing(hp_pos, hp_n, i, p0, p1, p2, n0, n1, n2, front or is_transmissive(kind))
+                end[i] = STORED
+                continue
         if depth[i] + 1 >= max_depth:
             end[i] = MAX_DEPTH
             continue
         st, u1 = next_float(states[i])
         st, ur = next_float(st)
         new_st[i] = st
-        ok, d0, d1, d2, scale, _spec = sample_scatter(two_sided, ior, rough, m, kind,
-                                                      n0, n1, n2, w0, w1, w2, u1, 0.5, 0.5, True)
+        ok, d0, d1, d2, t0, t1, t2, eta_scale = sample_scatter(
+            two_sided, ior, rough, refl, bsdf, m, kind, n0, n1, n2, w0, w1, w2,
+            0.0 if coat else u1, 0.5, 0.5, True)
         if not ok:
             end[i] = ABSORBED
             continue
         # Russian roulette on the path weight, as for photons: unbiased, and
         # with it the depth limit is only a safety net. It decides on the
-        # reflectance alone, not the eta^2 of refraction (pbrt's etaScale):
+        # throughput alone, not the eta^2 of refraction (pbrt's etaScale):
         # that factor leaving glass would kill 56% of the paths through it.
-        r0, r1, r2 = np.float64(refl[m, 0]), np.float64(refl[m, 1]), np.float64(refl[m, 2])
-        if mtex[m] >= 0:
-            r0, r1, r2 = texel_at(uvs, tris, tinfo, tuv, texels, mtex[m], tri, u[i], v[i])
-        ok, f0, f1, f2 = roulette(weight, i, r0, r1, r2, 1.0, ur, depth[i])
+        if mtex[m] >= 0:    # the texel tints the throughput (a textured material's row is white)
+            x0, x1, x2 = texel_at(uvs, tris, tinfo, tuv, texels, mtex[m], tri, u[i], v[i])
+            t0, t1, t2 = t0 * x0, t1 * x1, t2 * x2
+        ok, f0, f1, f2 = roulette(weight, i, t0, t1, t2, ur, depth[i])
         if not ok:
             end[i] = ABSORBED
             continue
-        new_w[i, 0], new_w[i, 1], new_w[i, 2] = f0 * scale, f1 * scale, f2 * scale
+        new_w[i, 0], new_w[i, 1], new_w[i, 2] = f0 * eta_scale, f1 * eta_scale, f2 * eta_scale
         write_spawn(new_o, new_d, i, p0, p1, p2, n0, n1, n2, d0, d1, d2, eps_rel, eps_abs)
         end[i] = CONTINUES
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _pass_through(i, p0, p1, p2, n0, n1, n2, w0, w1, w2, depth, states, weight, max_depth,
+                  eps_rel, eps_abs, end, nxt):
+    """Eye path i goes on straight through a mask's hole, as one bounce."""
+    new_o, new_d, new_w, new_st = nxt
+    if depth[i] + 1 >= max_depth:
+        end[i] = MAX_DEPTH
+        return
+    new_st[i] = next_float(states[i])[0]
+    new_w[i, 0], new_w[i, 1], new_w[i, 2] = weight[i, 0], weight[i, 1], weight[i, 2]
+    write_spawn(new_o, new_d, i, p0, p1, p2, n0, n1, n2, -w0, -w1, -w2, eps_rel, eps_abs)
+    end[i] = CONTINUES

@@ -22,7 +22,11 @@ from dosppm_core.scene.textures import Texture, TextureTable
 
 # Material kinds, as stored in `MaterialTable.kind` and read by the kernels.
 DIFFUSE, MIRROR, GLASS, GLOSSY = 0, 1, 2, 3
-MATERIAL_KINDS = {"diffuse": DIFFUSE, "mirror": MIRROR, "glass": GLASS, "glossy": GLOSSY}
+ROUGH_DIELECTRIC, PLASTIC, ROUGH_PLASTIC, CONDUCTOR, ROUGH_CONDUCTOR = 4, 5, 6, 7, 8
+MATERIAL_KINDS = {"diffuse": DIFFUSE, "mirror": MIRROR, "glass": GLASS, "glossy": GLOSSY,
+                  "roughdielectric": ROUGH_DIELECTRIC, "plastic": PLASTIC, "roughplastic": ROUGH_PLASTIC,
+                  "conductor": CONDUCTOR, "roughconductor": ROUGH_CONDUCTOR}
+MICROFACETS = ("ggx", "beckmann")     # `Material.distribution`, ids as kernels.microfacet
 
 # Light kinds, as stored in `LightTable.kind`. Directional and environment
 # lights are infinitely far: their photons leave a disc outside the scene's
@@ -60,6 +64,14 @@ class Material:
     glossy surface black, as Mitsuba does without its `twosided` wrapper.
     `texture` >= 0 (an id from `SceneBuilder.add_texture`) replaces
     `reflectance` by that texture's value at the hit's UV.
+
+    Mitsuba's 'roughdielectric' (relative `ior` = int_ior / ext_ior,
+    `roughness` alpha of the `distribution` 'ggx' or 'beckmann';
+    `reflectance` tints transmission, `specular` reflection), 'plastic' and
+    'roughplastic' (a dielectric coating of `ior` over a diffuse base of
+    albedo `reflectance`; `specular` tints the coating; `nonlinear` is
+    Mitsuba's flag). `opacity` < 1 is Mitsuba's `mask`: a ray passes
+    straight through with probability 1 - opacity. See kernels.materials.
     """
     name: str
     kind: str = "diffuse"
@@ -69,13 +81,19 @@ class Material:
     emission: tuple = (0.0, 0.0, 0.0)
     two_sided: bool = True
     texture: int = -1
+    specular: tuple = (1.0, 1.0, 1.0)
+    distribution: str = "ggx"
+    nonlinear: bool = False
+    opacity: float = 1.0
+    conductor_eta: tuple = (0.0, 0.0, 0.0)
+    conductor_k: tuple = (1.0, 1.0, 1.0)
 
     def validate(self, where: str) -> None:
         if self.kind not in MATERIAL_KINDS:
             raise SceneError(f"{where}: unknown material kind {self.kind!r} "
                              f"(known: {', '.join(MATERIAL_KINDS)})")
         refl = _rgb(self.reflectance, f"{where}.reflectance")
-        if np.any(refl < 0) or (self.kind != "glass" and np.any(refl > 1)):
+        if np.any(refl < 0) or (self.kind not in ("glass", "roughdielectric") and np.any(refl > 1)):
             raise SceneError(f"{where}.reflectance: must lie in [0, 1], got {tuple(refl)}")
         if not (math.isfinite(self.ior) and self.ior > 0):
             raise SceneError(f"{where}.ior: must be a positive number, got {self.ior!r}")
@@ -83,6 +101,16 @@ class Material:
             raise SceneError(f"{where}.roughness: must lie in [1e-4, 1], got {self.roughness!r}")
         if np.any(_rgb(self.emission, f"{where}.emission") < 0):
             raise SceneError(f"{where}.emission: must be non-negative")
+        spec = _rgb(self.specular, f"{where}.specular")
+        if np.any(spec < 0) or (self.kind != "roughdielectric" and np.any(spec > 1)):
+            raise SceneError(f"{where}.specular: must lie in [0, 1], got {tuple(spec)}")
+        if self.distribution not in MICROFACETS:
+            raise SceneError(f"{where}.distribution: must be one of {', '.join(MICROFACETS)}, "
+                             f"got {self.distribution!r}")
+        if np.any(_rgb(self.conductor_eta, f"{where}.eta") < 0) or np.any(_rgb(self.conductor_k, f"{where}.k") < 0):
+            raise SceneError(f"{where}: a conductor's eta and k must be non-negative")
+        if not (math.isfinite(self.opacity) and 0.0 <= self.opacity <= 1.0):
+            raise SceneError(f"{where}.opacity: must lie in [0, 1], got {self.opacity!r}")
 
 
 @dataclass
@@ -177,10 +205,31 @@ class MaterialTable:
     # the texel into the path weight at the hit (`kernels.texture`), so
     # every reader of `reflectance` multiplies by the texel through it.
     texture: np.ndarray = None  # int32 (m,)
+    specular: np.ndarray = None      # float32 (m, 3): coating / reflection tint
+    distribution: np.ndarray = None  # int32 (m,): index into MICROFACETS
+    nonlinear: np.ndarray = None     # bool (m,)
+    opacity: np.ndarray = None       # float32 (m,): Mitsuba's mask
+    conductor_eta: np.ndarray = None  # float32 (m, 3): real part of a conductor's index
+    conductor_k: np.ndarray = None    # float32 (m, 3): its imaginary part
 
     def __post_init__(self):
+        # Tables made before these columns (tests, older callers) get the
+        # defaults: white coating, GGX, linear, opaque.
+        m = len(self.kind)
         if self.texture is None:
-            self.texture = np.full(len(self.kind), -1, np.int32)
+            self.texture = np.full(m, -1, np.int32)
+        if self.specular is None:
+            self.specular = np.ones((m, 3), np.float32)
+        if self.distribution is None:
+            self.distribution = np.zeros(m, np.int32)
+        if self.nonlinear is None:
+            self.nonlinear = np.zeros(m, np.bool_)
+        if self.opacity is None:
+            self.opacity = np.ones(m, np.float32)
+        if self.conductor_eta is None:
+            self.conductor_eta = np.zeros((m, 3), np.float32)
+        if self.conductor_k is None:
+            self.conductor_k = np.ones((m, 3), np.float32)
 
     @property
     def textured(self) -> bool:
@@ -198,6 +247,12 @@ class MaterialTable:
             two_sided=np.array([m.two_sided for m in mats], np.bool_),
             names=[m.name for m in mats],
             texture=np.array([m.texture for m in mats], np.int32),
+            specular=np.array([_rgb(m.specular, m.name) for m in mats], np.float32).reshape(-1, 3),
+            distribution=np.array([MICROFACETS.index(m.distribution) for m in mats], np.int32),
+            nonlinear=np.array([m.nonlinear for m in mats], np.bool_),
+            opacity=np.array([m.opacity for m in mats], np.float32),
+            conductor_eta=np.array([_rgb(m.conductor_eta, m.name) for m in mats], np.float32).reshape(-1, 3),
+            conductor_k=np.array([_rgb(m.conductor_k, m.name) for m in mats], np.float32).reshape(-1, 3),
         )
 
 

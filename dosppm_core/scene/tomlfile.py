@@ -25,10 +25,15 @@ _CAMERA_KEYS = ("position", "look_at", "up", "fov", "fov_axis", "width", "height
 # Keys each material type reads; anything else would be silently ignored,
 # so it is an error instead.
 _MATERIAL_KEYS = {
-    "diffuse": ("type", "reflectance", "emission", "two_sided"),
-    "mirror": ("type", "reflectance", "emission", "two_sided"),
-    "glossy": ("type", "reflectance", "roughness", "emission", "two_sided"),
-    "glass": ("type", "reflectance", "ior", "emission"),
+    "diffuse": ("type", "reflectance", "emission", "two_sided", "opacity"),
+    "mirror": ("type", "reflectance", "emission", "two_sided", "opacity"),
+    "glossy": ("type", "reflectance", "roughness", "emission", "two_sided", "opacity"),
+    "glass": ("type", "reflectance", "ior", "emission", "opacity"),
+    "roughdielectric": ("type", "reflectance", "specular", "ior", "roughness", "distribution",
+                        "emission", "opacity"),
+    "plastic": ("type", "reflectance", "specular", "ior", "nonlinear", "emission", "two_sided", "opacity"),
+    "roughplastic": ("type", "reflectance", "specular", "ior", "roughness", "distribution", "nonlinear",
+                     "emission", "two_sided", "opacity"),
 }
 _TRANSFORM_KEYS = ("translate", "rotate", "scale", "matrix")
 _SHAPE_KEYS = {
@@ -235,11 +240,16 @@ def _read_materials(doc: dict, builder: SceneBuilder, path: str) -> dict:
         _check_typed_keys(mat, _MATERIAL_KEYS, kind, "material", path, where)
         material = Material(
             name, kind,
-            reflectance=_rgb(mat, "reflectance", path, where, [0.5, 0.5, 0.5] if kind == "diffuse" else 1.0),
+            reflectance=_rgb(mat, "reflectance", path, where,
+                             [0.5, 0.5, 0.5] if kind in ("diffuse", "plastic", "roughplastic") else 1.0),
             ior=_number(mat, "ior", path, where, 1.5),
             roughness=_number(mat, "roughness", path, where, 0.1),
             emission=_rgb(mat, "emission", path, where, 0.0),
-            two_sided=_boolean(mat, "two_sided", path, where, True))
+            two_sided=_boolean(mat, "two_sided", path, where, True),
+            specular=_rgb(mat, "specular", path, where, 1.0),
+            distribution=_string(mat, "distribution", path, where, "ggx"),
+            nonlinear=_boolean(mat, "nonlinear", path, where, False),
+            opacity=_number(mat, "opacity", path, where, 1.0))
         builder.add_material(material, where=f"{path}: {where}")
         materials[name] = material
     return materials

@@ -13,8 +13,8 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
-from dosppm_core.kernels.bsdf import INV_PI, eval_bsdf
-from dosppm_core.scene.model import DIFFUSE
+from dosppm_core.kernels.materials import bsdf_rows, gather_f, gather_tint
+from dosppm_core.scene.model import ROUGH_DIELECTRIC
 
 CELL_FACTOR = 2.0  # cell size in median radii
 _P1, _P2, _P3 = 73856093, 19349663, 83492791
@@ -150,12 +150,13 @@ def pack_hit_points(hp, materials) -> np.ndarray:
 
 @nb.njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def gather_photons(ph_pos, ph_in, ph_flux, start, entry_hp, slot_key, entry_pos, mask, longest,
-                   lo, cell, dims, rows, acc):
+                   lo, cell, dims, rows, bsdf, acc):
     """Accumulate, per hit point, the photon count M and the BRDF-weighted
     flux Phi (eq. 3, times the eye path weight). numba has no atomics on
     the CPU, so each thread owns an accumulator (M, Phi) over a contiguous
     range of the (spatially sorted) photons, in `acc` (threads, hit points,
-    4), zeros when called (see _sum_threads)."""
+    4), zeros when called (see _sum_threads). `bsdf`: materials.bsdf_rows,
+    for the coloured kinds."""
     n = ph_pos.shape[0]
     threads = acc.shape[0]
     for t in nb.prange(threads):
@@ -190,28 +191,28 @@ def gather_photons(ph_pos, ph_in, ph_flux, start, entry_hp, slot_key, entry_pos,
                 # point's surface. Its own surface's normal is not tested, as
                 # in pbrt-v4: that test dropped the photons on the other wall
                 # of every concave corner, and Sponza came out 2% dark.
+                # (A rough dielectric's hit point also takes the photons
+                # its transmission brings from behind.)
                 n0, n1, n2 = rows[h, HP_N], rows[h, HP_N + 1], rows[h, HP_N + 2]
-                if n0 * wi0 + n1 * wi1 + n2 * wi2 <= 0.0:
-                    continue
                 kind = int(rows[h, HP_KIND])
-                if kind == DIFFUSE:   # the common case, without the call
-                    f = INV_PI
-                else:
-                    f = eval_bsdf(kind, np.float64(rows[h, HP_ALPHA]), n0, n1, n2,
-                                  rows[h, HP_OUT], rows[h, HP_OUT + 1], rows[h, HP_OUT + 2],
-                                  wi0, wi1, wi2)
-                # The hit point's reflectance times eye weight is the same
-                # for every photon: it multiplies the sum once, at the end.
+                if n0 * wi0 + n1 * wi1 + n2 * wi2 <= 0.0 and kind != ROUGH_DIELECTRIC:
+                    continue
+                f0, f1, f2 = gather_f(kind, np.float64(rows[h, HP_ALPHA]), bsdf, int(rows[h, HP_MAT]),
+                                      n0, n1, n2, rows[h, HP_OUT], rows[h, HP_OUT + 1], rows[h, HP_OUT + 2],
+                                      wi0, wi1, wi2)
+                # The hit point's reflectance (the older kinds') times eye
+                # weight is the same for every photon: it multiplies the sum
+                # once, at the end (materials.gather_tint).
                 acc[t, h, 0] += 1.0
-                acc[t, h, 1] += f * ph_flux[j, 0]
-                acc[t, h, 2] += f * ph_flux[j, 1]
-                acc[t, h, 3] += f * ph_flux[j, 2]
+                acc[t, h, 1] += f0 * ph_flux[j, 0]
+                acc[t, h, 2] += f1 * ph_flux[j, 1]
+                acc[t, h, 3] += f2 * ph_flux[j, 2]
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _sum_threads(acc, rows, mat_refl):
     """(M, Phi) per hit point from the threads' accumulators: the sum of
-    f * flux times the hit point's reflectance and eye weight."""
+    f * flux times the hit point's tint (`gather_tint`) and eye weight."""
     total = acc[0].copy()
     for t in range(1, acc.shape[0]):
         total += acc[t]
@@ -283,5 +284,5 @@ def gather_grid(ph, hp, hp_radius, materials, threads: int, grid: HitPointGrid |
     g = grid if grid is not None else build_hit_point_grid(hp, hp_radius, materials)
     acc = np.zeros((max(1, threads), len(hp), 4))
     gather_photons(ph.position, ph.incoming, ph.flux, g.start, g.entry_hp, g.slot_key, g.entry_pos,
-                   g.mask, g.longest, g.lo, g.cell, g.dims, g.rows, acc)
-    return _sum_threads(acc, g.rows, materials.reflectance)
+                   g.mask, g.longest, g.lo, g.cell, g.dims, g.rows, bsdf_rows(materials), acc)
+    return _sum_threads(acc, g.rows, gather_tint(materials))

@@ -51,7 +51,8 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from dosppm_core.kernels.bsdf import eval_bsdf
+from dosppm_core.kernels.materials import bsdf_rows, gather_f, gather_tint
+from dosppm_core.scene.model import ROUGH_DIELECTRIC
 from dosppm_core.kernels.rng import mix64
 
 RESOLUTION = (512, 128, 512)    # the paper's Table 1
@@ -351,7 +352,7 @@ def _gather(hp, hp_radius, grid, cells, entries, materials, threads):
     weight, material), `grid` (lo, cell, dims, axes, slack, bitmap, first)
     in internal axis order, `cells` the occupied cells' records (position,
     incoming, normal, flux, count, shared entry), `materials` (kind,
-    reflectance, roughness). Hit points are split in `threads` ranges; each
+    gather_tint, roughness, bsdf_rows). Hit points are split in `threads` ranges; each
     thread writes only its own hit points. `stamp` remembers, per thread,
     the last hit point that took each entry whose slot several cells
     share: only those can be reached twice."""
@@ -369,17 +370,17 @@ def _gather(hp, hp_radius, grid, cells, entries, materials, threads):
 def _gather_range(first_hp, end_hp, hp, hp_radius, grid, cells, materials, stamp, m, phi):
     """M and Phi of hit points [first_hp, end_hp), one thread's range."""
     hp_n, hp_mat = hp[1], hp[4]
-    mat_kind, mat_refl, mat_rough = materials
+    mat_kind, mat_refl, mat_rough, mat_bsdf = materials
     for h in range(first_hp, end_hp):
         mat = hp_mat[h]
         shading = (hp_n[h, 0], hp_n[h, 1], hp_n[h, 2], mat_kind[mat], np.float64(mat_rough[mat]),
                    mat_refl[mat, 0], mat_refl[mat, 1], mat_refl[mat, 2])
         m[h], phi[h, 0], phi[h, 1], phi[h, 2] = _gather_hit_point(
-            h, hp_radius[h], hp, shading, grid, cells, stamp)
+            h, hp_radius[h], hp, shading, (mat_bsdf, mat), grid, cells, stamp)
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _gather_hit_point(h, r, hp, shading, grid, cells, stamp):
+def _gather_hit_point(h, r, hp, shading, material, grid, cells, stamp):
     """(M, Phi) of hit point h of radius r: the columns of cells its sphere
     overlaps, in each the occupied cells (found in the bitmap, their records
     by rank), and their kept photons' distance and BRDF tests. The
@@ -388,7 +389,7 @@ def _gather_hit_point(h, r, hp, shading, grid, cells, stamp):
     hp_pos, _hp_n, hp_out, hp_weight, _hp_mat = hp
     lo, cell, dims, axes, slack, bitmap, first = grid
     c_pos, c_in, _c_n, c_flux, c_count, c_shared = cells
-    n0, n1, n2, kind, rough, refl0, refl1, refl2 = shading
+    (n0, n1, n2, kind, rough, refl0, refl1, refl2), (bsdf, mat) = shading, material
     words = (dims[2] + 63) // 64
     x, y, z = np.float64(hp_pos[h, axes[0]]), np.float64(hp_pos[h, axes[1]]), np.float64(hp_pos[h, axes[2]])
     reach = r * (1.0 + _RADIUS_SLACK) + slack
@@ -427,17 +428,17 @@ def _gather_hit_point(h, r, hp, shading, grid, cells, stamp):
                     d1 = c_pos[k, 1] - hp_pos[h, 1]
                     d2 = c_pos[k, 2] - hp_pos[h, 2]
                     if (d0 * d0 + d1 * d1 + d2 * d2 > r * r
-                            or n0 * c_in[k, 0] + n1 * c_in[k, 1] + n2 * c_in[k, 2] <= 0.0):
+                            or (n0 * c_in[k, 0] + n1 * c_in[k, 1] + n2 * c_in[k, 2] <= 0.0
+                                and kind != ROUGH_DIELECTRIC)):
                         continue    # outside the sphere, or from behind the surface (grid.py)
-                    f = eval_bsdf(kind, rough, n0, n1, n2,
-                                  hp_out[h, 0], hp_out[h, 1], hp_out[h, 2],
-                                  c_in[k, 0], c_in[k, 1], c_in[k, 2])
+                    f0, f1, f2 = gather_f(kind, rough, bsdf, mat, n0, n1, n2, hp_out[h, 0], hp_out[h, 1],
+                                          hp_out[h, 2], c_in[k, 0], c_in[k, 1], c_in[k, 2])
                     cnt = c_count[k]
                     acc_m += cnt
-                    if f > 0.0:
-                        acc0 += cnt * (f * refl0 * hp_weight[h, 0] * c_flux[k, 0])
-                        acc1 += cnt * (f * refl1 * hp_weight[h, 1] * c_flux[k, 1])
-                        acc2 += cnt * (f * refl2 * hp_weight[h, 2] * c_flux[k, 2])
+                    if f0 + f1 + f2 > 0.0:
+                        acc0 += cnt * (f0 * refl0 * hp_weight[h, 0] * c_flux[k, 0])
+                        acc1 += cnt * (f1 * refl1 * hp_weight[h, 1] * c_flux[k, 1])
+                        acc2 += cnt * (f2 * refl2 * hp_weight[h, 2] * c_flux[k, 2])
     return acc_m, acc0, acc1, acc2
 
 
@@ -511,8 +512,8 @@ class PhotonHash:
                        (L.lo, L.cell, L.dims, L.axes, L.slack, self.bitmap, self.first),
                        (self.position, self.incoming, self.normal, self.flux, self.cell_count,
                         self.cell_shared),
-                       len(self.count), (materials.kind, materials.reflectance,
-                                         materials.roughness), int(threads))
+                       len(self.count), (materials.kind, gather_tint(materials),
+                                         materials.roughness, bsdf_rows(materials)), int(threads))
 
     def cells_covered(self, hp_pos: np.ndarray, hp_radius: np.ndarray):
         """(cells overlapped, occupied cells overlapped) per hit point."""

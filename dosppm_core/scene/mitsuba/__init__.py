@@ -20,12 +20,18 @@ shape       obj, ply (filename, face_normals); rectangle; cube; sphere
             emitters) and instance (to_world, one ``<ref>`` to a group),
             flattened into copies of the group's triangles
 bsdf        diffuse (reflectance); twosided (one nested BSDF);
-            conductor (material="none", specular_reflectance) -> mirror;
-            roughconductor (distribution="ggx", alpha or alpha_u = alpha_v,
-            material="none", specular_reflectance, sample_visible) -> glossy;
+            conductor (material="none", specular_reflectance, eta, k);
+            roughconductor (distribution, alpha or alpha_u = alpha_v,
+            material="none", specular_reflectance, eta, k, sample_visible);
             dielectric (int_ior, ext_ior as numbers or Mitsuba's names;
             specular_reflectance equal to specular_transmittance) -> glass;
-            the colour of each may be a texture
+            roughdielectric (distribution ggx or beckmann, alpha, int_ior,
+            ext_ior, specular_reflectance, specular_transmittance);
+            plastic (int_ior, ext_ior, diffuse_reflectance,
+            specular_reflectance, nonlinear); roughplastic (the same plus
+            distribution and alpha); mask (constant opacity, one nested
+            BSDF); principled and principledthin are refused
+            the colour of diffuse, conductors and dielectric may be a texture
 texture     bitmap (filename: PNG, JPEG, BMP, ... or EXR; filter_type
             bilinear or nearest, wrap_mode repeat, mirror or clamp, raw,
             to_uv); checkerboard (color0, color1, to_uv); mesh_attribute
@@ -79,9 +85,10 @@ Decisions:
   coordinates (an OBJ's v turned to 1 - v, as Mitsuba's reader does), the
   built-in shapes' analytic (u, v) at their vertices, and (b1, b2) on a
   mesh without coordinates. 8-bit images are sRGB-decoded unless ``raw``.
-* roughconductor accepts only GGX. Mitsuba's default is Beckmann, so a file
-  must say ``<string name="distribution" value="ggx"/>``: swapping the lobe
-  silently would make comparisons against Mitsuba disagree.
+* conductor and roughconductor take eta and k (one value, rgb or a
+  constant spectrum; not a named material) and both distributions, Beckmann
+  being Mitsuba's default; a GGX roughconductor without eta and k is our
+  "glossy", one without them a perfect mirror's Fresnel of 1.
 * The front of a surface is its triangle winding (counter-clockwise), which
   emission and one-sided BSDFs use, and flip_normals reverses. Under a
   mirroring to_world Mitsuba keeps the front of rectangles and cubes outward

@@ -1,6 +1,9 @@
 """BSDFs to `Material`s: diffuse; twosided (one nested BSDF); conductor
-(material="none") -> mirror; roughconductor (GGX only) -> glossy;
-dielectric (one tint) -> glass. One <bsdf> object is one material; a
+(material="none") -> mirror; roughconductor (GGX) -> glossy;
+dielectric (one tint) -> glass; conductor and roughconductor with eta
+and k, or Beckmann -> their kinds; roughdielectric (GGX or Beckmann),
+plastic and roughplastic -> their kinds; mask (a constant opacity) -> its
+nested material with `opacity`. One <bsdf> object is one material; a
 shape's (bsdf, area emitter) pair becomes one builder material, since
 emission belongs to the material. The colour (reflectance, or the
 conductor's or glass's tint) may be a texture (`textures`)."""
@@ -8,9 +11,10 @@ from __future__ import annotations
 
 import dataclasses
 
+from dosppm_core.scene.mitsuba.colour import prop_rgb
 from dosppm_core.scene.mitsuba.emitters import area_radiance
 from dosppm_core.scene.mitsuba.objects import Obj
-from dosppm_core.scene.mitsuba.params import finish, get_bool, get_float
+from dosppm_core.scene.mitsuba.params import finish, get_bool, get_float, get_rgb
 from dosppm_core.scene.mitsuba.state import ReaderState
 from dosppm_core.scene.mitsuba.textures import TextureParams
 from dosppm_core.scene.model import Material
@@ -30,7 +34,9 @@ def bsdf_material(reader: ReaderState, obj: Obj) -> Material:
     """The material a <bsdf> describes: one object, one material."""
     if id(obj) not in reader.bsdfs:
         convert = {"diffuse": _diffuse, "twosided": _twosided, "conductor": _conductor,
-                   "roughconductor": _roughconductor, "dielectric": _dielectric}[obj.type]
+                   "roughconductor": _roughconductor, "dielectric": _dielectric,
+                   "roughdielectric": _roughdielectric, "plastic": _plastic,
+                   "roughplastic": _roughplastic, "mask": _mask}[obj.type]
         material = convert(reader, obj)
         finish(obj)
         material.validate(obj.where())
@@ -73,34 +79,82 @@ def _diffuse(reader: ReaderState, obj: Obj) -> Material:
 
 
 def _twosided(reader: ReaderState, obj: Obj) -> Material:
+    # Every kind takes it: the reflecting ones (plastics included) become
+    # alike on both sides; dielectrics are two-sided already.
     inner = reader.children(obj, {"bsdf"})
     if len(inner) != 1:
         obj.node.fail("needs exactly one BSDF (separate front and back BSDFs are unsupported)")
     return dataclasses.replace(bsdf_material(reader, inner[0]), name=obj.name(), two_sided=True)
 
 
+def _mask(reader: ReaderState, obj: Obj) -> Material:
+    """Mitsuba's mask: the nested BSDF with probability `opacity` (default
+    0.5), else the ray passes straight through."""
+    inner = reader.children(obj, {"bsdf"})
+    if len(inner) != 1:
+        obj.node.fail("needs exactly one nested BSDF")
+    opacity = get_float(obj, "opacity", 0.5)
+    if not 0.0 <= opacity <= 1.0:
+        obj.node.fail(f"opacity must lie in [0, 1], got {opacity}")
+    return dataclasses.replace(bsdf_material(reader, inner[0]), name=obj.name(), opacity=opacity)
+
+
 def _conductor(reader: ReaderState, obj: Obj) -> Material:
+    """Mitsuba's conductor: a perfect mirror (our "mirror") without eta and
+    k, else Fresnel of the complex index eta + i k ("conductor"). The tint
+    (specular_reflectance) may be a texture: the kernels fold its texel in
+    where the material's reflectance (white then) is read."""
     params = TextureParams(reader, obj)
     _no_metal(obj)
     colour = params.rgb("specular_reflectance", 1.0)
+    eta_k = _eta_k(obj)
     params.finish()
-    return _coloured(obj.name(), "mirror", colour, two_sided=False)
+    if eta_k is None:
+        return _coloured(obj.name(), "mirror", colour, two_sided=False)
+    return _metal(obj.name(), "conductor", colour, eta_k)
 
 
 def _roughconductor(reader: ReaderState, obj: Obj) -> Material:
+    """Mitsuba's roughconductor: our GGX "glossy" when it is GGX with a
+    Fresnel of 1 (no eta, k), else "roughconductor" (Beckmann or GGX,
+    visible normals, Fresnel of eta + i k)."""
     params = TextureParams(reader, obj)
     _no_metal(obj)
-    prop = obj.take("distribution", ("string",))
-    if prop is None or prop.value != "ggx":
-        # Mitsuba's default is Beckmann: swapping the lobe silently would make
-        # comparisons against Mitsuba disagree.
-        (prop.node if prop else obj.node).fail(
-            f"distribution {prop.value if prop else 'beckmann (Mitsuba default)'!r} is unsupported; "
-            'only GGX: add <string name="distribution" value="ggx"/>')
-    get_bool(obj, "sample_visible")       # a sampling strategy: the image is the same
+    distribution = _distribution(obj)
     colour = params.rgb("specular_reflectance", 1.0)
+    eta_k = _eta_k(obj)
     params.finish()                       # a textured alpha is refused here
-    return _coloured(obj.name(), "glossy", colour, roughness=_alpha(obj), two_sided=False)
+    if eta_k is None and distribution == "ggx":
+        return _coloured(obj.name(), "glossy", colour, roughness=_alpha(obj), two_sided=False)
+    return _metal(obj.name(), "roughconductor", colour, eta_k or ((0.0,) * 3, (1.0,) * 3),
+                  roughness=_alpha(obj), distribution=distribution)
+
+
+def _metal(name: str, kind: str, colour: tuple, eta_k, **kw) -> Material:
+    """A conductor of complex index eta + i k; a textured tint rides in
+    `texture` (the coloured kinds' `specular` then white)."""
+    rgb, texture = colour
+    return Material(name, kind, (1.0, 1.0, 1.0), specular=(1.0, 1.0, 1.0) if rgb is None else rgb,
+                    texture=texture, conductor_eta=eta_k[0], conductor_k=eta_k[1], two_sided=False, **kw)
+
+
+def _eta_k(obj: Obj):
+    """(eta, k) RGB of a conductor, or None when neither is given (Mitsuba's
+    defaults then, 0 and 1, make a perfect mirror). Values are unbounded:
+    one number, an rgb, or a constant spectrum (a spectrum list would be
+    clamped to [0, 1] as a reflectance, so it is refused)."""
+    props = [obj.take(n, ("float", "integer", "rgb", "spectrum")) for n in ("eta", "k")]
+    if props == [None, None]:
+        return None
+    out = []
+    for prop, default in zip(props, (0.0, 1.0)):
+        if prop is None:
+            out.append((default,) * 3)
+            continue
+        if prop.kind == "spectrum" and prop.value[0] != "constant":
+            prop.node.fail("a conductor's eta and k as a spectrum list are unsupported (give one value or rgb)")
+        out.append(tuple(float(c) for c in prop_rgb(prop)))
+    return out
 
 
 def _alpha(obj: Obj) -> float:
@@ -118,6 +172,47 @@ def _dielectric(reader: ReaderState, obj: Obj) -> Material:
     colour = params.same("specular_reflectance", "specular_transmittance", 1.0)
     params.finish()
     return _coloured(obj.name(), "glass", colour, ior=eta, two_sided=True)
+
+
+def _distribution(obj: Obj) -> str:
+    """Mitsuba's microfacet distribution name (its default: Beckmann)."""
+    prop = obj.take("distribution", ("string",))
+    name = "beckmann" if prop is None else prop.value.lower()
+    if name not in ("ggx", "beckmann"):
+        prop.node.fail(f"distribution {prop.value!r} is unknown (ggx or beckmann)")
+    get_bool(obj, "sample_visible")       # a sampling strategy: the image is the same
+    return name
+
+
+def _roughdielectric(reader: ReaderState, obj: Obj) -> Material:
+    reader.children(obj, ())
+    distribution = _distribution(obj)
+    eta = _ior(obj, "int_ior", "bk7") / _ior(obj, "ext_ior", "air")
+    if eta == 1.0:
+        obj.node.fail("int_ior and ext_ior must differ")
+    return Material(obj.name(), "roughdielectric", get_rgb(obj, "specular_transmittance", 1.0),
+                    ior=eta, roughness=_alpha(obj), two_sided=True, distribution=distribution,
+                    specular=get_rgb(obj, "specular_reflectance", 1.0))
+
+
+def _plastic(reader: ReaderState, obj: Obj) -> Material:
+    reader.children(obj, ())
+    eta = _ior(obj, "int_ior", "polypropylene") / _ior(obj, "ext_ior", "air")
+    return Material(obj.name(), "plastic", get_rgb(obj, "diffuse_reflectance", 0.5), ior=eta,
+                    specular=get_rgb(obj, "specular_reflectance", 1.0),
+                    nonlinear=bool(get_bool(obj, "nonlinear", False)), two_sided=False)
+
+
+def _roughplastic(reader: ReaderState, obj: Obj) -> Material:
+    reader.children(obj, ())
+    distribution = _distribution(obj)
+    eta = _ior(obj, "int_ior", "polypropylene") / _ior(obj, "ext_ior", "air")
+    if eta == 1.0:
+        obj.node.fail("int_ior and ext_ior must differ")
+    return Material(obj.name(), "roughplastic", get_rgb(obj, "diffuse_reflectance", 0.5), ior=eta,
+                    roughness=_alpha(obj), specular=get_rgb(obj, "specular_reflectance", 1.0),
+                    nonlinear=bool(get_bool(obj, "nonlinear", False)), distribution=distribution,
+                    two_sided=False)
 
 
 def _ior(obj: Obj, name: str, default: str) -> float:

@@ -18,7 +18,8 @@ OBJECT_TAGS = {"sensor", "film", "sampler", "rfilter", "integrator", "shape", "b
 VALUE_TAGS = {"float", "integer", "boolean", "string", "point", "vector", "rgb", "spectrum"}
 PLUGINS = {
     "shape": {"obj", "ply", "rectangle", "cube", "sphere", "disk", "cylinder", "shapegroup", "instance"},
-    "bsdf": {"diffuse", "twosided", "conductor", "roughconductor", "dielectric"},
+    "bsdf": {"diffuse", "twosided", "conductor", "roughconductor", "dielectric", "roughdielectric",
+             "plastic", "roughplastic", "mask"},
     "emitter": {"area", "point", "spot", "directional", "constant", "envmap", "projector"},
     "texture": {"bitmap", "checkerboard", "mesh_attribute"},
     "sensor": {"perspective", "thinlens", "orthographic"},
@@ -31,6 +32,13 @@ NORI_PLUGINS = {**PLUGINS, "shape": {"obj"}, "bsdf": {"diffuse", "conductor", "d
                 "emitter": {"area"}, "sensor": {"perspective"}, "sampler": {"independent"},
                 "integrator": {"photonmapper", "path_mis", "path_mats", "path_ems", "mipath",
                                "whitted", "direct", "direct_mis", "direct_ems", "direct_mats"}}
+# Plugins refused with a reason beyond "unsupported plugin".
+REFUSED = {
+    ("bsdf", "principled"): "the principled BSDF is unsupported (out of scope); "
+                            "roughplastic, roughconductor or roughdielectric come closest",
+    ("bsdf", "principledthin"): "the thin principled BSDF is unsupported (out of scope); "
+                                "roughdielectric or a twosided roughplastic come closest",
+}
 MAX_INCLUDE_DEPTH = 15                                  # Mitsuba's recursion limit
 
 
@@ -134,7 +142,7 @@ class Expander:
         check_attrs(node, {"type", "id", "name"} | ({"version"} if node.tag == "scene" else set()))
         kind = "scene" if node.tag == "scene" else node.attrib.get("type")
         if node.tag != "scene" and kind not in self.plugins.get(node.tag, ()):
-            node.fail("unsupported plugin")
+            node.fail(REFUSED.get((node.tag, kind), "unsupported plugin"))
         obj = Obj(node, node.tag, kind)
         ident = node.attrib.get("id")
         if ident is not None:
