@@ -9,7 +9,7 @@ import pytest
 
 from services import ledger
 from services.inproc import InProcessCluster
-from services.server import balance, state as server_state
+from services.server import balance, membership, state as server_state
 from services.server.balance import assign_chunks, busiest_share, by_work, rebalanced
 from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
 from tests.helpers.cluster import caustic_scene, settings
@@ -111,10 +111,11 @@ def test_chunks_moved_mid_render_leave_every_photon_applied_once(monkeypatch):
         moves.append(len(moves))
         ids = list(cores)
         return [[ids[(ids.index(o[0]) + 1) % len(ids)]] for o in owners]
-    monkeypatch.setattr(server_state, "rebalanced", swap)
-    monkeypatch.setattr(server_state, "HEARTBEAT_INTERVAL_S", 0.02)   # cluster time runs 10 ms a round
-    monkeypatch.setattr(server_state, "REBALANCE_INTERVAL_S", 0.05)
-    monkeypatch.setattr(server_state, "FIRST_REBALANCE_S", 0.05)
+    monkeypatch.setattr(membership, "rebalanced", swap)
+    for module in (server_state, membership):       # cluster time runs 10 ms a round
+        monkeypatch.setattr(module, "HEARTBEAT_INTERVAL_S", 0.02)
+    monkeypatch.setattr(membership, "REBALANCE_INTERVAL_S", 0.05)
+    monkeypatch.setattr(membership, "FIRST_REBALANCE_S", 0.05)
     scene = caustic_scene()
     provider = MemoryChunks(scene, uniform_tree(root_box(scene), (2, 2, 1)))
     c = InProcessCluster(provider, dataclasses.replace(settings(), photon_batch=40_000), tracers=2)
