@@ -187,6 +187,16 @@ DEEP_DEPTH = 8
 DEEP_SURVIVAL = 0.9
 
 
+@nb.njit(cache=True, error_model="numpy")
+def tinted(t0, t1, t2, texture, uvs, tris, tinfo, tuv, texels, tri, u, v):
+    """A bounce's throughput t times the texel at the hit when its material
+    is textured (`texture` >= 0; its reflectance row is white then)."""
+    if texture < 0:
+        return t0, t1, t2
+    x0, x1, x2 = texel_at(uvs, tris, tinfo, tuv, texels, texture, tri, u, v)
+    return t0 * x0, t1 * x1, t2 * x2
+
+
 @nb.njit(inline="always", cache=True, error_model="numpy")
 def roulette(flux, i, t0, t1, t2, ur, depth):
     """Russian roulette on the scattered flux (or an eye path's weight)
@@ -289,9 +299,8 @@ def scatter_photons(rays, hits, surf, cull_box, max_depth, deposit_from, eps_rel
 @nb.njit(inline="always", cache=True, error_model="numpy")
 def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, eps_rel, end, culled,
                    dep, nxt):
-    """The photon bounce of rows [a, e): deposits and continuing paths are
-    written densely from row a. Returns where each ended (dc, gc). The
-    tuples are unpacked here, once per block, not per ray in the helpers."""
+    """The photon bounce of rows [a, e), deposits and continuing paths written densely
+    from row a; returns (dc, gc). Tuples unpacked once per block, not per ray."""
     direction, flux, depth, states, job, pixel = rays
     (verts, tris, tri_mat, kinds, refl, _emit, ior, rough, two_sided, eps_abs, bsdf,
      uvs, mtex, tinfo, tuv, texels) = surf
@@ -337,9 +346,7 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
         if not ok:
             end[i] = ABSORBED
             continue
-        if mtex[m] >= 0:    # the texel tints the throughput (a textured material's row is white)
-            x0, x1, x2 = texel_at(uvs, tris, tinfo, tuv, texels, mtex[m], tri, u[i], v[i])
-            t0, t1, t2 = t0 * x0, t1 * x1, t2 * x2
+        t0, t1, t2 = tinted(t0, t1, t2, mtex[m], uvs, tris, tinfo, tuv, texels, tri, u[i], v[i])
         ok, f0, f1, f2 = roulette(flux, i, t0, t1, t2, ur, depth[i])
         if not ok:
             end[i] = ABSORBED
@@ -478,8 +485,7 @@ def _take_rows(a, idx):
 
 @nb.njit(cache=True, error_model="numpy")
 def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp, nxt):
-    """The eye bounce of rows [a, e), each written to its own row."""
-    # The tuples are unpacked here, once per block, not per ray in the helpers.
+    """The eye bounce of rows [a, e), each written to its own row. Tuples unpacked once per block."""
     direction, weight, depth, states = rays
     (verts, tris, tri_mat, kinds, refl, emit, ior, rough, two_sided, eps_abs, bsdf,
      uvs, mtex, tinfo, tuv, texels) = surf
@@ -530,9 +536,7 @@ def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp,
         # with it the depth limit is only a safety net. It decides on the
         # throughput alone, not the eta^2 of refraction (pbrt's etaScale):
         # that factor leaving glass would kill 56% of the paths through it.
-        if mtex[m] >= 0:    # the texel tints the throughput (a textured material's row is white)
-            x0, x1, x2 = texel_at(uvs, tris, tinfo, tuv, texels, mtex[m], tri, u[i], v[i])
-            t0, t1, t2 = t0 * x0, t1 * x1, t2 * x2
+        t0, t1, t2 = tinted(t0, t1, t2, mtex[m], uvs, tris, tinfo, tuv, texels, tri, u[i], v[i])
         ok, f0, f1, f2 = roulette(weight, i, t0, t1, t2, ur, depth[i])
         if not ok:
             end[i] = ABSORBED
