@@ -130,6 +130,34 @@ def test_a_tile_outside_the_image_is_refused_whole_with_one_line():
         no_seed.close()
 
 
+def test_the_eye_rays_are_made_with_the_renders_camera_not_the_stores():
+    """`dosppm render --width 64` renders a store whose header keeps the
+    scene's own resolution: the tracer makes the rays with the camera the
+    server's welcome sends (the node passes it as `header`)."""
+    provider = _cut_provider()
+    cam = provider.header.camera
+    header = dataclasses.replace(provider.header, camera=dataclasses.replace(cam, width=32, height=24))
+    t = TracerState("inproc://a", provider, 10, seed=7, header=header)
+    try:
+        t.set_peers(1, [["inproc://a"], ["inproc://a"]])
+        one = np.ones(1, np.int64)
+        out = t.eye_tiles(0, one, np.array([0]), np.array([32 * 24]), (one, 0 * one))
+        queued = [p.batch for k in (0, 1) if k in t.schedule.queues for _, _, p in t.schedule.pop(k).items()]
+        past = dict(eye_iteration=0, job_ids=one, pixel_starts=np.array([0]), counts=np.array([32 * 24 + 1]),
+                    credit_job=one, credit_exp=0 * one)
+        refused = t.handle(_over_the_wire("eye_job", past))
+    finally:
+        t.close()
+    made = RayBatch.concat(queued)
+    want = eye_ray_job(header, 7, 0, 0, 32 * 24)
+    assert int(out[0].fields["ends"][ESCAPED]) + len(made) == 32 * 24
+    order = np.argsort(made.pixel, kind="stable")
+    rows = made.pixel[order]
+    assert np.array_equal(made.direction[order], want.direction[rows])
+    assert not np.array_equal(want.direction, eye_ray_job(provider.header, 7, 0, 0, 32 * 24).direction)
+    assert [o.type for o in refused] == ["error"] and "768" in refused[0].fields["reason"]
+
+
 def _eye_jobs_sent(c, monkeypatch) -> tuple[list, list]:
     """Watch the cluster: (eye job ids sent, eye jobs completed), in order."""
     sent, completed = [], []
@@ -155,28 +183,42 @@ def _assert_exact(c, provider, sent, completed) -> None:
     assert ledger.check(provider, c.statistics.ledger.records) == []
 
 
-def test_a_tracer_serving_none_of_the_cameras_chunks_forwards_every_eye_ray_and_each_eye_job_completes_once(
-        monkeypatch):
-    """The camera's rays all start in chunk 0 (the front half), which t0
-    serves; every tile is sent to t1, which serves only chunk 1. It makes
-    every eye ray and passes each on to t0."""
+def _front_and_back(tile_chunk: int | None = None) -> InProcessCluster:
+    """2 tracers on the caustic scene cut into front (chunk 0, t0's: every
+    camera ray starts there) and back (chunk 1, t1's); `tile_chunk`: the
+    chunk every tile is sent for instead of its own."""
     scene = caustic_scene()
     provider = MemoryChunks(scene, uniform_tree(root_box(scene), (1, 1, 2)))
     c = InProcessCluster(provider, dataclasses.replace(settings(5), photon_batch=20_000), tracers=2)
     assert set(c.server.tile_chunks) == {0} and c.server.owners == [["t0"], ["t1"]]
-    c.server.tile_chunks = [1] * len(c.server.tile_chunks)
-    sent, completed = _eye_jobs_sent(c, monkeypatch)
-    try:
-        c.run(photons=90_000)
-    finally:
-        c.close()
-    made = {tid: t.counters["eye_rays_made"] for tid, t in c.tracers.items()}
-    pixels = c.server.n_pixels
-    assert {dest for dest, _ in sent} == {"t1"}
-    assert made["t0"] == 0 and made["t1"] == c.server.eye_started * pixels
-    assert c.tracers["t1"].counters["portal_rays_out"] >= made["t1"]
-    assert c.server.eye_completed >= 2
-    _assert_exact(c, provider, sent, completed)
+    if tile_chunk is not None:
+        c.server.tile_chunks = [tile_chunk] * len(c.server.tile_chunks)
+    return c
+
+
+def test_a_tracer_serving_none_of_the_cameras_chunks_forwards_every_eye_ray_and_each_eye_job_completes_once(
+        monkeypatch):
+    """Every tile is sent to t1, which serves none of the chunks the
+    camera's rays start in: it makes every eye ray and passes each on to
+    t0. Every eye job completes once, and the image is bit for bit the one
+    made when t0 makes the rays (the same rays, in the same packages)."""
+    images = []
+    for tile_chunk in (1, None):
+        c = _front_and_back(tile_chunk)
+        sent, completed = _eye_jobs_sent(c, monkeypatch)
+        try:
+            c.run(photons=90_000)
+        finally:
+            c.close()
+        made = {tid: t.counters["eye_rays_made"] for tid, t in c.tracers.items()}
+        maker = "t1" if tile_chunk == 1 else "t0"
+        assert {dest for dest, _ in sent} == {maker} and sum(made.values()) == made[maker]
+        assert made[maker] == c.server.eye_started * c.server.n_pixels and c.server.eye_completed >= 2
+        if maker == "t1":
+            assert c.tracers["t1"].counters["portal_rays_out"] >= made["t1"]
+        _assert_exact(c, c.store, sent, completed)
+        images.append(np.asarray(c.image()))
+    assert images[0].tobytes() == images[1].tobytes()
 
 
 def test_an_orthographic_cameras_tiles_go_to_the_chunks_they_start_in_and_tiles_missing_the_scene_complete():

@@ -85,13 +85,17 @@ class TracerState:
     def __init__(self, endpoint: str, provider, max_depth: int, memory_bytes: float | None = None,
                  threads: int = 1, step_rays: int = STEP_RAYS, direct: str = "nee",
                  queue_memory_bytes: float | None = None, light_cache: int = LIGHT_CACHE_BYTES,
-                 clock=time.perf_counter, seed: int | None = None):
+                 clock=time.perf_counter, seed: int | None = None, header=None):
         """`clock`: seconds, for the scheduler's waits and dwells (a cluster
         in one process passes its own, so its runs repeat exactly).
         `seed`: the render's (the welcome's settings), which photon jobs'
-        photons are made from; None: this tracer takes no photon jobs."""
+        photons and eye tiles' rays are made from; None: this tracer takes
+        no jobs. `header`: the render's scene header (the welcome's), whose
+        camera the eye rays are made with: the store's may have another
+        resolution (`--width`, `--height`); None: the provider's."""
         self.endpoint, self.provider, self.max_depth = endpoint, provider, int(max_depth)
         self.seed = seed
+        self.header = provider.header if header is None else header
         # Direct light by shadow rays ('nee'): photons deposit from their
         # second surface on. 'photons': the paper's pure estimator.
         self.deposit_from = 1 if direct == "nee" else 0
@@ -259,7 +263,7 @@ class TracerState:
         the packages do not carry."""
         if self.seed is None:
             raise ValueError("this tracer was not given the render's seed")
-        header = self.provider.header
+        header = self.header
         n_pixels = int(header.camera.width) * int(header.camera.height)
         ends_at = np.asarray(pixel_starts, np.int64) + np.asarray(counts, np.int64)
         if len(ends_at) and ends_at.max() > n_pixels:
