@@ -346,14 +346,6 @@ def _check_credit(f: dict) -> str | None:
     return None
 
 
-def _check_photon_job(f: dict) -> str | None:
-    return _check_jobs(f, "rng_keys", "ids and keys")
-
-
-def _check_eye_job(f: dict) -> str | None:
-    return _check_jobs(f, "pixel_starts", "ids and pixel starts")
-
-
 def _check_jobs(f: dict, keys_field: str, what: str) -> str | None:
     """A job message's jobs (photon_job, eye_job): each made by the tracer
     from its key and count, so the counts bound what it allocates."""
@@ -472,11 +464,11 @@ _SPECS = (
     Spec("photon_job", _S2T, {},
          (plain("jobs", ("job_ids", np.int64, (), None), ("rng_keys", np.int64, (), None),
                 ("counts", np.int64, (), None)), _cull_box(), _credit()),
-         check=_check_photon_job),
+         check=lambda f: _check_jobs(f, "rng_keys", "ids and keys")),
     Spec("eye_job", _S2T, {"eye_iteration": INT},
          (plain("tiles", ("job_ids", np.int64, (), None), ("pixel_starts", np.int64, (), None),
                 ("counts", np.int64, (), None)), _credit()),
-         check=_check_eye_job),
+         check=lambda f: _check_jobs(f, "pixel_starts", "ids and pixel starts")),
     Spec("chunk_data", _S2T, {"chunk": INT, "sha256": _Hex(), "part": INT, "parts": _Int(1),
                               "offset": INT, "file_bytes": INT},
          (plain("data", ("data", np.uint8, (), None)),), check=_check_chunk_data),
