@@ -21,9 +21,11 @@ from fractions import Fraction
 
 import numpy as np
 
+import dosppm_core as dp
+
 from dosppm_core.chunks.view import start_chunks
 from dosppm_core.jobs import ESCAPED, RayBatch
-from dosppm_core.trace import eye_ray_job
+from dosppm_core.trace import environment, escaped_light, eye_ray_job
 from services import ledger, wire
 from services.inproc import InProcessCluster
 from services.server.balance import tile_chunks
@@ -96,7 +98,8 @@ def test_a_tracer_makes_bit_for_bit_the_eye_rays_the_server_sent_and_returns_the
     # The emission's results: every ray fed, those in a chunk went on, the
     # others escaped; no hit points. And the credit is all there, once.
     r = _over_the_wire("results", results[0])
-    assert r.chunk is None and r.hits is None and r.deposits is None
+    assert r.chunk is None and r.eye_iteration == 3 and not len(r.hits) and r.deposits is None
+    assert not len(r.emitted_pixels)                        # no environment to see
     assert r.job_ids.tolist() == ids.tolist() and r.job_fed.tolist() == counts.tolist()
     assert int((r.job_fed - r.job_left).sum()) == lost == int(r.ends[ESCAPED]) == int(r.ends.sum())
     forwarded = (portal[0].fields["credit_job"], portal[0].fields["credit_exp"])
@@ -156,6 +159,44 @@ def test_the_eye_rays_are_made_with_the_renders_camera_not_the_stores():
     assert np.array_equal(made.direction[order], want.direction[rows])
     assert not np.array_equal(want.direction, eye_ray_job(provider.header, 7, 0, 0, 32 * 24).direction)
     assert [o.type for o in refused] == ["error"] and "768" in refused[0].fields["reason"]
+
+
+def _sky_scene(tmp_path):
+    """A diffuse sphere under a constant sky: the rays around it miss the
+    scene's box and see the sky."""
+    path = tmp_path / "sky.xml"
+    path.write_text("""<scene version="3.0.0">
+        <emitter type="constant"><rgb name="radiance" value="0.8, 0.9, 1.0"/></emitter>
+        <sensor type="perspective"><float name="fov" value="35"/>
+            <transform name="to_world"><lookat origin="0, 0.3, 4" target="0, 0, 0" up="0, 1, 0"/></transform>
+            <film type="hdrfilm"><integer name="width" value="32"/><integer name="height" value="32"/></film>
+        </sensor>
+        <shape type="sphere"><float name="radius" value="0.8"/>
+            <bsdf type="diffuse"><rgb name="reflectance" value="0.5"/></bsdf></shape>
+    </scene>""")
+    return dp.load(str(path))
+
+
+def test_eye_rays_missing_the_scene_bring_the_sky_in_the_tracers_results(tmp_path):
+    """What the server added itself before: the environment the rays
+    missing the scene see, per pixel, now in the results of the tracer
+    that made them (the library's `escaped_light` of those rays)."""
+    scene = _sky_scene(tmp_path)
+    provider = MemoryChunks(scene, uniform_tree(root_box(scene), (1, 1, 1)))
+    t = TracerState("inproc://a", provider, 10, seed=3)
+    try:
+        t.set_peers(1, [["inproc://a"]])
+        ids = np.array([7, 8], np.int64)
+        out = t.eye_tiles(2, ids, np.array([0, 512]), np.array([512, 512]), (ids, 0 * ids))
+    finally:
+        t.close()
+    r = _over_the_wire("results", out[0].fields)
+    rays = RayBatch.concat([eye_ray_job(provider.header, 3, 2, s, 512) for s in (0, 512)])
+    _routed, lost = start_chunks(provider.tree, rays, keep_lost=True)
+    pixels, rgb = escaped_light(environment(scene.lights), lost)
+    assert r.eye_iteration == 2 and 0 < len(lost) == int(r.ends[ESCAPED]) < 1024
+    assert r.emitted_pixels.tolist() == pixels.tolist() and np.array_equal(r.emitted_rgb, rgb)
+    assert (rgb > 0.5).all()
 
 
 def _eye_jobs_sent(c, monkeypatch) -> tuple[list, list]:

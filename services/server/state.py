@@ -50,7 +50,7 @@ import numpy as np
 from dosppm_core.chunks.pacing import default_queue_memory, eye_iterations_in_flight
 from dosppm_core.jobs import END_NAMES
 from dosppm_core.settings import RenderSettings
-from dosppm_core.trace import NO_CULL, environment
+from dosppm_core.trace import NO_CULL
 from services.credit import by_job
 from services.server.balance import light_chunks, tile_chunks
 from services.server.emission import EmissionMixin
@@ -93,7 +93,6 @@ class ServerState(MembershipMixin, EmissionMixin, EyeScheduleMixin, EpochStateMi
             if getattr(settings, name) > MAX_EMITTED:
                 raise ValueError(f"{name} must be at most {MAX_EMITTED:,} in the service")
         self.header, self.tree, self.settings = header, tree, settings
-        self._env = environment(header.lights)     # what eye rays missing the scene see
         self.store_key, self.manifest = store_key, manifest
         self.min_photon_jobs, self.queue_target = int(o.min_photon_jobs), int(o.queue_target_rays)
         self.min_tracers, self.min_tracers_timeout_s = int(o.min_tracers), o.min_tracers_timeout_s

@@ -33,12 +33,12 @@ import numpy as np
 from dosppm_core.chunks import pacing
 from dosppm_core.chunks.cache import ChunkCache
 from dosppm_core.chunks.schedule import EYE, PHOTON, SHADOW, ChunkScheduler
-from dosppm_core.chunks.view import (located_photons, start_chunks, trace_eye_in_chunk,
+from dosppm_core.chunks.view import (located_photons, start_chunks, start_eye_paths, trace_eye_in_chunk,
                                      trace_photons_in_chunk, trace_shadows_in_chunk)
 from dosppm_core.jobs import END_NAMES, ESCAPED, HitPoints, RayBatch, ShadowRays, paths_per_job
 from dosppm_core.kernels.light_cache import LightCache, share_of_memory
 from dosppm_core.settings import LIGHT_CACHE_BYTES
-from dosppm_core.trace import eye_ray_job, light_arrays
+from dosppm_core.trace import environment, eye_ray_job, light_arrays
 from services.credit import split as split_credit
 from services.wire import Out
 
@@ -96,6 +96,7 @@ class TracerState:
         self.endpoint, self.provider, self.max_depth = endpoint, provider, int(max_depth)
         self.seed = seed
         self.header = provider.header if header is None else header
+        self.env = environment(self.header.lights)     # what eye rays missing the scene see
         # Direct light by shadow rays ('nee'): photons deposit from their
         # second surface on. 'photons': the paper's pure estimator.
         self.deposit_from = 1 if direct == "nee" else 0
@@ -260,7 +261,7 @@ class TracerState:
         `emit` sends photons: queued for chunks this tracer serves, portal
         packages for the others, and the rays that miss the scene ended
         here, escaped, in the results (chunk None) that return the credit
-        the packages do not carry."""
+        the packages do not carry, with the environment light they see."""
         if self.seed is None:
             raise ValueError("this tracer was not given the render's seed")
         header = self.header
@@ -270,14 +271,15 @@ class TracerState:
             raise ValueError(f"field 'pixel_starts' + 'counts' reaches pixel {int(ends_at.max())}, "
                              f"past the image's {n_pixels}")
         parts: dict[int, list[RayBatch]] = {}
-        lost, jobs = 0, []
+        lost, jobs, seen = 0, [], []
         for j, start, count in zip(np.asarray(job_ids).tolist(), np.asarray(pixel_starts).tolist(),
                                    np.asarray(counts).tolist()):
             batch = eye_ray_job(header, self.seed, eye_iteration, start, count)
             batch.job[:] = j
             jobs.append(batch.job)
-            routed, missed = start_chunks(self.provider.tree, batch)
+            routed, missed, light = start_eye_paths(self.provider.tree, batch, self.env)
             lost += missed
+            seen.append(light)
             for k, part in routed.items():
                 parts.setdefault(k, []).append(part)
         if not jobs:
@@ -285,8 +287,10 @@ class TracerState:
         self.counters["eye_rays_made"] += int(np.sum(counts))
         ends = np.zeros(len(END_NAMES), np.int64)
         ends[ESCAPED] = lost
-        return self._send_on(np.concatenate(jobs), credit, dict(chunk=None, ends=ends), [(EYE, parts)],
-                             eye_iteration=eye_iteration)
+        fields = dict(chunk=None, ends=ends, eye_iteration=eye_iteration, hits=HitPoints.empty(),
+                      emitted_pixels=np.concatenate([p for p, _ in seen]),
+                      emitted_rgb=np.concatenate([rgb for _, rgb in seen]))
+        return self._send_on(np.concatenate(jobs), credit, fields, [(EYE, parts)], eye_iteration=eye_iteration)
 
     @property
     def queued_rays(self) -> int:
