@@ -50,11 +50,13 @@ eye_iteration when they carry hits or emitted light; a photon portal_rays
 has a cull box and no eye_iteration, an eye one the reverse; chunk_data
 has part < parts and its bytes inside file_bytes; a photon_job has
 distinct job ids, ids and keys >= 0, counts >= 1 summing to at most
-MAX_EMITTED, and one credit term per job. Nothing else escapes
+MAX_EMITTED, and one credit term per job; an eye_job the same, with
+pixel starts >= 0 for keys. Nothing else escapes
 `decode`: callers answer a WireError with `error_reply` and a log line
 (`transport.Socket.recv_or_reply` does both) and carry on. Semantic
-ranges the wire cannot know (pixel < width * height, chunk < chunk count,
-material index) are checked by the role that knows them.
+ranges the wire cannot know (pixel < width * height, an eye_job's tiles
+inside the image, chunk < chunk count, material index) are checked by the
+role that knows them.
 
 Only `error` and `refused` decode whatever the version, as long as it is an
 int: their fields are frozen, so a peer speaking another version can still
@@ -88,7 +90,10 @@ Messages
                      the tracer makes (seed, rng key, count); cull_box f64
                      (2, 3), credit (credit_job + credit_exp i64: one term
                      per job)
-      eye_job        eye_iteration, chunk, batch, credit
+      eye_job        eye_iteration; job_ids + pixel_starts + counts i64 (n,):
+                     tiles whose eye rays the tracer makes (seed, eye
+                     iteration, pixels [start, start + count)), credit
+                     (one term per job)
       chunk_data     chunk, sha256, part, parts, offset, file_bytes, data u8
       heartbeat, shutdown (reason)
       hit_points     hits_version (the eye iteration), hits: HitPoints, in the
@@ -127,17 +132,19 @@ import numpy as np
 from dosppm_core.jobs import CONTINUES, END_NAMES, HitPoints, PhotonDeposits, RayBatch, ShadowRays
 from services import credit
 
-PROTOCOL_VERSION = 5   # 2: shadow rays (portal_rays kind 'shadow'); 3: credit (services/credit.py);
+PROTOCOL_VERSION = 6   # 2: shadow rays (portal_rays kind 'shadow'); 3: credit (services/credit.py);
                        # 4: photon jobs as (id, rng key, count), emitted by the tracer;
-                       # 5: the gather at the tracers (hit_points, gather, drop_epoch, epoch_sums)
+                       # 5: the gather at the tracers (hit_points, gather, drop_epoch, epoch_sums);
+                       # 6: eye jobs as tiles (id, pixel start, count), their rays made by the tracer
 
 # -- policy ---------------------------------------------------------------------
 MAX_ELEMENTS = 1 << 28           # per array: sanity cap on a declared size
 MAX_FRAME_BYTES = MAX_ELEMENTS * 8   # the largest frame a socket takes (transport's MAXMSGSIZE)
 CHUNK_PART_BYTES = 16 << 20      # chunk_data splits chunk files into parts this big
-# Photons one photon_job may ask a tracer to make: its message is a few
-# bytes, the rays 64 B each (4M: 256 MB), so the cap bounds what a
-# message can make a tracer allocate, as MAX_ELEMENTS does for arrays.
+# Paths one job message (photon_job, eye_job) may ask a tracer to make: its
+# message is a few bytes, the rays 64 B each (4M: 256 MB), so the cap
+# bounds what a message can make a tracer allocate, as MAX_ELEMENTS does
+# for arrays.
 MAX_EMITTED = 1 << 22
 # The rounds of an epoch's gather at the tracers (services/tracer/epochs.py).
 GATHER_PHASES = ("count", "pilot", "sums")
@@ -339,13 +346,15 @@ def _check_credit(f: dict) -> str | None:
     return None
 
 
-def _check_photon_job(f: dict) -> str | None:
+def _check_jobs(f: dict, keys_field: str, what: str) -> str | None:
+    """A job message's jobs (photon_job, eye_job): each made by the tracer
+    from its key and count, so the counts bound what it allocates."""
     problem = _check_credit(f)
     if problem:
         return problem
-    ids, keys, counts = f["job_ids"], f["rng_keys"], f["counts"]
+    ids, keys, counts = f["job_ids"], f[keys_field], f["counts"]
     if (ids < 0).any() or (keys < 0).any():
-        return "fields 'job_ids'/'rng_keys' need ids and keys >= 0"
+        return f"fields 'job_ids'/'{keys_field}' need {what} >= 0"
     if (counts < 1).any() or (counts > MAX_EMITTED).any() or int(counts.sum()) > MAX_EMITTED:
         return f"field 'counts' needs counts >= 1 summing to at most {MAX_EMITTED}"
     if len(np.unique(ids)) != len(ids):
@@ -455,9 +464,11 @@ _SPECS = (
     Spec("photon_job", _S2T, {},
          (plain("jobs", ("job_ids", np.int64, (), None), ("rng_keys", np.int64, (), None),
                 ("counts", np.int64, (), None)), _cull_box(), _credit()),
-         check=_check_photon_job),
-    Spec("eye_job", _S2T, {"eye_iteration": INT, "chunk": INT}, (record("batch", RayBatch), _credit()),
-         check=_check_credit),
+         check=lambda f: _check_jobs(f, "rng_keys", "ids and keys")),
+    Spec("eye_job", _S2T, {"eye_iteration": INT},
+         (plain("tiles", ("job_ids", np.int64, (), None), ("pixel_starts", np.int64, (), None),
+                ("counts", np.int64, (), None)), _credit()),
+         check=lambda f: _check_jobs(f, "pixel_starts", "ids and pixel starts")),
     Spec("chunk_data", _S2T, {"chunk": INT, "sha256": _Hex(), "part": INT, "parts": _Int(1),
                               "offset": INT, "file_bytes": INT},
          (plain("data", ("data", np.uint8, (), None)),), check=_check_chunk_data),

@@ -81,8 +81,8 @@ def _feed(server, tracer, msg) -> None:
         outs = server.on_register("fuzz", msg, now)
     elif msg.type in ("heartbeat", "results", "chunk_request", "error"):
         outs = server.on_message("t", msg, now)
-    elif msg.type == "photon_job" and msg.counts.sum() > 100_000:
-        outs = []      # valid, but making that many photons would only slow the fuzzing down
+    elif msg.type in ("photon_job", "eye_job") and msg.counts.sum() > 100_000:
+        outs = []      # valid, but making that many paths would only slow the fuzzing down
     elif msg.type in ("photon_job", "eye_job", "portal_rays"):
         try:
             outs = tracer.handle(msg)

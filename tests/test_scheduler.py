@@ -85,8 +85,8 @@ def _results(job_ids, job_ended, deposits_job=(), credit=()):
 
 
 def _rays(o) -> int:
-    """Rays a job message sends: an eye job's batch, a photon job's counts."""
-    return int(o.fields["counts"].sum()) if o.type == "photon_job" else len(o.fields["batch"])
+    """Rays a job message has the tracer make: its photon jobs' or tiles' counts."""
+    return int(o.fields["counts"].sum())
 
 
 def _shares(out, j):
@@ -146,7 +146,7 @@ def test_a_tracer_that_does_not_report_gets_no_more_than_its_credit(state):
     # Eye tiles are not held back (hit points gate everything); photons
     # stop at the credit, overshooting by at most one job, and nothing
     # more goes out without a report.
-    assert 0 < sent["eye_job"] <= 32 * 32        # rays missing the scene box are not sent
+    assert sent["eye_job"] == 32 * 32            # every pixel's ray, made at the tracer
     assert 4096 <= sum(sent.values()) <= 4096 + 512
     assert state.photon_jobs_in_flight >= state.min_photon_jobs
 
@@ -246,14 +246,16 @@ def _beat(state, tid, now, **status):
     return state.on_message(tid, _msg("heartbeat", status=status), now)
 
 
-def test_job_messages_an_idle_tracer_never_got_are_re_emitted_at_once(state):
+def test_job_messages_an_idle_tracer_never_got_are_re_emitted_at_once(state, monkeypatch):
     """Job messages lost with a connection libzmq replaced: the tracer's
     heartbeats acknowledge fewer than were sent, it is idle, and the oldest
     unacknowledged one is JOB_MESSAGE_LOST_S old, so it is welcomed again
     (a new session) and the jobs in flight are re-emitted, long before the
     30 s watchdog. A busy tracer, or one that acknowledged everything, is
     left alone."""
+    from services.server import eye_schedule
     from services.server.membership import JOB_MESSAGE_LOST_S
+    monkeypatch.setattr(eye_schedule, "EYE_RAYS_PER_MESSAGE", 256)     # a message per tile: several sent
     _register(state, "a")
     state.cull_box = np.array([[-1e9] * 3, [1e9] * 3])
     state.eye_completed = 1

@@ -64,8 +64,8 @@ def test_router_dealer_round_trip_of_a_million_rays(ctx, endpoint):
 
     # Small frames can arrive at odd offsets of libzmq's receive buffer
     # (tcp); decode copies those, since numba wants aligned arrays.
-    small = sample_fields("eye_job", 3, np.random.default_rng(5))
-    server.send(encode("eye_job", **small), prefix)
+    small = sample_fields("portal_rays", 3, np.random.default_rng(5), variant=1)
+    server.send(encode("portal_rays", **small), prefix)
     _, job = _recv(tracer)
     assert_same_message(small, job)
     assert all(a.flags.aligned for a in job.batch.arrays().values())

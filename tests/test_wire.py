@@ -45,7 +45,7 @@ def sample_fields(msg_type: str, n: int, rng: np.random.Generator, variant: int 
     picks which optional parts a results message carries (and the kind
     of a portal package: 0, 2 photon, 1 eye, 3 shadow)."""
     fields = _sample_fields(msg_type, n, rng, variant)
-    if msg_type in ("results", "eye_job", "portal_rays"):
+    if msg_type in ("results", "portal_rays"):
         fields.update(credit_job=rng.integers(0, 1000, n % 4, dtype=np.int64),
                       credit_exp=rng.integers(0, 300, n % 4, dtype=np.int64))
     return fields
@@ -93,8 +93,11 @@ def _sample_fields(msg_type: str, n: int, rng: np.random.Generator, variant: int
         return dict(job_ids=ids, rng_keys=rng.integers(0, 1 << 62, n, dtype=np.int64),
                     counts=rng.integers(1, 1 << 14, n, dtype=np.int64), cull_box=box,
                     credit_job=rng.permutation(ids), credit_exp=rng.integers(0, 300, n, dtype=np.int64))
-    if msg_type == "eye_job":
-        return dict(eye_iteration=5, chunk=0, batch=batch)
+    if msg_type == "eye_job":          # tiles: one credit term per job
+        ids = rng.choice(1 << 40, n, replace=False).astype(np.int64)
+        return dict(eye_iteration=5, job_ids=ids, pixel_starts=rng.integers(0, 1 << 20, n, dtype=np.int64),
+                    counts=rng.integers(1, 1 << 14, n, dtype=np.int64), credit_job=rng.permutation(ids),
+                    credit_exp=rng.integers(0, 300, n, dtype=np.int64))
     if msg_type == "chunk_data":
         data = rng.integers(0, 256, n, dtype=np.uint8)
         return dict(chunk=3, sha256=hashlib.sha256(data).hexdigest(), part=0, parts=1, offset=0,
@@ -200,8 +203,8 @@ def test_records_come_back_as_library_classes():
 
 def test_encode_is_zero_copy_on_the_senders_arrays():
     batch = random_record(RayBatch, 1000, np.random.default_rng(2))
-    frames = encode("eye_job", eye_iteration=0, chunk=0, batch=batch, credit_job=np.zeros(1, np.int64),
-                    credit_exp=np.zeros(1, np.int64))
+    frames = encode("portal_rays", kind="eye", eye_iteration=0, chunk=0, batch=batch,
+                    credit_job=np.zeros(1, np.int64), credit_exp=np.zeros(1, np.int64))
     for col, view in zip(RayBatch.SCHEMA, frame_views(frames)):
         assert np.shares_memory(view, getattr(batch, col)), col
 
@@ -387,6 +390,24 @@ CASES = {
                                ["photon_job", "'chunk'", "not part of the message"]),
     "photon job without a box": (("photon_job", 0, lambda h, f: _drop_array("cull_box")(h, f)),
                                  ["photon_job", "'cull_box'", "missing"]),
+    "eye job of no pixels": (_poison("counts", 0, "eye_job", row=1), ["eye_job", "'counts'", ">= 1"]),
+    "eye job past the cap": (_poison("counts", wire.MAX_EMITTED, "eye_job"),
+                             ["eye_job", "'counts'", f"at most {wire.MAX_EMITTED}"]),
+    "eye job's negative pixel": (_poison("pixel_starts", -4, "eye_job", row=2),
+                                 ["eye_job", "'pixel_starts'"]),
+    "eye job's negative id": (_poison("job_ids", -1, "eye_job"), ["eye_job", "'job_ids'"]),
+    "eye job's tile twice": (("eye_job", 0, _copy_row("job_ids", 0, 3)), ["eye_job", "'job_ids'", "twice"]),
+    "eye job's credit for another job": (_poison("credit_job", 12345, "eye_job"),
+                                         ["eye_job", "'credit_job'", "one term per job"]),
+    "eye job's credit missing a tile": (("eye_job", 0, _first_rows(3, "credit_job", "credit_exp")),
+                                        ["eye_job", "'credit_job'", "one term per job"]),
+    "eye job's unequal columns": (("eye_job", 0, lambda h, f: _set_array(h, f, "counts",
+                                                                          np.ones(3, np.int64))),
+                                  ["eye_job", "'counts'", "3 rows", "tiles has 4"]),
+    "eye job's old batch": (("eye_job", 0, lambda h, f: h.update(chunk=1)),
+                            ["eye_job", "'chunk'", "not part of the message"]),
+    "eye job without an iteration": (_header_edit(lambda h: h.pop("eye_iteration"), "eye_job"),
+                                     ["eye_job", "'eye_iteration'", "missing"]),
     "gather's jobs out of order": (("gather", 0, _copy_row("job_ids", 0, 3)), ["gather", "'job_ids'", "increasing"]),
     "gather's zero radius": (_poison("radius", 0.0, "gather", row=1), ["gather", "'radius'", "> 0"]),
     "gather's NaN box": (_poison("job_boxes", np.nan, "gather"), ["gather", "'job_boxes'", "NaN"]),
@@ -443,10 +464,10 @@ def test_decode_refuses_types_a_role_does_not_take():
     (dict(batch=RayBatch.empty(), chunk=None), ["'chunk'"]),
 ])
 def test_encode_refuses_what_decode_would(fields, words):
-    args = dict(eye_iteration=0, chunk=0) | fields
+    args = dict(kind="eye", eye_iteration=0, chunk=0) | fields
     with pytest.raises(WireError) as info:
-        encode("eye_job", **args)
-    assert all(w in str(info.value) for w in ["eye_job", *words]), str(info.value)
+        encode("portal_rays", **args)
+    assert all(w in str(info.value) for w in ["portal_rays", *words]), str(info.value)
 
 
 def test_encode_wants_both_emitted_arrays():
@@ -462,7 +483,7 @@ def test_encode_takes_numpy_scalars_and_missing_nullable_fields():
     msg = decode(encode("register", tracer_id="t", capacity={"cores": 2, "memory_bytes": 10},
                         endpoint="tcp://x:1", has_store=np.bool_(False)))
     assert msg.store_key is None and msg.has_store is False
-    assert decode(encode("eye_job", chunk=np.int32(3), eye_iteration=np.uint64(1),
+    assert decode(encode("portal_rays", kind="eye", chunk=np.int32(3), eye_iteration=np.uint64(1),
                          batch=RayBatch.empty(), **NO_CREDIT)).chunk == 3
 
 

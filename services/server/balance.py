@@ -1,6 +1,7 @@
 """Which tracer serves each chunk: round robin at the start (Günther &
-Grosch §3.1), then by measured work; and which chunks the lights lie in
-(their tracers emit the photon jobs).
+Grosch §3.1), then by measured work; which chunks the lights lie in
+(their tracers emit the photon jobs), and which chunk each eye tile's
+rays start in (its tracers make the tile's rays).
 
 Round robin in index order gives each tracer as many chunks, whatever
 work the lights and the camera give each. On the 5M-triangle building
@@ -23,7 +24,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from dosppm_core.chunks.view import start_chunks
 from dosppm_core.scene.model import LIGHT_DIRECTIONAL, LIGHT_ENV, LIGHT_TRIANGLE
+from dosppm_core.trace import eye_ray_job
 
 # Re-assign at most this often, and only when the busiest tracer's share
 # of the rays would fall by at least MIN_GAIN: every move makes the new
@@ -45,6 +48,21 @@ def light_chunks(header, tree) -> list[int]:
                       (lights.p0 + lights.p1 + lights.p2) / 3, lights.p0)
     k = tree.locate(centre, np.zeros_like(centre))
     return sorted(set(k[k >= 0].tolist())) or list(range(tree.chunk_count))
+
+
+def tile_chunks(header, tree, seed: int, tile_pixels: int) -> list[int]:
+    """The chunk most of each eye tile's rays start in (-1: all miss the
+    scene), from the first iteration's rays: its tracers make the tile's
+    rays and keep most in their own queues. Later iterations jitter the
+    rays within their pixels, so a few start elsewhere and are passed on.
+    Tile by tile (any camera: a perspective one's rays enter the scene's
+    box where they may, an orthographic one's start all over)."""
+    n = int(header.camera.width) * int(header.camera.height)
+    out = []
+    for start in range(0, n, tile_pixels):
+        routed, _lost = start_chunks(tree, eye_ray_job(header, seed, 0, start, min(tile_pixels, n - start)))
+        out.append(max(routed, key=lambda k: (len(routed[k]), -k)) if routed else -1)
+    return out
 
 
 def assign_chunks(chunk_count: int, ids: list[str]) -> list[list[str]]:

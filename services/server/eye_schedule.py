@@ -1,19 +1,20 @@
-"""`ServerState`'s eye iterations: each is split into tiles (§5.6), its
-rays routed by start chunk to the least loaded tracer serving it, with up
-to `eye_in_flight` iterations traced at once; a complete one hands its hit
-points over. A mixin of services/server/state.py.
+"""`ServerState`'s eye iterations: each is split into tiles (§5.6), sent
+as (job id, pixel start, count) to the least loaded tracer serving the
+chunk the tile's rays start in, which makes the rays (`TracerState.eye_tiles`),
+with up to `eye_in_flight` iterations traced at once; a complete one hands
+its hit points over. A mixin of services/server/state.py.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from dosppm_core.chunks.view import start_eye_paths
-from dosppm_core.jobs import HitPoints, RayBatch
-from dosppm_core.trace import eye_ray_job
-from services.credit import new_job
-from services.server.job_messages import JobMessages
 from services.server.records import EyeIteration, TracerInfo, Update
 from services.wire import Out
+
+# Eye rays one eye_job asks a tracer to make (56 B each at the tracer):
+# an iteration's tiles go out in several messages, so no tracer makes a
+# whole large image's rays in one call, and tiles spread as loads grow.
+EYE_RAYS_PER_MESSAGE = 1 << 18
 
 
 class EyeScheduleMixin:
@@ -29,40 +30,51 @@ class EyeScheduleMixin:
         self._photons_at_eye_start = self.counters["photons_emitted"]
         tiles = [(start, min(s.tile_pixels, self.n_pixels - start))
                  for start in range(0, self.n_pixels, s.tile_pixels)]
-        # Every tile is open before any is routed: a tile whose rays all
-        # miss the scene completes at once, and must not close the iteration.
+        # Every tile is open before any is sent: a tile whose rays all
+        # miss the scene completes with its first results, and must not
+        # close the iteration.
         jobs = [self._new_job("eye", count, eye_iteration=e.index) for _, count in tiles]
         e.open_jobs = len(jobs)
-        parts = JobMessages()
-        for j, (start, count) in zip(jobs, tiles):
-            batch = eye_ray_job(self.header, s.seed, e.index, start, count)
-            batch.job[:] = j
-            self._route(j, batch, parts)
-        return [Out(tid, "eye_job", dict(eye_iteration=e.index, chunk=k, **parts.take((tid, k))))
-                for tid, k in list(parts)]
-
-    def _route(self, j: int, batch: RayBatch, parts: JobMessages) -> None:
-        """Split a new eye job's paths by start chunk into `parts` per
-        (tracer, chunk), each with its share of the job's credit; paths
-        that miss the scene end here, seeing the environment."""
-        routed, lost, seen = start_eye_paths(self.tree, batch, self._env)
-        self.path_ends[1] += lost           # ESCAPED, before any tracer saw them
-        self.eyes[self.jobs[j].eye_iteration].results.add(HitPoints.empty(), *seen)
-        exp, kept = new_job(len(routed))
-        share = (np.array([j], np.int64), np.array([exp], np.int64))
-        for k, part in routed.items():
+        by_tracer: dict[str, list] = {}
+        for j, (start, count), k in zip(jobs, tiles, self.tile_chunks):
             t = self._least_loaded(k)
-            t.sent_since_report += len(part)
-            t.rays_sent += len(part)
-            parts.add((t.id, k), part, share)
-        self.jobs[j].sent, self.jobs[j].progress_s, self.jobs[j].sent_s = True, self._now, self._now
-        self._credit(j, kept)               # the server's own share: all of it when none was sent
+            t.sent_since_report += count
+            t.rays_sent += count
+            self.jobs[j].sent, self.jobs[j].progress_s, self.jobs[j].sent_s = True, self._now, self._now
+            by_tracer.setdefault(t.id, []).append((j, start, count))
+        return [self._eye_job(tid, e.index, group)
+                for tid, tiles in by_tracer.items() for group in _messages(tiles)]
+
+    def _eye_job(self, tid: str, eye_iteration: int, tiles: list) -> Out:
+        """The eye_job message of `tiles` [(job, pixel start, count)], with
+        their whole credit: the tracer returns it, and reports the rays
+        that miss the scene as escaped path ends."""
+        ids, starts, counts = (np.array(c, np.int64) for c in zip(*tiles))
+        return Out(tid, "eye_job", dict(eye_iteration=eye_iteration, job_ids=ids, pixel_starts=starts,
+                                        counts=counts, credit_job=ids,
+                                        credit_exp=np.zeros(len(ids), np.int64)))
 
     def _least_loaded(self, chunk: int) -> TracerInfo:
-        return min((self.tracers[i] for i in self.owners[chunk]), key=lambda t: t.load_estimate)
+        """Of the tracers serving `chunk` (-1, a tile missing the scene: any
+        tracer of the camera's chunks)."""
+        owners = self.owners[chunk] if chunk >= 0 else \
+            dict.fromkeys(i for k in self.camera_chunks for i in self.owners[k])
+        return min((self.tracers[i] for i in owners), key=lambda t: t.load_estimate)
 
     def _finish_eye_iteration(self, e: EyeIteration) -> None:
         hits, emitted_light = e.results.complete()
         self._eye_update(Update("hits", hits=hits, emitted_light=emitted_light, eye_iteration=e.index))
         self.counters["hit_points"] += len(hits)
         self.eye_completed += 1
+
+
+def _messages(tiles: list) -> list[list]:
+    """A tracer's tiles in messages of at most EYE_RAYS_PER_MESSAGE rays (a
+    tile larger than that alone)."""
+    out, rays = [[]], 0
+    for tile in tiles:
+        if out[-1] and rays + tile[2] > EYE_RAYS_PER_MESSAGE:
+            out, rays = out + [[]], 0
+        out[-1].append(tile)
+        rays += tile[2]
+    return out

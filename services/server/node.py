@@ -147,8 +147,8 @@ class ServerProcess:
         return self.summary()
 
     def _serve(self) -> None:
-        # This loop's kernels (emission, start chunks, eye tiles) run on
-        # small batches beside tracers that hold every core.
+        # This loop's kernels run on small batches beside tracers that
+        # hold every core.
         run_serially()
         phase, drain_deadline = "render", None
         last_status = last_progress = last_snapshot = 0.0

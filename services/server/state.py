@@ -18,14 +18,16 @@ exact accounting, batching, the clock and the status. What it does:
   the photons; a tracer whose reported queue plus what was sent since
   passes its credit (the server's, or the longer queue it asks for to hide
   chunk loads) gets nothing more until it reports again (back-pressure).
-  Eye iterations are split into tiles (§5.6) and run at the same time as
-  photons: the next starts once `photons_per_iteration` photons have been
-  emitted since the last one started, with up to `eye_in_flight` of them
-  traced at once (the paper's §6 future work; out of core, one chunk load
-  then serves several). They replace the hit points in order, each once
+  Eye iterations are split into tiles (§5.6), sent as (id, pixel start,
+  count) to the tracers of the chunks their rays start in, which make the
+  rays; they run at the same time as photons: the next starts once
+  `photons_per_iteration` photons have been emitted since the last one
+  started, with up to `eye_in_flight` of them traced at once (the
+  paper's §6 future work; out of core, one chunk load then serves
+  several). They replace the hit points in order, each once
   all its paths have ended, so every pixel gets one eye sample per
   iteration whatever its paths' speed.
-- Exact accounting: the server made every path, so it knows each job's
+- Exact accounting: the server made every job, so it knows each job's
   path count; tracers report ended paths per job and return the job's
   credit with the messages that carry its deposits; a job is complete when
   all its credit is back (services/credit.py; no timeout). Only then do its photons count as
@@ -48,9 +50,9 @@ import numpy as np
 from dosppm_core.chunks.pacing import default_queue_memory, eye_iterations_in_flight
 from dosppm_core.jobs import END_NAMES
 from dosppm_core.settings import RenderSettings
-from dosppm_core.trace import NO_CULL, environment
+from dosppm_core.trace import NO_CULL
 from services.credit import by_job
-from services.server.balance import light_chunks
+from services.server.balance import light_chunks, tile_chunks
 from services.server.emission import EmissionMixin
 from services.server.epoch_state import EpochStateMixin
 from services.server.eye_schedule import EyeScheduleMixin
@@ -87,10 +89,10 @@ class ServerState(MembershipMixin, EmissionMixin, EyeScheduleMixin, EpochStateMi
         o = options or ServerOptions()
         settings = settings.for_image(int(header.camera.width) * int(header.camera.height))
         settings.validate()
-        if settings.photons_per_job > MAX_EMITTED:
-            raise ValueError(f"photons_per_job must be at most {MAX_EMITTED:,} in the service")
+        for name in ("photons_per_job", "tile_pixels"):      # a job message's paths (wire.MAX_EMITTED)
+            if getattr(settings, name) > MAX_EMITTED:
+                raise ValueError(f"{name} must be at most {MAX_EMITTED:,} in the service")
         self.header, self.tree, self.settings = header, tree, settings
-        self._env = environment(header.lights)     # what eye rays missing the scene see
         self.store_key, self.manifest = store_key, manifest
         self.min_photon_jobs, self.queue_target = int(o.min_photon_jobs), int(o.queue_target_rays)
         self.min_tracers, self.min_tracers_timeout_s = int(o.min_tracers), o.min_tracers_timeout_s
@@ -103,6 +105,9 @@ class ServerState(MembershipMixin, EmissionMixin, EyeScheduleMixin, EpochStateMi
         self.evicted: list[dict] = []
         self.rejoined: dict[str, float] = {}      # tracer id -> when it last registered again (status page)
         self.light_chunks = light_chunks(header, tree)     # their tracers emit the photon jobs
+        # Each eye tile's rays start in one chunk, mostly: its tracers make them.
+        self.tile_chunks = tile_chunks(header, tree, settings.seed, settings.tile_pixels)
+        self.camera_chunks = sorted(set(self.tile_chunks) - {-1}) or list(range(tree.chunk_count))
         self.n_pixels = int(header.camera.width) * int(header.camera.height)
         self.tracers: dict[str, TracerInfo] = {}
         self._indices = itertools.count()

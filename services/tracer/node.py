@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 from dosppm_core.chunks.store import ChunkStore, StoreError
 from dosppm_core.kernels import use_threads
+from dosppm_core.scene.model import SceneHeader
 from services import transport, wire
 from services.tracer.epochs import from_welcome
 from services.tracer.fetch import FetchedStore
@@ -263,7 +264,8 @@ class TracerProcess:
                                      step_rays=STEP_RAYS if batching else 0,
                                      direct=welcome.settings.get("direct", "nee"),
                                      queue_memory_bytes=self.queue_memory_bytes,
-                                     seed=welcome.settings["seed"])
+                                     seed=welcome.settings["seed"],
+                                     header=SceneHeader.from_wire(welcome.scene))
             epochs = from_welcome(welcome.settings, provider.header.materials, self.threads)
             if epochs is not None:
                 self.state.hold_epochs(epochs)
@@ -337,6 +339,7 @@ class TracerProcess:
                 self.session = msg.settings.get("session")
                 self.jobs_received = 0
                 self.state.reset()
+                self.state.header = SceneHeader.from_wire(msg.scene)     # the eye rays' camera
                 # A server restarted from a checkpoint may cut epochs otherwise.
                 self.state.hold_epochs(from_welcome(msg.settings, self.state.provider.header.materials,
                                                     self.threads))

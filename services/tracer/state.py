@@ -13,8 +13,9 @@ stores a hit point goes on as its shadow ray (kind "shadow", same job),
 which crosses portals like any ray and ends the path where it stops. Packages for a chunk this tracer does not
 serve are passed on to a tracer that does.
 
-Photon jobs come from the server as (id, rng key, count): the tracer
-makes their photons (`emit`) and sends them on as a step sends its rays,
+Photon jobs come from the server as (id, rng key, count), eye jobs as
+tiles (id, pixel start, count): the tracer makes their photons (`emit`)
+or eye rays (`eye_tiles`) and sends them on as a step sends its rays,
 with a `results` message for the emission (chunk None).
 
 Nothing here opens a socket: `TracerState` takes decoded message fields
@@ -32,12 +33,12 @@ import numpy as np
 from dosppm_core.chunks import pacing
 from dosppm_core.chunks.cache import ChunkCache
 from dosppm_core.chunks.schedule import EYE, PHOTON, SHADOW, ChunkScheduler
-from dosppm_core.chunks.view import (located_photons, start_chunks, trace_eye_in_chunk,
+from dosppm_core.chunks.view import (located_photons, start_chunks, start_eye_paths, trace_eye_in_chunk,
                                      trace_photons_in_chunk, trace_shadows_in_chunk)
 from dosppm_core.jobs import END_NAMES, ESCAPED, HitPoints, RayBatch, ShadowRays, paths_per_job
 from dosppm_core.kernels.light_cache import LightCache, share_of_memory
 from dosppm_core.settings import LIGHT_CACHE_BYTES
-from dosppm_core.trace import light_arrays
+from dosppm_core.trace import environment, eye_ray_job, light_arrays
 from services.credit import split as split_credit
 from services.wire import Out
 
@@ -84,13 +85,18 @@ class TracerState:
     def __init__(self, endpoint: str, provider, max_depth: int, memory_bytes: float | None = None,
                  threads: int = 1, step_rays: int = STEP_RAYS, direct: str = "nee",
                  queue_memory_bytes: float | None = None, light_cache: int = LIGHT_CACHE_BYTES,
-                 clock=time.perf_counter, seed: int | None = None):
+                 clock=time.perf_counter, seed: int | None = None, header=None):
         """`clock`: seconds, for the scheduler's waits and dwells (a cluster
         in one process passes its own, so its runs repeat exactly).
         `seed`: the render's (the welcome's settings), which photon jobs'
-        photons are made from; None: this tracer takes no photon jobs."""
+        photons and eye tiles' rays are made from; None: this tracer takes
+        no jobs. `header`: the render's scene header (the welcome's), whose
+        camera the eye rays are made with: the store's may have another
+        resolution (`--width`, `--height`); None: the provider's."""
         self.endpoint, self.provider, self.max_depth = endpoint, provider, int(max_depth)
         self.seed = seed
+        self.header = provider.header if header is None else header
+        self.env = environment(self.header.lights)     # what eye rays missing the scene see
         # Direct light by shadow rays ('nee'): photons deposit from their
         # second surface on. 'photons': the paper's pure estimator.
         self.deposit_from = 1 if direct == "nee" else 0
@@ -114,8 +120,9 @@ class TracerState:
         # Portal packages for chunks no tracer serves yet (a table still
         # being built); retried when the next table arrives.
         self.unroutable: list = []
-        self.counters = {"steps": 0, "rays_traced": 0, "photons_emitted": 0, "photons_traced": 0,
-                         "portal_rays_out": 0, "portal_rays_in": 0, "forwarded_rays": 0, "busy_s": 0.0}
+        self.counters = {"steps": 0, "rays_traced": 0, "photons_emitted": 0, "eye_rays_made": 0,
+                         "photons_traced": 0, "portal_rays_out": 0, "portal_rays_in": 0, "forwarded_rays": 0,
+                         "busy_s": 0.0}
         self.portal_by_chunk: dict[int, list[int]] = {}     # chunk -> [rays in, rays out] (status page)
         self.rays_by_chunk: dict[int, int] = {}             # chunk -> rays traced (the server balances by it)
         self.epochs = None      # EpochDeposits when the gather is at the tracers (`hold_epochs`)
@@ -189,7 +196,10 @@ class TracerState:
         if msg.type == "photon_job":
             return self.emit(msg.job_ids, msg.rng_keys, msg.counts, msg.cull_box, credit)
         if msg.type == "eye_job":
-            return self.receive("eye", msg.chunk, msg.batch, eye_iteration=msg.eye_iteration, credit=credit)
+            try:
+                return self.eye_tiles(msg.eye_iteration, msg.job_ids, msg.pixel_starts, msg.counts, credit)
+            except ValueError as e:     # a range only this tracer checks: refused whole, nothing made
+                return [Out(SERVER, "error", dict(reason=f"eye_job: {e}", about="eye_job"))]
         if msg.type == "portal_rays":
             rays = msg.shadows if msg.kind == "shadow" else msg.batch
             self.counters["portal_rays_in"] += len(rays)
@@ -243,6 +253,44 @@ class TracerState:
         return self._send_on(batch.job, credit, dict(chunk=None, ends=ends),
                              [(PHOTON, {k: [part] for k, part in routed.items()})],
                              cull_box=np.asarray(cull_box, np.float64))
+
+    def eye_tiles(self, eye_iteration: int, job_ids, pixel_starts, counts, credit: tuple) -> list[Out]:
+        """Make the eye rays of an eye_job's tiles with the library's call
+        (`eye_ray_job`: the same seed, iteration and pixels give bit for bit
+        the same rays, whichever tracer makes them) and send them on as
+        `emit` sends photons: queued for chunks this tracer serves, portal
+        packages for the others, and the rays that miss the scene ended
+        here, escaped, in the results (chunk None) that return the credit
+        the packages do not carry, with the environment light they see."""
+        if self.seed is None:
+            raise ValueError("this tracer was not given the render's seed")
+        header = self.header
+        n_pixels = int(header.camera.width) * int(header.camera.height)
+        ends_at = np.asarray(pixel_starts, np.int64) + np.asarray(counts, np.int64)
+        if len(ends_at) and ends_at.max() > n_pixels:
+            raise ValueError(f"field 'pixel_starts' + 'counts' reaches pixel {int(ends_at.max())}, "
+                             f"past the image's {n_pixels}")
+        parts: dict[int, list[RayBatch]] = {}
+        lost, jobs, seen = 0, [], []
+        for j, start, count in zip(np.asarray(job_ids).tolist(), np.asarray(pixel_starts).tolist(),
+                                   np.asarray(counts).tolist()):
+            batch = eye_ray_job(header, self.seed, eye_iteration, start, count)
+            batch.job[:] = j
+            jobs.append(batch.job)
+            routed, missed, light = start_eye_paths(self.provider.tree, batch, self.env)
+            lost += missed
+            seen.append(light)
+            for k, part in routed.items():
+                parts.setdefault(k, []).append(part)
+        if not jobs:
+            return []
+        self.counters["eye_rays_made"] += int(np.sum(counts))
+        ends = np.zeros(len(END_NAMES), np.int64)
+        ends[ESCAPED] = lost
+        fields = dict(chunk=None, ends=ends, eye_iteration=eye_iteration, hits=HitPoints.empty(),
+                      emitted_pixels=np.concatenate([p for p, _ in seen]),
+                      emitted_rgb=np.concatenate([rgb for _, rgb in seen]))
+        return self._send_on(np.concatenate(jobs), credit, fields, [(EYE, parts)], eye_iteration=eye_iteration)
 
     @property
     def queued_rays(self) -> int:
