@@ -35,7 +35,7 @@ from dosppm_core.modes.deadline import Deadline
 from dosppm_core.scene.loaders import load_scene
 from dosppm_core.scene.model import Scene, SceneError
 from dosppm_core.scene.tomlfile import scene_from_document
-from dosppm_core.settings import DEFAULT_BUDGET_BYTES, RenderSettings, default_store_cache
+from dosppm_core.settings import DEFAULT_BUDGET_BYTES, RenderSettings, default_store_cache, scene_settings
 
 if TYPE_CHECKING:
     from dosppm_core.chunks.store import ChunkStore
@@ -99,7 +99,8 @@ def render(scene: Scene | "ChunkStore" | str, seconds: float | None = None, *, p
     first limit given is reached: `seconds` of rendering, `photons` emitted
     or `iterations`; with none, 10 seconds. `settings` are RenderSettings
     fields (seed, radius, alpha, direct, gather, photons_per_iteration,
-    threads, ...). `seconds` is a deadline: the image is handed back within
+    threads, ...); those not given and fixed by the scene file's integrator
+    (a Mitsuba `max_depth`: `settings.scene_settings`) are the file's. `seconds` is a deadline: the image is handed back within
     max(2 s, 5%) of it, with the photons of the work in flight then
     applied or left out whole.
 
@@ -146,6 +147,12 @@ def _run(scene, mode: str | None, chunks, memory, settings: dict, stops: list, p
     from dosppm_core.chunks.store import ChunkStore
     scene = scene if isinstance(scene, (Scene, ChunkStore)) else load(scene)
     mode = _mode(scene, mode, chunks)
+    # The scene file's integrator (a Mitsuba max_depth) unless the caller says otherwise.
+    header = scene if isinstance(scene, Scene) else scene.header
+    try:
+        settings = {**scene_settings(header.render_settings), **settings}
+    except ValueError as exc:
+        raise SceneError(f"{header.source}: {exc}") from None
     with tempfile.TemporaryDirectory(prefix="dosppm-api-") as work:
         renderer = _renderer(scene, mode, chunks, memory, RenderSettings(**settings), work)
         try:

@@ -86,6 +86,31 @@ class RenderSettings:
             raise ValueError(f"radius must be > 0, got {self.radius}")
 
 
+# Mitsuba integrators whose light transport ours estimates (volumes aside:
+# a scene with media is refused by the reader).
+MITSUBA_INTEGRATORS = ("path", "ptracer", "direct", "volpath", "volpathmis")
+
+
+def scene_settings(hints: dict) -> dict:
+    """The RenderSettings fields a scene file's integrator fixes (from
+    `scene.render_settings`; {} when it names none). Mitsuba's `max_depth`
+    counts the vertices of a path after the camera, the emitter's included:
+    1 is emitters seen directly, 2 direct light, -1 unbounded. Ours counts
+    scattering events (`RenderSettings.max_depth`), so ours = Mitsuba's - 1,
+    and unbounded is our default (roulette ends paths). `direct` is `path`
+    at depth 2 (emission, then light sampled and BSDF-sampled at the first
+    hit: no chain beyond); `ptracer` carries the same transport as `path`."""
+    kind = hints.get("integrator")
+    if kind is None:
+        return {}
+    if kind not in MITSUBA_INTEGRATORS:
+        raise ValueError(f"integrator {kind!r} is not one we render (known: {', '.join(MITSUBA_INTEGRATORS)})")
+    depth = 2 if kind == "direct" else int(hints.get("max_depth", -1))
+    if depth == 0:
+        raise ValueError("max_depth 0 renders nothing (Mitsuba's depth counts the emitter: 1 shows emitters)")
+    return {"max_depth": RenderSettings.max_depth if depth < 0 else depth - 1}
+
+
 # One process runs few large jobs (RenderSettings' 8192 photons a job, 16384
 # pixels an eye tile: fewer kernel calls). The DOSPPM service cuts them
 # finer, so that the ~1000 jobs it keeps in flight spread over every tracer

@@ -20,7 +20,7 @@ import tomllib
 from dataclasses import dataclass
 
 from dosppm_core.settings import (DEFAULT_BUDGET_BYTES, DIRECT_MODES, SERVICE_JOB_SIZES, RenderSettings,
-                                  default_store_cache)
+                                  default_store_cache, scene_settings)
 
 
 @dataclass(frozen=True)
@@ -124,7 +124,8 @@ RENDER = (
     _opt("alpha", float, _LIBRARY.alpha, "radius reduction (eqs. 1-2)", rule="open_unit"),
     _opt("radius", float, _LIBRARY.radius, "initial radius in scene units, the same for every pixel "
          "(default: fitted per pixel to the photons that reach it)", rule="positive"),
-    _opt("max_depth", int, _LIBRARY.max_depth, "surfaces a path may hit", rule="count"),
+    _opt("max_depth", int, None, "scattering events a path may have (default: the scene file's "
+         f"integrator's, Mitsuba's max_depth less 1; else {_LIBRARY.max_depth})", rule="count"),
     _opt("direct", str, _LIBRARY.direct, "direct light at hit points: nee (a shadow ray each) or "
          "photons (the paper's pure estimator)", DIRECT_MODES),
     _opt("photons_per_iteration", int, _LIBRARY.photons_per_iteration, "photons between eye iterations "
@@ -319,10 +320,13 @@ def _read_table(path: str, role: str, known: set) -> dict:
     return table
 
 
-def render_settings(values: dict, service: bool = False) -> RenderSettings:
+def render_settings(values: dict, service: bool = False, scene_hints: dict | None = None) -> RenderSettings:
     """RenderSettings from option values (validated): those given (not
-    None) replace the defaults of one process, or of the service."""
+    None) replace the defaults of one process, or of the service, and
+    those the scene file's integrator fixes (`scene_hints`, its
+    `render_settings`: a Mitsuba max_depth)."""
     base = RenderSettings(**SERVICE_JOB_SIZES) if service else RenderSettings()
+    base = dataclasses.replace(base, **scene_settings(scene_hints or {}))
     given = {k: values[k] for k in _SETTINGS_FIELDS if values.get(k) is not None}
     settings = dataclasses.replace(base, **given)
     settings.validate()

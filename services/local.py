@@ -39,9 +39,9 @@ def run_server(scene: str, v: dict, quiet: bool = False, spawn_tracers: int = 0)
     `config.SERVER`), after starting `spawn_tracers` tracer processes here."""
     say = stderr_lines(quiet)
     try:
-        settings = config.render_settings(v, service=True)
-        http = _http(v["http"])
         store = _open_store(scene, v)
+        settings = config.render_settings(v, service=True, scene_hints=store.header.render_settings)
+        http = _http(v["http"])
         resume = checkpoint.read(v["resume"], store.key) if v["resume"] else None
         if resume is not None:
             settings = _resumed_settings(settings, resume)

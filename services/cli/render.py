@@ -101,9 +101,8 @@ def _run_here(args) -> int:
     """SPPM or OSPPM in this process, iteration by iteration until the limit."""
     say = stderr_lines(args.quiet)
     try:
-        settings = config.render_settings(vars(args))
         with warnings_as_lines():
-            renderer, describe = _make_renderer(args, settings)
+            renderer, describe = _make_renderer(args)
     except (SceneError, ValueError, OSError) as e:
         return fail(str(e))
     limit = config.stop_limit(args.time, args.photons, args.iterations)
@@ -148,17 +147,20 @@ def _drain_lines(say, every_s: float = 10.0):
     return report
 
 
-def _make_renderer(args, settings):
+def _make_renderer(args):
     """The single-process renderer, or OSPPM over a chunk store when asked
-    for, or when the scene is a store or a soup; and a line describing it."""
+    for, or when the scene is a store or a soup; and a line describing it.
+    The settings are the flags', then the scene file's integrator's."""
     if not (args.mode == "osppm" or is_store(args.scene) or is_soup(args.scene)):
         scene = load_scene(args.scene, width=args.width, height=args.height)
+        settings = config.render_settings(vars(args), scene_hints=scene.render_settings)
         return Renderer(scene, settings), (
             f"scene {scene.name}: {scene.triangle_count:,} triangles, {len(scene.lights.kind)} lights, "
             f"{scene.camera.width}x{scene.camera.height}")
     budget_bytes, chunks = config.chunking(vars(args))
     memory = config.parse_bytes(args.memory, "--memory")
     store = open_render_store(args.scene, args.store_cache, budget_bytes, chunks, args.width, args.height)
+    settings = config.render_settings(vars(args), scene_hints=store.header.render_settings)
     if memory is None and store.budget_bytes:
         memory = max(2 * store.budget_bytes, store.chunk_memory.max())
     cam = store.header.camera
