@@ -134,6 +134,22 @@ def test_deposits_of_unfinished_jobs_wait_for_their_job(state):
     assert u[0].photons_emitted == 512
 
 
+def test_photons_that_deposit_nothing_commit_once_a_batch_of_them_is_complete(state):
+    """Direct light only (a Mitsuba max_depth 2 scene): no photon deposits,
+    yet a photon or iteration limit waits for committed photons."""
+    _register(state, "a")
+    state.cull_box = np.array([[-1e9] * 3, [1e9] * 3])
+    state.eye_completed = 1
+    state.settings.photon_batch = 1024
+    state.held = HeldDeposits(1024, 1 << 30)
+    out = state.tick(0.0)
+    j1, j2 = [j for j, job in state.jobs.items() if job.kind == "photon"][:2]
+    state.on_message("a", _results([j1], [512], credit=_shares(out, j1)), 0.1)
+    assert state.counters["photons_committed"] == 0          # half a batch: held back
+    state.on_message("a", _results([j2], [512], credit=_shares(out, j2)), 0.2)
+    assert state.counters["photons_committed"] == 1024
+
+
 def test_a_tracer_that_does_not_report_gets_no_more_than_its_credit(state):
     _register(state, "a")
     state.cull_box = np.array([[-1e9] * 3, [1e9] * 3])

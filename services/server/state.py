@@ -259,7 +259,12 @@ class ServerState(MembershipMixin, EmissionMixin, EyeScheduleMixin, EpochStateMi
         Gathering at the tracers: the next epoch's gather, once it is due."""
         if self.epochs is not None:
             return self._maybe_gather()
-        if self.eye_completed == 0 or not (final or self.held.due(self._now, bool(self._ready_jobs))):
+        # Due by deposits held, or by the photons of complete jobs: photons
+        # that deposit little or nothing (direct light only, max_depth 1, or
+        # an open scene) would otherwise never commit, and a photon or
+        # iteration limit, which waits for a commit, never be reached.
+        due = self.held.due(self._now, bool(self._ready_jobs)) or self._ready_emitted >= self.held.photon_batch
+        if self.eye_completed == 0 or not (final or due):
             return
         jobs = self._ready_job_columns()
         commit, discarded = self.held.split(self._job_status, jobs, self._now)
