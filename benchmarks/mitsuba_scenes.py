@@ -6,9 +6,20 @@ loader stops at the first thing outside our subset, so each scene gets
 element refused.
 
     python benchmarks/mitsuba_scenes.py [--root DIR] [--out benchmarks/results/mitsuba-scenes.json]
+    python benchmarks/mitsuba_scenes.py --score [--out ...] [--seeds 16] [--service-seeds 4]
 
 With --out, writes per scene its first refusal (null: it loads) and the
 errors of reading its language in full, with provenance.
+
+--score (issue 33, part 6) also renders every scene that loads, at its own
+size, in one process at `--seeds` seeds and scores the images against
+Mitsuba's reference as Mitsuba's own test does (dosppm_core/render_test.py);
+a scene that passes is rendered again through the render service
+(`dosppm render --chunks 2`: a server, 2 tracers, the scene in 2 chunks) at
+`--service-seeds` seeds and scored again. The budget is Mitsuba's test's,
+2e6 eye samples over the image, split over the seeds (at least
+`--min-iterations` each). The results file gets a `scores` table, from
+which `python benchmarks/tables.py` makes docs/mitsuba-scenes.md.
 
 Exits 1 when a scene fails other than by a `SceneError` (a crash).
 """
@@ -17,9 +28,13 @@ from __future__ import annotations
 import argparse
 import collections
 import glob
+import math
 import os
 import re
+import subprocess
 import sys
+import tempfile
+import time
 import warnings
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -162,10 +177,152 @@ def survey(root: str = SCENES) -> list:
     return [(os.path.relpath(p, root), try_load(p)) for p in scene_files(root)]
 
 
+# -- scoring against Mitsuba's references (--score) ------------------------------------
+# Mitsuba's test renders 2e6 samples over the image (test_renders.py).
+SAMPLE_BUDGET = 2_000_000
+
+
+def reference_files(path: str) -> tuple[str, str]:
+    """(reference, per-sample variance) of a test scene FOLDER/NAME_INTEGRATOR.xml:
+    FOLDER/refs/NAME_ref_rgb.exr and its _var twin, as Mitsuba's
+    get_ref_fname; infinite_mirrors keeps its scalar_rgb render beside it."""
+    folder, stem = os.path.dirname(path), os.path.splitext(os.path.basename(path))[0]
+    ref = os.path.join(folder, "refs", stem.rsplit("_", 1)[0] + "_ref_rgb.exr")
+    if not os.path.exists(ref):
+        ref = os.path.join(folder, stem.rsplit("_", 1)[0] + "_render_scalar_rgb.exr")
+    return ref, ref[:-len(".exr")] + "_var.exr"
+
+
+def iterations_per_seed(pixels: int, seeds: int, min_iterations: int) -> int:
+    """Mitsuba's sample budget in eye iterations (one eye sample per pixel
+    each), split over the seeds."""
+    return max(min_iterations, math.ceil(SAMPLE_BUDGET / pixels / seeds))
+
+
+def render_here(path: str, seeds: list, iterations: int) -> list:
+    """The scene rendered in this process (SPPM) once per seed."""
+    import numpy as np
+
+    import dosppm_core as dp
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        scene = dp.load(path)
+    return [np.asarray(dp.render(scene, iterations=iterations, seed=s, mode="sppm")) for s in seeds]
+
+
+def render_service(path: str, seeds: list, iterations: int, work: str, chunks: int = 2) -> tuple[list, int]:
+    """The scene rendered by `dosppm render` (a server and 2 tracers, the
+    scene cut into `chunks` chunks) once per seed; (images, chunks used)."""
+    from dosppm_core.film import read_exr
+    import json
+    images, used = [], None
+    env = {**os.environ, "PYTHONPATH": ROOT + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    for s in seeds:
+        out = os.path.join(work, f"service-{s}.exr")
+        cmd = [sys.executable, "-m", "services.cli", "render", path, "--chunks", str(chunks),
+               "--iterations", str(iterations), "--seed", str(s), "--out", out, "--tracers", "2",
+               "--store-cache", os.path.join(work, "stores"), "--http", "off", "--quiet"]
+        done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
+        if done.returncode != 0:
+            raise RuntimeError(f"dosppm render exited {done.returncode}: "
+                               f"{(done.stderr.strip().splitlines() or ['?'])[-1]}")
+        images.append(read_exr(out)[0])
+        with open(os.path.splitext(out)[0] + ".json", encoding="utf-8") as f:
+            used = json.load(f).get("chunks")
+    return images, used
+
+
+def score_scene(path: str, seeds: int = 16, service_seeds: int = 4, min_iterations: int = 16,
+                work: str | None = None) -> dict:
+    """One scene's entry of the `scores` table: its refusal, or what the
+    scorer made of our renders in one process and, if those pass, through
+    the service (`service_seeds` 0: not tried)."""
+    from dosppm_core import render_test
+    from dosppm_core.film import read_exr
+    refusal = try_load(path)
+    if refusal is not None:
+        return {"refused": refusal}
+    ref_file, var_file = reference_files(path)
+    ref, var = read_exr(ref_file)[0], read_exr(var_file)[0]
+    pixels = ref.shape[0] * ref.shape[1]
+    entry = {"refused": None, "pixels": pixels, "width": ref.shape[1], "height": ref.shape[0],
+             "iterations_per_seed": iterations_per_seed(pixels, seeds, min_iterations)}
+    t0 = time.perf_counter()
+    images = render_here(path, list(range(1, seeds + 1)), entry["iterations_per_seed"])
+    entry["sppm"] = {**render_test.score(images, ref, var).as_dict(), "seconds": time.perf_counter() - t0}
+    if not entry["sppm"]["passed"] or service_seeds < 1:
+        return entry
+    t0 = time.perf_counter()
+    n = iterations_per_seed(pixels, service_seeds, min_iterations)
+    with tempfile.TemporaryDirectory(prefix="mitsuba-scenes-", dir=work) as tmp:
+        images, chunks = render_service(path, list(range(101, 101 + service_seeds)), n, tmp)
+    entry["service"] = {**render_test.score(images, ref, var).as_dict(), "chunks": chunks,
+                        "iterations_per_seed": n, "seconds": time.perf_counter() - t0}
+    return entry
+
+
+def verdict(entry: dict) -> str:
+    """pass, fail or refused; pass needs the service's pass too when it ran."""
+    if entry.get("refused"):
+        return "refused"
+    if "error" in entry:
+        return "error"
+    runs = [entry["sppm"]] + ([entry["service"]] if "service" in entry else [])
+    return "pass" if all(r["passed"] for r in runs) else "fail"
+
+
+def report(doc: dict) -> str:
+    """The Markdown table of docs/mitsuba-scenes.md from a --score results file."""
+    scores = doc["scores"]
+    counts = collections.Counter(verdict(e) for e in scores.values())
+    lines = [f"{counts['pass']} of {len(scores)} scenes pass, {counts['fail']} fail, "
+             f"{counts['refused']} are refused" + (f", {counts['error']} crash" if counts["error"] else "")
+             + f" ({doc['settings']['seeds']} seeds in one process, {doc['settings']['service_seeds']} "
+             f"through the service in 2 chunks).", "",
+             "| scene | result | one process: z-pass, bias | service, 2 chunks: z-pass, bias | why |",
+             "|---|---|---|---|---|"]
+
+    def figures(run):
+        return f"{run['z_pass_fraction']:.2%}, {run['bias']:+.2%}" if run else "-"
+    for name, e in scores.items():
+        why = (e.get("refused") or e.get("error") or "").replace("|", "\\|")
+        why = f"`{why}`" if why else ""        # the element, <bsdf ...>, as code, not HTML
+        lines.append(f"| {name} | {verdict(e)} | {figures(e.get('sppm'))} | {figures(e.get('service'))} | "
+                     f"{why} |")
+    return "\n".join(lines)
+
+
+def score_all(root: str, args) -> dict:
+    scores, crashed = {}, False
+    for path in scene_files(root):
+        name = os.path.relpath(path, root)
+        if args.only and args.only not in name:
+            continue
+        try:
+            entry = score_scene(path, args.seeds, args.service_seeds, args.min_iterations)
+        except Exception as exc:       # noqa: BLE001 - recorded, and the run exits 1
+            entry, crashed = {"refused": None, "error": f"{type(exc).__name__}: {exc}"}, True
+        if entry.get("refused"):
+            entry["refused"] = entry["refused"].replace(root + os.sep, "")
+        scores[name] = entry
+        run = entry.get("service") or entry.get("sppm")
+        print(f"{name}: {verdict(entry)}" + (f" z-pass {run['z_pass_fraction']:.2%} bias {run['bias']:+.2%}"
+                                             f" {run['seconds']:.1f} s" if run else ""), flush=True)
+    return {"scores": scores, "crashed": crashed,
+            "settings": {"seeds": args.seeds, "service_seeds": args.service_seeds,
+                         "min_iterations": args.min_iterations, "sample_budget": SAMPLE_BUDGET}}
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--root", default=SCENES, help="the tests/scenes folder (default: %(default)s)")
     p.add_argument("--out", help="also write the results here (JSON)")
+    p.add_argument("--score", action="store_true", help="render and score every scene that loads")
+    p.add_argument("--seeds", type=int, default=16, help="--score: seeds in one process (default %(default)s)")
+    p.add_argument("--service-seeds", type=int, default=4,
+                   help="--score: seeds through the service for the scenes that pass (0: none)")
+    p.add_argument("--min-iterations", type=int, default=16, help="--score: eye iterations per seed at least")
+    p.add_argument("--only", help="--score: only the scenes whose name contains this (a trial: no --out)")
     args = p.parse_args(argv)
     if not os.path.isdir(args.root):
         print(f"{args.root}: no such folder (the shared scenes sit beside the checkout)", file=sys.stderr)
@@ -188,14 +345,17 @@ def main(argv=None) -> int:
     print("\nscenes by the plugins outside our subset they use (all of them, not only the first):")
     for group, n in collections.Counter(tuple(v) for v in needs.values()).most_common():
         print(f"{n:4d}  {', '.join(group) or '(none)'}")
+    if args.only and args.out:
+        p.error("--only scores part of the scenes: the results file holds all of them, so drop --out")
+    scored = score_all(args.root, args) if args.score else {}
     if args.out:
         from services.evaluation.provenance import write_results
         short = {n: (m and m.replace(args.root + os.sep, "")) for n, m in results}
         write_results(args.out, {"scenes": short, "loads": loads, "refusals": dict(counts.most_common()),
                                  "plugins_needed": needs,
                                  "language_errors": {n: [m.replace(args.root + os.sep, "") for m in e]
-                                                     for n, e in language if e}})
-    return 0
+                                                     for n, e in language if e}, **scored})
+    return 1 if scored.get("crashed") else 0
 
 
 if __name__ == "__main__":

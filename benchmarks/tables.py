@@ -25,7 +25,8 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
 
-DOCS = ("README.md", "docs/performance.md", "docs/accuracy.md", "docs/reliability.md", "docs/out-of-core.md")
+DOCS = ("README.md", "docs/performance.md", "docs/accuracy.md", "docs/reliability.md", "docs/out-of-core.md",
+        "docs/mitsuba-scenes.md")
 MARKED = re.compile(r"(<!-- table:([\w-]+) -->\n)(.*?)(<!-- /table:\2 -->)", re.S)
 
 
@@ -167,6 +168,11 @@ def _out_of_core_eye(doc: dict) -> str:
     return out_of_core_eye.report(doc)
 
 
+def _mitsuba_scenes(doc: dict) -> str:
+    import mitsuba_scenes
+    return mitsuba_scenes.report(doc)
+
+
 def _eye_pass(doc: dict) -> str:
     import eye_pass
     return eye_pass.report(doc)
@@ -182,6 +188,7 @@ TABLES = {
     "many-lights": ("benchmarks/results/many-lights.json", _many_lights),
     "many-lights-pbrt": ("benchmarks/results/many-lights-pbrt.json", _many_lights_pbrt),
     "eye-pass": ("benchmarks/results/eye-pass.json", _eye_pass),
+    "mitsuba-scenes": ("benchmarks/results/mitsuba-scenes.json", _mitsuba_scenes),
     "out-of-core-eye": ("benchmarks/results/out-of-core-eye.json", _out_of_core_eye),
     "accuracy-failure-modes": ("docs/evaluation/results.json", _evaluation()),
     "accuracy-failure-modes-mirror": ("docs/evaluation/results.json", _evaluation(mirror=True)),

@@ -259,10 +259,7 @@ class ServerState(MembershipMixin, EmissionMixin, EyeScheduleMixin, EpochStateMi
         Gathering at the tracers: the next epoch's gather, once it is due."""
         if self.epochs is not None:
             return self._maybe_gather()
-        # Due by deposits held, or by the photons of complete jobs: photons
-        # that deposit little or nothing (direct light only, max_depth 1, or
-        # an open scene) would otherwise never commit, and a photon or
-        # iteration limit, which waits for a commit, never be reached.
+        # Or by complete photons: those depositing nothing (direct light only) never committed.
         due = self.held.due(self._now, bool(self._ready_jobs)) or self._ready_emitted >= self.held.photon_batch
         if self.eye_completed == 0 or not (final or due):
             return
