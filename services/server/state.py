@@ -255,11 +255,11 @@ class ServerState(MembershipMixin, EmissionMixin, EyeScheduleMixin, EpochStateMi
 
     def _maybe_batch(self, final: bool = False) -> None:
         """Hand over the deposits of complete jobs once `photon_batch` are
-        held (server batching); deposits of jobs still in flight wait.
-        Gathering at the tracers: the next epoch's gather, once it is due."""
+        held (server batching), or their photons number `photon_batch` (those
+        depositing nothing, direct light only, must commit too); deposits of
+        jobs still in flight wait. Gathering at the tracers: the next epoch's."""
         if self.epochs is not None:
             return self._maybe_gather()
-        # Or by complete photons: those depositing nothing (direct light only) never committed.
         due = self.held.due(self._now, bool(self._ready_jobs)) or self._ready_emitted >= self.held.photon_batch
         if self.eye_completed == 0 or not (final or due):
             return
