@@ -320,6 +320,25 @@ def _read_table(path: str, role: str, known: set) -> dict:
     return table
 
 
+def scene_parameter(text: str) -> tuple[str, str]:
+    """`-D NAME=VALUE` (argparse type): a Mitsuba scene file's $NAME."""
+    name, eq, value = text.partition("=")
+    if not eq or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", name):
+        raise argparse.ArgumentTypeError(f"expected NAME=VALUE (a Mitsuba scene's $NAME), got {text!r}")
+    return name, value
+
+
+def add_scene_parameters(p) -> None:
+    p.add_argument("-D", dest="define", action="append", type=scene_parameter, metavar="NAME=VALUE",
+                   help="a Mitsuba .xml scene's parameter $NAME, over its <default> (as `mitsuba -D`; "
+                        "repeat for more)")
+
+
+def scene_parameters(args) -> dict | None:
+    """The -D NAME=VALUE given, as {name: value}; None when none (a later one wins)."""
+    return dict(getattr(args, "define", None) or ()) or None
+
+
 def render_settings(values: dict, service: bool = False, scene_hints: dict | None = None) -> RenderSettings:
     """RenderSettings from option values (validated): those given (not
     None) replace the defaults of one process, or of the service, and

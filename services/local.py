@@ -93,7 +93,8 @@ def run_server(scene: str, v: dict, quiet: bool = False, spawn_tracers: int = 0)
 def _open_store(scene: str, v: dict) -> ChunkStore:
     budget_bytes, chunks = config.chunking(v)
     with warnings_as_lines():
-        return open_render_store(scene, v["store_cache"], budget_bytes, chunks, v["width"], v["height"])
+        return open_render_store(scene, v["store_cache"], budget_bytes, chunks, v["width"], v["height"],
+                                 v.get("define"))
 
 
 def _resumed_settings(settings: RenderSettings, doc: dict) -> RenderSettings:

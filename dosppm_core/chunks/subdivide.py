@@ -679,16 +679,21 @@ def open_or_subdivide(source, cache_dir: str, budget=None, grid: int | None = No
 
 
 def open_render_store(scene: str, cache_dir: str, budget_bytes: int | None, chunks: int | None,
-                      width: int | None = None, height: int | None = None) -> chunkstore.ChunkStore:
+                      width: int | None = None, height: int | None = None,
+                      params: dict | None = None) -> chunkstore.ChunkStore:
     """The chunk store to render `scene` from: the store itself when `scene`
-    is one, otherwise the scene (built-in name, scene file or soup)
-    subdivided into `chunks`, or at `budget_bytes`, and kept under
-    `cache_dir` for the next render (`open_or_subdivide`). `width` and
+    is one, otherwise the scene (built-in name, scene file or soup; a
+    Mitsuba file with its `params`) subdivided into `chunks`, or at
+    `budget_bytes`, and kept under `cache_dir` for the next render
+    (`open_or_subdivide`; the parameters change the key). `width` and
     `height` override its camera's."""
     if chunkstore.is_store(scene):
+        if params:
+            raise SceneError(f"{scene}: parameters {', '.join(params)} given, but only a Mitsuba .xml "
+                             f"file takes them")
         store = chunkstore.ChunkStore.open(scene)
     else:
-        store = open_or_subdivide(load_source(scene), cache_dir, budget=budget_bytes, chunks=chunks)
+        store = open_or_subdivide(load_source(scene, params), cache_dir, budget=budget_bytes, chunks=chunks)
     if width:
         store.header.camera.width = int(width)
     if height:

@@ -41,9 +41,9 @@ def load_scene(spec: str, params: dict | None = None, **overrides) -> Scene:
     return scene
 
 
-def load_source(spec: str):
+def load_source(spec: str, params: dict | None = None):
     """A `TriangleSource`: a soup directory is memory-mapped, anything else
-    is loaded by `load_scene` and wrapped."""
-    if is_soup(spec):
+    is loaded by `load_scene` (with a Mitsuba file's `params`) and wrapped."""
+    if is_soup(spec) and not params:
         return open_soup(spec)
-    return SceneSource(load_scene(spec))
+    return SceneSource(load_scene(spec, params))

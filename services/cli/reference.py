@@ -15,6 +15,7 @@ from dosppm_core import reference
 from dosppm_core.film import FilmError, write_exr
 from dosppm_core.scene import loaders
 from dosppm_core.scene.model import SceneError
+from services import config
 from services.cli.errors import EXIT_FAILED, EXIT_OK, fail
 from services.config import non_negative_int, positive_int
 
@@ -32,6 +33,7 @@ def add_parser(sub) -> None:
                         f"(Mitsuba max_depth = this + 1; negative: unbounded; "
                         f"default {reference.DEFAULT_MAX_DEPTH})")
     p.add_argument("--integrator", choices=reference.INTEGRATORS, default="path")
+    config.add_scene_parameters(p)
     p.add_argument("--seed", type=non_negative_int, default=0)
     p.add_argument("--width", type=positive_int, help="override the camera's width")
     p.add_argument("--height", type=positive_int, help="override the camera's height")
@@ -42,7 +44,7 @@ def add_parser(sub) -> None:
 
 def run(args) -> int:
     try:
-        scene = loaders.load_scene(args.scene, width=args.width, height=args.height)
+        scene = loaders.load_scene(args.scene, config.scene_parameters(args), width=args.width, height=args.height)
     except (SceneError, OSError) as exc:
         return fail(str(exc))
     start = time.perf_counter()

@@ -55,6 +55,7 @@ def add_parser(sub) -> None:
                         "sppm: one process, whole scene; osppm: one process, chunk by chunk")
     config.add_options(p.add_mutually_exclusive_group(), config.LIMITS)
     config.add_options(p, _RENDER)
+    config.add_scene_parameters(p)
     p.add_argument("--quiet", action="store_true")
     ooc = p.add_argument_group("chunks (--mode osppm and dosppm)")
     config.add_options(ooc, config.CHUNKING)
@@ -93,7 +94,8 @@ def _run_service(args) -> int:
     n = args.tracers or os.cpu_count() or 1
     values = {o.name: o.default for o in config.SERVER}
     values.update({o.name: getattr(args, o.name) for o in _SERVER_FLAGS})
-    values.update(bind="tcp://127.0.0.1:*", min_tracers=n, memory=args.memory, queue_memory=args.queue_memory)
+    values.update(bind="tcp://127.0.0.1:*", min_tracers=n, memory=args.memory, queue_memory=args.queue_memory,
+                  define=config.scene_parameters(args))
     return run_server(args.scene, values, quiet=args.quiet, spawn_tracers=n)
 
 
@@ -152,14 +154,15 @@ def _make_renderer(args):
     for, or when the scene is a store or a soup; and a line describing it.
     The settings are the flags', then the scene file's integrator's."""
     if not (args.mode == "osppm" or is_store(args.scene) or is_soup(args.scene)):
-        scene = load_scene(args.scene, width=args.width, height=args.height)
+        scene = load_scene(args.scene, config.scene_parameters(args), width=args.width, height=args.height)
         settings = config.render_settings(vars(args), scene_hints=scene.render_settings)
         return Renderer(scene, settings), (
             f"scene {scene.name}: {scene.triangle_count:,} triangles, {len(scene.lights.kind)} lights, "
             f"{scene.camera.width}x{scene.camera.height}")
     budget_bytes, chunks = config.chunking(vars(args))
     memory = config.parse_bytes(args.memory, "--memory")
-    store = open_render_store(args.scene, args.store_cache, budget_bytes, chunks, args.width, args.height)
+    store = open_render_store(args.scene, args.store_cache, budget_bytes, chunks, args.width, args.height,
+                              config.scene_parameters(args))
     settings = config.render_settings(vars(args), scene_hints=store.header.render_settings)
     if memory is None and store.budget_bytes:
         memory = max(2 * store.budget_bytes, store.chunk_memory.max())

@@ -17,8 +17,10 @@ def add_parser(sub) -> None:
     p.add_argument("scene", nargs="?", default=builtin.DEFAULT,
                    help="built-in scene, scene file or chunk store")
     config.add_role_options(p, config.SERVER)
+    config.add_scene_parameters(p)
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    return run_server(args.scene, config.resolve(args, "server", config.SERVER), quiet=args.quiet)
+    values = {**config.resolve(args, "server", config.SERVER), "define": config.scene_parameters(args)}
+    return run_server(args.scene, values, quiet=args.quiet)

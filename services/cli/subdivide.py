@@ -16,6 +16,7 @@ from dosppm_core.chunks.store import ChunkStore
 from dosppm_core.chunks.subdivide import DEFAULT_GRID, format_bytes, subdivide
 from dosppm_core.scene.loaders import load_source
 from dosppm_core.scene.model import SceneError
+from services import config
 from services.cli.errors import EXIT_OK, fail
 from services.config import parse_bytes, positive_int, size
 
@@ -37,6 +38,7 @@ def add_parser(sub) -> None:
                         "(about 1.5x --budget): sets how much of the scene is read at a time "
                         "(default: blocks of 1M triangles, about 200MiB)")
     p.add_argument("--out", required=True, metavar="DIR", help="the chunk store directory to write")
+    config.add_scene_parameters(p)
     p.set_defaults(func=run)
 
 
@@ -50,7 +52,7 @@ def run(args) -> int:
         return fail("give --budget SIZE or --chunks C")
     t = time.perf_counter()
     try:
-        source = load_source(args.scene)
+        source = load_source(args.scene, config.scene_parameters(args))
         loaded = time.perf_counter() - t
         report = subdivide(source, args.out, budget_bytes=budget, grid=args.grid, chunks=args.chunks,
                            memory_bytes=memory)
