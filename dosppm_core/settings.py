@@ -103,6 +103,8 @@ def scene_settings(hints: dict) -> dict:
     kind = hints.get("integrator")
     if kind is None:
         return {}
+    if hints.get("hide_emitters"):
+        raise ValueError("hide_emitters: emitters seen directly cannot be hidden (we render them)")
     if kind not in MITSUBA_INTEGRATORS:
         raise ValueError(f"integrator {kind!r} is not one we render (known: {', '.join(MITSUBA_INTEGRATORS)})")
     depth = 2 if kind == "direct" else int(hints.get("max_depth", -1))

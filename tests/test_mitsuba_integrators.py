@@ -53,6 +53,9 @@ def test_mitsuba_depth_becomes_our_scattering_count():
     assert scene_settings({}) == {} and scene_settings({"iterations": 3}) == {}   # a TOML [render] table
     with pytest.raises(ValueError, match="max_depth 0"):
         scene_settings({"integrator": "path", "max_depth": 0})
+    with pytest.raises(ValueError, match="hide_emitters"):
+        scene_settings({"integrator": "path", "hide_emitters": True})
+    assert scene_settings({"integrator": "path", "hide_emitters": False}) == {"max_depth": RenderSettings.max_depth}
     with pytest.raises(ValueError, match="aov"):
         scene_settings({"integrator": "aov"})
 

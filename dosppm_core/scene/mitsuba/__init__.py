@@ -52,7 +52,8 @@ sensor      perspective, thinlens (fov or focal_length, fov_axis, to_world,
             far_clip); film hdrfilm (width, height, pixel_format,
             component_format, rfilter); sampler (sample_count, seed)
 integrator  path, volpath, volpathmis, ptracer, direct (max_depth, rr_depth,
-            hide_emitters); moment (read through to the one integrator it
+            hide_emitters; `settings.scene_settings` renders max_depth M
+            as our M - 1 and refuses hide_emitters true); moment (read through to the one integrator it
             wraps: our variance comes from our own estimator)
 values      float, integer, boolean, string, point, vector, rgb, spectrum
             (constant or wavelength:value pairs); transform of translate,
