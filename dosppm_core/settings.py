@@ -30,7 +30,8 @@ class RenderSettings:
     seed: int = 0
     alpha: float = 0.7
     radius: float | None = None          # initial radius; None: from scene size and pixels
-    # Surfaces a path may hit. Russian roulette ends paths, unbiased; this
+    # Scattering events a light path may have, the hit point's included (0:
+    # emitters seen directly; 1: direct light, and emitters in a mirror). Russian roulette ends paths, unbiased; this
     # is only a safety net for light trapped in glass by total internal
     # reflection (roulette keeps it: glass absorbs nothing). At 256 the
     # paths it cuts change no pixel by 1e-4 of the brightest
@@ -73,8 +74,8 @@ class RenderSettings:
     def validate(self) -> None:
         if not 0 < self.alpha < 1:
             raise ValueError(f"alpha must lie in (0, 1), got {self.alpha}")
-        if self.max_depth < 1:
-            raise ValueError(f"max_depth must be >= 1, got {self.max_depth}")
+        if self.max_depth < 0:
+            raise ValueError(f"max_depth must be >= 0, got {self.max_depth}")
         if self.direct not in DIRECT_MODES:
             raise ValueError(f"direct must be one of {', '.join(DIRECT_MODES)}, got {self.direct!r}")
         if self.gather not in ("grid", "hash"):

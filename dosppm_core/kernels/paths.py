@@ -502,6 +502,10 @@ def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp,
         if front:  # one-sided emitters, as in Mitsuba
             for k in range(3):
                 emitted[i, k] = weight[i, k] * emit[m, k]
+        # `depth` mirrors and glass behind it, each a scattering event; a
+        # hit point adds one (its shadow ray), as does going on. A path that
+        # has spent max_depth ends here, its emission counted: Mitsuba's
+        # last vertex, the light seen in a mirror at its max_depth 2.
         if bsdf[m, B_OPACITY] < 1.0 and passes_mask(bsdf, m, side_float(states[i], 0)):
             _pass_through(i, p0, p1, p2, n0, n1, n2, w0, w1, w2, depth, states, weight, max_depth,
                           eps_rel, eps_abs, end, nxt)
@@ -516,11 +520,14 @@ def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp,
                 coat = side_float(states[i], 1) < plastic_specular_probability(
                     bsdf[m], s * n0, s * n1, s * n2, w0, w1, w2)
             if not coat:
+                if depth[i] >= max_depth:
+                    end[i] = MAX_DEPTH
+                    continue
                 # A rough dielectric's hit point keeps its geometric normal: the side decides eta.
                 write_facing(hp_pos, hp_n, i, p0, p1, p2, n0, n1, n2, front or is_transmissive(kind))
                 end[i] = STORED
                 continue
-        if depth[i] + 1 >= max_depth:
+        if depth[i] >= max_depth:
             end[i] = MAX_DEPTH
             continue
         st, u1 = next_float(states[i])
@@ -551,7 +558,7 @@ def _pass_through(i, p0, p1, p2, n0, n1, n2, w0, w1, w2, depth, states, weight, 
                   eps_rel, eps_abs, end, nxt):
     """Eye path i goes on straight through a mask's hole, as one bounce."""
     new_o, new_d, new_w, new_st = nxt
-    if depth[i] + 1 >= max_depth:
+    if depth[i] >= max_depth:
         end[i] = MAX_DEPTH
         return
     new_st[i] = next_float(states[i])[0]
