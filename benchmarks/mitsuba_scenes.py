@@ -16,9 +16,9 @@ size, in one process at `--seeds` seeds and scores the images against
 Mitsuba's reference as Mitsuba's own test does (dosppm_core/render_test.py);
 a scene that passes is rendered again through the render service
 (`dosppm render --chunks 2`: a server, 2 tracers, the scene in 2 chunks) at
-`--service-seeds` seeds and scored again. The budget is Mitsuba's test's,
-2e6 eye samples over the image, split over the seeds (at least
-`--min-iterations` each). The results file gets a `scores` table, from
+`--service-seeds` seeds of as many iterations and scored again. The budget
+is Mitsuba's test's, 2e6 eye samples over the image, split over the seeds
+(at least `--min-iterations` each). The results file gets a `scores` table, from
 which `python benchmarks/tables.py` makes docs/mitsuba-scenes.md.
 
 Exits 1 when a scene fails other than by a `SceneError` (a crash).
@@ -178,8 +178,12 @@ def survey(root: str = SCENES) -> list:
 
 
 # -- scoring against Mitsuba's references (--score) ------------------------------------
-# Mitsuba's test renders 2e6 samples over the image (test_renders.py).
+# Mitsuba's test renders 2e6 samples over the image (test_renders.py); we
+# split them over SEEDS seeds in one process. The service renders
+# SERVICE_SEEDS seeds of as many iterations each (a quarter of the budget:
+# each run's start, a server and two tracers, costs seconds).
 SAMPLE_BUDGET = 2_000_000
+SEEDS, SERVICE_SEEDS, MIN_ITERATIONS = 16, 4, 16
 
 
 def reference_files(path: str) -> tuple[str, str]:
@@ -232,8 +236,8 @@ def render_service(path: str, seeds: list, iterations: int, work: str, chunks: i
     return images, used
 
 
-def score_scene(path: str, seeds: int = 16, service_seeds: int = 4, min_iterations: int = 16,
-                work: str | None = None) -> dict:
+def score_scene(path: str, seeds: int = SEEDS, service_seeds: int = SERVICE_SEEDS,
+                min_iterations: int = MIN_ITERATIONS, work: str | None = None) -> dict:
     """One scene's entry of the `scores` table: its refusal, or what the
     scorer made of our renders in one process and, if those pass, through
     the service (`service_seeds` 0: not tried)."""
@@ -253,7 +257,7 @@ def score_scene(path: str, seeds: int = 16, service_seeds: int = 4, min_iteratio
     if not entry["sppm"]["passed"] or service_seeds < 1:
         return entry
     t0 = time.perf_counter()
-    n = iterations_per_seed(pixels, service_seeds, min_iterations)
+    n = entry["iterations_per_seed"]
     with tempfile.TemporaryDirectory(prefix="mitsuba-scenes-", dir=work) as tmp:
         images, chunks = render_service(path, list(range(101, 101 + service_seeds)), n, tmp)
     entry["service"] = {**render_test.score(images, ref, var).as_dict(), "chunks": chunks,
@@ -318,10 +322,10 @@ def main(argv=None) -> int:
     p.add_argument("--root", default=SCENES, help="the tests/scenes folder (default: %(default)s)")
     p.add_argument("--out", help="also write the results here (JSON)")
     p.add_argument("--score", action="store_true", help="render and score every scene that loads")
-    p.add_argument("--seeds", type=int, default=16, help="--score: seeds in one process (default %(default)s)")
-    p.add_argument("--service-seeds", type=int, default=4,
+    p.add_argument("--seeds", type=int, default=SEEDS, help="--score: seeds in one process (default %(default)s)")
+    p.add_argument("--service-seeds", type=int, default=SERVICE_SEEDS,
                    help="--score: seeds through the service for the scenes that pass (0: none)")
-    p.add_argument("--min-iterations", type=int, default=16, help="--score: eye iterations per seed at least")
+    p.add_argument("--min-iterations", type=int, default=MIN_ITERATIONS, help="--score: eye iterations per seed at least")
     p.add_argument("--only", help="--score: only the scenes whose name contains this (a trial: no --out)")
     args = p.parse_args(argv)
     if not os.path.isdir(args.root):

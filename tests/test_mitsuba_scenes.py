@@ -109,7 +109,7 @@ def test_claimed_scenes_pass_in_one_process(name):
     survey = _survey()
     refusal = survey.try_load(_path(name))
     assert refusal is None, f"a claimed scene refuses: {refusal}"
-    entry = survey.score_scene(_path(name), seeds=16, service_seeds=0)
+    entry = survey.score_scene(_path(name), service_seeds=0)
     assert entry["sppm"]["passed"], entry
 
 
@@ -123,7 +123,7 @@ def test_claimed_scenes_pass_through_the_service_in_chunks(name, tmp_path):
     survey = _survey()
     path = _path(name)
     ref, var = (read_exr(f)[0] for f in survey.reference_files(path))
-    n = survey.iterations_per_seed(ref.shape[0] * ref.shape[1], 4, 16)
+    n = survey.iterations_per_seed(ref.shape[0] * ref.shape[1], survey.SEEDS, survey.MIN_ITERATIONS)
     images, chunks = survey.render_service(path, [101, 102, 103, 104], n, str(tmp_path))
     s = render_test.score(images, ref, var)
     assert chunks >= 2 and s.passed, (chunks, s)
