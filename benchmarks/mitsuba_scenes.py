@@ -214,26 +214,35 @@ def render_here(path: str, seeds: list, iterations: int) -> list:
     return [np.asarray(dp.render(scene, iterations=iterations, seed=s, mode="sppm")) for s in seeds]
 
 
-def render_service(path: str, seeds: list, iterations: int, work: str, chunks: int = 2) -> tuple[list, int]:
+def render_service(path: str, seeds: list, iterations: int, work: str, chunks: int = 2,
+                   parallel: int = 2) -> tuple[list, int]:
     """The scene rendered by `dosppm render` (a server and 2 tracers, the
-    scene cut into `chunks` chunks) once per seed; (images, chunks used)."""
-    from dosppm_core.film import read_exr
+    scene cut into `chunks` chunks) once per seed, `parallel` renders at a
+    time (a run's start is mostly waiting); (images, chunks used)."""
     import json
-    images, used = [], None
+
+    from dosppm_core.chunks.subdivide import open_render_store
+    from dosppm_core.film import read_exr
+    stores = os.path.join(work, "stores")
+    with warnings.catch_warnings():      # cut once, before runs that would race to cut it
+        warnings.simplefilter("ignore")
+        open_render_store(path, stores, None, chunks)
     env = {**os.environ, "PYTHONPATH": ROOT + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    for s in seeds:
-        out = os.path.join(work, f"service-{s}.exr")
-        cmd = [sys.executable, "-m", "services.cli", "render", path, "--chunks", str(chunks),
-               "--iterations", str(iterations), "--seed", str(s), "--out", out, "--tracers", "2",
-               "--store-cache", os.path.join(work, "stores"), "--http", "off", "--quiet"]
-        done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
-        if done.returncode != 0:
-            raise RuntimeError(f"dosppm render exited {done.returncode}: "
-                               f"{(done.stderr.strip().splitlines() or ['?'])[-1]}")
-        images.append(read_exr(out)[0])
-        with open(os.path.splitext(out)[0] + ".json", encoding="utf-8") as f:
-            used = json.load(f).get("chunks")
-    return images, used
+    outs = [os.path.join(work, f"service-{s}.exr") for s in seeds]
+    for first in range(0, len(seeds), parallel):
+        runs = [subprocess.Popen(
+            [sys.executable, "-m", "services.cli", "render", path, "--chunks", str(chunks), "--iterations",
+             str(iterations), "--seed", str(s), "--out", out, "--tracers", "2", "--store-cache", stores,
+             "--http", "off", "--quiet"], env=env, stderr=subprocess.PIPE, text=True)
+            for s, out in zip(seeds[first:first + parallel], outs[first:first + parallel])]
+        for run in runs:
+            _, err = run.communicate(timeout=600)
+            if run.returncode != 0:
+                raise RuntimeError(f"dosppm render exited {run.returncode}: "
+                                   f"{(err.strip().splitlines() or ['?'])[-1]}")
+    with open(os.path.splitext(outs[-1])[0] + ".json", encoding="utf-8") as f:
+        used = json.load(f).get("chunks")
+    return [read_exr(out)[0] for out in outs], used
 
 
 def score_scene(path: str, seeds: int = SEEDS, service_seeds: int = SERVICE_SEEDS,
