@@ -44,7 +44,9 @@ def add_parser(sub) -> None:
 
 def run(args) -> int:
     try:
-        scene = loaders.load_scene(args.scene, config.scene_parameters(args), width=args.width, height=args.height)
+        params = config.scene_parameters(args)     # -D: only when given
+        scene = loaders.load_scene(args.scene, width=args.width, height=args.height,
+                                   **({"params": params} if params else {}))
     except (SceneError, OSError) as exc:
         return fail(str(exc))
     start = time.perf_counter()
