@@ -19,16 +19,23 @@ ROOT = os.path.join(SHARED_SCENES, "mitsuba-data", "tests", "scenes")
 
 # Load, render and pass the scorer, in one process and through the service in 2 chunks.
 CLAIMED = [
+    "floating_sphere/test_directional_direct.xml",
     "instancing/test_instancing_path.xml",
 ]
 # Load but are not claimed to pass yet: scene -> why (measured figures).
-LOADS: dict = {}
-# Refused, with the element the one-line error names (the first outside our subset).
+LOADS = {
+    # Mean -0.01%, z-pass 63%: per pixel we equal Mitsuba's render of the
+    # file with a box filter (median and 90th percentile of the relative
+    # difference 0.0000), which differs from the reference by 49% at its 90th.
+    "projector/test_projector_constant_direct.xml": "Gaussian pixel filter (Mitsuba's default)",
+}
+# Refused, with the element the one-line error names (the first outside our subset),
+# to its first attribute.
 REFUSED = {
     "bsdf_spheres/test_arealight_path.xml": '<texture type="bitmap"',
     "bsdf_spheres/test_bumpmap_path.xml": '<bsdf type="bumpmap"',
-    "bsdf_spheres/test_constant_path.xml": '<emitter type="constant"',
-    "bsdf_spheres/test_envmap_path.xml": '<emitter type="envmap"',
+    "bsdf_spheres/test_constant_path.xml": '<texture type="bitmap"',
+    "bsdf_spheres/test_envmap_path.xml": '<texture type="bitmap"',
     "bsdf_spheres/test_normalmap_identity_roughconductor_path.xml": '<bsdf type="normalmap"',
     "bsdf_spheres/test_normalmap_path.xml": '<bsdf type="normalmap"',
     "bsdf_spheres/test_normalmap_roughconductor_path.xml": '<bsdf type="normalmap"',
@@ -41,30 +48,28 @@ REFUSED = {
     "bsdf_spheres/test_texturedprincipled1_path.xml": '<bsdf type="principled"',
     "bsdf_spheres/test_texturedprincipled2_path.xml": '<bsdf type="principled"',
     "bsdf_spheres/test_texturedprincipledthin_path.xml": '<bsdf type="principledthin"',
-    "floating_sphere/test_directional_direct.xml": '<emitter type="directional"',
-    "infinite_mirrors/scene_path.xml": '<emitter type="envmap"',
-    "mesh_attributes/test_mesh_attributes_1_face_direct.xml": '<emitter type="directional"',
-    "mesh_attributes/test_mesh_attributes_3_face_direct.xml": '<emitter type="directional"',
-    "mesh_attributes/test_mesh_attributes_3_vertex_direct.xml": '<emitter type="directional"',
-    "orthographic_sensor/test_orthographic_path.xml": '<emitter type="constant"',
-    "participating_media/test_hetero_sigmat_albedo_volpath.xml": '<emitter type="envmap"',
-    "participating_media/test_hetero_sigmat_volpath.xml": '<emitter type="envmap"',
-    "participating_media/test_hetero_spectral_sigmat_no_scattering_volpath.xml": '<emitter type="envmap"',
-    "participating_media/test_hetero_spectral_sigmat_volpathmis.xml": '<emitter type="envmap"',
+    "infinite_mirrors/scene_path.xml": '<spectrum name="eta"',
+    "mesh_attributes/test_mesh_attributes_1_face_direct.xml": '<texture type="mesh_attribute"',
+    "mesh_attributes/test_mesh_attributes_3_face_direct.xml": '<texture type="mesh_attribute"',
+    "mesh_attributes/test_mesh_attributes_3_vertex_direct.xml": '<texture type="mesh_attribute"',
+    "orthographic_sensor/test_orthographic_path.xml": '<texture type="checkerboard"',
+    "participating_media/test_hetero_sigmat_albedo_volpath.xml": '<texture type="checkerboard"',
+    "participating_media/test_hetero_sigmat_volpath.xml": '<texture type="checkerboard"',
+    "participating_media/test_hetero_spectral_sigmat_no_scattering_volpath.xml": '<texture type="checkerboard"',
+    "participating_media/test_hetero_spectral_sigmat_volpathmis.xml": '<texture type="checkerboard"',
     "participating_media/test_homo_area_light_volpath.xml": '<texture type="checkerboard"',
-    "participating_media/test_homo_dielectric_envmap_volpath.xml": '<emitter type="envmap"',
-    "participating_media/test_homo_emitter_inside_medium_volpath.xml": '<emitter type="envmap"',
-    "participating_media/test_homo_null_envmap_volpath.xml": '<emitter type="envmap"',
-    "participating_media/test_homo_obj_inside_medium_volpath.xml": '<emitter type="envmap"',
+    "participating_media/test_homo_dielectric_envmap_volpath.xml": '<medium type="homogeneous"',
+    "participating_media/test_homo_emitter_inside_medium_volpath.xml": '<texture type="checkerboard"',
+    "participating_media/test_homo_null_envmap_volpath.xml": '<texture type="checkerboard"',
+    "participating_media/test_homo_obj_inside_medium_volpath.xml": '<texture type="checkerboard"',
     "participating_media/test_homo_roughdielectric_spot_volpath.xml": '<medium type="homogeneous"',
-    "participating_media/test_homo_spectral_sigmat_volpathmis.xml": '<emitter type="envmap"',
-    "participating_media/test_surf_area_light_volpath.xml": '<emitter type="envmap"',
-    "projector/test_projector_constant_direct.xml": '<emitter type="projector"',
-    "projector/test_projector_textured_direct.xml": '<emitter type="projector"',
-    "spot_light/test_spot_direct.xml": '<emitter type="constant"',
+    "participating_media/test_homo_spectral_sigmat_volpathmis.xml": '<texture type="checkerboard"',
+    "participating_media/test_surf_area_light_volpath.xml": '<texture type="checkerboard"',
+    "projector/test_projector_textured_direct.xml": '<texture type="bitmap"',
+    "spot_light/test_spot_direct.xml": '<texture type="bitmap"',
     "texture_interp/test_texture_interp_direct.xml": '<texture type="bitmap"',
     "various_emitters/test_various_emitters_ptracer.xml": '<texture type="bitmap"',
-    "various_shapes/test_various_shapes_path.xml": '<emitter type="constant"',
+    "various_shapes/test_various_shapes_path.xml": '<texture type="checkerboard"',
 }
 
 
@@ -96,7 +101,7 @@ def test_refused_scenes_still_refuse(name):
     """A one-line error naming the file (that exists), the line and the element."""
     message = _survey().try_load(_path(name))
     assert message is not None, f"{name} loads now: move it to CLAIMED or LOADS"
-    found = re.match(r"^(.+?\.xml):(\d+): (<\w+ type=\"[^\"]*\")[^\n]*: [^\n]+$", message)
+    found = re.match(r"^(.+?\.xml):(\d+): (<\w+ \w+=\"[^\"]*\")[^\n]*: [^\n]+$", message)
     assert found and "\n" not in message, message
     assert os.path.isfile(found[1]) and int(found[2]) >= 1, message
     assert found[3] == REFUSED[name], f"{name} now stops at {found[3]}: update REFUSED ({message})"
