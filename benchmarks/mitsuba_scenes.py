@@ -185,10 +185,14 @@ def survey(root: str = SCENES) -> list:
 SAMPLE_BUDGET = 2_000_000
 SEEDS, SERVICE_SEEDS, MIN_ITERATIONS = 16, 4, 16
 # Why a scene that loads fails, where it was looked into (the table says so).
+_GAUSSIAN = ("no <rfilter>, so Mitsuba's default Gaussian; our film is a box (per pixel we equal Mitsuba's "
+             "box-filtered render of the file)")
 WHY_FAILS = {
-    "projector/test_projector_constant_direct.xml":
-        "no <rfilter>, so Mitsuba's default Gaussian; our film is a box (per pixel we equal Mitsuba's "
-        "box-filtered render of the file)",
+    "projector/test_projector_constant_direct.xml": _GAUSSIAN,
+    "texture_interp/test_texture_interp_direct.xml": _GAUSSIAN,
+    "orthographic_sensor/test_orthographic_path.xml":
+        "10% of pixels, at checker and rectangle edges, differ from Mitsuba's render of the file "
+        "(90th percentile 5.7%), not by a sub-pixel shift: cause not found yet",
 }
 
 

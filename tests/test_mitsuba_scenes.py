@@ -19,8 +19,11 @@ ROOT = os.path.join(SHARED_SCENES, "mitsuba-data", "tests", "scenes")
 
 # Load, render and pass the scorer, in one process and through the service in 2 chunks.
 CLAIMED = [
+    "bsdf_spheres/test_textured_diffuse_path.xml",
     "floating_sphere/test_directional_direct.xml",
     "instancing/test_instancing_path.xml",
+    "mesh_attributes/test_mesh_attributes_3_face_direct.xml",
+    "mesh_attributes/test_mesh_attributes_3_vertex_direct.xml",
 ]
 # Load but are not claimed to pass yet: scene -> why (measured figures).
 LOADS = {
@@ -28,48 +31,49 @@ LOADS = {
     # file with a box filter (median and 90th percentile of the relative
     # difference 0.0000), which differs from the reference by 49% at its 90th.
     "projector/test_projector_constant_direct.xml": "Gaussian pixel filter (Mitsuba's default)",
+    # The same (z-pass 75.75%, mean -0.06%): Mitsuba's own render of it with
+    # a box filter is 22% off the reference at the 90th percentile, ours 2.9%
+    # off that render.
+    "texture_interp/test_texture_interp_direct.xml": "Gaussian pixel filter (Mitsuba's default)",
+    # z-pass 75.97%, mean 0.00%: see WHY_FAILS in benchmarks/mitsuba_scenes.py.
+    "orthographic_sensor/test_orthographic_path.xml": "edges of the checkerboard differ, cause not found",
 }
 # Refused, with the element the one-line error names (the first outside our subset),
 # to its first attribute.
 REFUSED = {
-    "bsdf_spheres/test_arealight_path.xml": '<texture type="bitmap"',
+    "bsdf_spheres/test_arealight_path.xml": '<bsdf type="plastic"',
     "bsdf_spheres/test_bumpmap_path.xml": '<bsdf type="bumpmap"',
-    "bsdf_spheres/test_constant_path.xml": '<texture type="bitmap"',
-    "bsdf_spheres/test_envmap_path.xml": '<texture type="bitmap"',
+    "bsdf_spheres/test_constant_path.xml": '<bsdf type="plastic"',
+    "bsdf_spheres/test_envmap_path.xml": '<bsdf type="plastic"',
     "bsdf_spheres/test_normalmap_identity_roughconductor_path.xml": '<bsdf type="normalmap"',
     "bsdf_spheres/test_normalmap_path.xml": '<bsdf type="normalmap"',
     "bsdf_spheres/test_normalmap_roughconductor_path.xml": '<bsdf type="normalmap"',
-    "bsdf_spheres/test_pointlight_path.xml": '<texture type="bitmap"',
+    "bsdf_spheres/test_pointlight_path.xml": '<bsdf type="plastic"',
     "bsdf_spheres/test_roughdielectric_path.xml": '<bsdf type="roughdielectric"',
     "bsdf_spheres/test_roughplastic_linear_path.xml": '<bsdf type="roughplastic"',
     "bsdf_spheres/test_roughplastic_nonlinear_path.xml": '<bsdf type="roughplastic"',
-    "bsdf_spheres/test_textured_diffuse_path.xml": '<texture type="bitmap"',
-    "bsdf_spheres/test_textured_roughconductor_path.xml": '<texture type="checkerboard"',
+    "bsdf_spheres/test_textured_roughconductor_path.xml": '<string name="material"',
     "bsdf_spheres/test_texturedprincipled1_path.xml": '<bsdf type="principled"',
     "bsdf_spheres/test_texturedprincipled2_path.xml": '<bsdf type="principled"',
     "bsdf_spheres/test_texturedprincipledthin_path.xml": '<bsdf type="principledthin"',
     "infinite_mirrors/scene_path.xml": '<spectrum name="eta"',
-    "mesh_attributes/test_mesh_attributes_1_face_direct.xml": '<texture type="mesh_attribute"',
-    "mesh_attributes/test_mesh_attributes_3_face_direct.xml": '<texture type="mesh_attribute"',
-    "mesh_attributes/test_mesh_attributes_3_vertex_direct.xml": '<texture type="mesh_attribute"',
-    "orthographic_sensor/test_orthographic_path.xml": '<texture type="checkerboard"',
-    "participating_media/test_hetero_sigmat_albedo_volpath.xml": '<texture type="checkerboard"',
-    "participating_media/test_hetero_sigmat_volpath.xml": '<texture type="checkerboard"',
-    "participating_media/test_hetero_spectral_sigmat_no_scattering_volpath.xml": '<texture type="checkerboard"',
-    "participating_media/test_hetero_spectral_sigmat_volpathmis.xml": '<texture type="checkerboard"',
-    "participating_media/test_homo_area_light_volpath.xml": '<texture type="checkerboard"',
+    "mesh_attributes/test_mesh_attributes_1_face_direct.xml": '<bsdf type="blendbsdf"',
+    "participating_media/test_hetero_sigmat_albedo_volpath.xml": '<medium type="heterogeneous"',
+    "participating_media/test_hetero_sigmat_volpath.xml": '<medium type="heterogeneous"',
+    "participating_media/test_hetero_spectral_sigmat_no_scattering_volpath.xml": '<medium type="heterogeneous"',
+    "participating_media/test_hetero_spectral_sigmat_volpathmis.xml": '<medium type="heterogeneous"',
+    "participating_media/test_homo_area_light_volpath.xml": '<medium type="homogeneous"',
     "participating_media/test_homo_dielectric_envmap_volpath.xml": '<medium type="homogeneous"',
-    "participating_media/test_homo_emitter_inside_medium_volpath.xml": '<texture type="checkerboard"',
-    "participating_media/test_homo_null_envmap_volpath.xml": '<texture type="checkerboard"',
-    "participating_media/test_homo_obj_inside_medium_volpath.xml": '<texture type="checkerboard"',
+    "participating_media/test_homo_emitter_inside_medium_volpath.xml": '<medium type="homogeneous"',
+    "participating_media/test_homo_null_envmap_volpath.xml": '<medium type="homogeneous"',
+    "participating_media/test_homo_obj_inside_medium_volpath.xml": '<medium type="homogeneous"',
     "participating_media/test_homo_roughdielectric_spot_volpath.xml": '<medium type="homogeneous"',
-    "participating_media/test_homo_spectral_sigmat_volpathmis.xml": '<texture type="checkerboard"',
-    "participating_media/test_surf_area_light_volpath.xml": '<texture type="checkerboard"',
+    "participating_media/test_homo_spectral_sigmat_volpathmis.xml": '<medium type="homogeneous"',
+    "participating_media/test_surf_area_light_volpath.xml": '<bsdf type="plastic"',
     "projector/test_projector_textured_direct.xml": '<texture type="bitmap"',
     "spot_light/test_spot_direct.xml": '<texture type="bitmap"',
-    "texture_interp/test_texture_interp_direct.xml": '<texture type="bitmap"',
     "various_emitters/test_various_emitters_ptracer.xml": '<texture type="bitmap"',
-    "various_shapes/test_various_shapes_path.xml": '<texture type="checkerboard"',
+    "various_shapes/test_various_shapes_path.xml": '<shape type="serialized"',
 }
 
 
