@@ -502,10 +502,8 @@ def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp,
         if front:  # one-sided emitters, as in Mitsuba
             for k in range(3):
                 emitted[i, k] = weight[i, k] * emit[m, k]
-        # `depth` mirrors and glass behind it, each a scattering event; a
-        # hit point adds one (its shadow ray), as does going on. A path that
-        # has spent max_depth ends here, its emission counted: Mitsuba's
-        # last vertex, the light seen in a mirror at its max_depth 2.
+        # `depth` scattering events behind; a hit point or going on adds one. At
+        # max_depth only the emission counts (Mitsuba's last vertex: a light in a mirror).
         if bsdf[m, B_OPACITY] < 1.0 and passes_mask(bsdf, m, side_float(states[i], 0)):
             _pass_through(i, p0, p1, p2, n0, n1, n2, w0, w1, w2, depth, states, weight, max_depth,
                           eps_rel, eps_abs, end, nxt)
@@ -519,10 +517,7 @@ def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp,
                 s = 1.0 if front else -1.0
                 coat = side_float(states[i], 1) < plastic_specular_probability(
                     bsdf[m], s * n0, s * n1, s * n2, w0, w1, w2)
-            if not coat:
-                if depth[i] >= max_depth:
-                    end[i] = MAX_DEPTH
-                    continue
+            if not coat and depth[i] < max_depth:
                 # A rough dielectric's hit point keeps its geometric normal: the side decides eta.
                 write_facing(hp_pos, hp_n, i, p0, p1, p2, n0, n1, n2, front or is_transmissive(kind))
                 end[i] = STORED
