@@ -24,6 +24,8 @@ CLAIMED = [
     "instancing/test_instancing_path.xml",
     "mesh_attributes/test_mesh_attributes_3_face_direct.xml",
     "mesh_attributes/test_mesh_attributes_3_vertex_direct.xml",
+    "bsdf_spheres/test_roughplastic_linear_path.xml",
+    "bsdf_spheres/test_roughplastic_nonlinear_path.xml",
 ]
 # Load but are not claimed to pass yet: scene -> why (measured figures).
 LOADS = {
@@ -37,26 +39,26 @@ LOADS = {
     "texture_interp/test_texture_interp_direct.xml": "Gaussian pixel filter (Mitsuba's default)",
     # z-pass 75.97%, mean 0.00%: see WHY_FAILS in benchmarks/mitsuba_scenes.py.
     "orthographic_sensor/test_orthographic_path.xml": "edges of the checkerboard differ, cause not found",
+    # Measured once after the materials merged, not looked into yet:
+    "bsdf_spheres/test_roughdielectric_path.xml": "z-pass 99.90% but mean +4.24%",
+    "participating_media/test_surf_area_light_volpath.xml": "z-pass 99.58%, mean -0.34%",
+    "infinite_mirrors/scene_path.xml": "no refs/scene_ref_rgb.exr: Mitsuba's own test skips it",
 }
 # Refused, with the element the one-line error names (the first outside our subset),
 # to its first attribute.
 REFUSED = {
-    "bsdf_spheres/test_arealight_path.xml": '<bsdf type="plastic"',
+    "bsdf_spheres/test_arealight_path.xml": '<texture type="bitmap"',
     "bsdf_spheres/test_bumpmap_path.xml": '<bsdf type="bumpmap"',
-    "bsdf_spheres/test_constant_path.xml": '<bsdf type="plastic"',
-    "bsdf_spheres/test_envmap_path.xml": '<bsdf type="plastic"',
+    "bsdf_spheres/test_constant_path.xml": '<texture type="bitmap"',
+    "bsdf_spheres/test_envmap_path.xml": '<texture type="bitmap"',
     "bsdf_spheres/test_normalmap_identity_roughconductor_path.xml": '<bsdf type="normalmap"',
     "bsdf_spheres/test_normalmap_path.xml": '<bsdf type="normalmap"',
     "bsdf_spheres/test_normalmap_roughconductor_path.xml": '<bsdf type="normalmap"',
-    "bsdf_spheres/test_pointlight_path.xml": '<bsdf type="plastic"',
-    "bsdf_spheres/test_roughdielectric_path.xml": '<bsdf type="roughdielectric"',
-    "bsdf_spheres/test_roughplastic_linear_path.xml": '<bsdf type="roughplastic"',
-    "bsdf_spheres/test_roughplastic_nonlinear_path.xml": '<bsdf type="roughplastic"',
+    "bsdf_spheres/test_pointlight_path.xml": '<texture type="bitmap"',
     "bsdf_spheres/test_textured_roughconductor_path.xml": '<string name="material"',
     "bsdf_spheres/test_texturedprincipled1_path.xml": '<bsdf type="principled"',
     "bsdf_spheres/test_texturedprincipled2_path.xml": '<bsdf type="principled"',
     "bsdf_spheres/test_texturedprincipledthin_path.xml": '<bsdf type="principledthin"',
-    "infinite_mirrors/scene_path.xml": '<spectrum name="eta"',
     "mesh_attributes/test_mesh_attributes_1_face_direct.xml": '<bsdf type="blendbsdf"',
     "participating_media/test_hetero_sigmat_albedo_volpath.xml": '<medium type="heterogeneous"',
     "participating_media/test_hetero_sigmat_volpath.xml": '<medium type="heterogeneous"',
@@ -69,7 +71,6 @@ REFUSED = {
     "participating_media/test_homo_obj_inside_medium_volpath.xml": '<medium type="homogeneous"',
     "participating_media/test_homo_roughdielectric_spot_volpath.xml": '<medium type="homogeneous"',
     "participating_media/test_homo_spectral_sigmat_volpathmis.xml": '<medium type="homogeneous"',
-    "participating_media/test_surf_area_light_volpath.xml": '<bsdf type="plastic"',
     "projector/test_projector_textured_direct.xml": '<texture type="bitmap"',
     "spot_light/test_spot_direct.xml": '<texture type="bitmap"',
     "various_emitters/test_various_emitters_ptracer.xml": '<texture type="bitmap"',
