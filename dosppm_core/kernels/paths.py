@@ -483,6 +483,9 @@ def _take_rows(a, idx):
     return out
 
 
+# Depth: a path has `depth` scattering events behind it; a hit point, or going
+# on through a mirror, glass or a mask's hole, adds one. At max_depth only the
+# emission counts (Mitsuba's last vertex: the light seen in a mirror).
 @nb.njit(cache=True, error_model="numpy")
 def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp, nxt):
     """The eye bounce of rows [a, e), each written to its own row. Tuples unpacked once per block."""
@@ -502,8 +505,6 @@ def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp,
         if front:  # one-sided emitters, as in Mitsuba
             for k in range(3):
                 emitted[i, k] = weight[i, k] * emit[m, k]
-        # `depth` scattering events behind; a hit point or going on adds one. At
-        # max_depth only the emission counts (Mitsuba's last vertex: a light in a mirror).
         if bsdf[m, B_OPACITY] < 1.0 and passes_mask(bsdf, m, side_float(states[i], 0)):
             _pass_through(i, p0, p1, p2, n0, n1, n2, w0, w1, w2, depth, states, weight, max_depth,
                           eps_rel, eps_abs, end, nxt)
