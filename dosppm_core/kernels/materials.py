@@ -200,13 +200,7 @@ def _conductor_tint(row, cos_h):
 @nb.njit(cache=True, error_model="numpy")
 def _rough_conductor(row, cos_o, cos_i, n0, n1, n2, w0, w1, w2, i0, i1, i2):
     """Mitsuba's roughconductor: F(wo.h) D G / (4 cos_o cos_i), tinted."""
-    h0, h1, h2 = w0 + i0, w1 + i1, w2 + i2
-    hl = math.sqrt(h0 * h0 + h1 * h1 + h2 * h2)
-    h0, h1, h2 = h0 / hl, h1 / hl, h2 / hl
-    dist, alpha = int(row[B_DIST]), row[B_ALPHA]
-    wo_h = dot(w0, w1, w2, h0, h1, h2)
-    g = smith_g1(dist, alpha, cos_o, wo_h) * smith_g1(dist, alpha, cos_i, dot(i0, i1, i2, h0, h1, h2))
-    k = distribution_d(dist, alpha, dot(n0, n1, n2, h0, h1, h2)) * g / (4.0 * cos_o * cos_i)
+    wo_h, k = _microfacet(row, cos_o, cos_i, n0, n1, n2, w0, w1, w2, i0, i1, i2)
     f0, f1, f2 = _conductor_tint(row, wo_h)
     return f0 * k, f1 * k, f2 * k
 
@@ -214,14 +208,21 @@ def _rough_conductor(row, cos_o, cos_i, n0, n1, n2, w0, w1, w2, i0, i1, i2):
 @nb.njit(cache=True, error_model="numpy")
 def _coating_lobe(row, cos_o, cos_i, n0, n1, n2, w0, w1, w2, i0, i1, i2):
     """Rough plastic's coating: F D G / (4 cos_o cos_i), uncoloured."""
+    wo_h, k = _microfacet(row, cos_o, cos_i, n0, n1, n2, w0, w1, w2, i0, i1, i2)
+    return fresnel(wo_h, row[B_ETA])[0] * k
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _microfacet(row, cos_o, cos_i, n0, n1, n2, w0, w1, w2, i0, i1, i2):
+    """(wo.h, D G / (4 cos_o cos_i)) of a reflection lobe: what the rough
+    conductor and rough plastic's coating share, Fresnel aside."""
     h0, h1, h2 = w0 + i0, w1 + i1, w2 + i2
     hl = math.sqrt(h0 * h0 + h1 * h1 + h2 * h2)
     h0, h1, h2 = h0 / hl, h1 / hl, h2 / hl
     dist, alpha = int(row[B_DIST]), row[B_ALPHA]
     wo_h = dot(w0, w1, w2, h0, h1, h2)
     g = smith_g1(dist, alpha, cos_o, wo_h) * smith_g1(dist, alpha, cos_i, dot(i0, i1, i2, h0, h1, h2))
-    d = distribution_d(dist, alpha, dot(n0, n1, n2, h0, h1, h2))
-    return fresnel(wo_h, row[B_ETA])[0] * d * g / (4.0 * cos_o * cos_i)
+    return wo_h, distribution_d(dist, alpha, dot(n0, n1, n2, h0, h1, h2)) * g / (4.0 * cos_o * cos_i)
 
 
 @nb.njit(cache=True, error_model="numpy")

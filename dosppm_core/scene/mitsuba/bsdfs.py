@@ -184,12 +184,19 @@ def _distribution(obj: Obj) -> str:
     return name
 
 
+def _rough_eta(obj: Obj, interior: str) -> float:
+    """int_ior / ext_ior of a rough interface, which must differ (an index
+    ratio of 1 has no microfacet lobe to sample)."""
+    eta = _ior(obj, "int_ior", interior) / _ior(obj, "ext_ior", "air")
+    if eta == 1.0:
+        obj.node.fail("int_ior and ext_ior must differ")
+    return eta
+
+
 def _roughdielectric(reader: ReaderState, obj: Obj) -> Material:
     reader.children(obj, ())
     distribution = _distribution(obj)
-    eta = _ior(obj, "int_ior", "bk7") / _ior(obj, "ext_ior", "air")
-    if eta == 1.0:
-        obj.node.fail("int_ior and ext_ior must differ")
+    eta = _rough_eta(obj, "bk7")
     return Material(obj.name(), "roughdielectric", get_rgb(obj, "specular_transmittance", 1.0),
                     ior=eta, roughness=_alpha(obj), two_sided=True, distribution=distribution,
                     specular=get_rgb(obj, "specular_reflectance", 1.0))
@@ -206,9 +213,7 @@ def _plastic(reader: ReaderState, obj: Obj) -> Material:
 def _roughplastic(reader: ReaderState, obj: Obj) -> Material:
     reader.children(obj, ())
     distribution = _distribution(obj)
-    eta = _ior(obj, "int_ior", "polypropylene") / _ior(obj, "ext_ior", "air")
-    if eta == 1.0:
-        obj.node.fail("int_ior and ext_ior must differ")
+    eta = _rough_eta(obj, "polypropylene")
     return Material(obj.name(), "roughplastic", get_rgb(obj, "diffuse_reflectance", 0.5), ior=eta,
                     roughness=_alpha(obj), specular=get_rgb(obj, "specular_reflectance", 1.0),
                     nonlinear=bool(get_bool(obj, "nonlinear", False)), distribution=distribution,
