@@ -10,9 +10,10 @@ two synthetic tracers on two other hosts (services/evaluation/replay.py).
   them), which is what benchmarks/slow_link.py's "limited by" rests on.
 
 The figures at 1 Gbit/s are benchmarks/slow_link.py's, not asserted here.
-(At 40 Mbit/s the gather at the tracers commits nothing in 12 s: every
-eye iteration sends each tracer its eye rays, 56 B a pixel, and its hit
-points, 40 B a pixel, which the link takes seconds to carry.)
+(Measured before tracers made their own eye rays: at 40 Mbit/s the
+gather at the tracers committed nothing in 12 s, every eye iteration
+sending each tracer its eye rays, 56 B a pixel, and its hit points, 40 B a
+pixel. The hit points still cross the link.)
 Needs root, Linux, `ip` and `tc` (iproute2); skipped otherwise.
 """
 from __future__ import annotations
