@@ -26,7 +26,7 @@ class InProcessCluster:
     def __init__(self, store, settings: RenderSettings, tracers: int = 2, min_photon_jobs: int = 64,
                  queue_target_rays: int = 65_536, step_rays: int = 16_384,
                  memory_bytes: float | None = None, tracer_timeout_s: float = 10.0, tamper=None,
-                 gather_at: str = "server"):
+                 gather_at: str = "server", hit_point_stride: int | None = None):
         """`tamper(sender, dest, msg)`: the messages to deliver instead of
         `msg` (a faulty transport, for the ledger's negative controls)."""
         self.settings = settings
@@ -34,7 +34,7 @@ class InProcessCluster:
                                   getattr(store, "manifest", None),
                                   ServerOptions(min_photon_jobs=min_photon_jobs, queue_target_rays=queue_target_rays,
                                                 min_tracers=tracers, tracer_timeout_s=tracer_timeout_s,
-                                                gather_at=gather_at))
+                                                gather_at=gather_at, hit_point_stride=hit_point_stride))
         self.statistics = ServerStatistics(store.header, settings, threads=settings.threads,
                                            ledger=Ledger(settings, (store.header.camera.width, store.header.camera.height)))
         self.tamper = tamper
@@ -56,7 +56,7 @@ class InProcessCluster:
         t = TracerState(f"inproc://{tid}", self.store, self.settings.max_depth,
                         memory_bytes=self.memory_bytes, threads=self.settings.threads,
                         step_rays=self.step_rays, direct=self.settings.direct, clock=lambda: self.now,
-                        seed=self.settings.seed)
+                        seed=self.settings.seed, hit_point_stride=self.server.hit_point_stride)
         if self.server.epochs is not None:      # as a tracer's node does on its welcome
             t.hold_epochs(EpochDeposits(self.server.epochs.jobs_per_epoch, self.store.header.materials,
                                         self.settings.gather, self.settings.threads, self.settings.reorder))

@@ -69,7 +69,8 @@ class Ledger:
     def record(self, update) -> None:
         """One applied `state.Update` (checkpoints are not statistics steps)."""
         if update.kind == "hits":
-            self._write({"kind": "hits", "eye_iteration": int(update.eye_iteration)})
+            self._write({"kind": "hits", "eye_iteration": int(update.eye_iteration),
+                         "kept": update.hits is not None})
         elif update.kind in ("photons", "epoch"):     # an epoch: its jobs, gathered at the tracers
             keys, paths, boxes = update.jobs
             self._write({"kind": "photons", "emitted": int(update.photons_emitted), "keys": _array(keys),
@@ -123,7 +124,11 @@ def retrace(provider, records: list[dict], threads: int = 1) -> dict:
     try:
         for rec in records[1:]:
             if rec["kind"] == "hits":
-                sppm.install_eye_pass(_eye_pass(tracer, provider.tree, header, settings, rec["eye_iteration"]))
+                eye = _eye_pass(tracer, provider.tree, header, settings, rec["eye_iteration"])
+                if rec.get("kept", True):
+                    sppm.install_eye_pass(eye)
+                else:           # an iteration that installs no hit points (`keeps_hit_points`)
+                    sppm.add_eye_emission(eye.complete()[1])
             elif rec["kind"] == "photons":
                 keys, paths, boxes = _from(rec["keys"]), _from(rec["paths"]), _from(rec["boxes"])
                 deposits = _photons(tracer, provider.tree, header, settings, keys, paths, boxes)

@@ -138,6 +138,7 @@ class Socket:
         # The frames of every message received, bad ones too: the cost per
         # photon on the wire (issue 32). Not the envelope: zmq's own.
         self.bytes_in = 0
+        self.bytes_in_by_type: dict[str, int] = {}     # the same, by message type
 
     def bind(self, address: str) -> str:
         """Bind (after any CURVE set-up: zmq reads it here); returns the
@@ -179,12 +180,15 @@ class Socket:
             raise _translated(e) from None
         # One identity frame on a ROUTER: DEALERs send no delimiter.
         prefix, frames = ([parts[0].bytes], parts[1:]) if self.is_router else ([], parts)
-        self.bytes_in += sum(len(f) for f in frames)
+        size = sum(len(f) for f in frames)
+        self.bytes_in += size
         try:
-            return prefix, decode(frames, accept)
+            msg = decode(frames, accept)
         except WireError as e:
             e.prefix = prefix
             raise
+        self.bytes_in_by_type[msg.type] = self.bytes_in_by_type.get(msg.type, 0) + size
+        return prefix, msg
 
     def recv_or_reply(self, accept=None, block: bool = True) -> tuple[list, Message] | None:
         """`recv`, except that a bad message is logged, answered (never an

@@ -76,7 +76,9 @@ Messages
                      returned (credit_job + credit_exp i64); optional
                      deposits: PhotonDeposits, hits: HitPoints,
                      emitted_pixels i32 (m,) + emitted_rgb f32 (m, 3): light
-                     seen directly and direct light by shadow rays
+                     seen directly and direct light by shadow rays;
+                     hit_points_made (its eye rays' hit points, sent or
+                     not: an iteration that installs none sends none)
       chunk_request  chunk
       error          reason, about|None                 (any direction)
     server -> tracer
@@ -382,6 +384,8 @@ def _check_results(f: dict) -> str | None:
                 f"{int(ends.sum())} ended paths")
     if (f.get("hits") is not None or f.get("emitted_pixels") is not None) and f["eye_iteration"] is None:
         return "field 'eye_iteration' is required with hits or emitted light"
+    if f["hit_points_made"] < 0:
+        return f"field 'hit_points_made' is negative ({f['hit_points_made']})"
     return None
 
 
@@ -442,7 +446,7 @@ _SPECS = (
          defaults={"store_key": None, "public_key": None}),
     Spec("heartbeat", "both", {"status": DATA}, defaults={"status": {}}),
     Spec("results", _T2S, {"chunk": _Nullable(INT), "culled": INT, "queued": INT, "queue_target": INT,
-                           "eye_iteration": _Nullable(INT)},
+                           "eye_iteration": _Nullable(INT), "hit_points_made": INT},
          (plain("ends", ("ends", np.int64, (), None), rows=len(END_NAMES)),
           plain("job_paths", ("job_ids", np.int64, (), None), ("job_fed", np.int64, (), None),
                 ("job_left", np.int64, (), None)),
@@ -451,7 +455,8 @@ _SPECS = (
           record("hits", HitPoints, optional=True),
           plain("emitted", ("emitted_pixels", np.int32, (), None),
                  ("emitted_rgb", np.float32, (3,), FINITE), optional=True)),
-         check=_check_results, defaults={"culled": 0, "queued": 0, "queue_target": 0, "eye_iteration": None}),
+         check=_check_results, defaults={"culled": 0, "queued": 0, "queue_target": 0, "eye_iteration": None,
+                                         "hit_points_made": 0}),
     Spec("chunk_request", _T2S, {"chunk": INT}),
     Spec("error", _ANY, {"reason": STR, "about": _Nullable(STR)}, any_version=True,
          defaults={"about": None}),

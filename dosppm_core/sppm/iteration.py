@@ -33,6 +33,25 @@ from dosppm_core.sppm.statistics import PixelStatistics, pilot_radius, pixel_foo
 from dosppm_core.trace import NO_CULL
 
 
+def hit_point_stride(photons_per_update: int, photons_per_iteration: int) -> int:
+    """One eye iteration in how many installs its hit points, where eye
+    iterations run beside the photons (the DOSPPM server): a set of hit
+    points is gathered at by the statistics updates made while it is
+    installed, and an update is about `photons_per_update` photons, so a
+    set installed every `photons_per_iteration` photons (one eye iteration)
+    would mostly be replaced before any update read it. The others still
+    count for the emission and direct light their paths saw. Which
+    iterations install is fixed by their index alone, never by what they
+    saw, so the estimate stays unbiased."""
+    return max(1, int(photons_per_update) // max(1, int(photons_per_iteration)))
+
+
+def keeps_hit_points(eye_iteration: int, stride: int) -> bool:
+    """Whether eye iteration `eye_iteration` installs its hit points (see
+    `hit_point_stride`): the first does, so photons have a box to go by."""
+    return int(eye_iteration) % max(1, int(stride)) == 0
+
+
 class EyePass:
     """The results of one eye iteration, gathered as its tiles complete."""
 
@@ -85,6 +104,11 @@ class SPPMIteration:
         hits, emitted = eye.complete()
         self.install_hit_points(hits, emitted)
         return len(hits)
+
+    def add_eye_emission(self, emitted: tuple) -> None:
+        """A complete eye iteration whose hit points are not installed
+        (`keeps_hit_points`): only the emission its paths saw counts."""
+        self.stats.add_emission(emitted)
 
     def install_hit_points(self, hits: HitPoints, emitted: tuple) -> None:
         if self.settings.radius is None:      # else fixed by --radius for every pixel

@@ -417,6 +417,12 @@ class PixelStatistics:
         """Install a complete eye iteration: its hit points (sorted along a
         Morton curve for the gather) and the emission its paths saw."""
         self.hit_points = hits.take(spatial_order(hits.position))
+        self.add_emission(emitted)
+
+    def add_emission(self, emitted: tuple) -> None:
+        """A complete eye iteration's emission seen by its paths (direct
+        light included), whether or not its hit points are installed: the
+        image's emission term averages over every eye iteration."""
         pixel, rgb = emitted
         for k in range(3):
             self.emission[:, k] += np.bincount(pixel, rgb[:, k], minlength=len(self.radius))

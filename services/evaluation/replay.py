@@ -188,6 +188,9 @@ def figures(s: dict, per_core: float) -> dict:
             "results_messages": c["results"], "server_cpu_ms_per_message": 1e3 * cpu / max(c["results"], 1),
             "deposits_per_message": c["deposits_received"] / max(c["results"], 1),
             "bytes_in_per_photon": r["bytes_in"] / emitted, "bytes_out_per_photon": r["bytes_out"] / emitted,
+            # By message type, over the whole process (start-up's few messages in it).
+            "bytes_in_per_photon_by_type": {t: b / emitted for t, b in s.get("bytes_in_by_type", {}).items()},
+            "bytes_out_per_photon_by_type": {t: b / emitted for t, b in s.get("bytes_out_by_type", {}).items()},
             "update_s": s.get("update_seconds", 0.0), "update_share_of_cpu": s.get("update_seconds", 0.0) / cpu,
             **cpu_shares(r, cpu),
             "tracer_photons_per_core_s": per_core,
@@ -269,6 +272,8 @@ def main(argv=None) -> int:
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--gather-at", choices=("server", "tracers"), default="server",
                    help="where photons are gathered (the server's --gather-at)")
+    p.add_argument("--hit-point-stride", type=int, default=None,
+                   help="the server's --hit-point-stride (default: its own; 1: every eye iteration installs)")
     p.add_argument("--json", help="write the runs, with provenance, here")
     args = p.parse_args(argv)
     if args.tracer:
@@ -278,10 +283,12 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory(prefix="dosppm-replay-") as work:
         for _ in range(args.repeats):       # alternated: drift on a shared machine hits both alike
             per_core = tracer_rate(args.scene)
-            s = run(args.scene, args.tracers, args.seconds, work, ("--gather-at", args.gather_at))
+            extra = ("--gather-at", args.gather_at) + (
+                () if args.hit_point_stride is None else ("--hit-point-stride", str(args.hit_point_stride)))
+            s = run(args.scene, args.tracers, args.seconds, work, extra)
             runs.append(dict(figures(s, per_core), **tracer_gather(s)))
     res = {"scene": args.scene, "tracers": args.tracers, "seconds": args.seconds, "gather_at": args.gather_at,
-           "replay": median_of(runs)}
+           "hit_point_stride": args.hit_point_stride, "replay": median_of(runs)}
     print(report(res))
     if args.json:
         write_results(args.json, res)

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from dosppm_core.sppm.iteration import keeps_hit_points
+
 from services.server.records import EyeIteration, TracerInfo, Update
 from services.wire import Out
 
@@ -62,9 +64,12 @@ class EyeScheduleMixin:
         return min((self.tracers[i] for i in owners), key=lambda t: t.load_estimate)
 
     def _finish_eye_iteration(self, e: EyeIteration) -> None:
+        """Its hit points installed if it is one of those that keep them
+        (`keeps_hit_points`: tracers send no others), else its emission only."""
         hits, emitted_light = e.results.complete()
-        self._eye_update(Update("hits", hits=hits, emitted_light=emitted_light, eye_iteration=e.index))
-        self.counters["hit_points"] += len(hits)
+        kept = keeps_hit_points(e.index, self.hit_point_stride)
+        self._eye_update(Update("hits", hits=hits if kept else None, emitted_light=emitted_light,
+                                eye_iteration=e.index))
         self.eye_completed += 1
 
 

@@ -22,7 +22,8 @@ class MembershipMixin:
         s = self.settings
         return dict(tracer_index=t.index, settings={"max_depth": s.max_depth, "seed": s.seed, "direct": s.direct,
                                                     "client_batching": self.client_batching,
-                                                    "session": t.session, **self.epoch_settings()},
+                                                    "session": t.session, "hit_point_stride": self.hit_point_stride,
+                                                    **self.epoch_settings()},
                     scene=self.header.to_wire(), tree=self.tree.to_wire(), store_key=self.store_key,
                     chunks=[k for k, o in enumerate(self.owners) if t.id in o],
                     manifest=None if t.store_key == self.store_key else self.manifest)

@@ -102,6 +102,7 @@ class ServerProcess:
         self.finished_at: float | None = None
         self.loop_cpu_s = 0.0            # the message loop thread's CPU, set as it ends
         self.bytes_out = self.undeliverable = 0
+        self.bytes_out_by_type: dict[str, int] = {}     # encoded, as queued (chunk files not in it)
         self.job_encoding_cpu_s, self._costs_at = 0.0, {}    # the render's costs (costs.py)
 
     @property
@@ -314,6 +315,8 @@ class ServerProcess:
     def _send(self, outs) -> None:
         for o in outs:
             frames = self._encoded_job(o) if o.type == "photon_job" else wire.encode(o.type, **o.fields)
+            size = sum(memoryview(f).nbytes for f in frames)
+            self.bytes_out_by_type[o.type] = self.bytes_out_by_type.get(o.type, 0) + size
             self._queue(o.dest, frames)
         while self._lost:
             tid = self._lost.pop()
@@ -536,6 +539,8 @@ class ServerProcess:
         st["cpu_s"] = round(time.process_time(), 3)
         st["loop_cpu_s"] = round(self.loop_cpu_s, 3)
         st["bytes_in"], st["bytes_out"] = self.bytes_in, self.bytes_out
+        st["bytes_in_by_type"] = dict(self.router.bytes_in_by_type)
+        st["bytes_out_by_type"] = dict(self.bytes_out_by_type)
         # Start-up (and the end's image and goodbyes) left out: costs.py.
         end = self._costs_at.get("end") or costs.mark(self)
         st["render_costs"] = costs.since(self._costs_at.get("start"), end)

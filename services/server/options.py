@@ -58,3 +58,7 @@ class ServerOptions:
     # "server" (the paper's: deposits sent, held, gathered here) or
     # "tracers" (by epochs: services/server/epoch_state.py).
     gather_at: str = "server"
+    # One eye iteration in how many installs its hit points (the rest count
+    # their emission only): None, one set per statistics update
+    # (`dosppm_core.sppm.iteration.hit_point_stride`); 1, every one.
+    hit_point_stride: int | None = None

@@ -50,6 +50,7 @@ import numpy as np
 from dosppm_core.chunks.pacing import default_queue_memory, eye_iterations_in_flight
 from dosppm_core.jobs import END_NAMES
 from dosppm_core.settings import RenderSettings
+from dosppm_core.sppm.iteration import hit_point_stride
 from dosppm_core.trace import NO_CULL
 from services.credit import by_job
 from services.server.balance import light_chunks, tile_chunks
@@ -138,6 +139,19 @@ class ServerState(MembershipMixin, EmissionMixin, EyeScheduleMixin, EpochStateMi
         self._latencies: deque = deque(maxlen=LATENCIES_KEPT)     # of the last photon jobs complete
         self.job_making_cpu_s = 0.0     # a part of the server's cost per photon (costs.py)
         self._init_epochs(o.gather_at, o.min_tracers)
+        self.hit_point_stride = self._hit_point_stride(o.hit_point_stride)
+
+    def _hit_point_stride(self, given: int | None) -> int:
+        """Installs per eye iteration (`hit_point_stride`): a statistics
+        update is an epoch's photons, or a batch of `photon_batch` deposits
+        (about as many photons: counted as photons, a set serves a batch or two)."""
+        if given is not None:
+            if given < 1:
+                raise ValueError(f"hit_point_stride must be >= 1, got {given}")
+            return int(given)
+        s = self.settings
+        per_update = s.photon_batch if self.epochs is None else self.epochs.jobs_per_epoch * s.photons_per_job
+        return hit_point_stride(per_update, s.for_image(self.n_pixels).photons_per_iteration)
 
     # -- messages ------------------------------------------------------------------
     def on_message(self, tid: str, msg, now: float) -> list[Out]:
@@ -207,6 +221,7 @@ class ServerState(MembershipMixin, EmissionMixin, EyeScheduleMixin, EpochStateMi
         e = self.eyes.get(msg.eye_iteration) if msg.hits is not None else None
         if e is not None:
             e.results.add(msg.hits, msg.emitted_pixels, msg.emitted_rgb)
+            c["hit_points"] += max(msg.hit_points_made, len(msg.hits))
         for j, fed, left in zip(msg.job_ids.tolist(), msg.job_fed.tolist(), msg.job_left.tolist()):
             job = self.jobs.get(j)
             if job is None:

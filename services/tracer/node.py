@@ -265,7 +265,8 @@ class TracerProcess:
                                      direct=welcome.settings.get("direct", "nee"),
                                      queue_memory_bytes=self.queue_memory_bytes,
                                      seed=welcome.settings["seed"],
-                                     header=SceneHeader.from_wire(welcome.scene))
+                                     header=SceneHeader.from_wire(welcome.scene),
+                                     hit_point_stride=welcome.settings.get("hit_point_stride", 1))
             epochs = from_welcome(welcome.settings, provider.header.materials, self.threads)
             if epochs is not None:
                 self.state.hold_epochs(epochs)
@@ -340,6 +341,7 @@ class TracerProcess:
                 self.jobs_received = 0
                 self.state.reset()
                 self.state.header = SceneHeader.from_wire(msg.scene)     # the eye rays' camera
+                self.state.hit_point_stride = int(msg.settings.get("hit_point_stride", 1))
                 # A server restarted from a checkpoint may cut epochs otherwise.
                 self.state.hold_epochs(from_welcome(msg.settings, self.state.provider.header.materials,
                                                     self.threads))

@@ -38,6 +38,7 @@ from dosppm_core.chunks.view import (located_photons, start_chunks, start_eye_pa
 from dosppm_core.jobs import END_NAMES, ESCAPED, HitPoints, RayBatch, ShadowRays, paths_per_job
 from dosppm_core.kernels.light_cache import LightCache, share_of_memory
 from dosppm_core.settings import LIGHT_CACHE_BYTES
+from dosppm_core.sppm.iteration import keeps_hit_points
 from dosppm_core.trace import environment, eye_ray_job, light_arrays
 from services.credit import split as split_credit
 from services.wire import Out
@@ -85,16 +86,18 @@ class TracerState:
     def __init__(self, endpoint: str, provider, max_depth: int, memory_bytes: float | None = None,
                  threads: int = 1, step_rays: int = STEP_RAYS, direct: str = "nee",
                  queue_memory_bytes: float | None = None, light_cache: int = LIGHT_CACHE_BYTES,
-                 clock=time.perf_counter, seed: int | None = None, header=None):
+                 clock=time.perf_counter, seed: int | None = None, header=None, hit_point_stride: int = 1):
         """`clock`: seconds, for the scheduler's waits and dwells (a cluster
         in one process passes its own, so its runs repeat exactly).
         `seed`: the render's (the welcome's settings), which photon jobs'
         photons and eye tiles' rays are made from; None: this tracer takes
         no jobs. `header`: the render's scene header (the welcome's), whose
         camera the eye rays are made with: the store's may have another
-        resolution (`--width`, `--height`); None: the provider's."""
+        resolution (`--width`, `--height`); None: the provider's.
+        `hit_point_stride`: the welcome's; eye iterations that install no
+        hit points (`keeps_hit_points`) send none, only what they saw."""
         self.endpoint, self.provider, self.max_depth = endpoint, provider, int(max_depth)
-        self.seed = seed
+        self.seed, self.hit_point_stride = seed, int(hit_point_stride)
         self.header = provider.header if header is None else header
         self.env = environment(self.header.lights)     # what eye rays missing the scene see
         # Direct light by shadow rays ('nee'): photons deposit from their
@@ -357,8 +360,11 @@ class TracerState:
         e, batch = taken.eye_iteration, RayBatch.concat([p.batch for p in taken.items])
         hits, (pix, rgb), ends, outgoing, shadows = trace_eye_in_chunk(view, batch, self.max_depth,
                                                                        self.lights)
+        made = len(hits)
+        if not keeps_hit_points(e, self.hit_point_stride):
+            hits = HitPoints.empty()
         fields = dict(chunk=view.index, eye_iteration=e, ends=ends, hits=hits, emitted_pixels=pix,
-                      emitted_rgb=rgb)
+                      emitted_rgb=rgb, hit_points_made=made)
         return self._after_trace(batch, concat_credit(taken.items), fields,
                                  [(EYE, outgoing), (SHADOW, shadows)], eye_iteration=e)
 
