@@ -14,6 +14,7 @@ from services.server.options import ServerOptions
 from services.server.state import ServerState
 from services.server.statistics import ServerStatistics
 from services.tracer.epochs import EpochDeposits
+from services.tracer.light import LightHold
 from services.tracer.state import SERVER, TracerState
 from services.wire import Out
 
@@ -60,6 +61,7 @@ class InProcessCluster:
         if self.server.epochs is not None:      # as a tracer's node does on its welcome
             t.hold_epochs(EpochDeposits(self.server.epochs.jobs_per_epoch, self.store.header.materials,
                                         self.settings.gather, self.settings.threads, self.settings.reorder))
+        t.hold_light(LightHold())       # as the welcome's `hold_light` tells a tracer's node
         self.tracers[tid], self.by_endpoint[t.endpoint] = t, tid
         reg = _over_the_wire("register", dict(tracer_id=tid, capacity={"cores": 1, "memory_bytes": 0},
                                               endpoint=t.endpoint, has_store=True,

@@ -41,26 +41,20 @@ Validation
 ValueError) with one line naming the message type and field: header not
 msgpack or not a map, unknown type, missing or foreign version (naming
 both), missing or unexpected field, wrong scalar type, array count vs frame
-count, unknown/missing/duplicate array, dtype, shape or trailing dims,
-declared size over MAX_ELEMENTS, frame size vs itemsize * prod(shape),
-unequal record lengths, non-finite floats (only the cull box may hold
-+-inf, meaning "no culling"), and per-message rules: ints are >= 0 and fit
-int64; results have ends >= 0 and ends[CONTINUES] == 0, and an
-eye_iteration when they carry hits or emitted light; a photon portal_rays
-has a cull box and no eye_iteration, an eye one the reverse; chunk_data
-has part < parts and its bytes inside file_bytes; a photon_job has
-distinct job ids, ids and keys >= 0, counts >= 1 summing to at most
-MAX_EMITTED, and one credit term per job; an eye_job the same, with
-pixel starts >= 0 for keys. Nothing else escapes
+count, unknown/missing/duplicate array, dtype, shape or trailing dims, size
+over MAX_ELEMENTS or unlike its frame's, unequal record lengths, non-finite
+floats (only the cull box may hold +-inf, "no culling"), and per-message
+rules (the specs' `check`s): ints >= 0 fitting int64; results' ends >= 0,
+none CONTINUES, an eye_iteration with hits or light; a photon portal_rays
+with a cull box and no eye_iteration, an eye one the reverse; a photon_job
+or eye_job's distinct ids, counts >= 1 summing to at most MAX_EMITTED, one
+credit term per job. Nothing else escapes
 `decode`: callers answer a WireError with `error_reply` and a log line
-(`transport.Socket.recv_or_reply` does both) and carry on. Semantic
-ranges the wire cannot know (pixel < width * height, an eye_job's tiles
-inside the image, chunk < chunk count, material index) are checked by the
-role that knows them.
-
-Only `error` and `refused` decode whatever the version, as long as it is an
-int: their fields are frozen, so a peer speaking another version can still
-read why it was turned away.
+(`transport.Socket.recv_or_reply` does both) and carry on. Ranges the wire
+cannot know (pixels, tiles, chunks, materials) are checked by the role that
+knows them. Only `error` and `refused` decode whatever the (int) version:
+their fields are frozen, so a peer speaking another version can still read
+why it was turned away.
 
 Messages
 --------
@@ -75,10 +69,8 @@ Messages
                      job_ids + job_fed + job_left i64 (k,), credit
                      returned (credit_job + credit_exp i64); optional
                      deposits: PhotonDeposits, hits: HitPoints,
-                     emitted_pixels i32 (m,) + emitted_rgb f32 (m, 3): light
-                     seen directly and direct light by shadow rays;
-                     hit_points_made (its eye rays' hit points, sent or
-                     not: an iteration that installs none sends none)
+                     emitted_pixels i32 (m,) + emitted_rgb f32 (m, 3) (light
+                     seen, unless held: light_request); hit_points_made
       chunk_request  chunk
       error          reason, about|None                 (any direction)
     server -> tracer
@@ -100,17 +92,18 @@ Messages
       heartbeat, shutdown (reason)
       hit_points     hits_version (the eye iteration), hits: HitPoints, in the
                      order the server's statistics hold them (gather at tracers)
-      gather         epoch, phase "count"|"pilot"|"sums", hits_version, total
-                     + most (the pilot's subsample), job_ids + job_boxes f64 (k, 2, 3) (the epoch's jobs and their
-                     own cull boxes), rows i64 + radius f64 (m,): hit point
-                     rows and their radii (the fresh rows for a pilot, all
-                     rows for the sums)
+      gather         epoch, phase "count"|"pilot"|"sums", hits_version, total +
+                     most (the pilot's subsample), job_ids + job_boxes f64 (k, 2, 3)
+                     (the epoch's jobs, own cull boxes), rows i64 + radius f64
+                     (m,) (hit point rows: fresh ones for a pilot, all for sums)
       drop_epoch     epoch: discarded, its held deposits are dropped
+      light_request  round, eye_iterations i64 (k,): whose held light to send
     tracer -> server (gather at tracers)
       epoch_sums     epoch, phase, hits_version, deposits (held in the jobs' own
                      boxes), chosen (pilot subsample), flux f64 (3,), m f64
                      (k,) + phi f64 (k, 3) per hit point row, rows i64 (k,)
                      when sparse (absent: every row, in order)
+      eye_light      round, pixels i32 (m,) + rgb f32 (m, 3): their light, summed
     tracer -> tracer
       portal_rays    kind "photon"|"eye"|"shadow", chunk (the destination),
                      eye_iteration (eye, shadow), cull_box (photon only),
@@ -119,8 +112,7 @@ Messages
 
 `MESSAGES` holds the specs; `describe()` prints this table from them.
 
-Exact accounting (job ids, path counts, credit): docs/how-it-works.md,
-"Exact accounting on the wire", which is this protocol's.
+Exact accounting (job ids, path counts, credit): docs/how-it-works.md.
 """
 from __future__ import annotations
 
@@ -134,19 +126,15 @@ import numpy as np
 from dosppm_core.jobs import CONTINUES, END_NAMES, HitPoints, PhotonDeposits, RayBatch, ShadowRays
 from services import credit
 
-PROTOCOL_VERSION = 6   # 2: shadow rays (portal_rays kind 'shadow'); 3: credit (services/credit.py);
-                       # 4: photon jobs as (id, rng key, count), emitted by the tracer;
-                       # 5: the gather at the tracers (hit_points, gather, drop_epoch, epoch_sums);
-                       # 6: eye jobs as tiles (id, pixel start, count), their rays made by the tracer
+PROTOCOL_VERSION = 7   # 2 shadow rays; 3 credit; 4 photon jobs made by the tracer; 5 the gather at the
+                       # tracers; 6 eye tiles made by the tracer; 7 eye light held at the tracers
 
 # -- policy ---------------------------------------------------------------------
 MAX_ELEMENTS = 1 << 28           # per array: sanity cap on a declared size
 MAX_FRAME_BYTES = MAX_ELEMENTS * 8   # the largest frame a socket takes (transport's MAXMSGSIZE)
 CHUNK_PART_BYTES = 16 << 20      # chunk_data splits chunk files into parts this big
-# Paths one job message (photon_job, eye_job) may ask a tracer to make: its
-# message is a few bytes, the rays 64 B each (4M: 256 MB), so the cap
-# bounds what a message can make a tracer allocate, as MAX_ELEMENTS does
-# for arrays.
+# Paths one job message may ask a tracer to make (64 B each: 4M is 256 MB):
+# bounds what a few bytes can make a tracer allocate, as MAX_ELEMENTS does.
 MAX_EMITTED = 1 << 22
 # The rounds of an epoch's gather at the tracers (services/tracer/epochs.py).
 GATHER_PHASES = ("count", "pilot", "sums")
@@ -384,9 +372,7 @@ def _check_results(f: dict) -> str | None:
                 f"{int(ends.sum())} ended paths")
     if (f.get("hits") is not None or f.get("emitted_pixels") is not None) and f["eye_iteration"] is None:
         return "field 'eye_iteration' is required with hits or emitted light"
-    if f["hit_points_made"] < 0:
-        return f"field 'hit_points_made' is negative ({f['hit_points_made']})"
-    return None
+    return "field 'hit_points_made' is negative" if f["hit_points_made"] < 0 else None
 
 
 def _check_portal_rays(f: dict) -> str | None:
@@ -438,6 +424,11 @@ def _check_epoch_sums(f: dict) -> str | None:
     return None
 
 
+def _increasing_field(name: str):
+    """The check that array field `name` holds distinct values >= 0, increasing."""
+    return lambda f: None if _increasing(f[name]) else f"field {name!r} needs values >= 0 in increasing order"
+
+
 _T2S, _S2T, _T2T, _ANY = "tracer->server", "server->tracer", "tracer->tracer", "any->any"
 _SPECS = (
     Spec("register", _T2S, {"tracer_id": STR, "capacity": _Struct(cores=_Int(1), memory_bytes=INT),
@@ -485,6 +476,11 @@ _SPECS = (
           plain("radii", ("rows", np.int64, (), None), ("radius", np.float64, (), FINITE))),
          check=_check_gather, defaults={"total": 0, "most": 0}),
     Spec("drop_epoch", _S2T, {"epoch": INT}),
+    Spec("light_request", _S2T, {"round": INT}, (plain("iterations", ("eye_iterations", np.int64, (), None)),),
+         check=_increasing_field("eye_iterations")),
+    Spec("eye_light", _T2S, {"round": INT}, (plain("light", ("pixels", np.int32, (), None),
+                                                     ("rgb", np.float32, (3,), FINITE)),),
+         check=_increasing_field("pixels")),
     Spec("epoch_sums", _T2S, {"epoch": INT, "phase": _Choice(*GATHER_PHASES), "hits_version": INT,
                               "deposits": INT, "chosen": INT},
          (plain("flux", ("flux", np.float64, (), FINITE), rows=3),

@@ -72,7 +72,7 @@ def _sample_fields(msg_type: str, n: int, rng: np.random.Generator, variant: int
         if variant in (0, 2):
             f["deposits"] = random_record(PhotonDeposits, n, rng)
         if variant in (1, 2):
-            f.update(eye_iteration=3, hits=random_record(HitPoints, n, rng),
+            f.update(eye_iteration=3, hits=random_record(HitPoints, n, rng), hit_points_made=n + variant,
                      emitted_pixels=rng.integers(0, 1 << 20, n, dtype=np.int32),
                      emitted_rgb=rng.random((n, 3), dtype=np.float32))
         return f
@@ -106,6 +106,11 @@ def _sample_fields(msg_type: str, n: int, rng: np.random.Generator, variant: int
         return dict(reason="time limit")
     if msg_type in ("hit_points", "gather", "drop_epoch", "epoch_sums"):
         return _epoch_fields(msg_type, n, rng, variant, box)
+    if msg_type == "light_request":
+        return dict(round=variant, eye_iterations=np.sort(rng.choice(1 << 30, n, replace=False)).astype(np.int64))
+    if msg_type == "eye_light":
+        return dict(round=variant, pixels=np.sort(rng.choice(1 << 20, n, replace=False)).astype(np.int32),
+                    rgb=rng.random((n, 3), dtype=np.float32))
     if msg_type == "portal_rays":
         if variant == 3:
             return dict(kind="shadow", chunk=4, eye_iteration=2, shadows=random_record(ShadowRays, n, rng))

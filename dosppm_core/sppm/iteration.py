@@ -63,10 +63,11 @@ class EyePass:
 
     def add(self, hits: HitPoints, pixels: np.ndarray, rgb: np.ndarray) -> None:
         """One traced tile (or part of one): its hit points, and the
-        emission its eye rays saw, per pixel."""
+        emission its eye rays saw, per pixel (None: held elsewhere)."""
         self.hits.append(hits)
-        self.pixels.append(pixels)
-        self.rgb.append(rgb)
+        if pixels is not None:
+            self.pixels.append(pixels)
+            self.rgb.append(rgb)
 
     def complete(self) -> tuple[HitPoints, tuple[np.ndarray, np.ndarray]]:
         """(hit points, (pixel, rgb) of directly seen emission)."""
@@ -110,7 +111,13 @@ class SPPMIteration:
         (`keeps_hit_points`): only the emission its paths saw counts."""
         self.stats.add_emission(emitted)
 
-    def install_hit_points(self, hits: HitPoints, emitted: tuple) -> None:
+    def add_eye_light(self, rgb: np.ndarray, eye_iterations: int) -> None:
+        """The light of `eye_iterations` complete eye iterations, summed per
+        pixel by whoever held it (the DOSPPM tracers); their hit points
+        were installed without it (`install_hit_points(hits, None)`)."""
+        self.stats.add_light(rgb, eye_iterations)
+
+    def install_hit_points(self, hits: HitPoints, emitted: tuple | None) -> None:
         if self.settings.radius is None:      # else fixed by --radius for every pixel
             self.stats.fit_radii(hits.pixel, pilot_radius(hits), pixel_footprint(self.header, hits))
         self.stats.replace_hit_points(hits, emitted)

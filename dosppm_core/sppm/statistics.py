@@ -417,7 +417,8 @@ class PixelStatistics:
         """Install a complete eye iteration: its hit points (sorted along a
         Morton curve for the gather) and the emission its paths saw."""
         self.hit_points = hits.take(spatial_order(hits.position))
-        self.add_emission(emitted)
+        if emitted is not None:         # None: its light comes on its own (`add_light`)
+            self.add_emission(emitted)
 
     def add_emission(self, emitted: tuple) -> None:
         """A complete eye iteration's emission seen by its paths (direct
@@ -427,6 +428,12 @@ class PixelStatistics:
         for k in range(3):
             self.emission[:, k] += np.bincount(pixel, rgb[:, k], minlength=len(self.radius))
         self.eye_iterations += 1
+
+    def add_light(self, rgb: np.ndarray, eye_iterations: int) -> None:
+        """The emission `eye_iterations` complete eye iterations saw, summed
+        per pixel ((pixels, 3)) elsewhere, and their count in the average."""
+        self.emission += rgb
+        self.eye_iterations += int(eye_iterations)
 
     def gather_box(self) -> np.ndarray | None:
         """Bounding box of the hit points grown by the largest radius: the

@@ -27,20 +27,29 @@ import numpy as np
 
 from dosppm_core.trace import NO_CULL
 
-SUMS_BYTES_PER_PHOTON = 8.0      # at most, into the server (issue 32), with every hit point reached
+# What an epoch brings into the server, at most, per photon (issue 32's
+# target), with every hit point reached: each tracer's sums and the light
+# of its eye iterations (a round an epoch, `hit_point_stride`), and the
+# one set of hit points the epoch is gathered at.
+BYTES_PER_PHOTON = 8.0
 # Epochs photon jobs may be made in, from the next one to apply: the one
 # being gathered and two filling behind it keep the tracers busy while a
 # gather's rounds travel, and bound what they hold to about three epochs'
 # deposits however slowly the gathers go (a saturated link, a slow tracer).
 OPEN_EPOCHS = 3
 DENSE_SUMS_BYTES = 32            # M and Phi (f64) of one hit point, from one tracer
+LIGHT_BYTES = 16                 # a pixel's light in a round, from one tracer (pixel i32, rgb f32)
+HIT_POINT_BYTES = 56             # one hit point on the wire (dosppm_core.jobs.HitPoints), once
 
 
 def jobs_per_epoch(photon_batch: int, photons_per_job: int, tracers: int, pixels: int) -> int:
     """About `photon_batch` photons an epoch (server batching, §4.3), grown
-    until the sums of `tracers` tracers over `pixels` hit points are at
-    most SUMS_BYTES_PER_PHOTON a photon."""
-    photons = max(int(photon_batch), int(np.ceil(tracers * pixels * DENSE_SUMS_BYTES / SUMS_BYTES_PER_PHOTON)))
+    until what it brings into the server over `pixels` pixels (a hit point
+    each, at most), from `tracers` tracers, is at most BYTES_PER_PHOTON a
+    photon. Every tracer's answer costs the same, so this grows with the
+    cluster: a reduction among the tracers would not."""
+    per_pixel = tracers * (DENSE_SUMS_BYTES + LIGHT_BYTES) + HIT_POINT_BYTES
+    photons = max(int(photon_batch), int(np.ceil(pixels * per_pixel / BYTES_PER_PHOTON)))
     return max(1, -(-photons // max(1, int(photons_per_job))))
 
 

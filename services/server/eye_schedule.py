@@ -66,10 +66,11 @@ class EyeScheduleMixin:
     def _finish_eye_iteration(self, e: EyeIteration) -> None:
         """Its hit points installed if it is one of those that keep them
         (`keeps_hit_points`: tracers send no others), else its emission only."""
-        hits, emitted_light = e.results.complete()
+        hits, _ = e.results.complete()
         kept = keeps_hit_points(e.index, self.hit_point_stride)
-        self._eye_update(Update("hits", hits=hits if kept else None, emitted_light=emitted_light,
-                                eye_iteration=e.index))
+        # Its light is at the tracers (`hold_light`), collected in rounds (eye_light.py).
+        self._eye_update(Update("hits", hits=hits if kept else None, eye_iteration=e.index))
+        self.light.complete(e.index)
         self.eye_completed += 1
 
 

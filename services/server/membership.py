@@ -23,7 +23,7 @@ class MembershipMixin:
         return dict(tracer_index=t.index, settings={"max_depth": s.max_depth, "seed": s.seed, "direct": s.direct,
                                                     "client_batching": self.client_batching,
                                                     "session": t.session, "hit_point_stride": self.hit_point_stride,
-                                                    **self.epoch_settings()},
+                                                    **self.epoch_settings(), **self.light_settings()},
                     scene=self.header.to_wire(), tree=self.tree.to_wire(), store_key=self.store_key,
                     chunks=[k for k, o in enumerate(self.owners) if t.id in o],
                     manifest=None if t.store_key == self.store_key else self.manifest)

@@ -44,7 +44,7 @@ from services.server.state import ServerState, Update
 from services.server.statistics import ServerStatistics
 
 log = logging.getLogger("dosppm.server")
-ACCEPT = {"register", "heartbeat", "results", "chunk_request", "error", "epoch_sums"}
+ACCEPT = {"register", "heartbeat", "results", "chunk_request", "error", "epoch_sums", "eye_light"}
 STATUS_INTERVAL_S = 0.5
 PROGRESS_INTERVAL_S = 1.0
 MAX_UPDATES_QUEUED = 2       # statistics updates waiting before emission pauses

@@ -65,7 +65,7 @@ class EyeIteration:
 class Update:
     """One statistics step for the shell to run, in order: install the hit
     points of a complete eye iteration, or apply a batch of photons."""
-    kind: str                        # "hits", "photons", "checkpoint" or "snapshot" (the image)
+    kind: str                        # "hits", "light", "photons", "checkpoint" or "snapshot" (the image)
     hits: HitPoints | None = None
     emitted_light: tuple | None = None
     deposits: list | None = None     # "photons": the batch, as the parts it arrived in
@@ -87,3 +87,8 @@ class Update:
     sums: dict | None = None
     request: dict | None = None
     installed: object = None
+    # "light": a round of eye light collected from the tracers
+    # (services/server/eye_light.py), per pixel, and how many eye
+    # iterations it is the light of.
+    light: object = None
+    light_iterations: int = 0

@@ -56,6 +56,7 @@ from services.credit import by_job
 from services.server.balance import light_chunks, tile_chunks
 from services.server.emission import EmissionMixin
 from services.server.epoch_state import EpochStateMixin
+from services.server.eye_light import EyeLightMixin
 from services.server.eye_schedule import EyeScheduleMixin
 from services.server.held import COMPLETE, DEPOSIT_BYTES, DISCARDED, IN_FLIGHT, HeldDeposits, JobStatus
 from services.server.membership import HEARTBEAT_INTERVAL_S, MembershipMixin
@@ -72,7 +73,7 @@ COUNTERS = ("photons_emitted", "photons_completed", "photons_committed", "photon
             "jobs_discarded", "tracers_evicted", "eye_iterations_restarted", "deposits_discarded",
             "deposits_stale", "deposits_late", "refused", "tracers_rejoined", "jobs_timed_out",
             "welcomes_resent", "job_messages_lost", "jobs_abandoned", "photons_abandoned",
-            "epoch_rounds_timed_out")
+            "epoch_rounds_timed_out", "light_rounds_timed_out")
 LATENCIES_KEPT = 64           # photon jobs' latencies the deadline's estimate takes the median of
 EVICTIONS_SHOWN = 20    # the last evictions in the status, with their reasons
 
@@ -83,7 +84,7 @@ STATUS_KEYS = ("load", "resident", "busy_s", "steps", "rays_traced", "photons_tr
                "bytes_to_peers", "outbox", "outbox_rays", "rays_by_chunk", "waiting")
 
 
-class ServerState(MembershipMixin, EmissionMixin, EyeScheduleMixin, EpochStateMixin):
+class ServerState(MembershipMixin, EmissionMixin, EyeScheduleMixin, EpochStateMixin, EyeLightMixin):
     def __init__(self, header, tree, settings: RenderSettings, store_key: str,
                  manifest: dict | None = None, options: ServerOptions | None = None):
         """`options`: the scheduling ones are read here (services/server/options.py)."""
@@ -140,6 +141,7 @@ class ServerState(MembershipMixin, EmissionMixin, EyeScheduleMixin, EpochStateMi
         self.job_making_cpu_s = 0.0     # a part of the server's cost per photon (costs.py)
         self._init_epochs(o.gather_at, o.min_tracers)
         self.hit_point_stride = self._hit_point_stride(o.hit_point_stride)
+        self._init_light()
 
     def _hit_point_stride(self, given: int | None) -> int:
         """Installs per eye iteration (`hit_point_stride`): a statistics
@@ -176,7 +178,7 @@ class ServerState(MembershipMixin, EmissionMixin, EyeScheduleMixin, EpochStateMi
         return self._on_epoch_sums(t.id, msg)
 
     HANDLERS = {"heartbeat": _on_heartbeat, "results": _on_results_message,
-                "epoch_sums": _on_epoch_sums_message}
+                "epoch_sums": _on_epoch_sums_message, "eye_light": EyeLightMixin._on_eye_light_message}
 
     # -- results and exact accounting ----------------------------------------------------
     def _check_results(self, msg) -> str | None:
@@ -326,6 +328,7 @@ class ServerState(MembershipMixin, EmissionMixin, EyeScheduleMixin, EpochStateMi
             self.started = True
         if not all(self.owners):
             return out
+        out += self._ask_light()
         if not self.emitting:
             # Draining: only jobs re-emitted for a lost tracer still go out.
             # Their photons were emitted once and count towards N_e: left
@@ -361,10 +364,14 @@ class ServerState(MembershipMixin, EmissionMixin, EyeScheduleMixin, EpochStateMi
         elif self.epochs is not None and self.epochs.round_waiting_since(now) > limit:
             self.counters["epoch_rounds_timed_out"] += 1
             self._discard_jobs_in_flight()
+        elif self.light.waiting_since(now) > limit:
+            self.counters["light_rounds_timed_out"] += 1
+            self._discard_jobs_in_flight()
 
     def _discard_jobs_in_flight(self) -> None:
         if self.epochs is not None:     # the lost tracer's held deposits go with their epochs
             self._discard_epochs()
+        self.light.discard()            # and its part of the light of every iteration not applied
         again = []
         for j, job in list(self.jobs.items()):
             if not job.sent:
@@ -450,7 +457,7 @@ class ServerState(MembershipMixin, EmissionMixin, EyeScheduleMixin, EpochStateMi
 
     @property
     def drained(self) -> bool:
-        return not self.jobs and self.epochs_drained
+        return not self.jobs and self.epochs_drained and self.light.drained
 
     def abandon_jobs_in_flight(self) -> None:
         """At the deadline: every job still in flight is discarded whole,
@@ -466,6 +473,7 @@ class ServerState(MembershipMixin, EmissionMixin, EyeScheduleMixin, EpochStateMi
                 self.counters["photons_abandoned"] += job.paths
                 self.counters["jobs_abandoned"] += 1
         self.eyes.clear()
+        self.light.discard()
 
     def finish(self) -> None:
         """Hand over the last, partial batch (call once drained)."""

@@ -54,8 +54,11 @@ class ServerStatistics:
                 meta = update.meta if self.ledger is None else dict(
                     update.meta, ledger_records=self.ledger.count, ledger_totals=self.sppm.totals())
                 checkpoint.write(update.directory, self.sppm.stats, meta)
+            elif update.kind == "light":
+                self.sppm.add_eye_light(update.light, update.light_iterations)
             elif update.kind == "hits" and update.hits is None:
-                self.sppm.add_eye_emission(update.emitted_light)
+                if update.emitted_light is not None:
+                    self.sppm.add_eye_emission(update.emitted_light)
             elif update.kind == "hits":
                 self.sppm.install_hit_points(update.hits, update.emitted_light)
                 update.installed = self.sppm.stats.hit_points

@@ -24,6 +24,7 @@ from dosppm_core.kernels import use_threads
 from dosppm_core.scene.model import SceneHeader
 from services import transport, wire
 from services.tracer.epochs import from_welcome
+from services.tracer.light import LightHold
 from services.tracer.fetch import FetchedStore
 from services.tracer.state import SERVER, STEP_RAYS, TracerState
 
@@ -270,6 +271,7 @@ class TracerProcess:
             epochs = from_welcome(welcome.settings, provider.header.materials, self.threads)
             if epochs is not None:
                 self.state.hold_epochs(epochs)
+            self.state.hold_light(LightHold() if welcome.settings.get("hold_light") else None)
             log.info("tracer %s joined as %d at %s, chunks %s", self.tracer_id, welcome.tracer_index,
                      self.endpoint, welcome.chunks)
             self.say(f"tracer {self.tracer_id}: registered with server {self.server_url} as tracer "
@@ -345,6 +347,7 @@ class TracerProcess:
                 # A server restarted from a checkpoint may cut epochs otherwise.
                 self.state.hold_epochs(from_welcome(msg.settings, self.state.provider.header.materials,
                                                     self.threads))
+                self.state.hold_light(LightHold() if msg.settings.get("hold_light") else None)
                 self._rejoining, self._backoff = False, 0.0
                 log.info("rejoined the server as tracer %d", msg.tracer_index)
                 self.say(f"tracer {self.tracer_id}: rejoined server {self.server_url} as tracer "

@@ -129,6 +129,7 @@ class TracerState:
         self.portal_by_chunk: dict[int, list[int]] = {}     # chunk -> [rays in, rays out] (status page)
         self.rays_by_chunk: dict[int, int] = {}             # chunk -> rays traced (the server balances by it)
         self.epochs = None      # EpochDeposits when the gather is at the tracers (`hold_epochs`)
+        self.light = None       # LightHold when the server collects eye light in rounds (`hold_light`)
 
     # -- the peer table ----------------------------------------------------------
     def set_peers(self, table_version: int, owners: list[list[str]]) -> list[Out]:
@@ -188,6 +189,8 @@ class TracerState:
         self.unroutable = []
         if self.epochs is not None:     # their epochs are discarded too (the server's _discard_epochs)
             self.epochs.clear()
+        if self.light is not None:      # and the eye iterations whose light was held
+            self.light.clear()
 
     def handle(self, msg) -> list[Out]:
         """A decoded message from the server or a peer."""
@@ -195,6 +198,11 @@ class TracerState:
             return self.set_peers(msg.table_version, msg.peers)
         if msg.type in _EPOCH_MESSAGES:
             return self._epoch_message(msg)
+        if msg.type == "light_request":
+            if self.light is None:
+                return [Out(SERVER, "error", dict(reason="light_request: this tracer holds no eye light",
+                                                  about=msg.type))]
+            return [Out(SERVER, "eye_light", self.light.reply(msg.round, msg.eye_iterations))]
         credit = (msg.credit_job, msg.credit_exp) if msg.type in _CARRY_CREDIT else None
         if msg.type == "photon_job":
             return self.emit(msg.job_ids, msg.rng_keys, msg.counts, msg.cull_box, credit)
@@ -215,6 +223,11 @@ class TracerState:
         """Gather at the tracers: keep deposits by epoch (`epochs`, an
         `EpochDeposits`) instead of sending them with the results."""
         self.epochs = epochs
+
+    def hold_light(self, hold) -> None:
+        """Keep the light eye paths see (`hold`, a `LightHold`, or None to
+        send it with the results) until the server asks for it."""
+        self.light = hold
 
     def _epoch_message(self, msg) -> list[Out]:
         if self.epochs is None:
@@ -403,6 +416,8 @@ class TracerState:
         left. The credit is split between those packages and the results
         (services/credit.py), which return a share of every job they carry
         deposits or hit points of."""
+        if self.light is not None and fields.get("emitted_pixels") is not None:
+            self.light.add(fields["eye_iteration"], fields.pop("emitted_pixels"), fields.pop("emitted_rgb"))
         leaving = [(kind, chunk, type(parts[0]).concat(parts))
                    for kind, out in outgoing for chunk, parts in out.items()]
         fields["job_ids"], fields["job_fed"], fields["job_left"] = paths_per_job(
