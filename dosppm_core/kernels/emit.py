@@ -89,17 +89,18 @@ def filter_offset(table, radius, lo, hi, u):
 @nb.njit(cache=True, error_model="numpy")
 def film_position(index, size, u, pixel_filter, table, sample_border):
     """The film coordinate (pixel `index` spans [index, index + 1)) of an
-    eye ray along one axis of `size` pixels. The box of half a pixel keeps
-    the plain jitter index + u; other filters sample around the centre,
-    clipped to the film unless `sample_border` (Mitsuba's film only takes
-    samples on it, and normalises each pixel by the weight it got)."""
-    kind, radius = int(pixel_filter[0]), pixel_filter[1]
-    if kind == FILTER_BOX and radius == 0.5:
-        return index + u
+    eye ray along one axis of `size` pixels: the pixel centre plus an
+    offset from the filter, clipped to the film unless `sample_border`
+    (Mitsuba's film only takes samples on it, and normalises each pixel by
+    the weight it got). For the box of half a pixel this is index + u
+    exactly (u has 24 bits), the jitter of every render before filters."""
+    radius = pixel_filter[1]
     centre = index + 0.5
     lo, hi = -radius, radius
     if not sample_border:
         lo, hi = max(lo, -centre), min(hi, size - centre)
+    if int(pixel_filter[0]) == FILTER_BOX:
+        return centre + (lo + u * (hi - lo))
     return centre + filter_offset(table, radius, lo, hi, u)
 
 
