@@ -41,11 +41,20 @@ LOADS = {
     # about 100 single-texel pixels of the nearest-filtered textures are
     # 0.1-0.6% bright with almost no noise, not looked into.
     "texture_interp/test_texture_interp_direct.xml": "Gaussian filter tails unsampled at 16 iterations",
-    # z-pass 75.97%, mean 0.00%: see WHY_FAILS in benchmarks/mitsuba_scenes.py.
-    "orthographic_sensor/test_orthographic_path.xml": "edges of the checkerboard differ, cause not found",
+    # z-pass 75.97%, mean 0.00%, in one process as through the service
+    # (one process passed only by the scorer's rounding, fixed in
+    # render_test.p_values): the reference's constant environment is
+    # (1.0011, 0.9997, 0.9997) with a negative variance in red, where
+    # Mitsuba's scalar_rgb and we give exactly 1; the rectangle passes.
+    "orthographic_sensor/test_orthographic_path.xml": "the reference's background is off white",
     # Measured once after the materials merged, not looked into yet:
     "bsdf_spheres/test_roughdielectric_path.xml": "z-pass 99.90% but mean +4.24%",
-    "participating_media/test_surf_area_light_volpath.xml": "z-pass 99.58%, mean -0.34%",
+    # Mitsuba shades the OBJ spheres with their vertex normals, we with the
+    # faces': Mitsuba with face_normals reproduces our highlight and
+    # silhouette differences, and against that render ours pass (z 99.93%,
+    # mean -0.56%, its 2048 spp as the reference). The mean -0.34% is within
+    # our seeds' noise (per seed -2.6% to +4.5%).
+    "participating_media/test_surf_area_light_volpath.xml": "z-pass 99.58%: smooth (vertex) normals",
     "infinite_mirrors/scene_path.xml": "no refs/scene_ref_rgb.exr: Mitsuba's own test skips it",
 }
 # Refused, with the element the one-line error names (the first outside our subset),
