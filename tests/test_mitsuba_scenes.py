@@ -37,9 +37,9 @@ LOADS = {
     "projector/test_projector_constant_direct.xml": "the reference's variant is 0.04% dark inside",
     # z-pass 98.75%, mean -0.07% (75.75% before the Gaussian filter; 99.80%
     # at 54 iterations a seed): 136 pixels beside the rectangles, whose
-    # filter reaches them only in its tail, get no hit in 16 x 16 eye rays;
-    # about 100 single-texel pixels of the nearest-filtered textures are
-    # 0.1-0.6% bright with almost no noise, not looked into.
+    # filter reaches them only in its tail, get no hit in 16 x 16 eye rays,
+    # and about 100 textured ones are 0.1-0.6% off with almost no seed
+    # noise (rare far samples unseen again: at 54 iterations 5 are).
     "texture_interp/test_texture_interp_direct.xml": "Gaussian filter tails unsampled at 16 iterations",
     # z-pass 75.97%, mean 0.00%, in one process as through the service
     # (one process passed only by the scorer's rounding, fixed in
