@@ -26,7 +26,8 @@ point      `point`, intensity
 spot       `spot`, cutoff_angle, beam_width, intensity
 camera     `perspective` (`thinlens` when aperture_radius > 0), look_at;
            `orthographic` with to_world = look_at @ scale(ortho_scale, 1)
-film       `hdrfilm` RGB float32, **box** reconstruction filter
+film       `hdrfilm` RGB float32, the camera's pixel filter (`box`, `tent`,
+           `gaussian` with Mitsuba's 4-stddev cut-off) and sample_border
 sampler    `independent`
 =========  ==========================================================
 
@@ -163,7 +164,7 @@ def _sensor(mi, scene: Scene, spp: int, seed: int) -> dict:
         "far_clip": far,
         "film": {"type": "hdrfilm", "width": int(cam.width), "height": int(cam.height),
                  "pixel_format": "rgb", "component_format": "float32",
-                 "rfilter": {"type": "box"}},
+                 "sample_border": bool(cam.sample_border), "rfilter": _rfilter(cam)},
         "sampler": {"type": "independent", "sample_count": spp, "seed": seed},
     }
     if cam.aperture_radius > 0:
@@ -175,6 +176,20 @@ def _sensor(mi, scene: Scene, spp: int, seed: int) -> dict:
         del sensor["fov"], sensor["fov_axis"]
         sensor.update(type="orthographic", to_world=sensor["to_world"] @ scale)
     return sensor
+
+
+def _rfilter(cam) -> dict:
+    """Mitsuba's rfilter for our camera's pixel filter: its box is half a
+    pixel wide and its Gaussian ends at 4 stddev, so other radii have no mapping."""
+    radius = cam.filter_radius_px()
+    if cam.pixel_filter == "tent":
+        return {"type": "tent", "radius": radius}
+    fixed = 0.5 if cam.pixel_filter == "box" else 4.0 * float(cam.filter_stddev)
+    if not math.isclose(radius, fixed, rel_tol=1e-6):
+        raise SceneError(f"camera: a {cam.pixel_filter} filter of radius {radius:g} has no Mitsuba "
+                         f"mapping (Mitsuba's is {fixed:g})")
+    return {"type": "box"} if cam.pixel_filter == "box" else {"type": "gaussian",
+                                                                "stddev": float(cam.filter_stddev)}
 
 
 def _meshes(mi, scene: Scene) -> dict:
@@ -331,6 +346,18 @@ def render_reference(scene: Scene, spp: int, max_depth: int = DEFAULT_MAX_DEPTH,
     return np.ascontiguousarray(np.asarray(image, dtype=np.float32)[..., :3])
 
 
+def _camera_key(cam) -> dict:
+    """The camera's fields, those of the pixel filter only when they differ
+    from the box's, so the keys (and cached references) of box-filtered
+    scenes stay as they were before cameras had filters."""
+    fields = asdict(cam)
+    defaults = {"pixel_filter": "box", "filter_radius": None, "filter_stddev": 0.5, "sample_border": False}
+    if all(fields[k] == v for k, v in defaults.items()):
+        for k in defaults:
+            del fields[k]
+    return fields
+
+
 def reference_key(scene: Scene, spp: int, max_depth: int = DEFAULT_MAX_DEPTH,
                   integrator: str = "path", seed: int = 0) -> str:
     """SHA-256 of everything that decides the reference image: geometry,
@@ -350,7 +377,7 @@ def reference_key(scene: Scene, spp: int, max_depth: int = DEFAULT_MAX_DEPTH,
         arr = np.ascontiguousarray(arrays[name])
         h.update(f"{name}:{arr.dtype.str}:{arr.shape};".encode())
         h.update(arr.tobytes())
-    settings = {"camera": asdict(scene.camera), "spp": int(spp), "max_depth": int(max_depth),
+    settings = {"camera": _camera_key(scene.camera), "spp": int(spp), "max_depth": int(max_depth),
                 "integrator": integrator, "seed": int(seed), "mapping": MAPPING_VERSION}
     h.update(json.dumps(settings, sort_keys=True, default=_jsonable).encode())
     return h.hexdigest()

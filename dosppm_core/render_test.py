@@ -96,7 +96,10 @@ def p_values(ours_xyz: np.ndarray, ref_xyz: np.ndarray, ref_var_xyz: np.ndarray,
     """Two-sided p-values per pixel channel of the K renders `ours_xyz`
     (K, H, W, 3) against the reference (see the module doc)."""
     k = ours_xyz.shape[0]
-    var_ours = ours_xyz.var(axis=0, ddof=1) / k
+    # Seeds that agree exactly have no variance; `var` could leave a
+    # rounding residue of their mean (it does for 16 equal values, not for 4).
+    agree = np.all(ours_xyz == ours_xyz[:1], axis=0)
+    var_ours = np.where(agree, 0.0, ours_xyz.var(axis=0, ddof=1) / k)
     var_ref = np.maximum(ref_var_xyz, VARIANCE_FLOOR) / reference_spp
     with np.errstate(invalid="ignore", divide="ignore"):
         z = (ours_xyz.mean(axis=0) - ref_xyz) / np.sqrt(var_ours + var_ref)

@@ -7,6 +7,7 @@ light in every band of rows and columns, so a mirrored or flipped camera,
 a wrong fov or a light emitting on the wrong side fails. Without pbrt (the
 CI) those tests skip, and the others check that pbrt methods and cases
 whose files are absent are skipped with their reason, never failed."""
+import dataclasses
 import os
 
 import numpy as np
@@ -228,3 +229,18 @@ def test_direct_light_on_sponza_equals_pbrt_at_depth_one(pbrt_binary, tmp_path):
         b = np.array_split(lum(theirs), BANDS, axis=axis)
         for x, y in zip(a, b):
             assert x.mean() == pytest.approx(y.mean(), rel=0.02)
+
+
+def test_the_pixel_filter_line_is_the_cameras():
+    """The box of half a pixel stays what every run wrote before; a Mitsuba
+    scene's default Gaussian becomes pbrt's (sigma, radius 4 sigma)."""
+    from dosppm_core.scene.model import Camera
+    cam = Camera((0.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0), 40.0, 8, 6)
+    assert pbrt.pixel_filter_line(cam) == pbrt.RenderSettings("path", 1, 5, 8, 6).pixel_filter
+    gauss = dataclasses.replace(cam, pixel_filter="gaussian", filter_stddev=0.25)
+    assert pbrt.pixel_filter_line(gauss) == ('PixelFilter "gaussian" "float sigma" 0.25 '
+                                             '"float xradius" 1.0 "float yradius" 1.0')
+    tent = dataclasses.replace(cam, pixel_filter="tent")
+    assert pbrt.pixel_filter_line(tent) == 'PixelFilter "triangle" "float xradius" 1.0 "float yradius" 1.0'
+    s = pbrt.RenderSettings("path", 4, 5, 8, 6, pixel_filter=pbrt.pixel_filter_line(gauss))
+    assert pbrt.render_directives(s, "/o.exr").splitlines()[-1] == pbrt.pixel_filter_line(gauss)

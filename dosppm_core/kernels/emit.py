@@ -8,7 +8,8 @@ from dosppm_core.kernels.bsdf import cosine_hemisphere, to_world
 from dosppm_core.kernels.envmap import env_eval, env_sample
 from dosppm_core.kernels.paths import offset_origin
 from dosppm_core.kernels.rng import EYE_STREAM, next_float, path_state
-from dosppm_core.scene.model import LIGHT_DIRECTIONAL, LIGHT_POINT, LIGHT_PROJECTOR, LIGHT_SPOT, LIGHT_TRIANGLE
+from dosppm_core.scene.model import (FILTER_BOX, FILTER_TENT, LIGHT_DIRECTIONAL, LIGHT_POINT, LIGHT_PROJECTOR, LIGHT_SPOT,
+                                     LIGHT_TRIANGLE)
 
 EMIT_EPS_REL = 2e-5   # the bounces' spawn offset relative to |p| (tracing.EPS_REL)
 
@@ -25,18 +26,99 @@ def concentric_disk(u1, u2):
     return r * math.cos(phi), r * math.sin(phi)
 
 
+FILTER_RESOLUTION = 31   # Mitsuba's MI_FILTER_RESOLUTION: steps of its tabulated filter over the radius
+
+
+@nb.njit(cache=True, error_model="numpy")
+def filter_table(pixel_filter):
+    """The filter as Mitsuba's film weighs samples with it (its
+    `eval_discretized`): FILTER_RESOLUTION steps over [0, radius), step i
+    holding the value at i * radius / FILTER_RESOLUTION. The tent is
+    1 - |x| / radius, the Gaussian exp(-x^2 / (2 stddev^2)) minus its value
+    at the radius (Mitsuba's and pbrt-v4's windowed Gaussian)."""
+    kind, radius, stddev = int(pixel_filter[0]), pixel_filter[1], pixel_filter[2]
+    table = np.ones(FILTER_RESOLUTION)
+    bias = math.exp(-radius * radius / (2.0 * stddev * stddev))
+    for i in range(FILTER_RESOLUTION):
+        x = radius * i / FILTER_RESOLUTION
+        if kind == FILTER_TENT:
+            table[i] = 1.0 - x / radius
+        elif kind != FILTER_BOX:
+            table[i] = max(0.0, math.exp(-x * x / (2.0 * stddev * stddev)) - bias)
+    return table
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _step_value(table, j):
+    """Value of step j of the filter over [-radius, radius] (2 n steps)."""
+    n = table.shape[0]
+    return table[n - 1 - j] if j < n else table[j - n]
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _integral_to(table, radius, x):
+    """Integral of the tabulated filter from -radius to x (|x| <= radius), in steps."""
+    n = table.shape[0]
+    t = (x + radius) * n / radius
+    j = min(max(int(t), 0), 2 * n - 1)
+    total = 0.0
+    for k in range(j):
+        total += _step_value(table, k)
+    return total + _step_value(table, j) * (t - j)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def filter_offset(table, radius, lo, hi, u):
+    """An offset from the pixel centre in [lo, hi] (within [-radius,
+    radius]) with density proportional to the tabulated filter, from one
+    uniform u: filter importance sampling, so the eye ray's weight stays 1.
+    The filter is piecewise constant, so its integral inverts exactly."""
+    n = table.shape[0]
+    a, b = _integral_to(table, radius, lo), _integral_to(table, radius, hi)
+    target = a + u * (b - a)
+    total = 0.0
+    for j in range(2 * n):
+        v = _step_value(table, j)
+        if v > 0.0 and (total + v >= target or j == 2 * n - 1):
+            x = -radius + (j + (target - total) / v) * radius / n
+            return min(max(x, lo), hi)
+        total += v
+    return hi
+
+
+@nb.njit(cache=True, error_model="numpy")
+def film_position(index, size, u, pixel_filter, table, sample_border):
+    """The film coordinate (pixel `index` spans [index, index + 1)) of an
+    eye ray along one axis of `size` pixels: the pixel centre plus an
+    offset from the filter, clipped to the film unless `sample_border`
+    (Mitsuba's film only takes samples on it, and normalises each pixel by
+    the weight it got). For the box of half a pixel this is index + u
+    exactly (u has 24 bits), the jitter of every render before filters."""
+    radius = pixel_filter[1]
+    centre = index + 0.5
+    lo, hi = -radius, radius
+    if not sample_border:
+        lo, hi = max(lo, -centre), min(hi, size - centre)
+    if int(pixel_filter[0]) == FILTER_BOX:
+        return centre + (lo + u * (hi - lo))
+    return centre + filter_offset(table, radius, lo, hi, u)
+
+
 @nb.njit(cache=True, parallel=True, error_model="numpy")
 def generate_eye_rays(frame, width, seed, iteration, pixel_start, count):
     """One eye ray per pixel in [pixel_start, pixel_start + count) of
-    iteration `iteration`: box-filtered jitter and an optional thin lens, or
-    parallel rays for an orthographic camera. `frame` is `Camera.frame()`. Returns origin, direction, rng state."""
+    iteration `iteration`: its film position sampled from the pixel filter
+    (`film_position`) and an optional thin lens, or parallel rays for an
+    orthographic camera. `frame` is `Camera.frame()`. Returns origin, direction, rng state."""
     origin = np.empty((count, 3), np.float32)
     direction = np.empty((count, 3), np.float32)
     states = np.empty(count, np.uint64)
     pos, right, up, fwd = frame[0], frame[1], frame[2], frame[3]
     tan_x, tan_y = frame[4, 0], frame[4, 1]
     aperture, focus, near = frame[5, 0], frame[5, 1], frame[5, 2]
-    ortho = frame[6, 0] > 0.0
+    ortho, border = frame[6, 0] > 0.0, frame[6, 1] > 0.0
+    pixel_filter = frame[7]
+    table = filter_table(pixel_filter)
     job = EYE_STREAM + np.uint64(iteration)
     for i in nb.prange(count):
         pixel = pixel_start + i
@@ -45,8 +127,10 @@ def generate_eye_rays(frame, width, seed, iteration, pixel_start, count):
         st, uy = next_float(st)
         col, row = pixel % width, pixel // width
         height = frame[4, 2]
-        sx = (2.0 * (col + ux) / width - 1.0) * tan_x
-        sy = (1.0 - 2.0 * (row + uy) / height) * tan_y
+        x = film_position(col, width, ux, pixel_filter, table, border)
+        y = film_position(row, height, uy, pixel_filter, table, border)
+        sx = (2.0 * x / width - 1.0) * tan_x
+        sy = (1.0 - 2.0 * y / height) * tan_y
         d = np.empty(3)
         o = np.empty(3)
         if ortho:

@@ -32,6 +32,10 @@ MICROFACETS = ("ggx", "beckmann")     # `Material.distribution`, ids as kernels.
 # lights are infinitely far: their photons leave a disc outside the scene's
 # bounding sphere, and their shadow rays run to past that sphere.
 LIGHT_TRIANGLE, LIGHT_POINT, LIGHT_SPOT, LIGHT_DIRECTIONAL, LIGHT_ENV, LIGHT_PROJECTOR = 0, 1, 2, 3, 4, 5
+# Pixel reconstruction filters (`Camera.pixel_filter`), as `Camera.frame()` codes them.
+PIXEL_FILTERS = {"box": 0, "gaussian": 1, "tent": 2}
+FILTER_BOX, FILTER_GAUSSIAN, FILTER_TENT = 0, 1, 2
+MAX_FILTER_RADIUS = 16.0     # pixels: wider would blur the image away, surely a unit mistake
 # The bounding sphere of the infinite lights' discs: the scene box's, this
 # much larger (Mitsuba enlarges its own by 1 + RayEpsilon).
 SPHERE_MARGIN = 1e-3
@@ -123,7 +127,19 @@ class Camera:
     rays along the view direction from a plane `near_clip` ahead, which
     spans `ortho_scale[0]` either side of the centre across the image and
     `ortho_scale[1] * height / width` up and down (the scale of its
-    to_world); `fov_deg` and the lens are unused then."""
+    to_world); `fov_deg` and the lens are unused then.
+
+    `pixel_filter` is the film's reconstruction filter, from which each
+    eye ray samples its offset from the pixel centre (filter importance
+    sampling, so every pixel stays an unbiased estimate of its filtered
+    value): `box` (half-width `filter_radius`, default 0.5: the pixel
+    itself), `tent` (1 - |x| / `filter_radius`, default 1) or `gaussian`
+    (standard deviation `filter_stddev` pixels, minus its value at the
+    cut-off `filter_radius`, default 4 stddev: Mitsuba 3's windowed
+    Gaussian), tabulated in steps as Mitsuba's film applies them
+    (`kernels.emit.filter_table`); a 2D filter is the product of two.
+    Offsets stay on the film unless `sample_border`, as Mitsuba's film
+    (its `sample_border`) weighs them."""
     position: tuple
     look_at: tuple
     up: tuple
@@ -136,6 +152,10 @@ class Camera:
     near_clip: float = 0.0
     projection: str = "perspective"
     ortho_scale: tuple = (1.0, 1.0)
+    pixel_filter: str = "box"
+    filter_radius: float | None = None
+    filter_stddev: float = 0.5
+    sample_border: bool = False
 
     def validate(self, where: str = "camera") -> None:
         for name in ("position", "look_at", "up"):
@@ -156,15 +176,36 @@ class Camera:
             raise SceneError(f"{where}.fov: must lie in (0, 180) degrees, got {self.fov_deg!r}")
         if self.fov_axis not in ("x", "y", "smaller", "larger"):
             raise SceneError(f"{where}.fov_axis: must be x, y, smaller or larger, got {self.fov_axis!r}")
+        self._validate_filter(where)
         fwd = np.subtract(self.look_at, self.position)
         if np.linalg.norm(fwd) == 0 or np.linalg.norm(np.cross(fwd, self.up)) == 0:
             raise SceneError(f"{where}: look_at must differ from position and not be parallel to up")
         if self.aperture_radius < 0 or (self.aperture_radius > 0 and self.focus_distance <= 0):
             raise SceneError(f"{where}: thin lens needs aperture >= 0 and focus_distance > 0")
 
+    def _validate_filter(self, where: str) -> None:
+        if self.pixel_filter not in PIXEL_FILTERS:
+            raise SceneError(f"{where}.pixel_filter: must be one of {', '.join(PIXEL_FILTERS)}, "
+                             f"got {self.pixel_filter!r}")
+        if not (math.isfinite(self.filter_stddev) and self.filter_stddev > 0):
+            raise SceneError(f"{where}.filter_stddev: must be a positive number, got {self.filter_stddev!r}")
+        radius = self.filter_radius_px()
+        if not (math.isfinite(radius) and 0 < radius <= MAX_FILTER_RADIUS):
+            raise SceneError(f"{where}.filter_radius: must lie in (0, {MAX_FILTER_RADIUS}] pixels, "
+                             f"got {radius!r}")
+
+    def filter_radius_px(self) -> float:
+        """The filter's half-width in pixels: as given, else Mitsuba's
+        default: the box's 0.5, the tent's 1, the Gaussian's 4 standard
+        deviations."""
+        if self.filter_radius is not None:
+            return float(self.filter_radius)
+        return {"box": 0.5, "tent": 1.0}.get(self.pixel_filter, 4.0 * float(self.filter_stddev))
+
     def frame(self) -> np.ndarray:
         """Rows: position, right, up, forward (unit), (tan_x, tan_y, height),
-        (aperture, focus, near clip), (orthographic 1 or 0, 0, 0): a (7, 3)
+        (aperture, focus, near clip), (orthographic 1 or 0, sample_border 1
+        or 0, 0), (filter code of PIXEL_FILTERS, radius, stddev): an (8, 3)
         float64 array for the eye-ray kernel. Image right is forward x up, so
         Mitsuba scenes come out unmirrored. An orthographic camera puts the
         half width and half height of its view in place of tan_x and tan_y."""
@@ -186,8 +227,9 @@ class Camera:
         if ortho:
             tan_x, tan_y = self.ortho_scale[0], self.ortho_scale[1] * h / w
         lens = (self.aperture_radius, self.focus_distance, self.near_clip)
-        return np.array([pos, right, up, fwd, (tan_x, tan_y, h), lens, (float(ortho), 0.0, 0.0)],
-                        dtype=np.float64)
+        pixel_filter = (PIXEL_FILTERS[self.pixel_filter], self.filter_radius_px(), self.filter_stddev)
+        return np.array([pos, right, up, fwd, (tan_x, tan_y, h), lens,
+                         (float(ortho), float(bool(self.sample_border)), 0.0), pixel_filter], dtype=np.float64)
 
 
 @dataclass

@@ -21,7 +21,7 @@ from dosppm_core.scene.model import Camera, Material, Scene, SceneBuilder, Scene
 
 _TOP_KEYS = ("camera", "materials", "shapes", "lights", "render")
 _CAMERA_KEYS = ("position", "look_at", "up", "fov", "fov_axis", "width", "height",
-                "aperture_radius", "focus_distance")
+                "aperture_radius", "focus_distance", "pixel_filter", "filter_radius", "filter_stddev")
 # Keys each material type reads; anything else would be silently ignored,
 # so it is an error instead.
 _MATERIAL_KEYS = {
@@ -224,7 +224,10 @@ def _read_camera(doc: dict, path: str) -> Camera:
         height=_integer(cam, "height", path, "camera"),
         fov_axis=_string(cam, "fov_axis", path, "camera", "x"),
         aperture_radius=_number(cam, "aperture_radius", path, "camera", 0.0),
-        focus_distance=_number(cam, "focus_distance", path, "camera", focus))
+        focus_distance=_number(cam, "focus_distance", path, "camera", focus),
+        pixel_filter=_string(cam, "pixel_filter", path, "camera", "box"),
+        filter_radius=_number(cam, "filter_radius", path, "camera", None) if "filter_radius" in cam else None,
+        filter_stddev=_number(cam, "filter_stddev", path, "camera", 0.5))
 
 
 def _read_materials(doc: dict, builder: SceneBuilder, path: str) -> dict:

@@ -223,7 +223,8 @@ def _pbrt(method: Method, scene: Scene, budgets, seed: int, work: str, pbrt_file
     integrator = method.options["integrator"]
     settings = pbrt.RenderSettings(integrator, 1, int(method.options["max_depth"]),
                                    int(scene.camera.width), int(scene.camera.height),
-                                   radius=_pbrt_radius(method, scene))
+                                   radius=_pbrt_radius(method, scene),
+                                   pixel_filter=pbrt.pixel_filter_line(scene.camera))
     target, run_file = os.path.join(work, "pbrt.exr"), os.path.join(work, "pbrt-run.pbrt")
     out = []
     while settings.samples:

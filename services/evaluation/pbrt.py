@@ -29,7 +29,8 @@ spot       `spot`, I, coneangle = cutoff, conedeltaangle = cutoff - beam
 camera     `Scale -1 1 1` before `LookAt` (pbrt's camera is left-handed:
            without it the image is mirrored), `perspective`, fov along the
            shorter image axis, lensradius / focaldistance for a thin lens
-film       `rgb` film, EXR, `box` filter of radius 0.5, `independent` sampler
+film       `rgb` film, EXR, the camera's filter (`pixel_filter`: box, triangle
+           for our tent, gaussian), `independent` sampler
            (not pmj02bn: its tables are stand-ins in the shared build)
 depth      pbrt's `maxdepth` counts bounces as our `max_depth` does
 =========  ==========================================================
@@ -90,6 +91,18 @@ class RenderSettings:
     height: int
     photons_per_iteration: int = 100_000
     radius: float = 1.0                # SPPM's initial radius (pbrt's default 1)
+    pixel_filter: str = 'PixelFilter "box" "float xradius" 0.5 "float yradius" 0.5'   # `pixel_filter_line`
+
+
+def pixel_filter_line(cam: Camera) -> str:
+    """pbrt's PixelFilter for our camera's: its gaussian is Mitsuba's
+    windowed one (untabulated), its triangle our tent. pbrt samples the
+    filter past the film's edges, as our `sample_border` does."""
+    r = _num(cam.filter_radius_px())
+    radii = f'"float xradius" {r} "float yradius" {r}'
+    if cam.pixel_filter == "gaussian":
+        return f'PixelFilter "gaussian" "float sigma" {_num(cam.filter_stddev)} {radii}'
+    return f'PixelFilter "{"triangle" if cam.pixel_filter == "tent" else "box"}" {radii}'
 
 
 # -- the binary -------------------------------------------------------------
@@ -145,7 +158,7 @@ def render_directives(s: RenderSettings, out_path: str) -> str:
         integrator,
         (f'Film "rgb" "integer xresolution" {s.width} "integer yresolution" {s.height} '
          f'"string filename" "{out_path}"'),
-        'PixelFilter "box" "float xradius" 0.5 "float yradius" 0.5', ""])
+        s.pixel_filter, ""])
 
 
 def with_render_settings(scene_text: str, directives: str, base_dir: str) -> str:

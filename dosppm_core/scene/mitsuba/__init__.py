@@ -50,7 +50,9 @@ sensor      perspective, thinlens (fov or focal_length, fov_axis, to_world,
             near_clip, far_clip, focus_distance, aperture_radius);
             orthographic (to_world, whose scale sizes the view, near_clip,
             far_clip); film hdrfilm (width, height, pixel_format,
-            component_format, rfilter); sampler (sample_count, seed)
+            component_format, sample_border, rfilter: gaussian (stddev;
+            the default), box, tent (radius); sampled by the eye rays, not
+            splatted); sampler (sample_count, seed)
 integrator  path, volpath, volpathmis, ptracer, direct (max_depth, rr_depth,
             hide_emitters; `settings.scene_settings` renders max_depth M
             as our M - 1 and refuses hide_emitters true); moment (read through to the one integrator it

@@ -1,7 +1,9 @@
-"""The sensor (perspective, thinlens or orthographic) becomes the `Camera`; its film,
-sampler and the integrator become render settings: what `Scene` cannot
-hold (integrator, max_depth, spp, far_clip, film filter, pixel format)
-lands in ``reader.settings``, only the keys the file sets."""
+"""The sensor (perspective, thinlens or orthographic) becomes the `Camera`,
+its film's size and reconstruction filter with it (Mitsuba's default: a
+Gaussian of standard deviation 0.5 px); the sampler and the integrator
+become render settings: what `Scene` cannot hold (integrator, max_depth,
+spp, far_clip, pixel format) lands in ``reader.settings``, only the keys
+the file sets (and the <rfilter> as read, for the record)."""
 from __future__ import annotations
 
 import math
@@ -12,7 +14,7 @@ from dosppm_core.scene.mitsuba.objects import Obj
 from dosppm_core.scene.mitsuba.params import finish, get_bool, get_float, get_int, get_str, required
 from dosppm_core.scene.mitsuba.state import ReaderState
 from dosppm_core.scene.mitsuba.values import to_float
-from dosppm_core.scene.model import Camera
+from dosppm_core.scene.model import MAX_FILTER_RADIUS, Camera
 
 
 def read_sensor(reader: ReaderState, obj: Obj) -> None:
@@ -21,7 +23,7 @@ def read_sensor(reader: ReaderState, obj: Obj) -> None:
         obj.node.fail("a second sensor: only one camera is supported")
     children = reader.children(obj, {"film", "sampler"})
     film, sampler = reader.single(obj, children, "film"), reader.single(obj, children, "sampler")
-    width, height = _film(reader, film) if film is not None else (768, 576)
+    width, height, pixel_filter = _film(reader, film) if film is not None else (768, 576, DEFAULT_FILTER)
     if sampler is not None:
         _sampler(reader, sampler)
     if obj.type == "orthographic":
@@ -40,6 +42,8 @@ def read_sensor(reader: ReaderState, obj: Obj) -> None:
     elif obj.type == "perspective":       # stored only: a pinhole has no focus
         camera.focus_distance = get_float(obj, "focus_distance", camera.focus_distance)
     finish(obj)
+    for name, value in pixel_filter.items():
+        setattr(camera, name, value)
     camera.validate(obj.where())
     reader.builder.camera = camera
 
@@ -105,20 +109,44 @@ def field_of_view(obj: Obj, width: int, height: int) -> tuple:
 
 
 def _film(reader: ReaderState, film: Obj) -> tuple:
+    """(width, height, the camera's pixel filter fields)."""
     rfilter = reader.single(film, reader.children(film, {"rfilter"}), "rfilter")
-    if rfilter is not None:
-        reader.children(rfilter, ())
-        params = {n: get_float(rfilter, n) for n in ("radius", "stddev", "B", "C", "lobes")
-                  if n in rfilter.props}
-        finish(rfilter)
-        reader.settings["rfilter"] = {"type": rfilter.type, **params}
+    pixel_filter = dict(DEFAULT_FILTER) if rfilter is None else _rfilter(reader, rfilter)
+    border = get_bool(film, "sample_border")
+    if border is not None:
+        pixel_filter["sample_border"] = border
     size = (get_int(film, "width", 768), get_int(film, "height", 576))
     for name in ("pixel_format", "component_format"):    # how Mitsuba would write its image
         value = get_str(film, name)
         if value is not None:
             reader.settings[name] = value
     finish(film)
-    return size
+    return (*size, pixel_filter)
+
+
+# Mitsuba's (and Nori's) film filter when the file names none.
+DEFAULT_FILTER = {"pixel_filter": "gaussian", "filter_stddev": 0.5, "filter_radius": None}
+
+
+def _rfilter(reader: ReaderState, rfilter: Obj) -> dict:
+    """The camera's pixel filter fields of an <rfilter>. Mitsuba's box and
+    gaussian take no radius (Nori's do); the filters with negative lobes
+    (mitchell, catmullrom, lanczos) are refused: sampling them would give
+    eye rays negative weights."""
+    reader.children(rfilter, ())
+    if rfilter.type not in ("box", "tent", "gaussian"):
+        rfilter.node.fail(f"rfilter {rfilter.type!r} is not supported (box, tent and gaussian are)")
+    params = {"radius": get_float(rfilter, "radius")} if rfilter.type == "tent" or reader.dialect == "nori" else {}
+    if rfilter.type == "gaussian":
+        params["stddev"] = get_float(rfilter, "stddev")
+    finish(rfilter)
+    params = {k: v for k, v in params.items() if v is not None}
+    for name, value in params.items():
+        if not 0 < value <= MAX_FILTER_RADIUS:
+            rfilter.node.fail(f"{name} must lie in (0, {MAX_FILTER_RADIUS:g}] pixels, got {value:g}")
+    reader.settings["rfilter"] = {"type": rfilter.type, **params}
+    return {"pixel_filter": rfilter.type, "filter_radius": params.get("radius"),
+            "filter_stddev": params.get("stddev", 0.5)}
 
 
 def _sampler(reader: ReaderState, obj: Obj) -> None:
