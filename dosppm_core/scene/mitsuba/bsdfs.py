@@ -3,7 +3,9 @@
 dielectric (one tint) -> glass; conductor and roughconductor with eta
 and k, or Beckmann -> their kinds; roughdielectric (GGX or Beckmann),
 plastic and roughplastic -> their kinds; mask (a constant opacity) -> its
-nested material with `opacity`. One <bsdf> object is one material; a
+nested material with `opacity`; normalmap and bumpmap (a texture, and a
+nested diffuse, rough conductor or rough plastic) -> the nested material
+with its `normal_map` or `bump_map` (kernels.shading). One <bsdf> object is one material; a
 shape's (bsdf, area emitter) pair becomes one builder material, since
 emission belongs to the material. The colour (reflectance, or the
 conductor's or glass's tint) may be a texture (`textures`)."""
@@ -16,7 +18,7 @@ from dosppm_core.scene.mitsuba.emitters import area_radiance
 from dosppm_core.scene.mitsuba.objects import Obj
 from dosppm_core.scene.mitsuba.params import finish, get_bool, get_float, get_rgb
 from dosppm_core.scene.mitsuba.state import ReaderState
-from dosppm_core.scene.mitsuba.textures import TextureParams
+from dosppm_core.scene.mitsuba.textures import TextureParams, read_texture
 from dosppm_core.scene.model import Material
 
 # Mitsuba's named indices of refraction (include/mitsuba/render/ior.h).
@@ -36,7 +38,8 @@ def bsdf_material(reader: ReaderState, obj: Obj) -> Material:
         convert = {"diffuse": _diffuse, "twosided": _twosided, "conductor": _conductor,
                    "roughconductor": _roughconductor, "dielectric": _dielectric,
                    "roughdielectric": _roughdielectric, "plastic": _plastic,
-                   "roughplastic": _roughplastic, "mask": _mask}[obj.type]
+                   "roughplastic": _roughplastic, "mask": _mask, "normalmap": _normalmap,
+                   "bumpmap": _bumpmap}[obj.type]
         material = convert(reader, obj)
         finish(obj)
         material.validate(obj.where())
@@ -97,6 +100,56 @@ def _mask(reader: ReaderState, obj: Obj) -> Material:
     if not 0.0 <= opacity <= 1.0:
         obj.node.fail(f"opacity must lie in [0, 1], got {opacity}")
     return dataclasses.replace(bsdf_material(reader, inner[0]), name=obj.name(), opacity=opacity)
+
+
+# What a normal or bump map may wrap: the kinds whose eye paths stop in a
+# hit point, which takes the perturbed normal (kernels.shading). A smooth
+# or transmissive BSDF would need it in the eye bounce too.
+MAPPABLE = ("diffuse", "glossy", "roughconductor", "roughplastic")
+
+
+def _normalmap(reader: ReaderState, obj: Obj) -> Material:
+    """Mitsuba's normalmap: the tangent-space normal 2 c - 1 of the texture
+    named normalmap (a bitmap should be read raw)."""
+    nested, textures = _wrapped(reader, obj)
+    if len(textures) != 1 or textures[0][0] != "normalmap":
+        obj.node.fail("needs one texture named 'normalmap'")
+    return dataclasses.replace(nested, name=obj.name(), normal_map=read_texture(reader, textures[0][1]),
+                               shading_flags=_shading_flags(obj))
+
+
+def _bumpmap(reader: ReaderState, obj: Obj) -> Material:
+    """Mitsuba's bumpmap: the normal of the surface displaced by `scale`
+    (default 1) times its one texture's height."""
+    nested, textures = _wrapped(reader, obj)
+    if len(textures) != 1:
+        obj.node.fail("needs exactly one texture (the height)")
+    return dataclasses.replace(nested, name=obj.name(), bump_map=read_texture(reader, textures[0][1]),
+                               bump_scale=get_float(obj, "scale", 1.0), shading_flags=_shading_flags(obj))
+
+
+def _wrapped(reader: ReaderState, obj: Obj):
+    """(the nested material, [(name, texture object)]) of a normal or bump
+    map, whose nested BSDF must be one it can wrap."""
+    bsdfs, textures = [], []
+    for child, target in zip(obj.children, reader.children(obj, {"bsdf", "texture"})):
+        if target.tag == "bsdf":
+            bsdfs.append(target)
+        else:
+            textures.append((child.node.attrib.get("name"), target))
+    if len(bsdfs) != 1:
+        obj.node.fail("needs exactly one nested BSDF")
+    nested = bsdf_material(reader, bsdfs[0])
+    if nested.kind not in MAPPABLE or nested.normal_map >= 0 or nested.bump_map >= 0:
+        bsdfs[0].node.fail(f"a {obj.type} of this BSDF is unsupported (only of {', '.join(MAPPABLE)}, "
+                           "not of a smooth, transmissive or already mapped one)")
+    return nested, textures
+
+
+def _shading_flags(obj: Obj) -> int:
+    """Mitsuba's two options of the normal and bump maps (both default on)."""
+    return (int(bool(get_bool(obj, "flip_invalid_normals", True)))
+            | 2 * int(bool(get_bool(obj, "use_shadowing_function", True))))
 
 
 def _conductor(reader: ReaderState, obj: Obj) -> Material:
