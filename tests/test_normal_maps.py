@@ -1,0 +1,174 @@
+"""Mitsuba 3's normalmap and bumpmap (kernels.shading): the perturbed
+normal against Mitsuba's own BSDF evaluation, a flat map equal to no map
+bit for bit, a tilted one's closed form, and the scenes that use them."""
+import math
+import os
+
+import numpy as np
+import pytest
+
+import dosppm_core as dp
+from dosppm_core.kernels.materials import bsdf_rows
+from dosppm_core.kernels.shading import shading_normal, terminator
+from dosppm_core.scene.mitsuba import load_mitsuba_xml
+from dosppm_core.scene.model import Material, MaterialTable
+from dosppm_core.scene.textures import TextureTable, bitmap
+
+SIDE = 2.0      # the triangle's legs: dp/du = SIDE * s, so a bump's gradient is scaled as Mitsuba scales it
+
+
+def _rotation(rng):
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    return q * np.sign(np.linalg.det(q))
+
+
+def _triangle(rot):
+    """One triangle of legs SIDE along the rotated x and y axes, uv (0,0) (1,0) (0,1)."""
+    verts = (np.array([[0, 0, 0], [SIDE, 0, 0], [0, SIDE, 0]], np.float64) @ rot.T).astype(np.float32)
+    uvs = np.array([[0, 0], [1, 0], [0, 1]], np.float32)
+    return verts, np.array([[0, 1, 2]], np.int32), uvs
+
+
+def _ours(material, texture, rot, uv, wi):
+    """(perturbed normal, a2) of the material at uv of the rotated triangle, seen from wi."""
+    verts, tris, uvs = _triangle(rot)
+    table = TextureTable.from_textures([texture])
+    rows = bsdf_rows(MaterialTable.from_materials([material]))
+    n = np.asarray(verts[1] - verts[0], np.float64)
+    n = np.cross(n, np.asarray(verts[2] - verts[0], np.float64))
+    n /= np.linalg.norm(n)
+    s0, s1, s2, a2 = shading_normal(rows, 0, verts, (uvs, tris, table.info, table.uv_map, table.texels), 0,
+                                    uv[0], uv[1], n[0], n[1], n[2], True, wi[0], wi[1], wi[2], True)
+    return np.array([s0, s1, s2]), a2, n
+
+
+def _mitsuba_value(mi, bsdf, rot, uv, wi, wo):
+    """Mitsuba's eval (f cos) at a surface point whose frame and dp/du, dp/dv are the triangle's."""
+    si = mi.SurfaceInteraction3f()
+    s, t, n = (mi.Vector3f(*map(float, rot[:, k])) for k in range(3))
+    si.sh_frame = mi.Frame3f(s, t, n)
+    si.n = n
+    si.dp_du, si.dp_dv = SIDE * s, SIDE * t
+    si.uv = mi.Point2f(*map(float, uv))
+    si.wi = si.to_local(mi.Vector3f(*map(float, wi)))
+    value = bsdf.eval(mi.BSDFContext(), si, si.to_local(mi.Vector3f(*map(float, wo))))
+    return float(np.asarray(value)[0])
+
+
+def _our_value(ns, a2, n, wi, wo, albedo=0.5):
+    """The nested diffuse at ns, Mitsuba's side tests and shadowing term."""
+    if not (np.dot(wi, ns) > 0 and np.dot(wo, ns) > 0 and np.dot(wo, n) > 0):
+        return 0.0
+    return albedo / math.pi * np.dot(wo, ns) * terminator(a2, np.dot(wo, n))
+
+
+def _directions(rng, rot):
+    """Eye and light directions above the surface, some of them grazing."""
+    out = []
+    for _ in range(2):
+        d = rng.normal(size=3)
+        d /= np.linalg.norm(d)
+        d[2] = abs(d[2]) * (0.05 if rng.random() < 0.3 else 1.0)
+        out.append(rot @ (d / np.linalg.norm(d)))
+    return out
+
+
+@pytest.mark.reference
+def test_normal_map_matches_mitsuba(mi):
+    """Random tilted normals, frames and directions (a third grazing, so
+    that flip_invalid_normals acts): our perturbed normal in the nested
+    diffuse, with the side tests and the shadowing term, equals Mitsuba's
+    normalmap eval."""
+    rng = np.random.default_rng(4)
+    flips = 0
+    for _ in range(200):
+        rot = _rotation(rng)
+        c = np.clip(0.5 + 0.5 * np.array([*rng.normal(scale=0.5, size=2), 1.0]), 0, 1)
+        c[2] = max(c[2], 0.55)
+        texture = bitmap("n", c.reshape(1, 1, 3), "nearest")
+        wi, wo = _directions(rng, rot)
+        uv = rng.random(2) * 0.5
+        ns, a2, n = _ours(Material("m", normal_map=0), texture, rot, uv, wi)
+        bsdf = mi.load_dict({"type": "normalmap", "normalmap": {"type": "rawconstant", "value": c.tolist()},
+                             "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.5}}})
+        theirs = _mitsuba_value(mi, bsdf, rot, uv, wi, wo)
+        local = np.array([np.dot(ns, rot[:, 0]), np.dot(ns, rot[:, 1])])
+        flips += np.dot(local, (2 * c - 1)[:2]) < 0
+        assert _our_value(ns, a2, n, wi, wo) == pytest.approx(theirs, rel=1e-4, abs=1e-6)
+    assert flips > 5        # the flip was exercised
+
+
+@pytest.mark.reference
+def test_bump_map_matches_mitsuba(mi):
+    """A random 5x4 height field, bilinear, under a random frame: our bump
+    normal in the nested diffuse equals Mitsuba's bumpmap eval."""
+    rng = np.random.default_rng(5)
+    heights = rng.random((4, 5))
+    texture = bitmap("h", np.repeat(heights[:, :, None], 3, axis=2))
+    bsdf = mi.load_dict({"type": "bumpmap", "scale": 0.3,
+                         "tex": {"type": "bitmap", "raw": True, "data": mi.TensorXf(heights[:, :, None].astype(np.float32))},
+                         "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.5}}})
+    for _ in range(200):
+        rot = _rotation(rng)
+        wi, wo = _directions(rng, rot)
+        uv = rng.random(2) * 0.5
+        ns, a2, n = _ours(Material("m", bump_map=0, bump_scale=0.3), texture, rot, uv, wi)
+        theirs = _mitsuba_value(mi, bsdf, rot, uv, wi, wo)
+        assert _our_value(ns, a2, n, wi, wo) == pytest.approx(theirs, rel=2e-4, abs=1e-6)
+
+
+PLANE = """<scene version="3.0.0">
+  <sensor type="perspective"><float name="fov" value="20"/>
+    <transform name="to_world"><lookat origin="0,0,5" target="0,0,0" up="0,1,0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/></film>
+  </sensor>
+  <shape type="rectangle"><transform name="to_world"><scale value="4"/></transform>{bsdf}</shape>
+  <emitter type="directional"><vector name="direction" value="{light}"/><rgb name="irradiance" value="2"/></emitter>
+</scene>
+"""
+DIFFUSE = '<bsdf type="diffuse"><rgb name="reflectance" value="0.6"/></bsdf>'
+MAPPED = ('<bsdf type="normalmap"><texture name="normalmap" type="rawconstant"><vector name="value" value="{c}"/>'
+          '</texture><boolean name="use_shadowing_function" value="{shadow}"/>' + DIFFUSE + '</bsdf>')
+
+
+def _plane(tmp_path, bsdf, light=(0.0, -0.5, -1.0)):
+    path = tmp_path / "plane.xml"
+    path.write_text(PLANE.format(bsdf=bsdf, light=", ".join(map(str, light))))
+    return load_mitsuba_xml(str(path))
+
+
+def test_flat_normal_map_is_the_wrapped_bsdf(tmp_path):
+    """A normal map of (0.5, 0.5, 1) everywhere changes nothing: the image
+    equals the bare diffuse's bit for bit, photons included."""
+    light = (0.3, -0.5, -1.0)
+    bare = dp.render(_plane(tmp_path, DIFFUSE, light), iterations=4, mode="sppm", seed=1, max_depth=3)
+    mapped = dp.render(_plane(tmp_path, MAPPED.format(c="0.5, 0.5, 1", shadow="true"), light),
+                       iterations=4, mode="sppm", seed=1, max_depth=3)
+    assert np.asarray(bare).mean() > 0
+    np.testing.assert_array_equal(np.asarray(mapped), np.asarray(bare))
+
+
+@pytest.mark.parametrize("shadow", [False, True])
+def test_tilted_normal_map_closed_form(tmp_path, shadow):
+    """A plane whose normal map tilts every normal by 30 degrees toward
+    +y (the rectangle's dp/dv), lit by a directional light: each pixel is the flat
+    plane's times cos(tilted normal, light) / cos(normal, light), and with
+    the shadowing function times G(light) of Estevez et al."""
+    tilt = math.radians(30)
+    local = np.array([0.0, math.sin(tilt), math.cos(tilt)])
+    c = ", ".join(f"{x:.9f}" for x in 0.5 * local + 0.5)
+    light = np.array([0.0, -0.5, -1.0])
+    to_light = -light / np.linalg.norm(light)
+    flat = np.asarray(dp.render(_plane(tmp_path, DIFFUSE), iterations=2, mode="sppm", seed=1, max_depth=2))
+    mapped = np.asarray(dp.render(_plane(tmp_path, MAPPED.format(c=c, shadow=str(shadow).lower())),
+                                  iterations=2, mode="sppm", seed=1, max_depth=2))
+    ratio = np.dot(local, to_light) / to_light[2]
+    if shadow:
+        a2 = min(0.125 * (1 - local[2] ** 2) / local[2] ** 2, 1.0)
+        ratio *= 2 / (1 + math.sqrt(1 + a2 * (1 - to_light[2] ** 2) / to_light[2] ** 2))
+    assert flat.min() > 0 and ratio > 1.05
+    np.testing.assert_allclose(mapped, flat * ratio, rtol=1e-5)
+
+
+BSDF_SPHERES = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "scenes", "mitsuba-data",
+                            "tests", "scenes", "bsdf_spheres")
