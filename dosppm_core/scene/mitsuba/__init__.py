@@ -30,11 +30,15 @@ bsdf        diffuse (reflectance); twosided (one nested BSDF);
             plastic (int_ior, ext_ior, diffuse_reflectance,
             specular_reflectance, nonlinear); roughplastic (the same plus
             distribution and alpha); mask (constant opacity, one nested
-            BSDF); principled and principledthin are refused
+            BSDF); normalmap (a texture named normalmap) and bumpmap (one
+            texture, scale) around a diffuse, rough conductor or rough
+            plastic, with flip_invalid_normals and use_shadowing_function;
+            principled and principledthin are refused
             the colour of diffuse, conductors and dielectric may be a texture
 texture     bitmap (filename: PNG, JPEG, BMP, ... or EXR; filter_type
             bilinear or nearest, wrap_mode repeat, mirror or clamp, raw,
-            to_uv); checkerboard (color0, color1, to_uv); mesh_attribute
+            to_uv, format); checkerboard (color0, color1, to_uv);
+            rawconstant (value, a float or a vector); mesh_attribute
             (name vertex_<p> or face_<p> of a PLY's <p>_0.. properties);
             nested in a BSDF under the parameter's name, or a ``<ref name
             id>``. Not on roughness (alpha)
