@@ -328,11 +328,9 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
             gc = _photon_pass_through(i, gc, st, p0, p1, p2, n0, n1, n2, w0, w1, w2, rays, max_depth,
                                       eps_rel, eps_abs, end, nxt)
             continue
-        s0, s1, s2, k_in = n0, n1, n2, 1.0      # shading normal, Veach's factor (`kernels.shading`)
-        mapped = is_mapped(bsdf, m)
-        if mapped:
-            s0, s1, s2, k_in = photon_shading(bsdf, m, verts, (uvs, tris, tinfo, tuv, texels), tri,
-                                              u[i], v[i], n0, n1, n2, front, w0, w1, w2)
+        mapped = is_mapped(bsdf, m)     # a normal or bump map: shading normal s, Veach's factor k_in
+        s0, s1, s2, k_in = (photon_shading(bsdf, m, verts, (uvs, tris, tinfo, tuv, texels), tri, u[i], v[i],
+                                           n0, n1, n2, front, w0, w1, w2) if mapped else (n0, n1, n2, 1.0))
         if not is_specular(kind):
             if not (front or two_sided[m]) or not k_in > 0.0:
                 end[i] = ABSORBED
@@ -342,18 +340,13 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
             elif outside(cull_box, p0, p1, p2):
                 culled[i] = True
             else:
-                write_facing(dep_pos, dep_n, dc, p0, p1, p2, n0, n1, n2, front)
-                dep_in[dc, 0], dep_in[dc, 1], dep_in[dc, 2] = w0, w1, w2
-                dep_f[dc, 0], dep_f[dc, 1], dep_f[dc, 2] = flux[i, 0] * k_in, flux[i, 1] * k_in, flux[i, 2] * k_in
-                dep_job[dc] = job[i]
+                _deposit(dep_pos, dep_in, dep_n, dep_f, dep_job, dc, p0, p1, p2, n0, n1, n2, front,
+                         direction, flux, job, i, k_in)
                 dc += 1
         if depth[i] + 1 >= max_depth:
             end[i] = MAX_DEPTH
             continue
-        st, u1 = next_float(st)
-        st, u2 = next_float(st)
-        st, u3 = next_float(st)
-        st, ur = next_float(st)
+        st, u1, u2, u3, ur = _four_floats(st)
         ok, d0, d1, d2, t0, t1, t2, _es = sample_scatter(two_sided, ior, rough, refl, bsdf, m, kind,
                                                          s0, s1, s2, w0, w1, w2, u1, u2, u3, False)
         if ok and mapped:
@@ -372,6 +365,26 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
         gc += 1
         end[i] = CONTINUES
     return dc, gc
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def _deposit(dep_pos, dep_in, dep_n, dep_f, dep_job, dc, p0, p1, p2, n0, n1, n2, front, direction, flux,
+             job, i, k_in):
+    """Row dc of the deposits: photon i at p, from -direction, its flux times k_in."""
+    write_facing(dep_pos, dep_n, dc, p0, p1, p2, n0, n1, n2, front)
+    for k in range(3):
+        dep_in[dc, k], dep_f[dc, k] = -direction[i, k], flux[i, k] * k_in
+    dep_job[dc] = job[i]
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def _four_floats(st):
+    """(state, u1, u2, u3, u_roulette): a photon bounce's draws."""
+    st, u1 = next_float(st)
+    st, u2 = next_float(st)
+    st, u3 = next_float(st)
+    st, ur = next_float(st)
+    return st, u1, u2, u3, ur
 
 
 @nb.njit(cache=True, error_model="numpy")
