@@ -36,6 +36,19 @@ arriving from wi and leaving to wo is weighted by
 f |wi.ns| G(wi) |wo.ng| / (|wi.ng| p(wo)) instead of f |wo.ns| / p(wo),
 and a deposit's flux by G(wi) |wi.ns| / |wi.ng|, the radiance it stands
 for being measured through the geometric surface.
+
+Where this differs from Mitsuba's path tracer (measured: both Mitsuba
+test scenes pass its own scorer, and light off a mapped floor agrees
+within 4%, `tests/test_normal_maps.py`):
+* the unperturbed normal is the face's, not the vertex normals'
+  interpolation (our surfaces are flat-shaded everywhere);
+* a photon samples its next direction around the unflipped normal, so
+  it never leaves into directions where Mitsuba's frame would flip
+  (grazing ones below the perturbed horizon): a little indirect light is
+  missing there;
+* a gathered photon carries the factor of the shading normal at its own
+  point, not at the hit point's (the same surface within the radius, so
+  exact as the radius shrinks), and the unflipped one.
 """
 import math
 
