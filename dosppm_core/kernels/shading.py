@@ -105,7 +105,7 @@ def _local_normal(bsdf, m, du, dv, n, tex, tri, u, v):
     k = n0 * du[0] + n1 * du[1] + n2 * du[2]
     s0, s1, s2 = _normalise(du[0] - k * n0, du[1] - k * n1, du[2] - k * n2)
     t0, t1, t2 = n1 * s2 - n2 * s1, n2 * s0 - n0 * s2, n0 * s1 - n1 * s0
-    su, sv = hit_uv(uvs, tris, tri, u, v)
+    su, sv = hit_uv(uvs, tris, tri, u, v) if uvs.shape[0] else (u, v)   # no UVs: Mitsuba's (b1, b2)
     nmap = int(bsdf[m, B_NORMAL_MAP])
     if nmap >= 0:
         c0, c1, c2 = texel(tinfo, tuv, texels, nmap, su, sv)
