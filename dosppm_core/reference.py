@@ -348,7 +348,8 @@ def reference_key(scene: Scene, spp: int, max_depth: int = DEFAULT_MAX_DEPTH,
     later = ("specular", "distribution", "nonlinear", "opacity", "conductor_eta", "conductor_k")
     mapped = ("normal_map", "bump_map", "bump_scale", "shading_flags")    # likewise, normal and bump maps
     arrays.update({f"mat.{k}": v for k, v in vars(mats).items()
-                   if k != "names" and (newer or k not in later) and (mats.shading_mapped or k not in mapped)})
+                   if k != "names" and (newer or k not in later)
+                   and (mats.shading_mapped or k not in mapped)})
     arrays.update({f"light.{k}": v for k, v in scene.lights.wire_fields().items()})
     for name in sorted(arrays):
         arr = np.ascontiguousarray(arrays[name])

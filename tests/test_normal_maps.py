@@ -130,7 +130,8 @@ def test_bump_map_matches_mitsuba(mi):
     heights = rng.random((4, 5))
     texture = bitmap("h", np.repeat(heights[:, :, None], 3, axis=2))
     bsdf = mi.load_dict({"type": "bumpmap", "scale": 0.3,
-                         "tex": {"type": "bitmap", "raw": True, "data": mi.TensorXf(heights[:, :, None].astype(np.float32))},
+                         "tex": {"type": "bitmap", "raw": True,
+                                 "data": mi.TensorXf(heights[:, :, None].astype(np.float32))},
                          "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.5}}})
     for _ in range(200):
         rot = _rotation(rng)
@@ -147,12 +148,14 @@ PLANE = """<scene version="3.0.0">
     <film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/></film>
   </sensor>
   <shape type="rectangle"><transform name="to_world"><scale value="4"/></transform>{bsdf}</shape>
-  <emitter type="directional"><vector name="direction" value="{light}"/><rgb name="irradiance" value="2"/></emitter>
+  <emitter type="directional"><vector name="direction" value="{light}"/>
+    <rgb name="irradiance" value="2"/></emitter>
 </scene>
 """
 DIFFUSE = '<bsdf type="diffuse"><rgb name="reflectance" value="0.6"/></bsdf>'
-MAPPED = ('<bsdf type="normalmap"><texture name="normalmap" type="rawconstant"><vector name="value" value="{c}"/>'
-          '</texture><boolean name="use_shadowing_function" value="{shadow}"/>' + DIFFUSE + '</bsdf>')
+MAPPED = ('<bsdf type="normalmap"><texture name="normalmap" type="rawconstant">'
+          '<vector name="value" value="{c}"/></texture>'
+          '<boolean name="use_shadowing_function" value="{shadow}"/>' + DIFFUSE + '</bsdf>')
 
 
 def _plane(tmp_path, bsdf, light=(0.0, -0.5, -1.0)):
@@ -207,13 +210,16 @@ BOUNCE = """<scene version="3.0.0">
       <rfilter type="box"/></film>
   </sensor>
   <shape type="rectangle"><transform name="to_world"><scale value="2"/></transform>
-    <bsdf type="normalmap"><texture name="normalmap" type="rawconstant"><vector name="value" value="{c}"/></texture>
+    <bsdf type="normalmap"><texture name="normalmap" type="rawconstant">
+      <vector name="value" value="{c}"/></texture>
       <bsdf type="diffuse"><rgb name="reflectance" value="0.8"/></bsdf></bsdf></shape>
   <shape type="rectangle"><transform name="to_world"><scale value="2"/><rotate y="1" angle="90"/>
     <translate x="-2" z="2"/></transform>
     <bsdf type="diffuse"><rgb name="reflectance" value="0.8"/></bsdf></shape>
-  <emitter type="spot"><transform name="to_world"><lookat origin="1,0,3" target="1,0,0" up="0,1,0"/></transform>
-    <float name="cutoff_angle" value="15"/><float name="beam_width" value="10"/><rgb name="intensity" value="80"/>
+  <emitter type="spot">
+    <transform name="to_world"><lookat origin="1,0,3" target="1,0,0" up="0,1,0"/></transform>
+    <float name="cutoff_angle" value="15"/><float name="beam_width" value="10"/>
+    <rgb name="intensity" value="80"/>
   </emitter>
 </scene>
 """
@@ -284,8 +290,8 @@ def _floor_chunk_renumbers_its_map(scene):
     floor = int(np.flatnonzero(scene.materials.normal_map >= 0)[0])
     assert scene.materials.normal_map[floor] == 1
     tri = np.array([[0, 1, 2]], np.int32)
-    chunk = ChunkGeometry(np.eye(3, dtype=np.float32), tri, np.array([floor], np.int32), np.zeros(1, np.int32),
-                          np.zeros((3, 2), np.float32))
+    chunk = ChunkGeometry(np.eye(3, dtype=np.float32), tri, np.array([floor], np.int32),
+                          np.zeros(1, np.int32), np.zeros((3, 2), np.float32))
     chunk = attach_textures(chunk, scene.header())
     assert chunk.tex_ids.tolist() == [1]
     mats, table = chunk_surface_textures(chunk, scene.header())
