@@ -296,3 +296,23 @@ def _floor_chunk_renumbers_its_map(scene):
     assert chunk.tex_ids.tolist() == [1]
     mats, table = chunk_surface_textures(chunk, scene.header())
     assert mats.normal_map[floor] == 0 and len(table) == 1 and (mats.texture == -1).all()
+
+
+@pytest.mark.reference
+def test_named_conductors_are_mitsubas(mi, tmp_path):
+    """Every metal Mitsuba names (`material="Al"`) has its eta and k as
+    Mitsuba's RGB variant computes them, and the reader gives them to
+    conductors and rough conductors (naming eta too is an error)."""
+    from dosppm_core.scene.mitsuba.metals import CONDUCTORS
+    from dosppm_core.scene.model import SceneError
+    for name, (eta, k) in CONDUCTORS.items():
+        p = mi.traverse(mi.load_dict({"type": "conductor", "material": name}))
+        np.testing.assert_allclose(eta, list(p["eta.value"]), rtol=1e-5)
+        np.testing.assert_allclose(k, list(p["k.value"]), rtol=1e-5)
+    assert len(CONDUCTORS) > 60
+    metal = '<bsdf type="roughconductor"><string name="material" value="Au"/>{eta}</bsdf>'
+    scene = _plane(tmp_path, metal.format(eta=""))
+    np.testing.assert_array_equal(scene.materials.conductor_eta[0], np.float32(CONDUCTORS["Au"][0]))
+    np.testing.assert_array_equal(scene.materials.conductor_k[0], np.float32(CONDUCTORS["Au"][1]))
+    with pytest.raises(SceneError, match="not both"):
+        _plane(tmp_path, metal.format(eta='<float name="eta" value="1"/>'))

@@ -20,9 +20,10 @@ shape       obj, ply (filename, face_normals); rectangle; cube; sphere
             emitters) and instance (to_world, one ``<ref>`` to a group),
             flattened into copies of the group's triangles
 bsdf        diffuse (reflectance); twosided (one nested BSDF);
-            conductor (material="none", specular_reflectance, eta, k);
+            conductor (material: "none" or one of Mitsuba's named metals,
+            specular_reflectance, eta, k);
             roughconductor (distribution, alpha or alpha_u = alpha_v,
-            material="none", specular_reflectance, eta, k, sample_visible);
+            material, specular_reflectance, eta, k, sample_visible);
             dielectric (int_ior, ext_ior as numbers or Mitsuba's names;
             specular_reflectance equal to specular_transmittance) -> glass;
             roughdielectric (distribution ggx or beckmann, alpha, int_ior,

@@ -1,20 +1,22 @@
 """BSDFs to `Material`s: diffuse; twosided (one nested BSDF); conductor
-(material="none") -> mirror; roughconductor (GGX) -> glossy;
-dielectric (one tint) -> glass; conductor and roughconductor with eta
-and k, or Beckmann -> their kinds; roughdielectric (GGX or Beckmann),
-plastic and roughplastic -> their kinds; mask (a constant opacity) -> its
-nested material with `opacity`; normalmap and bumpmap (a texture, and a
-nested diffuse, rough conductor or rough plastic) -> the nested material
-with its `normal_map` or `bump_map` (kernels.shading). One <bsdf> object is one material; a
-shape's (bsdf, area emitter) pair becomes one builder material, since
-emission belongs to the material. The colour (reflectance, or the
-conductor's or glass's tint) may be a texture (`textures`)."""
+(material="none") -> mirror; roughconductor (GGX) -> glossy; dielectric
+(one tint) -> glass; conductor and roughconductor with eta and k (or a
+named metal, `metals`), or Beckmann -> their kinds; roughdielectric (GGX
+or Beckmann), plastic and roughplastic -> their kinds; mask (a constant
+opacity) -> its nested material with `opacity`; normalmap and bumpmap (a
+texture, and a nested diffuse, rough conductor or rough plastic) -> the
+nested material with its `normal_map` or `bump_map` (kernels.shading).
+One <bsdf> object is one material; a shape's (bsdf, area emitter) pair
+becomes one builder material, since emission belongs to the material.
+The colour (reflectance, or the conductor's or glass's tint) may be a
+texture (`textures`)."""
 from __future__ import annotations
 
 import dataclasses
 
 from dosppm_core.scene.mitsuba.colour import prop_rgb
 from dosppm_core.scene.mitsuba.emitters import area_radiance
+from dosppm_core.scene.mitsuba.metals import CONDUCTORS
 from dosppm_core.scene.mitsuba.objects import Obj
 from dosppm_core.scene.mitsuba.params import finish, get_bool, get_float, get_rgb
 from dosppm_core.scene.mitsuba.state import ReaderState
@@ -158,9 +160,8 @@ def _conductor(reader: ReaderState, obj: Obj) -> Material:
     (specular_reflectance) may be a texture: the kernels fold its texel in
     where the material's reflectance (white then) is read."""
     params = TextureParams(reader, obj)
-    _no_metal(obj)
     colour = params.rgb("specular_reflectance", 1.0)
-    eta_k = _eta_k(obj)
+    eta_k = _metal_index(obj)
     params.finish()
     if eta_k is None:
         return _coloured(obj.name(), "mirror", colour, two_sided=False)
@@ -172,10 +173,9 @@ def _roughconductor(reader: ReaderState, obj: Obj) -> Material:
     Fresnel of 1 (no eta, k), else "roughconductor" (Beckmann or GGX,
     visible normals, Fresnel of eta + i k)."""
     params = TextureParams(reader, obj)
-    _no_metal(obj)
     distribution = _distribution(obj)
     colour = params.rgb("specular_reflectance", 1.0)
-    eta_k = _eta_k(obj)
+    eta_k = _metal_index(obj)
     params.finish()                       # a textured alpha is refused here
     if eta_k is None and distribution == "ggx":
         return _coloured(obj.name(), "glossy", colour, roughness=_alpha(obj), two_sided=False)
@@ -283,8 +283,15 @@ def _ior(obj: Obj, name: str, default: str) -> float:
     return float(value)
 
 
-def _no_metal(obj: Obj) -> None:
+def _metal_index(obj: Obj):
+    """(eta, k) RGB of a conductor: a named material's (Mitsuba's table,
+    `metals`), or the given eta and k, or None (`_eta_k`). As Mitsuba,
+    naming both is an error."""
     prop = obj.take("material", ("string",))
-    if prop is not None and prop.value != "none":
-        prop.node.fail(f"unsupported attribute: named conductor {prop.value!r} (only material=\"none\", "
-                       "a perfect mirror tinted by specular_reflectance)")
+    if prop is None or prop.value == "none":
+        return _eta_k(obj)
+    if "eta" in obj.props or "k" in obj.props:
+        prop.node.fail("give either eta and k or a material, not both (as Mitsuba)")
+    if prop.value not in CONDUCTORS:
+        prop.node.fail(f"unknown conductor {prop.value!r} (Mitsuba's names: {', '.join(CONDUCTORS)})")
+    return CONDUCTORS[prop.value]
