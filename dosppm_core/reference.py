@@ -232,6 +232,9 @@ def _opaque_bsdf(mats, mid: int) -> dict:
         # kernels: exporting that would render another scene.
         raise SceneError(f"material {mats.names[mid]!r}: a textured material has no Mitsuba "
                          "mapping here (reference a Mitsuba .xml scene directly)")
+    if mats.normal_map[mid] >= 0 or mats.bump_map[mid] >= 0:
+        raise SceneError(f"material {mats.names[mid]!r}: a normal or bump map has no Mitsuba "
+                         "mapping here (reference a Mitsuba .xml scene directly)")
     kind, tint = int(mats.kind[mid]), _spectrum(mats.reflectance[mid])
     if ROUGH_DIELECTRIC <= kind <= ROUGH_CONDUCTOR:
         return _coloured_bsdf(mats, mid, kind, tint)
@@ -370,8 +373,10 @@ def reference_key(scene: Scene, spp: int, max_depth: int = DEFAULT_MAX_DEPTH,
     # the keys (and cached references) of other scenes stay as they were.
     newer = ((mats.kind >= ROUGH_DIELECTRIC).any() or (mats.opacity < 1).any())
     later = ("specular", "distribution", "nonlinear", "opacity", "conductor_eta", "conductor_k")
+    mapped = ("normal_map", "bump_map", "bump_scale", "shading_flags")    # likewise, normal and bump maps
     arrays.update({f"mat.{k}": v for k, v in vars(mats).items()
-                   if k != "names" and (newer or k not in later)})
+                   if k != "names" and (newer or k not in later)
+                   and (mats.shading_mapped or k not in mapped)})
     arrays.update({f"light.{k}": v for k, v in scene.lights.wire_fields().items()})
     for name in sorted(arrays):
         arr = np.ascontiguousarray(arrays[name])

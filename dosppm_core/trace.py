@@ -9,7 +9,7 @@ import numpy as np
 
 from dosppm_core.accel import Accelerator
 from dosppm_core.jobs import STORED, HitPoints, PhotonDeposits, RayBatch, ShadowRays
-from dosppm_core.kernels import direct, emit, envmap, light_cache, paths, texture
+from dosppm_core.kernels import direct, emit, envmap, light_cache, paths, shading, texture
 from dosppm_core.kernels.light_cache import LightCache
 from dosppm_core.kernels.light_tree import build_light_tree
 from dosppm_core.kernels.paths import SurfaceData
@@ -102,12 +102,16 @@ def advance_eye(surf: SurfaceData, batch: RayBatch, prim, u, v, max_depth: int,
     if len(surf.tex_info) and len(h):
         # A textured hit point carries its texel in its weight (`kernels.texture`).
         texture.fold_texels(surf, prim[h], u[h], v[h], weight)
-    hits = HitPoints(hpos, hn, -batch.direction[h], weight,
-                     surf.tri_material[prim[h]], batch.pixel[h])
+    outgoing = -batch.direction[h]
+    mapped = None
+    if surf.shading_mapped and len(h):
+        # Normal and bump maps: the hit point keeps the perturbed normal (`kernels.shading`).
+        mapped = shading.perturb_hit_points(surf, prim[h], u[h], v[h], hn, outgoing)
+    hits = HitPoints(hpos, hn, outgoing, weight, surf.tri_material[prim[h]], batch.pixel[h])
     nxt = RayBatch(no, nd, nw, batch.pixel[g], batch.depth[g] + 1, st, job=batch.job[g])
     shadows = ShadowRays.empty()
     if lights is not None and len(hits):
-        shadows = shadow_rays(surf, lights, hits, batch.rng[h], batch.job[h])
+        shadows = shadow_rays(surf, lights, hits, batch.rng[h], batch.job[h], mapped)
         ends[STORED] -= len(shadows)
     seen = (batch.pixel[lit], rgb)
     if env is not None:
@@ -188,17 +192,21 @@ def freeze_light_cache(lights: tuple | None) -> None:
             np.copyto(read, live)
 
 
-def shadow_rays(surf: SurfaceData, lights: tuple, hits: HitPoints, states, jobs) -> ShadowRays:
+def shadow_rays(surf: SurfaceData, lights: tuple, hits: HitPoints, states, jobs,
+                mapped: tuple | None = None) -> ShadowRays:
     """The direct-light ray of each hit point (`kernels.direct`: a shadow
     ray to a light sample, or on glossy surfaces under triangle lights a
     BSDF-sampled one, by one-sample MIS); hit points whose sample cannot
-    contribute get none."""
+    contribute get none. `mapped`: (geometric normals, a2) of hit points
+    whose normal a normal or bump map perturbed (`kernels.shading`)."""
     mis = bool(np.any((lights[0] == LIGHT_TRIANGLE) | ((lights[0] == LIGHT_ENV) & (lights[6] > 0))))
     kernel = direct.sample_direct if len(hits) >= paths.SERIAL_BELOW else direct.sample_direct_serial
     rows, o, d, tmax, rgb, pdf = kernel(
         (hits.position, hits.normal, hits.outgoing, hits.weight, hits.material),
         np.ascontiguousarray(states), surf, lights[:LIGHT_CACHE], lights[LIGHT_CACHE], lights[INFINITE],
         mis, EPS_REL)
+    if mapped is not None:
+        rgb *= shading.terminator_factor(d, mapped[0][rows], mapped[1][rows])[:, None].astype(np.float32)
     return ShadowRays(o, d, rgb, tmax, pdf, hits.pixel[rows], job=np.asarray(jobs)[rows])
 
 

@@ -19,10 +19,11 @@ from dosppm_core.scene.textures import TextureTable
 def attach_textures(geometry: ChunkGeometry, header: SceneHeader) -> ChunkGeometry:
     """`geometry` with the textures its triangles' materials read (a subset
     of the header's table, with their ids in it)."""
-    table, texture = header.textures, header.materials.texture
+    table, mats = header.textures, header.materials
     if not len(table) or not len(geometry.tri_material):
         return geometry
-    used = texture[np.unique(geometry.tri_material)]
+    here = np.unique(geometry.tri_material)
+    used = np.concatenate([mats.texture[here], mats.normal_map[here], mats.bump_map[here]])
     ids = np.unique(used[used >= 0]).astype(np.int32)
     if not len(ids):
         return geometry
@@ -42,17 +43,24 @@ def store_header(header: SceneHeader) -> SceneHeader:
     return dataclasses.replace(header, textures=bare)
 
 
+TEXTURE_COLUMNS = ("texture", "normal_map", "bump_map")    # a material's texture ids
+
+
 def chunk_surface_textures(geometry: ChunkGeometry, header: SceneHeader):
-    """(per-material texture ids, TextureTable) a resident chunk's kernels
-    read: the chunk's own textures, renumbered, when it carries them; the
-    header's table when it holds the texels; else none (-1 for every
-    material: a texture the chunk lacks is never indexed out of bounds)."""
-    texture = header.materials.texture
+    """(MaterialTable, TextureTable) a resident chunk's kernels read: the
+    materials with their texture ids renumbered into the chunk's own
+    textures when it carries them; the header's when it holds the
+    texels; else none (-1 for every texture id: a texture the chunk lacks
+    is never indexed out of bounds)."""
+    mats = header.materials
     if len(geometry.tex_ids):
         local = np.full(len(header.textures), -1, np.int32)
         local[geometry.tex_ids] = np.arange(len(geometry.tex_ids), dtype=np.int32)
-        ids = np.where(texture >= 0, local[np.maximum(texture, 0)], -1).astype(np.int32)
-        return ids, TextureTable(geometry.tex_info, geometry.tex_uv, geometry.texels, [])
+        ids = {c: np.where(getattr(mats, c) >= 0, local[np.maximum(getattr(mats, c), 0)], -1).astype(np.int32)
+               for c in TEXTURE_COLUMNS}
+        return dataclasses.replace(mats, **ids), TextureTable(geometry.tex_info, geometry.tex_uv,
+                                                              geometry.texels, [])
     if len(header.textures.texels):
-        return texture, header.textures
-    return np.full(len(texture), -1, np.int32), TextureTable.empty()
+        return mats, header.textures
+    none = {c: np.full(len(mats.kind), -1, np.int32) for c in TEXTURE_COLUMNS}
+    return dataclasses.replace(mats, **none), TextureTable.empty()

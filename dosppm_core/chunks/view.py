@@ -11,8 +11,6 @@ only by floating-point noise.
 """
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 
 from dosppm_core.accel import Accelerator
@@ -36,8 +34,7 @@ class ChunkView:
         self.eps = PORTAL_EPS * header.diagonal()
         self.total_power = header.lights.total_power    # BSDF-sampled direct-light rays weigh by it
         self.env = environment(header.lights)           # what eye paths leaving the scene see
-        texture_ids, textures = chunk_surface_textures(geometry, header)
-        m = dataclasses.replace(header.materials, texture=texture_ids)
+        m, textures = chunk_surface_textures(geometry, header)
         self.surf = SurfaceData.from_arrays(geometry.vertices, geometry.triangles, geometry.tri_material,
                                             m, header.spawn_epsilon(), geometry.uv, textures)
         # An empty chunk (air between walls) still routes rays; Embree

@@ -61,7 +61,10 @@ B_REFL, B_SPEC, B_ETA, B_ALPHA, B_DIST, B_NONLINEAR = 0, 3, 6, 7, 8, 9
 B_SPEC_WEIGHT, B_INTERNAL, B_OPACITY, B_TABLE = 10, 11, 12, 13
 B_CETA = B_TABLE + TABLE_RES      # a conductor's complex index: eta (3), then k (3)
 B_CK = B_CETA + 3
-B_COLS = B_CK + 3
+# Normal and bump maps (`kernels.shading`): texture ids (-1 none), the bump
+# scale and the wrappers' option bits.
+B_NORMAL_MAP, B_BUMP_MAP, B_BUMP_SCALE, B_SHADING_FLAGS = B_CK + 3, B_CK + 4, B_CK + 5, B_CK + 6
+B_COLS = B_CK + 7
 
 
 def bsdf_rows(materials) -> np.ndarray:
@@ -79,6 +82,10 @@ def bsdf_rows(materials) -> np.ndarray:
     rows[:, B_OPACITY] = materials.opacity
     rows[:, B_CETA:B_CETA + 3] = materials.conductor_eta
     rows[:, B_CK:B_CK + 3] = materials.conductor_k
+    rows[:, B_NORMAL_MAP] = materials.normal_map
+    rows[:, B_BUMP_MAP] = materials.bump_map
+    rows[:, B_BUMP_SCALE] = materials.bump_scale
+    rows[:, B_SHADING_FLAGS] = materials.shading_flags
     for i in range(m):
         k = int(materials.kind[i])
         if k not in (PLASTIC, ROUGH_PLASTIC):

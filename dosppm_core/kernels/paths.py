@@ -24,6 +24,8 @@ import numpy as np
 from dosppm_core.jobs import ABSORBED, CONTINUES, ESCAPED, MAX_DEPTH, STORED
 from dosppm_core.kernels.bsdf import is_specular, sample_bsdf
 from dosppm_core.kernels.materials import (
+    B_BUMP_MAP,
+    B_NORMAL_MAP,
     B_OPACITY,
     bsdf_rows,
     is_coloured,
@@ -36,6 +38,7 @@ from dosppm_core.kernels.materials import (
 )
 from dosppm_core.scene.model import PLASTIC
 from dosppm_core.kernels.rng import next_float
+from dosppm_core.kernels.shading import is_mapped, photon_shading
 from dosppm_core.kernels.texture import texel_at
 
 # `prim` of a ray whose hit lies in another chunk (it left through a
@@ -82,6 +85,11 @@ class SurfaceData(NamedTuple):
     @property
     def textured(self) -> bool:
         return bool(np.any(self.mat_texture >= 0))
+
+    @property
+    def shading_mapped(self) -> bool:
+        """Whether a material has a normal or bump map (`kernels.shading`)."""
+        return bool(np.any(self.bsdf[:, B_NORMAL_MAP] >= 0) or np.any(self.bsdf[:, B_BUMP_MAP] >= 0))
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -320,8 +328,11 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
             gc = _photon_pass_through(i, gc, st, p0, p1, p2, n0, n1, n2, w0, w1, w2, rays, max_depth,
                                       eps_rel, eps_abs, end, nxt)
             continue
+        mapped = is_mapped(bsdf, m)     # a normal or bump map: shading normal s, Veach's factor k_in
+        s0, s1, s2, k_in = (photon_shading(bsdf, m, verts, (uvs, tris, tinfo, tuv, texels), tri, u[i], v[i],
+                                           n0, n1, n2, front, w0, w1, w2) if mapped else (n0, n1, n2, 1.0))
         if not is_specular(kind):
-            if not front and not two_sided[m]:
+            if not (front or two_sided[m]) or not k_in > 0.0:
                 end[i] = ABSORBED
                 continue
             if depth[i] < deposit_from:
@@ -329,20 +340,17 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
             elif outside(cull_box, p0, p1, p2):
                 culled[i] = True
             else:
-                write_facing(dep_pos, dep_n, dc, p0, p1, p2, n0, n1, n2, front)
-                dep_in[dc, 0], dep_in[dc, 1], dep_in[dc, 2] = w0, w1, w2
-                dep_f[dc, 0], dep_f[dc, 1], dep_f[dc, 2] = flux[i, 0], flux[i, 1], flux[i, 2]
-                dep_job[dc] = job[i]
+                _deposit(dep_pos, dep_in, dep_n, dep_f, dep_job, dc, p0, p1, p2, n0, n1, n2, front,
+                         direction, flux, job, i, k_in)
                 dc += 1
         if depth[i] + 1 >= max_depth:
             end[i] = MAX_DEPTH
             continue
-        st, u1 = next_float(st)
-        st, u2 = next_float(st)
-        st, u3 = next_float(st)
-        st, ur = next_float(st)
+        st, u1, u2, u3, ur = _four_floats(st)
         ok, d0, d1, d2, t0, t1, t2, _es = sample_scatter(two_sided, ior, rough, refl, bsdf, m, kind,
-                                                         n0, n1, n2, w0, w1, w2, u1, u2, u3, False)
+                                                         s0, s1, s2, w0, w1, w2, u1, u2, u3, False)
+        if ok and mapped:
+            ok, t0, t1, t2 = _adjoint(t0, t1, t2, k_in, n0, n1, n2, s0, s1, s2, d0, d1, d2, front)
         if not ok:
             end[i] = ABSORBED
             continue
@@ -357,6 +365,39 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
         gc += 1
         end[i] = CONTINUES
     return dc, gc
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def _deposit(dep_pos, dep_in, dep_n, dep_f, dep_job, dc, p0, p1, p2, n0, n1, n2, front, direction, flux,
+             job, i, k_in):
+    """Row dc of the deposits: photon i at p, from -direction, its flux times k_in."""
+    write_facing(dep_pos, dep_n, dc, p0, p1, p2, n0, n1, n2, front)
+    for k in range(3):
+        dep_in[dc, k], dep_f[dc, k] = -direction[i, k], flux[i, k] * k_in
+    dep_job[dc] = job[i]
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def _four_floats(st):
+    """(state, u1, u2, u3, u_roulette): a photon bounce's draws."""
+    st, u1 = next_float(st)
+    st, u2 = next_float(st)
+    st, u3 = next_float(st)
+    st, ur = next_float(st)
+    return st, u1, u2, u3, ur
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _adjoint(t0, t1, t2, k_in, n0, n1, n2, s0, s1, s2, d0, d1, d2, front):
+    """A photon's throughput t = f |d.ns| / p at a mapped hit, made Veach's
+    adjoint: times k_in |d.ng| / |d.ns| (`kernels.shading`). Returns (ok, t)."""
+    g = 1.0 if front else -1.0
+    cg = g * (d0 * n0 + d1 * n1 + d2 * n2)
+    cs = d0 * s0 + d1 * s1 + d2 * s2
+    if not (cg > 0.0 and cs > 0.0):
+        return False, 0.0, 0.0, 0.0
+    k = k_in * cg / cs
+    return True, t0 * k, t1 * k, t2 * k
 
 
 @nb.njit(cache=True, error_model="numpy")

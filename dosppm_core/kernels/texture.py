@@ -75,6 +75,41 @@ def texel(info, uv_map, texels, t, s, r):
     return out0, out1, out2
 
 
+# Mitsuba's luminance of linear sRGB (what a bump map's height is).
+LUMINANCE = (0.212671, 0.715160, 0.072169)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _height(texels, row):
+    return (LUMINANCE[0] * texels[row, 0] + LUMINANCE[1] * texels[row, 1]
+            + LUMINANCE[2] * texels[row, 2])
+
+
+@nb.njit(cache=True, error_model="numpy")
+def height_gradient(info, uv_map, texels, t, s, r):
+    """d(height)/d(u, v) of texture t at (s, r), as Mitsuba's bitmap
+    `eval_1_grad`: the derivative of the bilinear lookup of the texels'
+    luminance (zero for a nearest lookup or a checkerboard), the pixel
+    partials taken through the transpose of to_uv and then times the
+    resolution (Mitsuba's order of the two, exact for an identity to_uv)."""
+    off, w, h, wrap = info[t, 1], info[t, 2], info[t, 3], info[t, 5]
+    if info[t, 0] != 0 or info[t, 4] == NEAREST:
+        return 0.0, 0.0
+    a = uv_map[t]
+    u = a[0] * s + a[1] * r + a[2]
+    v = a[3] * s + a[4] * r + a[5]
+    fx, fy = u * w - 0.5, v * h - 0.5
+    x0, y0 = _floor_int(fx), _floor_int(fy)
+    ax, ay = fx - x0, fy - y0
+    xa, xb = wrap_index(x0, w, wrap), wrap_index(x0 + 1, w, wrap)
+    ya, yb = off + wrap_index(y0, h, wrap) * w, off + wrap_index(y0 + 1, h, wrap) * w
+    f00, f10 = _height(texels, ya + xa), _height(texels, ya + xb)
+    f01, f11 = _height(texels, yb + xa), _height(texels, yb + xb)
+    dx = (1.0 - ay) * (f10 - f00) + ay * (f11 - f01)
+    dy = (1.0 - ax) * (f01 - f00) + ax * (f11 - f10)
+    return w * (a[0] * dx + a[3] * dy), h * (a[1] * dx + a[4] * dy)
+
+
 @nb.njit(inline="always", cache=True, error_model="numpy")
 def hit_uv(uvs, tris, tri, u, v):
     """The texture coordinate at barycentrics (u, v) of triangle tri."""

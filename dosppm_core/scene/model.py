@@ -76,6 +76,13 @@ class Material:
     albedo `reflectance`; `specular` tints the coating; `nonlinear` is
     Mitsuba's flag). `opacity` < 1 is Mitsuba's `mask`: a ray passes
     straight through with probability 1 - opacity. See kernels.materials.
+
+    Mitsuba's `normalmap` and `bumpmap` wrappers: `normal_map` >= 0 is the
+    texture whose raw RGB c gives the tangent-space normal 2c - 1,
+    `bump_map` >= 0 the height texture whose UV gradient times `bump_scale`
+    tilts the normal; `shading_flags` holds their options (bit 1
+    flip_invalid_normals, bit 2 use_shadowing_function). See
+    kernels.shading.
     """
     name: str
     kind: str = "diffuse"
@@ -91,6 +98,10 @@ class Material:
     opacity: float = 1.0
     conductor_eta: tuple = (0.0, 0.0, 0.0)
     conductor_k: tuple = (1.0, 1.0, 1.0)
+    normal_map: int = -1
+    bump_map: int = -1
+    bump_scale: float = 1.0
+    shading_flags: int = 3
 
     def validate(self, where: str) -> None:
         if self.kind not in MATERIAL_KINDS:
@@ -253,6 +264,11 @@ class MaterialTable:
     opacity: np.ndarray = None       # float32 (m,): Mitsuba's mask
     conductor_eta: np.ndarray = None  # float32 (m, 3): real part of a conductor's index
     conductor_k: np.ndarray = None    # float32 (m, 3): its imaginary part
+    # Normal and bump maps (texture ids, -1 for none; `Material`).
+    normal_map: np.ndarray = None     # int32 (m,)
+    bump_map: np.ndarray = None       # int32 (m,)
+    bump_scale: np.ndarray = None     # float32 (m,)
+    shading_flags: np.ndarray = None  # int32 (m,)
 
     def __post_init__(self):
         # Tables made before these columns (tests, older callers) get the
@@ -272,10 +288,19 @@ class MaterialTable:
             self.conductor_eta = np.zeros((m, 3), np.float32)
         if self.conductor_k is None:
             self.conductor_k = np.ones((m, 3), np.float32)
+        for name, dtype, value in (("normal_map", np.int32, -1), ("bump_map", np.int32, -1),
+                                   ("bump_scale", np.float32, 1.0), ("shading_flags", np.int32, 3)):
+            if getattr(self, name) is None:
+                setattr(self, name, np.full(m, value, dtype))
 
     @property
     def textured(self) -> bool:
         return bool(np.any(self.texture >= 0))
+
+    @property
+    def shading_mapped(self) -> bool:
+        """Whether a material has a normal or bump map (`kernels.shading`)."""
+        return bool(np.any(self.normal_map >= 0) or np.any(self.bump_map >= 0))
 
     @classmethod
     def from_materials(cls, mats: list[Material]) -> "MaterialTable":
@@ -295,6 +320,10 @@ class MaterialTable:
             opacity=np.array([m.opacity for m in mats], np.float32),
             conductor_eta=np.array([_rgb(m.conductor_eta, m.name) for m in mats], np.float32).reshape(-1, 3),
             conductor_k=np.array([_rgb(m.conductor_k, m.name) for m in mats], np.float32).reshape(-1, 3),
+            normal_map=np.array([m.normal_map for m in mats], np.int32),
+            bump_map=np.array([m.bump_map for m in mats], np.int32),
+            bump_scale=np.array([m.bump_scale for m in mats], np.float32),
+            shading_flags=np.array([m.shading_flags for m in mats], np.int32),
         )
 
 
@@ -492,8 +521,9 @@ class SceneBuilder:
     def add_material(self, material: Material, where: str | None = None) -> int:
         where = where or f"{self.source}: material {material.name!r}"
         material.validate(where)
-        if not -1 <= material.texture < len(self._textures):
-            raise SceneError(f"{where}: texture id {material.texture} out of range")
+        for tex in (material.texture, material.normal_map, material.bump_map):
+            if not -1 <= tex < len(self._textures):
+                raise SceneError(f"{where}: texture id {tex} out of range")
         if material.name in self._material_ids:
             raise SceneError(f"{where}: duplicate material name {material.name!r}")
         self._material_ids[material.name] = len(self._materials)
@@ -502,7 +532,8 @@ class SceneBuilder:
 
     def textured(self, material: int) -> bool:
         """Whether material id `material` reads a texture (its meshes keep UVs)."""
-        return self._materials[material].texture >= 0
+        m = self._materials[material]
+        return m.texture >= 0 or m.normal_map >= 0 or m.bump_map >= 0
 
     def material_id(self, name: str, where: str) -> int:
         try:

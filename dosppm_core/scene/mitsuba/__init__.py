@@ -20,9 +20,10 @@ shape       obj, ply (filename, face_normals); rectangle; cube; sphere
             emitters) and instance (to_world, one ``<ref>`` to a group),
             flattened into copies of the group's triangles
 bsdf        diffuse (reflectance); twosided (one nested BSDF);
-            conductor (material="none", specular_reflectance, eta, k);
+            conductor (material: "none" or one of Mitsuba's named metals,
+            specular_reflectance, eta, k);
             roughconductor (distribution, alpha or alpha_u = alpha_v,
-            material="none", specular_reflectance, eta, k, sample_visible);
+            material, specular_reflectance, eta, k, sample_visible);
             dielectric (int_ior, ext_ior as numbers or Mitsuba's names;
             specular_reflectance equal to specular_transmittance) -> glass;
             roughdielectric (distribution ggx or beckmann, alpha, int_ior,
@@ -30,11 +31,15 @@ bsdf        diffuse (reflectance); twosided (one nested BSDF);
             plastic (int_ior, ext_ior, diffuse_reflectance,
             specular_reflectance, nonlinear); roughplastic (the same plus
             distribution and alpha); mask (constant opacity, one nested
-            BSDF); principled and principledthin are refused
+            BSDF); normalmap (a texture named normalmap) and bumpmap (one
+            texture, scale) around a diffuse, rough conductor or rough
+            plastic, with flip_invalid_normals and use_shadowing_function;
+            principled and principledthin are refused
             the colour of diffuse, conductors and dielectric may be a texture
 texture     bitmap (filename: PNG, JPEG, BMP, ... or EXR; filter_type
             bilinear or nearest, wrap_mode repeat, mirror or clamp, raw,
-            to_uv); checkerboard (color0, color1, to_uv); mesh_attribute
+            to_uv, format); checkerboard (color0, color1, to_uv);
+            rawconstant (value, a float or a vector); mesh_attribute
             (name vertex_<p> or face_<p> of a PLY's <p>_0.. properties);
             nested in a BSDF under the parameter's name, or a ``<ref name
             id>``. Not on roughness (alpha)

@@ -1,22 +1,26 @@
 """BSDFs to `Material`s: diffuse; twosided (one nested BSDF); conductor
-(material="none") -> mirror; roughconductor (GGX) -> glossy;
-dielectric (one tint) -> glass; conductor and roughconductor with eta
-and k, or Beckmann -> their kinds; roughdielectric (GGX or Beckmann),
-plastic and roughplastic -> their kinds; mask (a constant opacity) -> its
-nested material with `opacity`. One <bsdf> object is one material; a
-shape's (bsdf, area emitter) pair becomes one builder material, since
-emission belongs to the material. The colour (reflectance, or the
-conductor's or glass's tint) may be a texture (`textures`)."""
+(material="none") -> mirror; roughconductor (GGX) -> glossy; dielectric
+(one tint) -> glass; conductor and roughconductor with eta and k (or a
+named metal, `metals`), or Beckmann -> their kinds; roughdielectric (GGX
+or Beckmann), plastic and roughplastic -> their kinds; mask (a constant
+opacity) -> its nested material with `opacity`; normalmap and bumpmap (a
+texture, and a nested diffuse, rough conductor or rough plastic) -> the
+nested material with its `normal_map` or `bump_map` (kernels.shading).
+One <bsdf> object is one material; a shape's (bsdf, area emitter) pair
+becomes one builder material, since emission belongs to the material.
+The colour (reflectance, or the conductor's or glass's tint) may be a
+texture (`textures`)."""
 from __future__ import annotations
 
 import dataclasses
 
 from dosppm_core.scene.mitsuba.colour import prop_rgb
 from dosppm_core.scene.mitsuba.emitters import area_radiance
+from dosppm_core.scene.mitsuba.metals import CONDUCTORS
 from dosppm_core.scene.mitsuba.objects import Obj
 from dosppm_core.scene.mitsuba.params import finish, get_bool, get_float, get_rgb
 from dosppm_core.scene.mitsuba.state import ReaderState
-from dosppm_core.scene.mitsuba.textures import TextureParams
+from dosppm_core.scene.mitsuba.textures import TextureParams, read_texture
 from dosppm_core.scene.model import Material
 
 # Mitsuba's named indices of refraction (include/mitsuba/render/ior.h).
@@ -36,7 +40,8 @@ def bsdf_material(reader: ReaderState, obj: Obj) -> Material:
         convert = {"diffuse": _diffuse, "twosided": _twosided, "conductor": _conductor,
                    "roughconductor": _roughconductor, "dielectric": _dielectric,
                    "roughdielectric": _roughdielectric, "plastic": _plastic,
-                   "roughplastic": _roughplastic, "mask": _mask}[obj.type]
+                   "roughplastic": _roughplastic, "mask": _mask, "normalmap": _normalmap,
+                   "bumpmap": _bumpmap}[obj.type]
         material = convert(reader, obj)
         finish(obj)
         material.validate(obj.where())
@@ -99,15 +104,64 @@ def _mask(reader: ReaderState, obj: Obj) -> Material:
     return dataclasses.replace(bsdf_material(reader, inner[0]), name=obj.name(), opacity=opacity)
 
 
+# What a normal or bump map may wrap: the kinds whose eye paths stop in a
+# hit point, which takes the perturbed normal (kernels.shading). A smooth
+# or transmissive BSDF would need it in the eye bounce too.
+MAPPABLE = ("diffuse", "glossy", "roughconductor", "roughplastic")
+
+
+def _normalmap(reader: ReaderState, obj: Obj) -> Material:
+    """Mitsuba's normalmap: the tangent-space normal 2 c - 1 of the texture
+    named normalmap (a bitmap should be read raw)."""
+    nested, textures = _wrapped(reader, obj)
+    if len(textures) != 1 or textures[0][0] != "normalmap":
+        obj.node.fail("needs one texture named 'normalmap'")
+    return dataclasses.replace(nested, name=obj.name(), normal_map=read_texture(reader, textures[0][1]),
+                               shading_flags=_shading_flags(obj))
+
+
+def _bumpmap(reader: ReaderState, obj: Obj) -> Material:
+    """Mitsuba's bumpmap: the normal of the surface displaced by `scale`
+    (default 1) times its one texture's height."""
+    nested, textures = _wrapped(reader, obj)
+    if len(textures) != 1:
+        obj.node.fail("needs exactly one texture (the height)")
+    return dataclasses.replace(nested, name=obj.name(), bump_map=read_texture(reader, textures[0][1]),
+                               bump_scale=get_float(obj, "scale", 1.0), shading_flags=_shading_flags(obj))
+
+
+def _wrapped(reader: ReaderState, obj: Obj):
+    """(the nested material, [(name, texture object)]) of a normal or bump
+    map, whose nested BSDF must be one it can wrap."""
+    bsdfs, textures = [], []
+    for child, target in zip(obj.children, reader.children(obj, {"bsdf", "texture"})):
+        if target.tag == "bsdf":
+            bsdfs.append(target)
+        else:
+            textures.append((child.node.attrib.get("name"), target))
+    if len(bsdfs) != 1:
+        obj.node.fail("needs exactly one nested BSDF")
+    nested = bsdf_material(reader, bsdfs[0])
+    if nested.kind not in MAPPABLE or nested.normal_map >= 0 or nested.bump_map >= 0:
+        bsdfs[0].node.fail(f"a {obj.type} of this BSDF is unsupported (only of {', '.join(MAPPABLE)}, "
+                           "not of a smooth, transmissive or already mapped one)")
+    return nested, textures
+
+
+def _shading_flags(obj: Obj) -> int:
+    """Mitsuba's two options of the normal and bump maps (both default on)."""
+    return (int(bool(get_bool(obj, "flip_invalid_normals", True)))
+            | 2 * int(bool(get_bool(obj, "use_shadowing_function", True))))
+
+
 def _conductor(reader: ReaderState, obj: Obj) -> Material:
     """Mitsuba's conductor: a perfect mirror (our "mirror") without eta and
     k, else Fresnel of the complex index eta + i k ("conductor"). The tint
     (specular_reflectance) may be a texture: the kernels fold its texel in
     where the material's reflectance (white then) is read."""
     params = TextureParams(reader, obj)
-    _no_metal(obj)
     colour = params.rgb("specular_reflectance", 1.0)
-    eta_k = _eta_k(obj)
+    eta_k = _metal_index(obj)
     params.finish()
     if eta_k is None:
         return _coloured(obj.name(), "mirror", colour, two_sided=False)
@@ -119,10 +173,9 @@ def _roughconductor(reader: ReaderState, obj: Obj) -> Material:
     Fresnel of 1 (no eta, k), else "roughconductor" (Beckmann or GGX,
     visible normals, Fresnel of eta + i k)."""
     params = TextureParams(reader, obj)
-    _no_metal(obj)
     distribution = _distribution(obj)
     colour = params.rgb("specular_reflectance", 1.0)
-    eta_k = _eta_k(obj)
+    eta_k = _metal_index(obj)
     params.finish()                       # a textured alpha is refused here
     if eta_k is None and distribution == "ggx":
         return _coloured(obj.name(), "glossy", colour, roughness=_alpha(obj), two_sided=False)
@@ -230,8 +283,15 @@ def _ior(obj: Obj, name: str, default: str) -> float:
     return float(value)
 
 
-def _no_metal(obj: Obj) -> None:
+def _metal_index(obj: Obj):
+    """(eta, k) RGB of a conductor: a named material's (Mitsuba's table,
+    `metals`), or the given eta and k, or None (`_eta_k`). As Mitsuba,
+    naming both is an error."""
     prop = obj.take("material", ("string",))
-    if prop is not None and prop.value != "none":
-        prop.node.fail(f"unsupported attribute: named conductor {prop.value!r} (only material=\"none\", "
-                       "a perfect mirror tinted by specular_reflectance)")
+    if prop is None or prop.value == "none":
+        return _eta_k(obj)
+    if "eta" in obj.props or "k" in obj.props:
+        prop.node.fail("give either eta and k or a material, not both (as Mitsuba)")
+    if prop.value not in CONDUCTORS:
+        prop.node.fail(f"unknown conductor {prop.value!r} (Mitsuba's names: {', '.join(CONDUCTORS)})")
+    return CONDUCTORS[prop.value]

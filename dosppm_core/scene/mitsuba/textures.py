@@ -1,6 +1,7 @@
-"""Texture plugins: bitmap (filename, filter_type, wrap_mode, raw, to_uv),
-checkerboard (color0, color1, to_uv) and mesh_attribute (name; see
-`attributes`), nested in a BSDF under a
+"""Texture plugins: bitmap (filename, filter_type, wrap_mode, raw, to_uv,
+format), checkerboard (color0, color1, to_uv), rawconstant (value: one
+float or a vector, no colour conversion: a one-texel texture) and
+mesh_attribute (name; see `attributes`), nested in a BSDF under a
 parameter's name or referenced by id (`<ref name="reflectance" id="tex"/>`).
 
 One <texture> object is one texture of the scene however often it is
@@ -29,6 +30,8 @@ def read_texture(reader: ReaderState, obj: Obj) -> int:
             # of its own (`attributes.shape_attribute`).
             name = required(obj, "name", get_str)
             texture = tx.bitmap(obj.name(), np.zeros((1, 1, 3)))
+        elif obj.type == "rawconstant":
+            texture = _rawconstant(obj)
         else:
             texture = _bitmap(reader, obj) if obj.type == "bitmap" else _checkerboard(obj)
         finish(obj)
@@ -53,6 +56,9 @@ def _bitmap(reader: ReaderState, obj: Obj) -> tx.Texture:
     filter_type = get_str(obj, "filter_type", "bilinear")
     wrap_mode = get_str(obj, "wrap_mode", "repeat")
     get_bool(obj, "accel")                # a GPU lookup strategy: the same values
+    fmt = obj.take("format", ("string",))   # storage precision: we keep float32 texels
+    if fmt is not None and fmt.value not in ("auto", "variant", "float16", "fp16", "uint8"):
+        fmt.node.fail(f"format {fmt.value!r} is unknown (auto, variant, float16 or uint8)")
     for name, value, allowed in (("filter_type", filter_type, tx.FILTERS),
                                  ("wrap_mode", wrap_mode, tx.WRAP_MODES)):
         if value not in allowed:
@@ -66,6 +72,13 @@ def _bitmap(reader: ReaderState, obj: Obj) -> tx.Texture:
             node.fail(str(exc))
     texels = reader.images[key]
     return tx.bitmap(obj.name(), texels, filter_type, wrap_mode, _uv_map(obj))
+
+
+def _rawconstant(obj: Obj) -> tx.Texture:
+    """Mitsuba's rawconstant: its value as it is (one float is repeated)."""
+    prop = required(obj, "value", lambda o, n: o.take(n, ("float", "integer", "vector", "point")))
+    value = prop.value if prop.kind in ("vector", "point") else (float(prop.value),) * 3
+    return tx.bitmap(obj.name(), np.array(value, np.float64).reshape(1, 1, 3), "nearest")
 
 
 def _checkerboard(obj: Obj) -> tx.Texture:
