@@ -59,3 +59,24 @@ def test_only_every_strideth_iteration_sends_and_installs_hit_points(gather_at):
     assert c.server.counters["hit_points"] == sum(made for _, _, made in sent)
     assert ledger.check(provider, c.statistics.ledger.records) == []
     assert_same_within_noise(c.image(), ref[5][0], ref[9][0])
+
+
+def test_a_lost_first_iteration_is_restarted_at_one_that_installs():
+    """Photons wait for a set of hit points. A tracer lost while the first
+    eye iteration is in flight discards it, and the next index (1) would
+    install none at stride 3: the server starts iteration 3 instead, and
+    the render goes on (without this it waited for ever)."""
+    scene = caustic_scene()
+    provider = MemoryChunks(scene, uniform_tree(root_box(scene), (2, 1, 1)))
+    c = InProcessCluster(provider, dataclasses.replace(settings(5), photon_batch=60_000), tracers=3,
+                         tracer_timeout_s=2.0, gather_at="tracers", hit_point_stride=3)
+    try:
+        c.kill("t2")                     # before anything was traced: iteration 0 cannot complete
+        c.run(photons=80_000)
+    finally:
+        c.close()
+    k = c.server.counters
+    assert k["tracers_evicted"] == 1 and k["eye_iterations_restarted"] == 1
+    kept = [r["eye_iteration"] for r in c.statistics.ledger.records if r["kind"] == "hits" and r["kept"]]
+    assert kept[0] == 3
+    assert k["photons_committed"] >= 80_000 and c.statistics.stats.photons_emitted == k["photons_committed"]

@@ -27,6 +27,7 @@ class EyeScheduleMixin:
                 self.counters["photons_emitted"] - self._photons_at_eye_start < s.photons_per_iteration):
             return []
         self._eye_restart = False
+        self.eye_started = self._next_eye_index()
         e = EyeIteration(self.eye_started, 0)
         self.eyes[e.index], self.eye_started = e, self.eye_started + 1
         self._photons_at_eye_start = self.counters["photons_emitted"]
@@ -46,6 +47,16 @@ class EyeScheduleMixin:
             by_tracer.setdefault(t.id, []).append((j, start, count))
         return [self._eye_job(tid, e.index, group)
                 for tid, tiles in by_tracer.items() for group in _messages(tiles)]
+
+    def _next_eye_index(self) -> int:
+        """The next eye iteration's index: the next that installs its hit
+        points (`keeps_hit_points`) while photons wait for a set (at the
+        start, on resuming, or after the one that would have installed was
+        discarded with a lost tracer), else the next. An index skipped is a
+        random stream left unused, whatever it would have seen."""
+        i, k = self.eye_started, self.hit_point_stride
+        waiting = self.cull_box is None and not any(keeps_hit_points(e, k) for e in self.eyes)
+        return -(-i // k) * k if waiting else i
 
     def _eye_job(self, tid: str, eye_iteration: int, tiles: list) -> Out:
         """The eye_job message of `tiles` [(job, pixel start, count)], with
