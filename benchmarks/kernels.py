@@ -45,6 +45,13 @@ import numpy as np
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
+if "--against" in sys.argv:
+    # The other tree's kernels, loaded under other module names, would put
+    # cache entries naming those modules into both trees' __pycache__, and
+    # the next ordinary run's load fails on them (ModuleNotFoundError:
+    # 'against_paths'): numba caches in a scratch folder for this run.
+    import tempfile
+    os.environ.setdefault("NUMBA_CACHE_DIR", tempfile.mkdtemp(prefix="dosppm-kernels-against-"))
 
 # dosppm_core first: it sets numba's threading layer and OpenMP's wait
 # policy, as in every render.

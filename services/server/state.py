@@ -491,7 +491,7 @@ class ServerState(MembershipMixin, EmissionMixin, EyeScheduleMixin, EpochStateMi
                 "held_bytes": self.held.rows * DEPOSIT_BYTES, "held_full": self.held.full,
                 "hit_points": c["hit_points"], "chunks": self.tree.chunk_count,
                 "path_ends": {n: int(v) for n, v in zip(END_NAMES, self.path_ends) if n != "continues"},
-                "counters": dict(c), "evicted": list(self.evicted[-EVICTIONS_SHOWN:]),
+                "counters": dict(c, **self.light.counters), "evicted": list(self.evicted[-EVICTIONS_SHOWN:]),
                 "tracers": [{"id": t.id, "index": t.index, "endpoint": t.endpoint,
                              "chunks": [k for k, o in enumerate(self.owners) if t.id in o],
                              "queue": t.load_estimate, "rays_sent": t.rays_sent, "results": t.results,
