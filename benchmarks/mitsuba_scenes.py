@@ -163,6 +163,9 @@ def later_part(message: str) -> bool:
         return True     # a textured emitter: the lights part (the textures part reads BSDFs' textures)
     if re.search(r': <texture type="[^"]*" name="opacity">: not allowed inside <bsdf type="mask">', message):
         return True     # a textured mask: opacity read from a texture, not built yet
+    if re.search(r': <bsdf type="roughconductor">: anisotropic roughness is unsupported', message) or \
+            re.search(r': <texture type="[^"]*" name="alpha_[uv]">: a texture for', message):
+        return True     # anisotropic or textured roughness (a tangent frame at hit points): the materials part
     found = re.search(r': <(\w+) type="([^"]*)"[^>]*>: (.+)$', message)
     if not found:
         return False
