@@ -168,8 +168,8 @@ SERVICE = (
          "deposit) or 'tracers' (they keep them and send per-pixel sums by epochs; docs/how-it-works.md)",
          choices=("server", "tracers")),
     _opt("hit_point_stride", int, None, "install the hit points of one eye iteration in N; the others add "
-         "only the light their paths saw (default: one set per statistics update; 1: every iteration, "
-         "the paper's)", rule="count"),
+         "only the light their paths saw (default: one set per epoch gathering at the tracers; 1, every "
+         "iteration, the paper's, gathering at the server)", rule="count"),
     _opt("tracer_timeout", float, 10.0, "drop a tracer silent this long (its jobs are re-emitted); "
          "raise it for chunks that take longer than this to load", rule="positive"),
 )

@@ -60,5 +60,5 @@ class ServerOptions:
     gather_at: str = "server"
     # One eye iteration in how many installs its hit points (the rest count
     # their emission only): None, one set per statistics update
-    # (`dosppm_core.sppm.iteration.hit_point_stride`); 1, every one.
+    # (`dosppm_core.sppm.iteration.hit_point_stride`) gathering at the tracers, 1 at the server.
     hit_point_stride: int | None = None

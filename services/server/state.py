@@ -144,16 +144,21 @@ class ServerState(MembershipMixin, EmissionMixin, EyeScheduleMixin, EpochStateMi
         self._init_light()
 
     def _hit_point_stride(self, given: int | None) -> int:
-        """Installs per eye iteration (`hit_point_stride`): a statistics
-        update is an epoch's photons, or a batch of `photon_batch` deposits
-        (about as many photons: counted as photons, a set serves a batch or two)."""
+        """One eye iteration in how many installs its hit points
+        (`hit_point_stride`). By default: gathering at the tracers, one set
+        per epoch (what the wire carries is the point of that mode); the
+        paper's gather at the server, every iteration, as the paper (fewer
+        sets over a short render sample each pixel's footprint fewer times
+        for the photons: tests/test_faults' short renders saw it)."""
         if given is not None:
             if given < 1:
                 raise ValueError(f"hit_point_stride must be >= 1, got {given}")
             return int(given)
+        if self.epochs is None:
+            return 1
         s = self.settings
-        per_update = s.photon_batch if self.epochs is None else self.epochs.jobs_per_epoch * s.photons_per_job
-        return hit_point_stride(per_update, s.for_image(self.n_pixels).photons_per_iteration)
+        return hit_point_stride(self.epochs.jobs_per_epoch * s.photons_per_job,
+                                s.for_image(self.n_pixels).photons_per_iteration)
 
     # -- messages ------------------------------------------------------------------
     def on_message(self, tid: str, msg, now: float) -> list[Out]:
