@@ -24,13 +24,12 @@ import numpy as np
 from dosppm_core.jobs import ABSORBED, CONTINUES, ESCAPED, MAX_DEPTH, STORED
 from dosppm_core.kernels.bsdf import is_specular, sample_bsdf
 from dosppm_core.kernels.materials import (
-    B_OPACITY,
+    B_CHOICE,
     bsdf_rows,
     is_coloured,
     is_transmissive,
-    passes_mask,
-    photon_mask,
     plastic_specular_probability,
+    resolve_surface,
     sample_colour,
     side_float,
 )
@@ -315,15 +314,9 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
             continue
         p0, p1, p2, n0, n1, n2, w0, w1, w2, m, kind, front = hit_setup(
             verts, tris, tri_mat, kinds, tri, u[i], v[i], direction[i, 0], direction[i, 1], direction[i, 2])
-        st, through = photon_mask(bsdf, m, states[i])
-        if through:
-            gc = _photon_pass_through(i, gc, st, p0, p1, p2, n0, n1, n2, w0, w1, w2, rays, max_depth,
-                                      eps_rel, eps_abs, end, nxt)
-            continue
-        if not is_specular(kind):
-            if not front and not two_sided[m]:
-                end[i] = ABSORBED
-                continue
+        # The deposit comes before a mask's or blend's choice: it records
+        # the flux arriving here, whatever the hit point gathering it chose.
+        if not is_specular(kind) and (front or two_sided[m]):
             if depth[i] < deposit_from:
                 pass    # direct light: the hit points' shadow rays carry it
             elif outside(cull_box, p0, p1, p2):
@@ -334,6 +327,17 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
                 dep_f[dc, 0], dep_f[dc, 1], dep_f[dc, 2] = flux[i, 0], flux[i, 1], flux[i, 2]
                 dep_job[dc] = job[i]
                 dc += 1
+        st = states[i]
+        if bsdf[m, B_CHOICE] > 0.0:    # draws only here, so other scenes keep their streams
+            st, m, through = resolve_surface(bsdf, m, st, False, uvs, tris, tinfo, tuv, texels, tri, u[i], v[i])
+            if through:
+                gc = _photon_pass_through(i, gc, st, p0, p1, p2, n0, n1, n2, w0, w1, w2, rays, max_depth,
+                                          eps_rel, eps_abs, end, nxt)
+                continue
+            kind = kinds[m]
+        if not is_specular(kind) and not front and not two_sided[m]:
+            end[i] = ABSORBED
+            continue
         if depth[i] + 1 >= max_depth:
             end[i] = MAX_DEPTH
             continue
@@ -431,7 +435,7 @@ def advance_eye_paths(rays, hits, surf, max_depth, eps_rel):
     non-specular surface, and continue through mirrors and glass. `rays`
     is (direction, weight, depth, rng state), `hits` (prim, u, v). Returns
     (end counts, emission (index into the batch, rgb), hit points (index,
-    position, normal), continuing paths (index, origin, direction, weight,
+    position, normal, material: a mask's or blend's choice made), continuing paths (index, origin, direction, weight,
     rng state)); a hit point's outgoing direction is -direction and its
     material tri_material[prim]. (`advance_eye_paths_serial`: the same on
     one thread.)"""
@@ -457,7 +461,7 @@ def advance_eye_paths_serial(rays, hits, surf, max_depth, eps_rel):
 def _eye_buffers(n, rays):
     end = np.empty(n, np.int8)
     emitted = np.zeros((n, 3), np.float32)
-    hp = (np.empty((n, 3), np.float32), np.empty((n, 3), np.float32))
+    hp = (np.empty((n, 3), np.float32), np.empty((n, 3), np.float32), np.empty(n, np.int32))
     nxt = (np.empty((n, 3), np.float32), np.empty((n, 3), np.float32),
            np.empty((n, 3), np.float32), rays[3].copy())
     return end, emitted, hp, nxt
@@ -468,7 +472,8 @@ def _eye_outputs(end, emitted, hp, nxt):
     lit = _indices((emitted[:, 0] + emitted[:, 1] + emitted[:, 2]) > 0.0)
     h = _indices(end == STORED)
     g = _indices(end == CONTINUES)
-    return (_ends(end), (lit, _take_rows(emitted, lit)), (h, _take_rows(hp[0], h), _take_rows(hp[1], h)),
+    return (_ends(end), (lit, _take_rows(emitted, lit)),
+            (h, _take_rows(hp[0], h), _take_rows(hp[1], h), hp[2][h]),
             (g, _take_rows(nxt[0], g), _take_rows(nxt[1], g), _take_rows(nxt[2], g), nxt[3][g]))
 
 
@@ -493,7 +498,7 @@ def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp,
     (verts, tris, tri_mat, kinds, refl, emit, ior, rough, two_sided, eps_abs, bsdf,
      uvs, mtex, tinfo, tuv, texels) = surf
     prim, u, v = hits
-    hp_pos, hp_n = hp
+    hp_pos, hp_n, hp_mat = hp
     new_o, new_d, new_w, new_st = nxt
     for i in range(a, e):
         tri = prim[i]
@@ -505,10 +510,15 @@ def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp,
         if front:  # one-sided emitters, as in Mitsuba
             for k in range(3):
                 emitted[i, k] = weight[i, k] * emit[m, k]
-        if bsdf[m, B_OPACITY] < 1.0 and passes_mask(bsdf, m, side_float(states[i], 0)):
-            _pass_through(i, p0, p1, p2, n0, n1, n2, w0, w1, w2, depth, states, weight, max_depth,
-                          eps_rel, eps_abs, end, nxt)
-            continue
+        if bsdf[m, B_CHOICE] > 0.0:     # a mask or a blend: what is there
+            _st, m, through = resolve_surface(bsdf, m, states[i], True, uvs, tris, tinfo, tuv, texels,
+                                              tri, u[i], v[i])
+            if through:
+                _pass_through(i, p0, p1, p2, n0, n1, n2, w0, w1, w2, depth, states, weight, max_depth,
+                              eps_rel, eps_abs, end, nxt)
+                continue
+            kind = kinds[m]
+        hp_mat[i] = m
         coat = False
         if not is_specular(kind):
             if not front and not two_sided[m]:

@@ -71,7 +71,13 @@ class Material:
     'roughplastic' (a dielectric coating of `ior` over a diffuse base of
     albedo `reflectance`; `specular` tints the coating; `nonlinear` is
     Mitsuba's flag). `opacity` < 1 is Mitsuba's `mask`: a ray passes
-    straight through with probability 1 - opacity. See kernels.materials.
+    straight through with probability 1 - opacity; `opacity_texture` >= 0
+    reads the opacity from that texture at the hit instead (its luminance).
+    `blend` = (first, second) material ids makes Mitsuba's `blendbsdf`: at
+    each interaction the second scatters with probability `blend_weight`
+    (or `blend_texture`'s luminance at the hit), else the first; the
+    blend's own kind and colours are unused, its emission is its own. See
+    kernels.materials.
     """
     name: str
     kind: str = "diffuse"
@@ -87,6 +93,10 @@ class Material:
     opacity: float = 1.0
     conductor_eta: tuple = (0.0, 0.0, 0.0)
     conductor_k: tuple = (1.0, 1.0, 1.0)
+    opacity_texture: int = -1
+    blend: tuple = (-1, -1)
+    blend_weight: float = 0.0
+    blend_texture: int = -1
 
     def validate(self, where: str) -> None:
         if self.kind not in MATERIAL_KINDS:
@@ -111,6 +121,8 @@ class Material:
             raise SceneError(f"{where}: a conductor's eta and k must be non-negative")
         if not (math.isfinite(self.opacity) and 0.0 <= self.opacity <= 1.0):
             raise SceneError(f"{where}.opacity: must lie in [0, 1], got {self.opacity!r}")
+        if not (math.isfinite(self.blend_weight) and 0.0 <= self.blend_weight <= 1.0):
+            raise SceneError(f"{where}.blend_weight: must lie in [0, 1], got {self.blend_weight!r}")
 
 
 @dataclass
@@ -211,6 +223,10 @@ class MaterialTable:
     opacity: np.ndarray = None       # float32 (m,): Mitsuba's mask
     conductor_eta: np.ndarray = None  # float32 (m, 3): real part of a conductor's index
     conductor_k: np.ndarray = None    # float32 (m, 3): its imaginary part
+    opacity_texture: np.ndarray = None  # int32 (m,): a mask's textured opacity, -1 for none
+    blend: np.ndarray = None          # int32 (m, 2): a blendbsdf's two materials, -1 for none
+    blend_weight: np.ndarray = None   # float32 (m,): the second one's probability
+    blend_texture: np.ndarray = None  # int32 (m,): a textured weight, -1 for none
 
     def __post_init__(self):
         # Tables made before these columns (tests, older callers) get the
@@ -230,6 +246,14 @@ class MaterialTable:
             self.conductor_eta = np.zeros((m, 3), np.float32)
         if self.conductor_k is None:
             self.conductor_k = np.ones((m, 3), np.float32)
+        if self.opacity_texture is None:
+            self.opacity_texture = np.full(m, -1, np.int32)
+        if self.blend is None:
+            self.blend = np.full((m, 2), -1, np.int32)
+        if self.blend_weight is None:
+            self.blend_weight = np.zeros(m, np.float32)
+        if self.blend_texture is None:
+            self.blend_texture = np.full(m, -1, np.int32)
 
     @property
     def textured(self) -> bool:
@@ -253,6 +277,10 @@ class MaterialTable:
             opacity=np.array([m.opacity for m in mats], np.float32),
             conductor_eta=np.array([_rgb(m.conductor_eta, m.name) for m in mats], np.float32).reshape(-1, 3),
             conductor_k=np.array([_rgb(m.conductor_k, m.name) for m in mats], np.float32).reshape(-1, 3),
+            opacity_texture=np.array([m.opacity_texture for m in mats], np.int32),
+            blend=np.array([m.blend for m in mats], np.int32).reshape(-1, 2),
+            blend_weight=np.array([m.blend_weight for m in mats], np.float32),
+            blend_texture=np.array([m.blend_texture for m in mats], np.int32),
         )
 
 
@@ -450,8 +478,11 @@ class SceneBuilder:
     def add_material(self, material: Material, where: str | None = None) -> int:
         where = where or f"{self.source}: material {material.name!r}"
         material.validate(where)
-        if not -1 <= material.texture < len(self._textures):
-            raise SceneError(f"{where}: texture id {material.texture} out of range")
+        for name in ("texture", "opacity_texture", "blend_texture"):
+            if not -1 <= getattr(material, name) < len(self._textures):
+                raise SceneError(f"{where}: {name} id {getattr(material, name)} out of range")
+        if material.blend != (-1, -1) and not all(0 <= b < len(self._materials) for b in material.blend):
+            raise SceneError(f"{where}: blend of material ids {material.blend}, not two earlier materials")
         if material.name in self._material_ids:
             raise SceneError(f"{where}: duplicate material name {material.name!r}")
         self._material_ids[material.name] = len(self._materials)
@@ -459,8 +490,12 @@ class SceneBuilder:
         return self._material_ids[material.name]
 
     def textured(self, material: int) -> bool:
-        """Whether material id `material` reads a texture (its meshes keep UVs)."""
-        return self._materials[material].texture >= 0
+        """Whether material id `material` reads a texture (its meshes keep
+        UVs): its colour, a mask's opacity, a blend's weight or its parts'."""
+        m = self._materials[material]
+        if max(m.texture, m.opacity_texture, m.blend_texture) >= 0:
+            return True
+        return m.blend != (-1, -1) and any(self.textured(b) for b in m.blend)
 
     def material_id(self, name: str, where: str) -> int:
         try:
