@@ -1,9 +1,11 @@
 """BSDFs to `Material`s: diffuse; twosided (one nested BSDF); conductor
 (material="none") -> mirror; roughconductor (GGX) -> glossy;
 dielectric (one tint) -> glass; conductor and roughconductor with eta
-and k, or Beckmann -> their kinds; roughdielectric (GGX or Beckmann),
-plastic and roughplastic -> their kinds; mask (a constant opacity) -> its
-nested material with `opacity`. One <bsdf> object is one material; a
+and k or a named material (`conductors`), or Beckmann -> their kinds;
+roughdielectric (GGX or Beckmann), plastic and roughplastic -> their
+kinds; mask (a constant or textured opacity) -> its nested material with
+`opacity`; blendbsdf -> a material naming its two parts. One <bsdf>
+object is one material; a
 shape's (bsdf, area emitter) pair becomes one builder material, since
 emission belongs to the material. The colour (reflectance, or the
 conductor's or glass's tint) may be a texture (`textures`)."""
@@ -12,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 
 from dosppm_core.scene.mitsuba.colour import prop_rgb
+from dosppm_core.scene.mitsuba.conductors import CONDUCTORS
 from dosppm_core.scene.mitsuba.emitters import area_radiance
 from dosppm_core.scene.mitsuba.objects import Obj
 from dosppm_core.scene.mitsuba.params import finish, get_bool, get_float, get_rgb
@@ -54,6 +57,9 @@ def material_id(reader: ReaderState, bsdf, emitter, shape: Obj) -> int:
         if emitter is not None:
             material = dataclasses.replace(material, name=f"{material.name}+{emitter.name()}",
                                            emission=area_radiance(reader, emitter))
+        if material.name in reader.builder._material_ids:
+            # Two BSDFs on one line (a blend and its part) share a name.
+            material = dataclasses.replace(material, name=f"{material.name}#{len(reader.material_ids)}")
         where = (bsdf or emitter or shape).where()
         reader.material_ids[key] = reader.builder.add_material(material, where)
     return reader.material_ids[key]
@@ -97,8 +103,7 @@ def _mask(reader: ReaderState, obj: Obj) -> Material:
     opacity, texture = params.scalar("opacity", 0.5)
     params.finish()
     if texture >= 0:
-        return dataclasses.replace(bsdf_material(reader, inner[0]), name=obj.name(), opacity=0.0,
-                                   opacity_texture=texture)
+        return dataclasses.replace(bsdf_material(reader, inner[0]), name=obj.name(), opacity_texture=texture)
     if not 0.0 <= opacity <= 1.0:
         obj.node.fail(f"opacity must lie in [0, 1], got {opacity}")
     return dataclasses.replace(bsdf_material(reader, inner[0]), name=obj.name(), opacity=opacity)
@@ -140,7 +145,6 @@ def _conductor(reader: ReaderState, obj: Obj) -> Material:
     (specular_reflectance) may be a texture: the kernels fold its texel in
     where the material's reflectance (white then) is read."""
     params = TextureParams(reader, obj)
-    _no_metal(obj)
     colour = params.rgb("specular_reflectance", 1.0)
     eta_k = _eta_k(obj)
     params.finish()
@@ -154,7 +158,6 @@ def _roughconductor(reader: ReaderState, obj: Obj) -> Material:
     Fresnel of 1 (no eta, k), else "roughconductor" (Beckmann or GGX,
     visible normals, Fresnel of eta + i k)."""
     params = TextureParams(reader, obj)
-    _no_metal(obj)
     distribution = _distribution(obj)
     colour = params.rgb("specular_reflectance", 1.0)
     eta_k = _eta_k(obj)
@@ -174,11 +177,20 @@ def _metal(name: str, kind: str, colour: tuple, eta_k, **kw) -> Material:
 
 
 def _eta_k(obj: Obj):
-    """(eta, k) RGB of a conductor, or None when neither is given (Mitsuba's
-    defaults then, 0 and 1, make a perfect mirror). Values are unbounded:
-    one number, an rgb, or a constant spectrum (a spectrum list would be
-    clamped to [0, 1] as a reflectance, so it is refused)."""
+    """(eta, k) RGB of a conductor: a named `material` (Mitsuba's table as
+    its RGB variants see it, `conductors`), or the given eta and k, or
+    None when neither is given (material "none", Mitsuba's default: eta 0
+    and k 1, a perfect mirror). Values are unbounded: one number, an rgb,
+    or a constant spectrum (a spectrum list would be clamped to [0, 1] as
+    a reflectance, so it is refused)."""
+    named = obj.take("material", ("string",))
     props = [obj.take(n, ("float", "integer", "rgb", "spectrum")) for n in ("eta", "k")]
+    if named is not None and named.value != "none":
+        if props != [None, None]:
+            named.node.fail("give either (eta, k) or material, not both (as Mitsuba)")
+        if named.value not in CONDUCTORS:
+            named.node.fail(f"unknown conductor {named.value!r} (known: {', '.join(CONDUCTORS)}, none)")
+        return [tuple(c) for c in CONDUCTORS[named.value]]
     if props == [None, None]:
         return None
     out = []
@@ -263,10 +275,3 @@ def _ior(obj: Obj, name: str, default: str) -> float:
             prop.node.fail(f"unknown IOR name {value!r} (known: {', '.join(IORS)})")
         return IORS[value.lower()]
     return float(value)
-
-
-def _no_metal(obj: Obj) -> None:
-    prop = obj.take("material", ("string",))
-    if prop is not None and prop.value != "none":
-        prop.node.fail(f"unsupported attribute: named conductor {prop.value!r} (only material=\"none\", "
-                       "a perfect mirror tinted by specular_reflectance)")

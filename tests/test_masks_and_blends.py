@@ -1,0 +1,199 @@
+"""Issue 33: a mask's textured opacity, Mitsuba's blendbsdf and the named
+conductors. Closed forms and equalities between two paths through the
+code: a textured opacity (or weight) that is constant everywhere renders
+as the constant does, with the same random choices; a blend of weight 0
+or 1 renders as its part; a white furnace of stacked masks is 1
+everywhere; the reader's conductor table equals Mitsuba's."""
+import numpy as np
+import pytest
+
+import dosppm_core as dp
+from dosppm_core.scene.mitsuba import load_mitsuba_xml
+from dosppm_core.scene.model import SceneError
+
+# A floor, a mask above it and a light above that: the floor is seen and
+# lit through the mask (photons carry that light: shadow rays stop at masks).
+MASK_SCENE = """<scene version="3.0.0">
+  <sensor type="perspective"><float name="fov" value="45"/>
+    <transform name="to_world"><lookat origin="0,3,3" target="0,0,0" up="0,1,0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="24"/><integer name="height" value="24"/></film>
+  </sensor>
+  <shape type="rectangle"><transform name="to_world"><rotate x="1" angle="-90"/><scale value="3"/></transform>
+    <bsdf type="diffuse"><rgb name="reflectance" value="0.6"/></bsdf></shape>
+  <shape type="rectangle"><transform name="to_world"><rotate x="1" angle="-90"/><translate y="0.8"/></transform>
+    <bsdf type="mask">{opacity}
+      <bsdf type="twosided"><bsdf type="diffuse"><rgb name="reflectance" value="0.8, 0.3, 0.2"/></bsdf></bsdf>
+    </bsdf></shape>
+  <shape type="rectangle"><transform name="to_world"><rotate x="1" angle="90"/><translate y="3"/></transform>
+    <emitter type="area"><rgb name="radiance" value="6"/></emitter></shape>
+</scene>
+"""
+
+
+def _checker(name, a, b, scale=1.0):
+    return (f'<texture type="checkerboard" name="{name}"><float name="color0" value="{a}"/>'
+            f'<float name="color1" value="{b}"/><transform name="to_uv"><scale value="{scale}"/></transform>'
+            '</texture>')
+
+
+def _load(tmp_path, text, name="scene.xml"):
+    path = tmp_path / name
+    path.write_text(text)
+    return load_mitsuba_xml(str(path))
+
+
+def _render(scene, iterations=40, **kw):
+    settings = dict(seed=5, photons_per_iteration=20_000)
+    settings.update(kw)
+    return np.asarray(dp.render(scene, iterations=iterations, mode="sppm", **settings))
+
+
+# -- the textured mask ----------------------------------------------------------------
+def test_a_constant_texture_as_opacity_renders_as_the_constant(tmp_path):
+    """Opacity 0.4 as a number and as a checkerboard of 0.4 and 0.4: the
+    eye's and the photons' choices read the same number, so the images
+    agree to rounding; both differ from an opaque quad."""
+    constant = _render(_load(tmp_path, MASK_SCENE.format(opacity='<float name="opacity" value="0.4"/>')))
+    textured = _render(_load(tmp_path, MASK_SCENE.format(opacity=_checker("opacity", 0.4, 0.4))))
+    opaque = _render(_load(tmp_path, MASK_SCENE.format(opacity='<float name="opacity" value="1"/>')))
+    np.testing.assert_allclose(textured, constant, rtol=1e-4, atol=1e-6)
+    assert abs(opaque.mean() / constant.mean() - 1) > 0.05
+
+
+def test_a_checkered_opacity_is_read_at_the_hit(tmp_path):
+    """Opacity 1 and 0 in a checkerboard over the quad: where it is 1 the
+    image is the opaque quad's, where 0 the bare floor's (no quad at all),
+    pixel by pixel at the direct-light depth (no photons: exact)."""
+    checker = _render(_load(tmp_path, MASK_SCENE.format(opacity=_checker("opacity", 1.0, 0.0))),
+                      max_depth=1)
+    opaque = _render(_load(tmp_path, MASK_SCENE.format(opacity='<float name="opacity" value="1"/>')),
+                     max_depth=1)
+    bare = _render(_load(tmp_path, MASK_SCENE.format(opacity='<float name="opacity" value="0"/>')),
+                   max_depth=1)
+    as_opaque = np.all(np.isclose(checker, opaque, rtol=1e-5), axis=2)
+    as_bare = np.all(np.isclose(checker, bare, rtol=1e-5), axis=2)
+    differ = ~np.all(np.isclose(opaque, bare, rtol=1e-5), axis=2)
+    # Pixels straddling a square's edge mix both; the rest are one or the other.
+    assert (as_opaque & differ).sum() > 40 and (as_bare & differ).sum() > 40
+    assert ((as_opaque | as_bare) & differ).sum() >= 0.75 * differ.sum()
+
+
+def test_stacked_masks_in_a_white_furnace_are_white(tmp_path):
+    """Two half-opaque white quads, one above the other, under a constant
+    environment of radiance 1: nothing absorbs, so every pixel is 1. The
+    lower quad's top is lit through the upper one by photons only (shadow
+    rays stop at masks); a hit point there exists with probability 0.5 and
+    must gather all the photons arriving, not the half its own choice kept."""
+    quad = """<shape type="rectangle"><transform name="to_world"><rotate x="1" angle="-90"/>
+        <scale value="4"/><translate y="{y}"/></transform>
+        <bsdf type="mask"><float name="opacity" value="0.5"/>
+        <bsdf type="twosided"><bsdf type="diffuse"><rgb name="reflectance" value="1"/></bsdf></bsdf></bsdf></shape>"""
+    text = f"""<scene version="3.0.0">
+      <sensor type="perspective"><float name="fov" value="30"/>
+        <transform name="to_world"><lookat origin="0,3,0.01" target="0,0,0" up="0,1,0"/></transform>
+        <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/></film>
+      </sensor>
+      <emitter type="constant"><rgb name="radiance" value="1"/></emitter>
+      {quad.format(y=0.3)}{quad.format(y=0.0)}
+    </scene>"""
+    img = _render(_load(tmp_path, text), iterations=60, photons_per_iteration=40_000, max_depth=64)
+    assert img.mean() == pytest.approx(1.0, rel=0.03)
+
+
+# -- blendbsdf ------------------------------------------------------------------------------
+SPHERE = """<scene version="3.0.0">
+  <sensor type="perspective"><float name="fov" value="35"/>
+    <transform name="to_world"><lookat origin="0,1,5" target="0,0,0" up="0,1,0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="24"/><integer name="height" value="24"/></film>
+  </sensor>
+  <shape type="sphere"><float name="radius" value="1"/>{bsdf}</shape>
+  <shape type="rectangle"><transform name="to_world"><scale value="4"/><rotate x="1" angle="-90"/>
+    <translate y="-1"/></transform><bsdf type="diffuse"><rgb name="reflectance" value="0.5"/></bsdf></shape>
+  <emitter type="point"><point name="position" x="3" y="3" z="3"/><rgb name="intensity" value="20"/></emitter>
+</scene>
+"""
+FIRST = '<bsdf type="diffuse"><rgb name="reflectance" value="0.1, 0.6, 0.3"/></bsdf>'
+SECOND = ('<bsdf type="roughplastic"><float name="alpha" value="0.2"/><string name="distribution" value="ggx"/>'
+          '<rgb name="diffuse_reflectance" value="0.7, 0.2, 0.1"/></bsdf>')
+
+
+def _blend(weight):
+    # One BSDF a line: the reader names a material by its file and line.
+    return f'<bsdf type="blendbsdf">{weight}\n{FIRST}\n{SECOND}</bsdf>'
+
+
+@pytest.mark.parametrize("weight", [0.0, 1.0])
+def test_a_blend_of_weight_0_or_1_renders_as_its_part(tmp_path, weight):
+    """Direct light only (the eye's choice comes from its side stream, so
+    the images are equal to rounding); with photons, the blend's draw shifts
+    their streams: the means agree within noise."""
+    part = FIRST if weight == 0.0 else SECOND
+    blend = _load(tmp_path, SPHERE.format(bsdf=_blend(f'<float name="weight" value="{weight}"/>')))
+    alone = _load(tmp_path, SPHERE.format(bsdf=part), "alone.xml")
+    np.testing.assert_allclose(_render(blend, max_depth=1), _render(alone, max_depth=1), rtol=1e-4, atol=1e-6)
+    full_blend, full_alone = _render(blend), _render(alone)
+    np.testing.assert_allclose(full_blend.mean((0, 1)), full_alone.mean((0, 1)), rtol=0.02)
+
+
+def test_a_half_blend_is_the_mean_of_its_parts(tmp_path):
+    """Weight 0.5: the image (direct light, linear in the BSDF) is the
+    average of the two parts' images, within the noise of the choice."""
+    blend = _render(_load(tmp_path, SPHERE.format(bsdf=_blend('<float name="weight" value="0.5"/>'))),
+                    iterations=200, max_depth=1)
+    first = _render(_load(tmp_path, SPHERE.format(bsdf=FIRST), "a.xml"), iterations=200, max_depth=1)
+    second = _render(_load(tmp_path, SPHERE.format(bsdf=SECOND), "b.xml"), iterations=200, max_depth=1)
+    np.testing.assert_allclose(blend.mean((0, 1)), (first + second).mean((0, 1)) / 2, rtol=0.02)
+
+
+def test_a_textured_weight_picks_the_part_per_hit(tmp_path):
+    """A checkerboard weight of 0 and 1 against a diffuse checkerboard of
+    the two parts' colours: the same image at the direct-light depth."""
+    two = ('<bsdf type="diffuse"><rgb name="reflectance" value="0.1, 0.6, 0.3"/></bsdf>\n'
+           '<bsdf type="diffuse"><rgb name="reflectance" value="0.7, 0.2, 0.1"/></bsdf>')
+    blend = f'<bsdf type="blendbsdf">{_checker("weight", 0.0, 1.0, 4)}{two}</bsdf>'
+    colours = ('<bsdf type="diffuse"><texture type="checkerboard" name="reflectance">'
+               '<rgb name="color0" value="0.1, 0.6, 0.3"/><rgb name="color1" value="0.7, 0.2, 0.1"/>'
+               '<transform name="to_uv"><scale value="4"/></transform></texture></bsdf>')
+    a = _render(_load(tmp_path, SPHERE.format(bsdf=blend)), max_depth=1)
+    b = _render(_load(tmp_path, SPHERE.format(bsdf=colours), "b.xml"), max_depth=1)
+    np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
+
+
+def test_blend_reader_errors(tmp_path):
+    """One line naming file, line and element: no weight, a weight outside
+    [0, 1], one nested BSDF."""
+    cases = {"needs a weight": _blend(""),
+             "weight must lie in": _blend('<float name="weight" value="1.5"/>'),
+             "exactly 2 nested": f'<bsdf type="blendbsdf"><float name="weight" value="0.5"/>\n{FIRST}</bsdf>'}
+    for message, bsdf in cases.items():
+        with pytest.raises(SceneError, match=rf"scene\.xml:\d+: <bsdf type=\"blendbsdf\".*{message}"):
+            _load(tmp_path, SPHERE.format(bsdf=bsdf))
+
+
+# -- named conductors --------------------------------------------------------------------------
+def _conductor(tmp_path, inner):
+    scene = _load(tmp_path, SPHERE.format(bsdf=f'<bsdf type="conductor">{inner}</bsdf>'))
+    return scene.materials.conductor_eta[0], scene.materials.conductor_k[0]
+
+
+def test_named_conductor_reads_the_table(tmp_path):
+    from dosppm_core.scene.mitsuba.conductors import CONDUCTORS
+    eta, k = _conductor(tmp_path, '<string name="material" value="Au"/>')
+    np.testing.assert_allclose(eta, CONDUCTORS["Au"][0], rtol=1e-6)
+    np.testing.assert_allclose(k, CONDUCTORS["Au"][1], rtol=1e-6)
+    with pytest.raises(SceneError, match=r"scene\.xml:\d+: <string name=\"material\".*unknown conductor 'Xx'"):
+        _conductor(tmp_path, '<string name="material" value="Xx"/>')
+    with pytest.raises(SceneError, match="either"):
+        _conductor(tmp_path, '<string name="material" value="Au"/><float name="eta" value="1"/>')
+
+
+@pytest.mark.reference
+def test_conductor_table_equals_mitsuba(mi):
+    """Every name in the table: Mitsuba's own RGB eta and k (to the 6
+    significant digits kept); all 65 that Mitsuba's conductor.cpp documents."""
+    from dosppm_core.scene.mitsuba.conductors import CONDUCTORS
+    for name, (eta, k) in CONDUCTORS.items():
+        params = mi.traverse(mi.load_dict({"type": "conductor", "material": name}))
+        np.testing.assert_allclose(np.array(params["eta.value"]), eta, rtol=6e-6, atol=1e-12, err_msg=name)
+        np.testing.assert_allclose(np.array(params["k.value"]), k, rtol=6e-6, atol=1e-12, err_msg=name)
+    assert len(CONDUCTORS) == 65
