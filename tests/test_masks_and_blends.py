@@ -197,3 +197,20 @@ def test_conductor_table_equals_mitsuba(mi):
         np.testing.assert_allclose(np.array(params["eta.value"]), eta, rtol=6e-6, atol=1e-12, err_msg=name)
         np.testing.assert_allclose(np.array(params["k.value"]), k, rtol=6e-6, atol=1e-12, err_msg=name)
     assert len(CONDUCTORS) == 65
+
+
+@pytest.mark.reference
+def test_a_masks_direct_light_matches_mitsubas_direct_integrator(mi, tmp_path):
+    """Direct light only (our max_depth 1, Mitsuba's `direct`): the mask is
+    there with probability 0.4, so it reflects 0.4 of an opaque quad's
+    light and the floor behind it is black (reached by a pass-through, a
+    bounce). Mitsuba 3.9.1's `path` integrator gives about 0.4^2 here at any
+    max_depth (0.159 of the opaque quad; its `direct` 0.400): that is the
+    0.378 vs 0.153 once seen; the mitsuba-data references agree with us."""
+    text = MASK_SCENE.format(opacity='<float name="opacity" value="0.4"/>').replace(
+        '<scene version="3.0.0">', '<scene version="3.0.0"><integrator type="direct"/>')
+    path = tmp_path / "direct.xml"
+    path.write_text(text)
+    ref = np.array(mi.render(mi.load_file(str(path)), spp=256, seed=1))
+    ours = _render(load_mitsuba_xml(str(path)), iterations=100, max_depth=1)
+    np.testing.assert_allclose(ours.mean((0, 1)), ref.mean((0, 1)), rtol=0.02)

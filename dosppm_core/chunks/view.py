@@ -11,14 +11,13 @@ only by floating-point noise.
 """
 from __future__ import annotations
 
-import dataclasses
 
 import numpy as np
 
 from dosppm_core.accel import Accelerator
 from dosppm_core.chunks.portals import PORTAL_EPS, enter, intersect_in_chunk
 from dosppm_core.chunks.store import ChunkGeometry
-from dosppm_core.chunks.textures import chunk_surface_textures
+from dosppm_core.chunks.textures import chunk_materials
 from dosppm_core.chunks.tree import ChunkTree
 from dosppm_core.jobs import ESCAPED, STORED, HitPoints, PhotonDeposits, RayBatch, ShadowRays
 from dosppm_core.kernels.paths import ELSEWHERE
@@ -36,8 +35,7 @@ class ChunkView:
         self.eps = PORTAL_EPS * header.diagonal()
         self.total_power = header.lights.total_power    # BSDF-sampled direct-light rays weigh by it
         self.env = environment(header.lights)           # what eye paths leaving the scene see
-        texture_ids, textures = chunk_surface_textures(geometry, header)
-        m = dataclasses.replace(header.materials, texture=texture_ids)
+        m, textures = chunk_materials(geometry, header)
         self.surf = SurfaceData.from_arrays(geometry.vertices, geometry.triangles, geometry.tri_material,
                                             m, header.spawn_epsilon(), geometry.uv, textures)
         # An empty chunk (air between walls) still routes rays; Embree
