@@ -11,7 +11,6 @@ only by floating-point noise.
 """
 from __future__ import annotations
 
-
 import numpy as np
 
 from dosppm_core.accel import Accelerator
