@@ -193,8 +193,8 @@ WHY_FAILS = {
         "10% of pixels, at checker and rectangle edges, differ from Mitsuba's render of the file "
         "(90th percentile 5.7%), not by a sub-pixel shift: cause not found yet",
     "bsdf_spheres/test_arealight_path.xml":
-        "z-test passes; mean +1.4% +- 0.5% over 48 seeds, all of it the smooth conductor sphere's reflection of "
-        "the area light (+5.2% +- 1.5%; the masks -0.2% +- 0.3%): our meshes have no shading normals, and "
+        "z-test passes; mean +1.4% +- 0.5% over 48 seeds, all of it the smooth conductor sphere's "
+        "reflection of the area light (+5.2% +- 1.5%; the masks -0.2% +- 0.3%): our meshes have no shading normals, and "
         "Mitsuba itself renders that sphere +2.5% with face_normals",
     "bsdf_spheres/test_pointlight_path.xml":
         "z-test passes; mean +1.9% +- 1.8% over 16 seeds: one pixel, the point light's highlight on the "

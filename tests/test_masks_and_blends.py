@@ -20,7 +20,8 @@ MASK_SCENE = """<scene version="3.0.0">
   </sensor>
   <shape type="rectangle"><transform name="to_world"><rotate x="1" angle="-90"/><scale value="3"/></transform>
     <bsdf type="diffuse"><rgb name="reflectance" value="0.6"/></bsdf></shape>
-  <shape type="rectangle"><transform name="to_world"><rotate x="1" angle="-90"/><translate y="0.8"/></transform>
+  <shape type="rectangle">
+    <transform name="to_world"><rotate x="1" angle="-90"/><translate y="0.8"/></transform>
     <bsdf type="mask">{opacity}
       <bsdf type="twosided"><bsdf type="diffuse"><rgb name="reflectance" value="0.8, 0.3, 0.2"/></bsdf></bsdf>
     </bsdf></shape>
@@ -87,7 +88,8 @@ def test_stacked_masks_in_a_white_furnace_are_white(tmp_path):
     quad = """<shape type="rectangle"><transform name="to_world"><rotate x="1" angle="-90"/>
         <scale value="4"/><translate y="{y}"/></transform>
         <bsdf type="mask"><float name="opacity" value="0.5"/>
-        <bsdf type="twosided"><bsdf type="diffuse"><rgb name="reflectance" value="1"/></bsdf></bsdf></bsdf></shape>"""
+        <bsdf type="twosided"><bsdf type="diffuse"><rgb name="reflectance" value="1"/></bsdf></bsdf>
+        </bsdf></shape>"""
     text = f"""<scene version="3.0.0">
       <sensor type="perspective"><float name="fov" value="30"/>
         <transform name="to_world"><lookat origin="0,3,0.01" target="0,0,0" up="0,1,0"/></transform>
@@ -113,7 +115,8 @@ SPHERE = """<scene version="3.0.0">
 </scene>
 """
 FIRST = '<bsdf type="diffuse"><rgb name="reflectance" value="0.1, 0.6, 0.3"/></bsdf>'
-SECOND = ('<bsdf type="roughplastic"><float name="alpha" value="0.2"/><string name="distribution" value="ggx"/>'
+SECOND = ('<bsdf type="roughplastic"><float name="alpha" value="0.2"/>'
+          '<string name="distribution" value="ggx"/>'
           '<rgb name="diffuse_reflectance" value="0.7, 0.2, 0.1"/></bsdf>')
 
 
@@ -181,7 +184,8 @@ def test_named_conductor_reads_the_table(tmp_path):
     eta, k = _conductor(tmp_path, '<string name="material" value="Au"/>')
     np.testing.assert_allclose(eta, CONDUCTORS["Au"][0], rtol=1e-6)
     np.testing.assert_allclose(k, CONDUCTORS["Au"][1], rtol=1e-6)
-    with pytest.raises(SceneError, match=r"scene\.xml:\d+: <string name=\"material\".*unknown conductor 'Xx'"):
+    unknown = r"scene\.xml:\d+: <string name=\"material\".*unknown conductor 'Xx'"
+    with pytest.raises(SceneError, match=unknown):
         _conductor(tmp_path, '<string name="material" value="Xx"/>')
     with pytest.raises(SceneError, match="either"):
         _conductor(tmp_path, '<string name="material" value="Au"/><float name="eta" value="1"/>')

@@ -71,8 +71,8 @@ def chunk_materials(geometry: ChunkGeometry, header: SceneHeader):
     if len(geometry.tex_ids):
         local = np.full(len(header.textures), -1, np.int32)
         local[geometry.tex_ids] = np.arange(len(geometry.tex_ids), dtype=np.int32)
-        cols = {c: np.where(getattr(mats, c) >= 0, local[np.maximum(getattr(mats, c), 0)], -1).astype(np.int32)
-                for c in TEXTURE_COLUMNS}
+        cols = {c: np.where(getattr(mats, c) >= 0, local[np.maximum(getattr(mats, c), 0)], -1)
+                .astype(np.int32) for c in TEXTURE_COLUMNS}
         return (dataclasses.replace(mats, **cols),
                 TextureTable(geometry.tex_info, geometry.tex_uv, geometry.texels, []))
     if len(header.textures.texels):

@@ -329,7 +329,8 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
                 dc += 1
         st = states[i]
         if bsdf[m, B_CHOICE] > 0.0:    # draws only here, so other scenes keep their streams
-            st, m, through = resolve_surface(bsdf, m, st, False, uvs, tris, tinfo, tuv, texels, tri, u[i], v[i])
+            st, m, through = resolve_surface(bsdf, m, st, False, uvs, tris, tinfo, tuv, texels,
+                                             tri, u[i], v[i])
             if through:
                 gc = _photon_pass_through(i, gc, st, p0, p1, p2, n0, n1, n2, w0, w1, w2, rays, max_depth,
                                           eps_rel, eps_abs, end, nxt)
@@ -435,10 +436,11 @@ def advance_eye_paths(rays, hits, surf, max_depth, eps_rel):
     non-specular surface, and continue through mirrors and glass. `rays`
     is (direction, weight, depth, rng state), `hits` (prim, u, v). Returns
     (end counts, emission (index into the batch, rgb), hit points (index,
-    position, normal, material: a mask's or blend's choice made), continuing paths (index, origin, direction, weight,
-    rng state)); a hit point's outgoing direction is -direction and its
-    material tri_material[prim]. (`advance_eye_paths_serial`: the same on
-    one thread.)"""
+    position, normal, material), continuing paths (index, origin,
+    direction, weight, rng state)); a hit point's outgoing direction is
+    -direction and its material tri_material[prim], or the part a mask or
+    blend chose there. (`advance_eye_paths_serial`: the same on one
+    thread.)"""
     n = hits[0].shape[0]
     nblk = max(1, min(64, n // 2048))   # enough blocks to balance threads
     end, emitted, hp, nxt = _eye_buffers(n, rays)

@@ -53,5 +53,7 @@ CONDUCTORS = {
     "W": ((4.37082, 3.30025, 2.99841), (3.50064, 2.60487, 2.27323)),
 }
 # Mitsuba's *_palik entries equal to the plain name's table.
-for _name in ('AlAs', 'AlSb', 'Be', 'CsI', 'Cu2O', 'CuO', 'HgTe', 'Hg', 'Ir', 'K', 'Li', 'MgO', 'Mo', 'Nb', 'Rh', 'Se', 'SiC', 'SnTe', 'Ta', 'Te', 'ThF4', 'TiC', 'TiN', 'TiO2', 'VC', 'VN', 'd-C'):
+for _name in (
+    'AlAs', 'AlSb', 'Be', 'CsI', 'Cu2O', 'CuO', 'HgTe', 'Hg', 'Ir', 'K', 'Li', 'MgO', 'Mo', 'Nb',
+    'Rh', 'Se', 'SiC', 'SnTe', 'Ta', 'Te', 'ThF4', 'TiC', 'TiN', 'TiO2', 'VC', 'VN', 'd-C'):
     CONDUCTORS[_name + "_palik"] = CONDUCTORS[_name]

@@ -15,7 +15,8 @@ import numpy as np
 
 from dosppm_core.scene import textures as tx
 from dosppm_core.scene.mitsuba.objects import Obj, Ref
-from dosppm_core.scene.mitsuba.params import finish, get_bool, get_float, get_matrix, get_rgb, get_str, required
+from dosppm_core.scene.mitsuba.params import (finish, get_bool, get_float, get_matrix, get_rgb, get_str,
+                                              required)
 from dosppm_core.scene.mitsuba.state import ReaderState
 from dosppm_core.scene.mitsuba.xmltree import resolve
 
