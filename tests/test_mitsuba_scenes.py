@@ -26,7 +26,6 @@ CLAIMED = [
     "mesh_attributes/test_mesh_attributes_3_vertex_direct.xml",
     "bsdf_spheres/test_roughplastic_linear_path.xml",
     "bsdf_spheres/test_roughplastic_nonlinear_path.xml",
-    "bsdf_spheres/test_constant_path.xml",
     "bsdf_spheres/test_envmap_path.xml",
     "mesh_attributes/test_mesh_attributes_1_face_direct.xml",
 ]
@@ -54,6 +53,15 @@ LOADS = {
     # z-pass 100%, mean +1.9% +- 1.8% (16 seeds): one highlight pixel of the
     # point light on the alpha 0.05 rough conductor carries it.
     "bsdf_spheres/test_pointlight_path.xml": "mean +1.9%, within its noise (+-1.8%)",
+    # One process (16 seeds) 99.99%, -0.02%; through the service (4 seeds)
+    # z-pass 74%, bias 0.00%, and so one process at 4 or 8 seeds. The
+    # background is the constant emitter, exactly 1 in every seed of ours,
+    # while the reference holds (1.00108, 0.99971, 0.99970) there: with no
+    # variance of ours the z-test takes the reference's noise alone and
+    # fails it. At 16 seeds the variance of our 16 equal values rounds to
+    # 2e-31, not 0, which buys the t-test's 15 degrees of freedom: a pass
+    # by rounding.
+    "bsdf_spheres/test_constant_path.xml": "a background of exactly 1 against the reference's 1.001",
 }
 # Refused, with the element the one-line error names (the first outside our subset),
 # to its first attribute.
