@@ -201,7 +201,10 @@ def roulette(flux, i, t0, t1, t2, ur, depth):
     """Russian roulette on the scattered flux (or an eye path's weight)
     flux * t: a path survives with the ratio p of its new to old largest
     component (at most DEEP_SURVIVAL from surface DEEP_DEPTH on), and is
-    reweighted by 1/p. Returns (survives, the new flux)."""
+    reweighted by 1/p. Returns (survives, the new flux). Unbiased, so the
+    depth limit is only a safety net. An eye path's roulette decides on its
+    throughput alone, not the eta^2 of refraction (pbrt's etaScale): that
+    factor leaving glass would kill 56% of the paths through it."""
     old_max = max(flux[i, 0], flux[i, 1], flux[i, 2])
     nf0 = flux[i, 0] * t0
     nf1 = flux[i, 1] * t1
@@ -314,12 +317,8 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
             continue
         p0, p1, p2, n0, n1, n2, w0, w1, w2, m, kind, front = hit_setup(
             verts, tris, tri_mat, kinds, tri, u[i], v[i], direction[i, 0], direction[i, 1], direction[i, 2])
-        # The deposit comes before a mask's or blend's choice: it records
-        # the flux arriving here, whatever the hit point gathering it chose.
-        if not is_specular(kind) and (front or two_sided[m]):
-            if depth[i] < deposit_from:
-                pass    # direct light: the hit points' shadow rays carry it
-            elif outside(cull_box, p0, p1, p2):
+        if not is_specular(kind) and (front or two_sided[m]) and depth[i] >= deposit_from:
+            if outside(cull_box, p0, p1, p2):   # (before deposit_from shadow rays bring direct light)
                 culled[i] = True
             else:
                 write_facing(dep_pos, dep_n, dc, p0, p1, p2, n0, n1, n2, front)
@@ -328,12 +327,10 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
                 dep_job[dc] = job[i]
                 dc += 1
         st = states[i]
-        if bsdf[m, B_CHOICE] > 0.0:    # draws only here, so other scenes keep their streams
-            st, m, through = resolve_surface(bsdf, m, st, False, uvs, tris, tinfo, tuv, texels,
-                                             tri, u[i], v[i])
-            if through:
-                gc = _photon_pass_through(i, gc, st, p0, p1, p2, n0, n1, n2, w0, w1, w2, rays, max_depth,
-                                          eps_rel, eps_abs, end, nxt)
+        if bsdf[m, B_CHOICE] > 0.0:    # a mask or a blend (draws only here: other scenes keep their streams)
+            st, m, gc = _photon_choice(i, gc, m, tri, u[i], v[i], st, p0, p1, p2, n0, n1, n2, w0, w1, w2,
+                                       rays, surf, max_depth, eps_rel, end, nxt)
+            if m < 0:
                 continue
             kind = kinds[m]
         if not is_specular(kind) and not front and not two_sided[m]:
@@ -362,6 +359,21 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
         gc += 1
         end[i] = CONTINUES
     return dc, gc
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _photon_choice(i, gc, m, tri, u, v, st, p0, p1, p2, n0, n1, n2, w0, w1, w2, rays, surf, max_depth,
+                   eps_rel, end, nxt):
+    """What photon i meets at a mask or blend (`materials.resolve_surface`):
+    (state, the material that scatters or -1 when it passed through, the
+    next free row of `nxt`). Its deposit came first: it records the flux
+    arriving here, whatever the hit point gathering it chose."""
+    st, m, through = resolve_surface(surf.bsdf, m, st, False, surf.uvs, surf.triangles, surf.tex_info,
+                                     surf.tex_uv, surf.texels, tri, u, v)
+    if not through:
+        return st, m, gc
+    return st, -1, _photon_pass_through(i, gc, st, p0, p1, p2, n0, n1, n2, w0, w1, w2, rays, max_depth,
+                                        eps_rel, surf.eps_abs, end, nxt)
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -513,11 +525,9 @@ def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp,
             for k in range(3):
                 emitted[i, k] = weight[i, k] * emit[m, k]
         if bsdf[m, B_CHOICE] > 0.0:     # a mask or a blend: what is there
-            _st, m, through = resolve_surface(bsdf, m, states[i], True, uvs, tris, tinfo, tuv, texels,
-                                              tri, u[i], v[i])
-            if through:
-                _pass_through(i, p0, p1, p2, n0, n1, n2, w0, w1, w2, depth, states, weight, max_depth,
-                              eps_rel, eps_abs, end, nxt)
+            m = _eye_choice(i, m, tri, u[i], v[i], p0, p1, p2, n0, n1, n2, w0, w1, w2, rays, surf,
+                            max_depth, eps_rel, end, nxt)
+            if m < 0:
                 continue
             kind = kinds[m]
         hp_mat[i] = m
@@ -547,10 +557,7 @@ def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp,
         if not ok:
             end[i] = ABSORBED
             continue
-        # Russian roulette on the path weight, as for photons: unbiased, and
-        # with it the depth limit is only a safety net. It decides on the
-        # throughput alone, not the eta^2 of refraction (pbrt's etaScale):
-        # that factor leaving glass would kill 56% of the paths through it.
+        # Russian roulette as for photons (`roulette`: why not on refraction's eta^2).
         t0, t1, t2 = tinted(t0, t1, t2, mtex[m], uvs, tris, tinfo, tuv, texels, tri, u[i], v[i])
         ok, f0, f1, f2 = roulette(weight, i, t0, t1, t2, ur, depth[i])
         if not ok:
@@ -559,6 +566,22 @@ def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp,
         new_w[i, 0], new_w[i, 1], new_w[i, 2] = f0 * eta_scale, f1 * eta_scale, f2 * eta_scale
         write_spawn(new_o, new_d, i, p0, p1, p2, n0, n1, n2, d0, d1, d2, eps_rel, eps_abs)
         end[i] = CONTINUES
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _eye_choice(i, m, tri, u, v, p0, p1, p2, n0, n1, n2, w0, w1, w2, rays, surf, max_depth, eps_rel, end,
+                nxt):
+    """What eye path i meets at a mask or blend (`materials.resolve_surface`,
+    from the path's side stream): the material that scatters, or -1 when
+    the path went on through."""
+    direction, weight, depth, states = rays
+    _st, m, through = resolve_surface(surf.bsdf, m, states[i], True, surf.uvs, surf.triangles, surf.tex_info,
+                                      surf.tex_uv, surf.texels, tri, u, v)
+    if not through:
+        return m
+    _pass_through(i, p0, p1, p2, n0, n1, n2, w0, w1, w2, depth, states, weight, max_depth,
+                  eps_rel, surf.eps_abs, end, nxt)
+    return -1
 
 
 @nb.njit(cache=True, error_model="numpy")
