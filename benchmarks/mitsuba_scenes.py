@@ -154,17 +154,14 @@ def later_part(message: str) -> bool:
     """Whether a refusal is of a plugin a later part of issue 33 builds
     (textures, materials, lights, media, other shapes): an unsupported
     plugin of a family and type in `LATER`, or one refused with its reason
-    (`objects.REFUSED`: principled, out of scope), or a conductor's eta and k."""
+    (`objects.REFUSED`: principled, out of scope), a conductor's eta and k,
+    or a textured roughness."""
     if re.search(r': <\w+ name="(eta|k)">: unsupported parameter of <bsdf type="(rough)?conductor">$', message):
         return True     # a conductor's complex index of refraction: the materials part
-    if re.search(r': <string name="material">: unsupported attribute: named conductor ', message):
-        return True     # a named conductor (its eta and k): the materials part
     if re.search(r': <texture type="[^"]*"[^>]*>: not allowed inside <emitter type="(spot|projector|area)"', message):
         return True     # a textured emitter: the lights part (the textures part reads BSDFs' textures)
-    if re.search(r': <texture type="[^"]*" name="opacity">: not allowed inside <bsdf type="mask">', message):
-        return True     # a textured mask: opacity read from a texture, not built yet
     if re.search(r': <bsdf type="roughconductor">: anisotropic roughness is unsupported', message) or \
-            re.search(r': <texture type="[^"]*" name="alpha_[uv]">: a texture for', message):
+            re.search(r': <texture type="[^"]*" name="alpha(_[uv])?">: a texture for', message):
         return True     # anisotropic or textured roughness (a tangent frame at hit points): the materials part
     found = re.search(r': <(\w+) type="([^"]*)"[^>]*>: (.+)$', message)
     if not found:
@@ -202,6 +199,17 @@ WHY_FAILS = {
     "participating_media/test_surf_area_light_volpath.xml":
         "Mitsuba shades the OBJ spheres with their vertex normals, we with the faces' (Mitsuba with face_normals "
         "differs from the reference as we do, and ours pass against it)",
+    "bsdf_spheres/test_arealight_path.xml":
+        "z-test passes; mean +1.4% +- 0.5% over 48 seeds, all of it the smooth conductor sphere's "
+        "reflection of the area light (+5.2% +- 1.5%; the masks -0.2% +- 0.3%): our meshes have no shading normals, and "
+        "Mitsuba itself renders that sphere +2.5% with face_normals",
+    "bsdf_spheres/test_constant_path.xml":
+        "the background (the constant emitter) is exactly 1 in every seed, the reference 1.001 there: with "
+        "no variance of ours the z-test fails it (at 16 seeds it passes only because the variance of 16 "
+        "equal values rounds to 2e-31)",
+    "bsdf_spheres/test_pointlight_path.xml":
+        "z-test passes; mean +1.9% +- 1.8% over 16 seeds: one pixel, the point light's highlight on the "
+        "alpha 0.05 rough conductor, carries the whole bias and its noise",
 }
 
 

@@ -220,6 +220,9 @@ def _mesh(mi, name: str, vertices: np.ndarray, faces: np.ndarray, props):
 
 
 def _bsdf(mats, mid: int) -> dict:
+    if mats.opacity_texture[mid] >= 0 or mats.blend[mid, 1] >= 0:
+        raise SceneError(f"material {mats.names[mid]!r}: a textured mask or a blend has no Mitsuba "
+                         "form here (render the Mitsuba file itself)")
     bsdf = _opaque_bsdf(mats, mid)
     if float(mats.opacity[mid]) < 1.0:
         return {"type": "mask", "opacity": float(mats.opacity[mid]), "bsdf": bsdf}
@@ -371,8 +374,10 @@ def reference_key(scene: Scene, spp: int, max_depth: int = DEFAULT_MAX_DEPTH,
     mats = scene.materials
     # The columns of the coloured kinds and masks count only where used, so
     # the keys (and cached references) of other scenes stay as they were.
-    newer = ((mats.kind >= ROUGH_DIELECTRIC).any() or (mats.opacity < 1).any())
-    later = ("specular", "distribution", "nonlinear", "opacity", "conductor_eta", "conductor_k")
+    newer = ((mats.kind >= ROUGH_DIELECTRIC).any() or (mats.opacity < 1).any()
+             or (mats.opacity_texture >= 0).any() or (mats.blend[:, 1] >= 0).any())
+    later = ("specular", "distribution", "nonlinear", "opacity", "conductor_eta", "conductor_k",
+             "opacity_texture", "blend", "blend_weight", "blend_texture")
     mapped = ("normal_map", "bump_map", "bump_scale", "shading_flags")    # likewise, normal and bump maps
     arrays.update({f"mat.{k}": v for k, v in vars(mats).items()
                    if k != "names" and (newer or k not in later)

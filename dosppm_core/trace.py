@@ -95,19 +95,19 @@ def advance_eye(surf: SurfaceData, batch: RayBatch, prim, u, v, max_depth: int,
     on as a shadow ray, and ends (STORED) when that ray does. With `env`,
     paths that leave the scene see the environment."""
     kernel = paths.advance_eye_paths if len(batch) >= paths.SERIAL_BELOW else paths.advance_eye_paths_serial
-    ends, (lit, rgb), (h, hpos, hn), (g, no, nd, nw, st) = kernel(
+    ends, (lit, rgb), (h, hpos, hn, hmat), (g, no, nd, nw, st) = kernel(
         (batch.direction, batch.weight, batch.depth, batch.rng), (prim, u, v), surf,
         max_depth, EPS_REL)
     weight = batch.weight[h]
     if len(surf.tex_info) and len(h):
         # A textured hit point carries its texel in its weight (`kernels.texture`).
-        texture.fold_texels(surf, prim[h], u[h], v[h], weight)
+        texture.fold_texels(surf, prim[h], hmat, u[h], v[h], weight)
     outgoing = -batch.direction[h]
     mapped = None
     if surf.shading_mapped and len(h):
         # Normal and bump maps: the hit point keeps the perturbed normal (`kernels.shading`).
-        mapped = shading.perturb_hit_points(surf, prim[h], u[h], v[h], hn, outgoing)
-    hits = HitPoints(hpos, hn, outgoing, weight, surf.tri_material[prim[h]], batch.pixel[h])
+        mapped = shading.perturb_hit_points(surf, prim[h], hmat, u[h], v[h], hn, outgoing)
+    hits = HitPoints(hpos, hn, outgoing, weight, hmat, batch.pixel[h])
     nxt = RayBatch(no, nd, nw, batch.pixel[g], batch.depth[g] + 1, st, job=batch.job[g])
     shadows = ShadowRays.empty()
     if lights is not None and len(hits):

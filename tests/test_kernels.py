@@ -1092,9 +1092,9 @@ def test_serial_eye_and_direct_kernels_equal_the_parallel_ones():
         a, b = paths.advance_eye_paths(*args), paths.advance_eye_paths_serial(*args)
         for x, y in zip(_leaves(a), _leaves(b)):
             np.testing.assert_array_equal(x, y)
-        ends, _lit, (h, hpos, hn), (g, no, nd, nw, st) = a
+        ends, _lit, (h, hpos, hn, hmat), (g, no, nd, nw, st) = a
         if len(h):
-            hits = (hpos, hn, -batch.direction[h], batch.weight[h], surf.tri_material[prim[h]])
+            hits = (hpos, hn, -batch.direction[h], batch.weight[h], hmat)
             dargs = (hits, np.ascontiguousarray(batch.rng[h]), surf, lights[:LIGHT_CACHE], lights[LIGHT_CACHE],
                      lights[INFINITE], True, EPS_REL)
             for x, y in zip(direct.sample_direct(*dargs), direct.sample_direct_serial(*dargs)):

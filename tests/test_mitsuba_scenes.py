@@ -28,6 +28,8 @@ CLAIMED = [
     "bsdf_spheres/test_roughplastic_nonlinear_path.xml",
     "bsdf_spheres/test_normalmap_path.xml",
     "bsdf_spheres/test_bumpmap_path.xml",
+    "bsdf_spheres/test_envmap_path.xml",
+    "mesh_attributes/test_mesh_attributes_1_face_direct.xml",
 ]
 # Load but are not claimed to pass yet: scene -> why (measured figures).
 LOADS = {
@@ -58,21 +60,33 @@ LOADS = {
     # our seeds' noise (per seed -2.6% to +4.5%).
     "participating_media/test_surf_area_light_volpath.xml": "z-pass 99.58%: smooth (vertex) normals",
     "infinite_mirrors/scene_path.xml": "no refs/scene_ref_rgb.exr: Mitsuba's own test skips it",
+    # z-pass 99.97%, mean +1.4% +- 0.5% (48 seeds): the smooth conductor
+    # sphere's reflection of the light +5.2% +- 1.5%, the masks -0.2% +- 0.3%.
+    # Our spheres are faceted (no shading normals); Mitsuba's render of the
+    # file with face_normals puts that sphere +2.5% (8192 spp).
+    "bsdf_spheres/test_arealight_path.xml": "mean +1.4%: a faceted conductor sphere's highlight",
+    # z-pass 100%, mean +1.9% +- 1.8% (16 seeds): one highlight pixel of the
+    # point light on the alpha 0.05 rough conductor carries it.
+    "bsdf_spheres/test_pointlight_path.xml": "mean +1.9%, within its noise (+-1.8%)",
+    # One process (16 seeds) 99.99%, -0.02%; through the service (4 seeds)
+    # z-pass 74%, bias 0.00%, and so one process at 4 or 8 seeds. The
+    # background is the constant emitter, exactly 1 in every seed of ours,
+    # while the reference holds (1.00108, 0.99971, 0.99970) there: with no
+    # variance of ours the z-test takes the reference's noise alone and
+    # fails it. At 16 seeds the variance of our 16 equal values rounds to
+    # 2e-31, not 0, which buys the t-test's 15 degrees of freedom: a pass
+    # by rounding.
+    "bsdf_spheres/test_constant_path.xml": "a background of exactly 1 against the reference's 1.001",
 }
 # Refused, with the element the one-line error names (the first outside our subset),
 # to its first attribute.
 REFUSED = {
-    "bsdf_spheres/test_arealight_path.xml": '<texture type="bitmap"',
-    "bsdf_spheres/test_constant_path.xml": '<texture type="bitmap"',
-    "bsdf_spheres/test_envmap_path.xml": '<texture type="bitmap"',
     "bsdf_spheres/test_normalmap_identity_roughconductor_path.xml": '<bsdf type="roughconductor"',
     "bsdf_spheres/test_normalmap_roughconductor_path.xml": '<bsdf type="roughconductor"',
-    "bsdf_spheres/test_pointlight_path.xml": '<texture type="bitmap"',
     "bsdf_spheres/test_textured_roughconductor_path.xml": '<texture type="checkerboard"',
     "bsdf_spheres/test_texturedprincipled1_path.xml": '<bsdf type="principled"',
     "bsdf_spheres/test_texturedprincipled2_path.xml": '<bsdf type="principled"',
     "bsdf_spheres/test_texturedprincipledthin_path.xml": '<bsdf type="principledthin"',
-    "mesh_attributes/test_mesh_attributes_1_face_direct.xml": '<bsdf type="blendbsdf"',
     "participating_media/test_hetero_sigmat_albedo_volpath.xml": '<medium type="heterogeneous"',
     "participating_media/test_hetero_sigmat_volpath.xml": '<medium type="heterogeneous"',
     "participating_media/test_hetero_spectral_sigmat_no_scattering_volpath.xml": '<medium type="heterogeneous"',

@@ -16,14 +16,33 @@ from dosppm_core.scene.model import SceneHeader
 from dosppm_core.scene.textures import TextureTable
 
 
+# The material columns that name a texture: the colour, a mask's opacity,
+# a blend's weight, a normal map and a bump map (`scene.model.Material`).
+TEXTURE_COLUMNS = ("texture", "opacity_texture", "blend_texture", "normal_map", "bump_map")
+
+
+def _reachable(materials, used) -> np.ndarray:
+    """The materials `used` and the parts of the blends among them, to any depth."""
+    seen = set(int(m) for m in used)
+    todo = list(seen)
+    while todo:
+        for part in materials.blend[todo.pop()]:
+            if part >= 0 and int(part) not in seen:
+                seen.add(int(part))
+                todo.append(int(part))
+    return np.array(sorted(seen), np.int64)
+
+
 def attach_textures(geometry: ChunkGeometry, header: SceneHeader) -> ChunkGeometry:
     """`geometry` with the textures its triangles' materials read (a subset
-    of the header's table, with their ids in it)."""
+    of the header's table, with their ids in it): colours, masks'
+    opacities, blends' weights, normal and bump maps, and those of the
+    blends' parts."""
     table, mats = header.textures, header.materials
     if not len(table) or not len(geometry.tri_material):
         return geometry
-    here = np.unique(geometry.tri_material)
-    used = np.concatenate([mats.texture[here], mats.normal_map[here], mats.bump_map[here]])
+    reached = _reachable(mats, np.unique(geometry.tri_material))
+    used = np.concatenate([getattr(mats, c)[reached] for c in TEXTURE_COLUMNS])
     ids = np.unique(used[used >= 0]).astype(np.int32)
     if not len(ids):
         return geometry
@@ -43,24 +62,21 @@ def store_header(header: SceneHeader) -> SceneHeader:
     return dataclasses.replace(header, textures=bare)
 
 
-TEXTURE_COLUMNS = ("texture", "normal_map", "bump_map")    # a material's texture ids
-
-
 def chunk_surface_textures(geometry: ChunkGeometry, header: SceneHeader):
     """(MaterialTable, TextureTable) a resident chunk's kernels read: the
-    materials with their texture ids renumbered into the chunk's own
-    textures when it carries them; the header's when it holds the
-    texels; else none (-1 for every texture id: a texture the chunk lacks
-    is never indexed out of bounds)."""
+    chunk's own textures, with every texture column renumbered into them,
+    when it carries them; the header's table when it holds the texels; else
+    none (-1 in every column: a texture the chunk lacks is never indexed
+    out of bounds)."""
     mats = header.materials
     if len(geometry.tex_ids):
         local = np.full(len(header.textures), -1, np.int32)
         local[geometry.tex_ids] = np.arange(len(geometry.tex_ids), dtype=np.int32)
-        ids = {c: np.where(getattr(mats, c) >= 0, local[np.maximum(getattr(mats, c), 0)], -1).astype(np.int32)
-               for c in TEXTURE_COLUMNS}
-        return dataclasses.replace(mats, **ids), TextureTable(geometry.tex_info, geometry.tex_uv,
-                                                              geometry.texels, [])
+        cols = {c: np.where(getattr(mats, c) >= 0, local[np.maximum(getattr(mats, c), 0)], -1)
+                .astype(np.int32) for c in TEXTURE_COLUMNS}
+        return (dataclasses.replace(mats, **cols),
+                TextureTable(geometry.tex_info, geometry.tex_uv, geometry.texels, []))
     if len(header.textures.texels):
         return mats, header.textures
-    none = {c: np.full(len(mats.kind), -1, np.int32) for c in TEXTURE_COLUMNS}
-    return dataclasses.replace(mats, **none), TextureTable.empty()
+    cols = {c: np.full(len(mats.texture), -1, np.int32) for c in TEXTURE_COLUMNS}
+    return dataclasses.replace(mats, **cols), TextureTable.empty()

@@ -47,6 +47,7 @@ from dosppm_core.kernels.microfacet import (
     visible_pdf,
 )
 from dosppm_core.kernels.rng import mix64, next_float
+from dosppm_core.kernels.texture import texel_at
 from dosppm_core.scene.model import (
     CONDUCTOR,
     DIFFUSE,
@@ -64,7 +65,11 @@ B_CK = B_CETA + 3
 # Normal and bump maps (`kernels.shading`): texture ids (-1 none), the bump
 # scale and the wrappers' option bits.
 B_NORMAL_MAP, B_BUMP_MAP, B_BUMP_SCALE, B_SHADING_FLAGS = B_CK + 3, B_CK + 4, B_CK + 5, B_CK + 6
-B_COLS = B_CK + 7
+# A mask's textured opacity; a blendbsdf's two materials, weight and
+# textured weight; CHOICE 1 when a hit must first choose what scatters
+# (`resolve_surface`). Texture and material ids as floats, -1 for none.
+B_OPACITY_TEX, B_BLEND_A, B_BLEND_B, B_BLEND_W, B_BLEND_TEX, B_CHOICE = range(B_CK + 7, B_CK + 13)
+B_COLS = B_CHOICE + 1
 
 
 def bsdf_rows(materials) -> np.ndarray:
@@ -86,6 +91,13 @@ def bsdf_rows(materials) -> np.ndarray:
     rows[:, B_BUMP_MAP] = materials.bump_map
     rows[:, B_BUMP_SCALE] = materials.bump_scale
     rows[:, B_SHADING_FLAGS] = materials.shading_flags
+    textured_mask = materials.opacity_texture >= 0
+    rows[textured_mask, B_OPACITY] = 0.0      # marks the mask; the texture gives the value
+    rows[:, B_OPACITY_TEX] = materials.opacity_texture
+    rows[:, B_BLEND_A:B_BLEND_B + 1] = materials.blend
+    rows[:, B_BLEND_W] = materials.blend_weight
+    rows[:, B_BLEND_TEX] = materials.blend_texture
+    rows[:, B_CHOICE] = (rows[:, B_OPACITY] < 1.0) | (materials.blend[:, 1] >= 0)
     for i in range(m):
         k = int(materials.kind[i])
         if k not in (PLASTIC, ROUGH_PLASTIC):
@@ -113,14 +125,6 @@ def is_coloured(kind):
 def is_transmissive(kind):
     """A hit point of this kind gathers photons from both sides."""
     return kind == ROUGH_DIELECTRIC
-
-
-@nb.njit(cache=True, error_model="numpy")
-def opacity(row):
-    """The chance that a surface of this material is there at all (Mitsuba's
-    `mask`): a ray passes straight through otherwise. The one place a
-    textured opacity will look its texel up."""
-    return row[B_OPACITY]
 
 
 # -- the base of a plastic ---------------------------------------------------------
@@ -433,12 +437,6 @@ def side_float(state, salt):
 
 
 @nb.njit(cache=True, error_model="numpy")
-def passes_mask(bsdf, m, u):
-    """Whether a ray passes straight through material m (a `mask`) for u."""
-    return bsdf[m, B_OPACITY] < 1.0 and u >= opacity(bsdf[m])
-
-
-@nb.njit(cache=True, error_model="numpy")
 def hit_point_sample(kind, row, n0, n1, n2, w0, w1, w2, u1, u2, u3):
     """A direction from the hit point's BSDF (`hit_point_eval`) for direct
     light: a smooth plastic's base by its cosine, else `sample_colour`.
@@ -483,11 +481,53 @@ def gather_f(kind, alpha, bsdf, mat, n0, n1, n2, w0, w1, w2, i0, i1, i2):
     return f, f, f
 
 
-@nb.njit(inline="always", cache=True, error_model="numpy")
-def photon_mask(bsdf, m, state):
-    """(state, whether a photon passes through material m): the draw is
-    made only at a mask, so other scenes keep their random streams."""
-    if bsdf[m, B_OPACITY] < 1.0:
-        state, u = next_float(state)
-        return state, u >= opacity(bsdf[m])
-    return state, False
+# -- masks and blends: what scatters at a hit ------------------------------------------
+# Nesting deeper than this (a mask of a blend of blends ...) is refused by the reader.
+MAX_NESTING = 4
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _scalar_at(row, col, tex_col, uvs, tris, tinfo, tuv, texels, tri, u, v):
+    """A [0, 1] parameter of the row: the constant, or the texture's
+    luminance at the hit clipped to [0, 1] (Mitsuba's eval_1 of an RGB
+    texture; a grey one gives its value)."""
+    t = int(row[tex_col])
+    if t < 0:
+        return row[col]
+    c0, c1, c2 = texel_at(uvs, tris, tinfo, tuv, texels, t, tri, u, v)
+    return min(1.0, max(0.0, 0.212671 * c0 + 0.715160 * c1 + 0.072169 * c2))
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _draw(state, eye, salt):
+    """(state, u): an eye path's choice from its side stream (`side_float`,
+    state unchanged), a photon's from its stream."""
+    if eye:
+        return state, side_float(state, salt)
+    return next_float(state)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def resolve_surface(bsdf, m, state, eye, uvs, tris, tinfo, tuv, texels, tri, u, v):
+    """What a ray meets at a hit on material m, for materials whose row has
+    CHOICE set: (state, the material that scatters, whether the ray passes
+    straight through). A mask is there with probability opacity (Mitsuba's
+    mask.cpp samples its null lobe with 1 - opacity, weight 1); a blend
+    hands the interaction to its second material with probability weight
+    (blendbsdf.cpp samples its lobes so, weight 1). Both are read at the
+    hit's UV when textured, so eye rays and photons see the same surface.
+    Not inlined: it is rare, and it takes the texture arrays."""
+    for level in range(MAX_NESTING):
+        row = bsdf[m]
+        if row[B_OPACITY] < 1.0:
+            a = _scalar_at(row, B_OPACITY, B_OPACITY_TEX, uvs, tris, tinfo, tuv, texels, tri, u, v)
+            # salt 0: the first mask's choice as before blends existed; 1 is plastic's.
+            state, x = _draw(state, eye, 0 if level == 0 else 2 + 2 * level)
+            if x >= a:
+                return state, m, True
+        if row[B_BLEND_B] < 0.0:
+            return state, m, False
+        w = _scalar_at(row, B_BLEND_W, B_BLEND_TEX, uvs, tris, tinfo, tuv, texels, tri, u, v)
+        state, x = _draw(state, eye, 3 + 2 * level)
+        m = int(row[B_BLEND_B]) if x < w else int(row[B_BLEND_A])
+    return state, m, False

@@ -25,14 +25,14 @@ from dosppm_core.jobs import ABSORBED, CONTINUES, ESCAPED, MAX_DEPTH, STORED
 from dosppm_core.kernels.bsdf import is_specular, sample_bsdf
 from dosppm_core.kernels.materials import (
     B_BUMP_MAP,
+    B_CHOICE,
     B_NORMAL_MAP,
     B_OPACITY,
     bsdf_rows,
     is_coloured,
     is_transmissive,
-    passes_mask,
-    photon_mask,
     plastic_specular_probability,
+    resolve_surface,
     sample_colour,
     side_float,
 )
@@ -210,7 +210,10 @@ def roulette(flux, i, t0, t1, t2, ur, depth):
     """Russian roulette on the scattered flux (or an eye path's weight)
     flux * t: a path survives with the ratio p of its new to old largest
     component (at most DEEP_SURVIVAL from surface DEEP_DEPTH on), and is
-    reweighted by 1/p. Returns (survives, the new flux)."""
+    reweighted by 1/p. Returns (survives, the new flux). Unbiased, so the
+    depth limit is only a safety net. An eye path's roulette decides on its
+    throughput alone, not the eta^2 of refraction (pbrt's etaScale): that
+    factor leaving glass would kill 56% of the paths through it."""
     old_max = max(flux[i, 0], flux[i, 1], flux[i, 2])
     nf0 = flux[i, 0] * t0
     nf1 = flux[i, 1] * t1
@@ -323,26 +326,25 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
             continue
         p0, p1, p2, n0, n1, n2, w0, w1, w2, m, kind, front = hit_setup(
             verts, tris, tri_mat, kinds, tri, u[i], v[i], direction[i, 0], direction[i, 1], direction[i, 2])
-        st, through = photon_mask(bsdf, m, states[i])
-        if through:
-            gc = _photon_pass_through(i, gc, st, p0, p1, p2, n0, n1, n2, w0, w1, w2, rays, max_depth,
-                                      eps_rel, eps_abs, end, nxt)
-            continue
-        mapped = is_mapped(bsdf, m)     # a normal or bump map: shading normal s, Veach's factor k_in
-        s0, s1, s2, k_in = (photon_shading(bsdf, m, verts, (uvs, tris, tinfo, tuv, texels), tri, u[i], v[i],
-                                           n0, n1, n2, front, w0, w1, w2) if mapped else (n0, n1, n2, 1.0))
-        if not is_specular(kind):
-            if not (front or two_sided[m]) or not k_in > 0.0:
-                end[i] = ABSORBED
-                continue
-            if depth[i] < deposit_from:
-                pass    # direct light: the hit points' shadow rays carry it
-            elif outside(cull_box, p0, p1, p2):
+        st = states[i]
+        mapped, s0, s1, s2, k_in = _photon_normal(surf, m, tri, u[i], v[i], n0, n1, n2, front, w0, w1, w2)
+        if not is_specular(kind) and (front or two_sided[m]) and k_in > 0.0 and depth[i] >= deposit_from:
+            if outside(cull_box, p0, p1, p2):   # (before deposit_from shadow rays bring direct light)
                 culled[i] = True
             else:
                 _deposit(dep_pos, dep_in, dep_n, dep_f, dep_job, dc, p0, p1, p2, n0, n1, n2, front,
                          direction, flux, job, i, k_in)
                 dc += 1
+        if bsdf[m, B_CHOICE] > 0.0:    # a mask or a blend (draws only here: other scenes keep their streams)
+            st, m, gc = _photon_choice(i, gc, m, tri, u[i], v[i], st, p0, p1, p2, n0, n1, n2, w0, w1, w2,
+                                       rays, surf, max_depth, eps_rel, end, nxt)
+            if m < 0:
+                continue
+            kind = kinds[m]
+            mapped, s0, s1, s2, k_in = _photon_normal(surf, m, tri, u[i], v[i], n0, n1, n2, front, w0, w1, w2)
+        if not is_specular(kind) and (not (front or two_sided[m]) or not k_in > 0.0):
+            end[i] = ABSORBED
+            continue
         if depth[i] + 1 >= max_depth:
             end[i] = MAX_DEPTH
             continue
@@ -365,6 +367,19 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
         gc += 1
         end[i] = CONTINUES
     return dc, gc
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def _photon_normal(surf, m, tri, u, v, n0, n1, n2, front, w0, w1, w2):
+    """(mapped, shading normal s, Veach's factor k_in) of material m at the
+    hit: a normal or bump map's (`kernels.shading`), else the geometric
+    normal and 1."""
+    if not is_mapped(surf.bsdf, m):
+        return False, n0, n1, n2, 1.0
+    tex = (surf.uvs, surf.triangles, surf.tex_info, surf.tex_uv, surf.texels)
+    s0, s1, s2, k_in = photon_shading(surf.bsdf, m, surf.vertices, tex, tri, u, v, n0, n1, n2, front,
+                                      w0, w1, w2)
+    return True, s0, s1, s2, k_in
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
@@ -398,6 +413,21 @@ def _adjoint(t0, t1, t2, k_in, n0, n1, n2, s0, s1, s2, d0, d1, d2, front):
         return False, 0.0, 0.0, 0.0
     k = k_in * cg / cs
     return True, t0 * k, t1 * k, t2 * k
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _photon_choice(i, gc, m, tri, u, v, st, p0, p1, p2, n0, n1, n2, w0, w1, w2, rays, surf, max_depth,
+                   eps_rel, end, nxt):
+    """What photon i meets at a mask or blend (`materials.resolve_surface`):
+    (state, the material that scatters or -1 when it passed through, the
+    next free row of `nxt`). Its deposit came first: it records the flux
+    arriving here, whatever the hit point gathering it chose."""
+    st, m, through = resolve_surface(surf.bsdf, m, st, False, surf.uvs, surf.triangles, surf.tex_info,
+                                     surf.tex_uv, surf.texels, tri, u, v)
+    if not through:
+        return st, m, gc
+    return st, -1, _photon_pass_through(i, gc, st, p0, p1, p2, n0, n1, n2, w0, w1, w2, rays, max_depth,
+                                        eps_rel, surf.eps_abs, end, nxt)
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -472,10 +502,11 @@ def advance_eye_paths(rays, hits, surf, max_depth, eps_rel):
     non-specular surface, and continue through mirrors and glass. `rays`
     is (direction, weight, depth, rng state), `hits` (prim, u, v). Returns
     (end counts, emission (index into the batch, rgb), hit points (index,
-    position, normal), continuing paths (index, origin, direction, weight,
-    rng state)); a hit point's outgoing direction is -direction and its
-    material tri_material[prim]. (`advance_eye_paths_serial`: the same on
-    one thread.)"""
+    position, normal, material), continuing paths (index, origin,
+    direction, weight, rng state)); a hit point's outgoing direction is
+    -direction and its material tri_material[prim], or the part a mask or
+    blend chose there. (`advance_eye_paths_serial`: the same on one
+    thread.)"""
     n = hits[0].shape[0]
     nblk = max(1, min(64, n // 2048))   # enough blocks to balance threads
     end, emitted, hp, nxt = _eye_buffers(n, rays)
@@ -498,7 +529,7 @@ def advance_eye_paths_serial(rays, hits, surf, max_depth, eps_rel):
 def _eye_buffers(n, rays):
     end = np.empty(n, np.int8)
     emitted = np.zeros((n, 3), np.float32)
-    hp = (np.empty((n, 3), np.float32), np.empty((n, 3), np.float32))
+    hp = (np.empty((n, 3), np.float32), np.empty((n, 3), np.float32), np.empty(n, np.int32))
     nxt = (np.empty((n, 3), np.float32), np.empty((n, 3), np.float32),
            np.empty((n, 3), np.float32), rays[3].copy())
     return end, emitted, hp, nxt
@@ -509,7 +540,8 @@ def _eye_outputs(end, emitted, hp, nxt):
     lit = _indices((emitted[:, 0] + emitted[:, 1] + emitted[:, 2]) > 0.0)
     h = _indices(end == STORED)
     g = _indices(end == CONTINUES)
-    return (_ends(end), (lit, _take_rows(emitted, lit)), (h, _take_rows(hp[0], h), _take_rows(hp[1], h)),
+    return (_ends(end), (lit, _take_rows(emitted, lit)),
+            (h, _take_rows(hp[0], h), _take_rows(hp[1], h), hp[2][h]),
             (g, _take_rows(nxt[0], g), _take_rows(nxt[1], g), _take_rows(nxt[2], g), nxt[3][g]))
 
 
@@ -534,7 +566,7 @@ def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp,
     (verts, tris, tri_mat, kinds, refl, emit, ior, rough, two_sided, eps_abs, bsdf,
      uvs, mtex, tinfo, tuv, texels) = surf
     prim, u, v = hits
-    hp_pos, hp_n = hp
+    hp_pos, hp_n, hp_mat = hp
     new_o, new_d, new_w, new_st = nxt
     for i in range(a, e):
         tri = prim[i]
@@ -546,10 +578,13 @@ def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp,
         if front:  # one-sided emitters, as in Mitsuba
             for k in range(3):
                 emitted[i, k] = weight[i, k] * emit[m, k]
-        if bsdf[m, B_OPACITY] < 1.0 and passes_mask(bsdf, m, side_float(states[i], 0)):
-            _pass_through(i, p0, p1, p2, n0, n1, n2, w0, w1, w2, depth, states, weight, max_depth,
-                          eps_rel, eps_abs, end, nxt)
-            continue
+        if bsdf[m, B_CHOICE] > 0.0:     # a mask or a blend: what is there
+            m = _eye_choice(i, m, tri, u[i], v[i], p0, p1, p2, n0, n1, n2, w0, w1, w2, rays, surf,
+                            max_depth, eps_rel, end, nxt)
+            if m < 0:
+                continue
+            kind = kinds[m]
+        hp_mat[i] = m
         coat = False
         if not is_specular(kind):
             if not front and not two_sided[m]:
@@ -576,10 +611,7 @@ def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp,
         if not ok:
             end[i] = ABSORBED
             continue
-        # Russian roulette on the path weight, as for photons: unbiased, and
-        # with it the depth limit is only a safety net. It decides on the
-        # throughput alone, not the eta^2 of refraction (pbrt's etaScale):
-        # that factor leaving glass would kill 56% of the paths through it.
+        # Russian roulette as for photons (`roulette`: why not on refraction's eta^2).
         t0, t1, t2 = tinted(t0, t1, t2, mtex[m], uvs, tris, tinfo, tuv, texels, tri, u[i], v[i])
         ok, f0, f1, f2 = roulette(weight, i, t0, t1, t2, ur, depth[i])
         if not ok:
@@ -588,6 +620,22 @@ def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp,
         new_w[i, 0], new_w[i, 1], new_w[i, 2] = f0 * eta_scale, f1 * eta_scale, f2 * eta_scale
         write_spawn(new_o, new_d, i, p0, p1, p2, n0, n1, n2, d0, d1, d2, eps_rel, eps_abs)
         end[i] = CONTINUES
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _eye_choice(i, m, tri, u, v, p0, p1, p2, n0, n1, n2, w0, w1, w2, rays, surf, max_depth, eps_rel, end,
+                nxt):
+    """What eye path i meets at a mask or blend (`materials.resolve_surface`,
+    from the path's side stream): the material that scatters, or -1 when
+    the path went on through."""
+    direction, weight, depth, states = rays
+    _st, m, through = resolve_surface(surf.bsdf, m, states[i], True, surf.uvs, surf.triangles, surf.tex_info,
+                                      surf.tex_uv, surf.texels, tri, u, v)
+    if not through:
+        return m
+    _pass_through(i, p0, p1, p2, n0, n1, n2, w0, w1, w2, depth, states, weight, max_depth,
+                  eps_rel, surf.eps_abs, end, nxt)
+    return -1
 
 
 @nb.njit(cache=True, error_model="numpy")

@@ -182,9 +182,10 @@ def photon_shading(bsdf, m, verts, tex, tri, u, v, n0, n1, n2, front, w0, w1, w2
 
 
 @nb.njit(cache=True, parallel=True, error_model="numpy")
-def perturb_hit_points(surf, prim, u, v, normal, outgoing):
+def perturb_hit_points(surf, prim, material, u, v, normal, outgoing):
     """Hit points' normals (float32 (n, 3), facing their outgoing
-    direction, changed in place) replaced by their materials' perturbed
+    direction, changed in place) replaced by their materials' (`material`:
+    what a mask or blend chose there) perturbed
     normals. Returns (geometric normals before the change, a2 of each:
     -1 where the material has no map)."""
     n = prim.shape[0]
@@ -192,7 +193,7 @@ def perturb_hit_points(surf, prim, u, v, normal, outgoing):
     a2 = np.full(n, -1.0)
     tex = (surf.uvs, surf.triangles, surf.tex_info, surf.tex_uv, surf.texels)
     for i in nb.prange(n):
-        m = surf.tri_material[prim[i]]
+        m = material[i]
         if not is_mapped(surf.bsdf, m):
             continue
         g0, g1, g2 = _ccw_normal(surf.vertices, surf.triangles, prim[i])

@@ -131,13 +131,14 @@ def texel_at(uvs, tris, tex_info, tex_uv, texels, t, tri, u, v):
 
 
 @nb.njit(cache=True, error_model="numpy")
-def fold_texels(surf, prim, u, v, weight):
+def fold_texels(surf, prim, material, u, v, weight):
     """Hit points' weights times the texel of their textured materials
-    (`weight` (n, 3) float32, changed in place; rows of untextured
-    materials are left as they are)."""
+    (`material`: the hit points', which a mask or blend may have chosen
+    among its parts; `weight` (n, 3) float32, changed in place; rows of
+    untextured materials are left as they are)."""
     for i in range(prim.shape[0]):
         tri = prim[i]
-        m = surf.tri_material[tri]
+        m = material[i]
         t = surf.mat_texture[m]
         if t < 0:
             continue

@@ -75,7 +75,13 @@ class Material:
     'roughplastic' (a dielectric coating of `ior` over a diffuse base of
     albedo `reflectance`; `specular` tints the coating; `nonlinear` is
     Mitsuba's flag). `opacity` < 1 is Mitsuba's `mask`: a ray passes
-    straight through with probability 1 - opacity. See kernels.materials.
+    straight through with probability 1 - opacity; `opacity_texture` >= 0
+    reads the opacity from that texture at the hit instead (its luminance).
+    `blend` = (first, second) material ids makes Mitsuba's `blendbsdf`: at
+    each interaction the second scatters with probability `blend_weight`
+    (or `blend_texture`'s luminance at the hit), else the first; the
+    blend's own kind and colours are unused, its emission is its own. See
+    kernels.materials.
 
     Mitsuba's `normalmap` and `bumpmap` wrappers: `normal_map` >= 0 is the
     texture whose raw RGB c gives the tangent-space normal 2c - 1,
@@ -102,6 +108,10 @@ class Material:
     bump_map: int = -1
     bump_scale: float = 1.0
     shading_flags: int = 3
+    opacity_texture: int = -1
+    blend: tuple = (-1, -1)
+    blend_weight: float = 0.0
+    blend_texture: int = -1
 
     def validate(self, where: str) -> None:
         if self.kind not in MATERIAL_KINDS:
@@ -126,6 +136,8 @@ class Material:
             raise SceneError(f"{where}: a conductor's eta and k must be non-negative")
         if not (math.isfinite(self.opacity) and 0.0 <= self.opacity <= 1.0):
             raise SceneError(f"{where}.opacity: must lie in [0, 1], got {self.opacity!r}")
+        if not (math.isfinite(self.blend_weight) and 0.0 <= self.blend_weight <= 1.0):
+            raise SceneError(f"{where}.blend_weight: must lie in [0, 1], got {self.blend_weight!r}")
 
 
 @dataclass
@@ -269,6 +281,10 @@ class MaterialTable:
     bump_map: np.ndarray = None       # int32 (m,)
     bump_scale: np.ndarray = None     # float32 (m,)
     shading_flags: np.ndarray = None  # int32 (m,)
+    opacity_texture: np.ndarray = None  # int32 (m,): a mask's textured opacity, -1 for none
+    blend: np.ndarray = None          # int32 (m, 2): a blendbsdf's two materials, -1 for none
+    blend_weight: np.ndarray = None   # float32 (m,): the second one's probability
+    blend_texture: np.ndarray = None  # int32 (m,): a textured weight, -1 for none
 
     def __post_init__(self):
         # Tables made before these columns (tests, older callers) get the
@@ -289,9 +305,13 @@ class MaterialTable:
         if self.conductor_k is None:
             self.conductor_k = np.ones((m, 3), np.float32)
         for name, dtype, value in (("normal_map", np.int32, -1), ("bump_map", np.int32, -1),
-                                   ("bump_scale", np.float32, 1.0), ("shading_flags", np.int32, 3)):
+                                   ("bump_scale", np.float32, 1.0), ("shading_flags", np.int32, 3),
+                                   ("opacity_texture", np.int32, -1), ("blend_weight", np.float32, 0.0),
+                                   ("blend_texture", np.int32, -1)):
             if getattr(self, name) is None:
                 setattr(self, name, np.full(m, value, dtype))
+        if self.blend is None:
+            self.blend = np.full((m, 2), -1, np.int32)
 
     @property
     def textured(self) -> bool:
@@ -324,6 +344,10 @@ class MaterialTable:
             bump_map=np.array([m.bump_map for m in mats], np.int32),
             bump_scale=np.array([m.bump_scale for m in mats], np.float32),
             shading_flags=np.array([m.shading_flags for m in mats], np.int32),
+            opacity_texture=np.array([m.opacity_texture for m in mats], np.int32),
+            blend=np.array([m.blend for m in mats], np.int32).reshape(-1, 2),
+            blend_weight=np.array([m.blend_weight for m in mats], np.float32),
+            blend_texture=np.array([m.blend_texture for m in mats], np.int32),
         )
 
 
@@ -521,9 +545,11 @@ class SceneBuilder:
     def add_material(self, material: Material, where: str | None = None) -> int:
         where = where or f"{self.source}: material {material.name!r}"
         material.validate(where)
-        for tex in (material.texture, material.normal_map, material.bump_map):
-            if not -1 <= tex < len(self._textures):
-                raise SceneError(f"{where}: texture id {tex} out of range")
+        for name in ("texture", "opacity_texture", "blend_texture", "normal_map", "bump_map"):
+            if not -1 <= getattr(material, name) < len(self._textures):
+                raise SceneError(f"{where}: {name} id {getattr(material, name)} out of range")
+        if material.blend != (-1, -1) and not all(0 <= b < len(self._materials) for b in material.blend):
+            raise SceneError(f"{where}: blend of material ids {material.blend}, not two earlier materials")
         if material.name in self._material_ids:
             raise SceneError(f"{where}: duplicate material name {material.name!r}")
         self._material_ids[material.name] = len(self._materials)
@@ -531,9 +557,13 @@ class SceneBuilder:
         return self._material_ids[material.name]
 
     def textured(self, material: int) -> bool:
-        """Whether material id `material` reads a texture (its meshes keep UVs)."""
+        """Whether material id `material` reads a texture (its meshes keep
+        UVs): its colour, a mask's opacity, a blend's weight or its parts',
+        a normal or bump map."""
         m = self._materials[material]
-        return m.texture >= 0 or m.normal_map >= 0 or m.bump_map >= 0
+        if max(m.texture, m.opacity_texture, m.blend_texture, m.normal_map, m.bump_map) >= 0:
+            return True
+        return m.blend != (-1, -1) and any(self.textured(b) for b in m.blend)
 
     def material_id(self, name: str, where: str) -> int:
         try:

@@ -252,6 +252,8 @@ def surface_lines(scene: Scene, mid: int) -> list[str]:
         raise PbrtError(f"material {mats.names[mid]!r}: textured materials have no pbrt mapping here")
     if mats.normal_map[mid] >= 0 or mats.bump_map[mid] >= 0:
         raise PbrtError(f"material {mats.names[mid]!r}: normal and bump maps have no pbrt mapping here")
+    if mats.opacity_texture[mid] >= 0 or mats.blend[mid, 1] >= 0:
+        raise PbrtError(f"material {mats.names[mid]!r}: textured masks and blends have no pbrt mapping here")
     if np.max(mats.emission[mid]) > 0:
         out.append(f'  AreaLightSource "diffuse" "rgb L" [{_vec(mats.emission[mid])}]')
     tint = np.asarray(mats.reflectance[mid], float)

@@ -20,22 +20,26 @@ shape       obj, ply (filename, face_normals); rectangle; cube; sphere
             emitters) and instance (to_world, one ``<ref>`` to a group),
             flattened into copies of the group's triangles
 bsdf        diffuse (reflectance); twosided (one nested BSDF);
-            conductor (material: "none" or one of Mitsuba's named metals,
-            specular_reflectance, eta, k);
-            roughconductor (distribution, alpha or alpha_u = alpha_v,
-            material, specular_reflectance, eta, k, sample_visible);
+            conductor (material: "none" or one of Mitsuba's named
+            conductors, as its RGB variants convert them (`metals`),
+            specular_reflectance, eta, k); roughconductor (distribution,
+            alpha or alpha_u = alpha_v, material, specular_reflectance,
+            eta, k, sample_visible);
             dielectric (int_ior, ext_ior as numbers or Mitsuba's names;
             specular_reflectance equal to specular_transmittance) -> glass;
             roughdielectric (distribution ggx or beckmann, alpha, int_ior,
             ext_ior, specular_reflectance, specular_transmittance);
             plastic (int_ior, ext_ior, diffuse_reflectance,
             specular_reflectance, nonlinear); roughplastic (the same plus
-            distribution and alpha); mask (constant opacity, one nested
-            BSDF); normalmap (a texture named normalmap) and bumpmap (one
-            texture, scale) around a diffuse, rough conductor or rough
-            plastic, with flip_invalid_normals and use_shadowing_function;
-            principled and principledthin are refused
-            the colour of diffuse, conductors and dielectric may be a texture
+            distribution and alpha); mask (opacity a number or a
+            texture, one nested BSDF); blendbsdf (weight a number or a
+            texture, two nested BSDFs); normalmap (a texture named
+            normalmap) and bumpmap (one texture, scale) around a diffuse,
+            rough conductor or rough plastic, with flip_invalid_normals and
+            use_shadowing_function; principled and principledthin are
+            refused. The colour of diffuse, conductors and dielectric, a
+            mask's opacity and a blend's weight may be a texture (the last
+            two: its luminance, clipped to [0, 1], as Mitsuba's eval_1)
 texture     bitmap (filename: PNG, JPEG, BMP, ... or EXR; filter_type
             bilinear or nearest, wrap_mode repeat, mirror or clamp, raw,
             to_uv, format); checkerboard (color0, color1, to_uv);
@@ -94,7 +98,7 @@ Decisions:
   built-in shapes' analytic (u, v) at their vertices, and (b1, b2) on a
   mesh without coordinates. 8-bit images are sRGB-decoded unless ``raw``.
 * conductor and roughconductor take eta and k (one value, rgb or a
-  constant spectrum; not a named material) and both distributions, Beckmann
+  constant spectrum) or a named material and both distributions, Beckmann
   being Mitsuba's default; a GGX roughconductor without eta and k is our
   "glossy", one without them a perfect mirror's Fresnel of 1.
 * The front of a surface is its triangle winding (counter-clockwise), which

@@ -68,13 +68,17 @@ def per_triangle(element: str, values: np.ndarray, vertices, faces):
 
 def shape_attribute(reader: ReaderState, material: int, obj: Obj, path: str | None, vertices, faces):
     """(vertices, faces, uv, material) of a shape whose material reads a
-    mesh attribute: its own texture and material; None for other shapes."""
+    mesh attribute (as its colour, a mask's opacity or a blend's weight):
+    its own texture and material; None for other shapes."""
     builder = reader.builder
-    texture = builder._materials[material].texture
-    found = reader.attribute_ids.get(texture)
-    if found is None:
+    base = builder._materials[material]
+    fields = [f for f in ("texture", "opacity_texture", "blend_texture")
+              if getattr(base, f) in reader.attribute_ids]
+    if not fields:
         return None
-    name, node = found
+    if len(fields) > 1:
+        obj.node.fail("more than one mesh attribute read by one material is unsupported")
+    name, node = reader.attribute_ids[getattr(base, fields[0])]
     if path is None or not path.lower().endswith(".ply"):
         obj.node.fail(f"mesh attribute {name!r}: only a PLY shape carries attributes here")
     element, values = attribute_values(path, name, node)
@@ -82,7 +86,6 @@ def shape_attribute(reader: ReaderState, material: int, obj: Obj, path: str | No
     if len(values) != expected:
         node.fail(f"mesh attribute {name!r}: {len(values)} values for {expected} {element}s")
     vertices, faces, uv, tex = per_triangle(element, values, vertices, faces)
-    base = builder._materials[material]
     own = dataclasses.replace(base, name=f"{base.name}@{obj.node.line}:{len(builder._materials)}",
-                              texture=builder.add_texture(tex))
+                              **{fields[0]: builder.add_texture(tex)})
     return vertices, faces, uv, builder.add_material(own, obj.where())

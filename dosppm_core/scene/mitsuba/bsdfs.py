@@ -3,13 +3,14 @@
 (one tint) -> glass; conductor and roughconductor with eta and k (or a
 named metal, `metals`), or Beckmann -> their kinds; roughdielectric (GGX
 or Beckmann), plastic and roughplastic -> their kinds; mask (a constant
-opacity) -> its nested material with `opacity`; normalmap and bumpmap (a
-texture, and a nested diffuse, rough conductor or rough plastic) -> the
-nested material with its `normal_map` or `bump_map` (kernels.shading).
-One <bsdf> object is one material; a shape's (bsdf, area emitter) pair
-becomes one builder material, since emission belongs to the material.
-The colour (reflectance, or the conductor's or glass's tint) may be a
-texture (`textures`)."""
+or textured opacity) -> its nested material with `opacity`; blendbsdf ->
+a material naming its two parts; normalmap and bumpmap (a texture, and a
+nested diffuse, rough conductor or rough plastic) -> the nested material
+with its `normal_map` or `bump_map` (kernels.shading). One <bsdf> object
+is one material; a shape's (bsdf, area emitter) pair becomes one builder
+material, since emission belongs to the material. The colour
+(reflectance, or the conductor's or glass's tint) may be a texture
+(`textures`)."""
 from __future__ import annotations
 
 import dataclasses
@@ -41,7 +42,7 @@ def bsdf_material(reader: ReaderState, obj: Obj) -> Material:
                    "roughconductor": _roughconductor, "dielectric": _dielectric,
                    "roughdielectric": _roughdielectric, "plastic": _plastic,
                    "roughplastic": _roughplastic, "mask": _mask, "normalmap": _normalmap,
-                   "bumpmap": _bumpmap}[obj.type]
+                   "bumpmap": _bumpmap, "blendbsdf": _blendbsdf}[obj.type]
         material = convert(reader, obj)
         finish(obj)
         material.validate(obj.where())
@@ -58,6 +59,9 @@ def material_id(reader: ReaderState, bsdf, emitter, shape: Obj) -> int:
         if emitter is not None:
             material = dataclasses.replace(material, name=f"{material.name}+{emitter.name()}",
                                            emission=area_radiance(reader, emitter))
+        if material.name in reader.builder._material_ids:
+            # Two BSDFs on one line (a blend and its part) share a name.
+            material = dataclasses.replace(material, name=f"{material.name}#{len(reader.material_ids)}")
         where = (bsdf or emitter or shape).where()
         reader.material_ids[key] = reader.builder.add_material(material, where)
     return reader.material_ids[key]
@@ -94,11 +98,14 @@ def _twosided(reader: ReaderState, obj: Obj) -> Material:
 
 def _mask(reader: ReaderState, obj: Obj) -> Material:
     """Mitsuba's mask: the nested BSDF with probability `opacity` (default
-    0.5), else the ray passes straight through."""
-    inner = reader.children(obj, {"bsdf"})
-    if len(inner) != 1:
-        obj.node.fail("needs exactly one nested BSDF")
-    opacity = get_float(obj, "opacity", 0.5)
+    0.5; a texture's luminance at the hit), else the ray passes straight
+    through."""
+    inner = _nested(reader, obj, 1)
+    params = TextureParams(reader, obj, skip={"bsdf"})
+    opacity, texture = params.scalar("opacity", 0.5)
+    params.finish()
+    if texture >= 0:
+        return dataclasses.replace(bsdf_material(reader, inner[0]), name=obj.name(), opacity_texture=texture)
     if not 0.0 <= opacity <= 1.0:
         obj.node.fail(f"opacity must lie in [0, 1], got {opacity}")
     return dataclasses.replace(bsdf_material(reader, inner[0]), name=obj.name(), opacity=opacity)
@@ -152,6 +159,34 @@ def _shading_flags(obj: Obj) -> int:
     """Mitsuba's two options of the normal and bump maps (both default on)."""
     return (int(bool(get_bool(obj, "flip_invalid_normals", True)))
             | 2 * int(bool(get_bool(obj, "use_shadowing_function", True))))
+def _blendbsdf(reader: ReaderState, obj: Obj) -> Material:
+    """Mitsuba's blendbsdf: (1 - weight) first + weight second, `weight`
+    (required) a number or a texture's luminance at the hit. Each
+    interaction picks one part with that probability (as Mitsuba samples
+    it), so the parts become materials of their own and the blend names
+    them; a shape of the blend holds the blend's emission, if any."""
+    inner = _nested(reader, obj, 2)
+    params = TextureParams(reader, obj, skip={"bsdf"})
+    weight, texture = params.scalar("weight", None)
+    params.finish()
+    if weight is None and texture < 0:
+        obj.node.fail("needs a weight (a number or a texture)")
+    if texture < 0 and not 0.0 <= weight <= 1.0:
+        obj.node.fail(f"weight must lie in [0, 1], got {weight}")
+    parts = [bsdf_material(reader, b) for b in inner]
+    ids = tuple(material_id(reader, b, None, obj) for b in inner)
+    # The blend's own kind only tells the photon bounce whether a photon
+    # may be deposited here (some part is not specular) and on which side.
+    kind = "mirror" if all(p.kind in ("mirror", "glass", "conductor") for p in parts) else "diffuse"
+    return Material(obj.name(), kind, two_sided=any(p.two_sided for p in parts), blend=ids,
+                    blend_weight=0.0 if weight is None else weight, blend_texture=texture)
+
+
+def _nested(reader: ReaderState, obj: Obj, count: int) -> list:
+    inner = [c for c in reader.children(obj, {"bsdf", "texture"}) if c.tag == "bsdf"]
+    if len(inner) != count:
+        obj.node.fail(f"needs exactly {'one nested BSDF' if count == 1 else f'{count} nested BSDFs'}")
+    return inner
 
 
 def _conductor(reader: ReaderState, obj: Obj) -> Material:

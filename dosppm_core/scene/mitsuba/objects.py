@@ -19,7 +19,7 @@ VALUE_TAGS = {"float", "integer", "boolean", "string", "point", "vector", "rgb",
 PLUGINS = {
     "shape": {"obj", "ply", "rectangle", "cube", "sphere", "disk", "cylinder", "shapegroup", "instance"},
     "bsdf": {"diffuse", "twosided", "conductor", "roughconductor", "dielectric", "roughdielectric",
-             "plastic", "roughplastic", "mask", "normalmap", "bumpmap"},
+             "plastic", "roughplastic", "mask", "blendbsdf", "normalmap", "bumpmap"},
     "emitter": {"area", "point", "spot", "directional", "constant", "envmap", "projector"},
     "texture": {"bitmap", "checkerboard", "mesh_attribute", "rawconstant"},
     "sensor": {"perspective", "thinlens", "orthographic"},

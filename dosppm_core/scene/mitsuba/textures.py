@@ -16,7 +16,8 @@ import numpy as np
 
 from dosppm_core.scene import textures as tx
 from dosppm_core.scene.mitsuba.objects import Obj, Ref
-from dosppm_core.scene.mitsuba.params import finish, get_bool, get_matrix, get_rgb, get_str, required
+from dosppm_core.scene.mitsuba.params import (finish, get_bool, get_float, get_matrix, get_rgb, get_str,
+                                              required)
 from dosppm_core.scene.mitsuba.state import ReaderState
 from dosppm_core.scene.mitsuba.xmltree import resolve
 
@@ -90,13 +91,16 @@ def _checkerboard(obj: Obj) -> tx.Texture:
 class TextureParams:
     """A BSDF's nested or referenced textures, by parameter name."""
 
-    def __init__(self, reader: ReaderState, obj: Obj):
+    def __init__(self, reader: ReaderState, obj: Obj, skip=()):
+        """`skip`: tags of children the BSDF reads itself (a mask's nested <bsdf>)."""
         self.reader, self.obj = reader, obj
         self.named: dict = {}
         for child in obj.children:
             target = child
             if isinstance(child, Ref):
                 target = reader.ids.get(child.id) or child.node.fail(f"unknown id {child.id!r}")
+            if target.tag in skip:
+                continue
             if target.tag != "texture":
                 child.node.fail(f"not allowed inside {obj.node.label}")
             name = child.node.attrib.get("name")
@@ -111,11 +115,22 @@ class TextureParams:
         textured one."""
         if name not in self.named:
             return get_rgb(self.obj, name, default), -1
+        return None, self._texture(name)
+
+    def scalar(self, name: str, default) -> tuple:
+        """(number, -1) of a constant parameter (`default` when absent), or
+        (None, texture id) of a textured one (the kernels take its
+        luminance, as Mitsuba's eval_1 of an RGB texture)."""
+        if name not in self.named:
+            return get_float(self.obj, name, default), -1
+        return None, self._texture(name)
+
+    def _texture(self, name: str) -> int:
         entry = self.named[name]
         if name in self.obj.props:
             entry[0].node.fail(f"parameter {name!r} given twice (a value and a texture)")
         entry[2] = True
-        return None, read_texture(self.reader, entry[1])
+        return read_texture(self.reader, entry[1])
 
     def same(self, a: str, b: str, default: float) -> tuple:
         """(RGB, texture id) of two parameters that must agree (a glass's
