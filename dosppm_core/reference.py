@@ -258,6 +258,9 @@ def _coloured_bsdf(mats, mid: int, kind: int, tint: dict) -> dict:
 def _delta_emitters(mi, scene: Scene) -> dict:
     lights, out = scene.lights, {}
     for i in np.flatnonzero(lights.kind != LIGHT_TRIANGLE):
+        if lights.texture[i] >= 0:
+            raise ValueError("a textured spot or projector has no reference render here: "
+                             "render the Mitsuba file itself")
         pos, value = _vec(lights.p0[i]), _spectrum(lights.value[i])
         if lights.kind[i] == LIGHT_POINT:
             out[f"light_{i}"] = {"type": "point", "position": pos, "intensity": value}

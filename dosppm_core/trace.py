@@ -37,7 +37,7 @@ def emit_photon_jobs(scene: Scene, seed: int, keys, counts, eps_abs: float) -> R
     np.cumsum(counts, out=starts[1:])
     o, d, f, st, light = emit.emit_photons(L.kind, L.p0, L.p1, L.p2, L.value, L.cone, L.power,
                                            L.cdf, np.uint64(seed), keys, starts, eps_abs,
-                                           envmap.env_arrays(L))
+                                           envmap.env_arrays(L), light_textures(L))
     # A photon path's pixel is -1 - its light: its first hit teaches the
     # light cache (`kernels.light_cache`) which light reaches there.
     return RayBatch(o, d, f, -1 - light, np.zeros(len(light), np.int32), st,
@@ -163,9 +163,16 @@ def _infinite_arrays(lights: LightTable) -> tuple:
 
 
 # -- direct light -----------------------------------------------------------------
-LIGHT_CACHE = 14      # light_arrays()[LIGHT_CACHE]: the light cache's arrays the eye passes read
-LEARN = 15            # light_arrays()[LEARN]: those the photons teach (the same, or the live ones)
-INFINITE = 16         # light_arrays()[INFINITE]: the infinite lights (`_infinite_arrays`)
+LIGHT_TEXTURE = 14    # light_arrays()[14:18]: the lights' textures (`light_textures`)
+LIGHT_CACHE = 18      # light_arrays()[LIGHT_CACHE]: the light cache's arrays the eye passes read
+LEARN = 19            # light_arrays()[LEARN]: those the photons teach (the same, or the live ones)
+INFINITE = 20         # light_arrays()[INFINITE]: the infinite lights (`_infinite_arrays`)
+
+
+def light_textures(lights: LightTable) -> tuple:
+    """The textured lights' arrays as the kernels take them: (texture id
+    per light, tex_info, tex_uv, tex_texels; `LightTable`)."""
+    return (lights.texture, lights.tex_info, lights.tex_uv, lights.tex_texels)
 
 
 def light_arrays(lights: LightTable, cache: LightCache | None = None) -> tuple:
@@ -176,8 +183,8 @@ def light_arrays(lights: LightTable, cache: LightCache | None = None) -> tuple:
     and those of the infinite lights."""
     L = lights
     cache = cache if cache is not None else LightCache.empty()
-    return (L.kind, L.p0, L.p1, L.p2, L.value, L.cone, L.power, L.cdf, *build_light_tree(L), cache.read,
-            cache.arrays(), _infinite_arrays(L))
+    return (L.kind, L.p0, L.p1, L.p2, L.value, L.cone, L.power, L.cdf, *build_light_tree(L),
+            *light_textures(L), cache.read, cache.arrays(), _infinite_arrays(L))
 
 
 def freeze_light_cache(lights: tuple | None) -> None:

@@ -8,6 +8,7 @@ from dosppm_core.kernels.bsdf import cosine_hemisphere, to_world
 from dosppm_core.kernels.envmap import env_eval, env_sample
 from dosppm_core.kernels.paths import offset_origin
 from dosppm_core.kernels.rng import EYE_STREAM, next_float, path_state
+from dosppm_core.kernels.texture import emitter_texel
 from dosppm_core.scene.model import LIGHT_DIRECTIONAL, LIGHT_POINT, LIGHT_PROJECTOR, LIGHT_SPOT, LIGHT_TRIANGLE
 
 EMIT_EPS_REL = 2e-5   # the bounces' spawn offset relative to |p| (tracing.EPS_REL)
@@ -89,7 +90,7 @@ def select_light(cdf, u):
 
 
 @nb.njit(cache=True, parallel=True, error_model="numpy")
-def emit_photons(kind, p0, p1, p2, value, cone, power, cdf, seed, jobs, starts, eps, env):
+def emit_photons(kind, p0, p1, p2, value, cone, power, cdf, seed, jobs, starts, eps, env, light_tex):
     """Photons of the emission jobs `jobs` (rng keys), job m's photons
     being rows [starts[m], starts[m + 1]); lights chosen in proportion to
     power. A photon depends only on (seed, its job's key, its index in the
@@ -101,8 +102,11 @@ def emit_photons(kind, p0, p1, p2, value, cone, power, cdf, seed, jobs, starts, 
     photons divided by the number emitted (eq. 5's N_e). Surface photons
     start `eps` off their light along its normal (Embree's tnear is 0).
     Photons of infinite lights start outside the scene (`_emit_infinite`;
-    `env` is `kernels.envmap.env_arrays`). Returns origin, direction,
-    flux, rng state, and the light of each.
+    `env` is `kernels.envmap.env_arrays`). A textured spot or projector
+    (`light_tex`: the LightTable's texture, tex_info, tex_uv, tex_texels)
+    sends its photons as the untextured one would, each weighted by the
+    texel of its direction, as Mitsuba's spot does. Returns origin,
+    direction, flux, rng state, and the light of each.
     """
     count = starts[-1]
     origin = np.empty((count, 3), np.float32)
@@ -138,10 +142,17 @@ def emit_photons(kind, p0, p1, p2, value, cone, power, cdf, seed, jobs, starts, 
             states[i] = st
             light[i] = li
             continue
+        tex = light_tex[0][li]
+        c0 = c1 = c2 = 1.0
+        if tex >= 0:
+            c0, c1, c2 = emitter_texel(kind[li], p1[li], p2[li], cone[li], tex, light_tex[1], light_tex[2],
+                                       light_tex[3], d[0], d[1], d[2])
         for k in range(3):
             origin[i, k] = o[k]
             direction[i, k] = d[k]
-            flux[i, k] = value[li, k] * scale / p_sel
+        flux[i, 0] = value[li, 0] * scale * c0 / p_sel
+        flux[i, 1] = value[li, 1] * scale * c1 / p_sel
+        flux[i, 2] = value[li, 2] * scale * c2 / p_sel
         states[i] = st
         light[i] = li
     return origin, direction, flux, states, light

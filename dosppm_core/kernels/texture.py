@@ -21,6 +21,7 @@ import math
 import numba as nb
 import numpy as np
 
+from dosppm_core.scene.model import LIGHT_PROJECTOR
 from dosppm_core.scene.textures import CHECKERBOARD, CLAMP, MIRROR, NEAREST, REPEAT
 
 
@@ -93,6 +94,23 @@ def texel_at(uvs, tris, tex_info, tex_uv, texels, t, tri, u, v):
     inlined helper on every bounce cost the untextured eye bounce ~3%."""
     s, r = hit_uv(uvs, tris, tri, np.float64(u), np.float64(v))
     return texel(tex_info, tex_uv, texels, t, s, r)
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def emitter_texel(kind, axis, x_axis, cone, t, info, uv_map, texels, d0, d1, d2):
+    """The texel a textured spot or projector (`scene.light_textures`;
+    texture t of the light table's own arrays, `axis` and `x_axis` its
+    frame, `cone` its row) sends along unit direction d; 0 behind it."""
+    z = axis[0] * d0 + axis[1] * d1 + axis[2] * d2
+    if not z > 0.0:
+        return 0.0, 0.0, 0.0
+    x = x_axis[0] * d0 + x_axis[1] * d1 + x_axis[2] * d2
+    y = ((axis[1] * x_axis[2] - axis[2] * x_axis[1]) * d0 + (axis[2] * x_axis[0] - axis[0] * x_axis[2]) * d1
+         + (axis[0] * x_axis[1] - axis[1] * x_axis[0]) * d2)
+    if kind == LIGHT_PROJECTOR:
+        return texel(info, uv_map, texels, t, 0.5 - 0.5 * x / (z * cone[0]), 0.5 - 0.5 * y / (z * cone[1]))
+    k = 0.5 / (z * math.tan(cone[2]))
+    return texel(info, uv_map, texels, t, 0.5 + x * k, 0.5 + y * k)
 
 
 @nb.njit(cache=True, error_model="numpy")

@@ -275,6 +275,13 @@ class LightTable:
     `env_to_world`. `power` is the emitted flux per row (RGB mean; pi R^2
     times the irradiance, or the integral of the radiance over the sphere,
     for the infinite ones), and `cdf` its normalised running sum.
+
+    A textured spot or projector (`scene.light_textures`) keeps its image's
+    x axis in p2 and names its texture in `texture` (-1: none), an index
+    into the lights' own texture arrays `tex_info`, `tex_uv`, `tex_texels`
+    (a `TextureTable`'s, apart from the materials' so that every chunk has
+    them); `value` stays the untextured intensity or irradiance, which the
+    kernels multiply by the texel of the direction.
     """
     kind: np.ndarray     # int32 (L,)
     p0: np.ndarray       # float64 (L, 3)
@@ -287,6 +294,14 @@ class LightTable:
     # A black 2x2 map when the scene has no environment: the kernels' types stay one.
     env_texels: np.ndarray = field(default_factory=lambda: np.zeros((2, 2, 3), np.float32))
     env_to_world: np.ndarray = field(default_factory=lambda: np.eye(3))
+    texture: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))     # int32 (L,)
+    tex_info: np.ndarray = field(default_factory=lambda: np.zeros((0, 6), np.int32))
+    tex_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 6), np.float64))
+    tex_texels: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
+
+    def __post_init__(self):
+        if self.texture.shape != self.kind.shape:       # a table without textured lights
+            self.texture = np.full(self.kind.shape, -1, np.int32)
 
     @property
     def total_power(self) -> float:
@@ -504,9 +519,11 @@ class SceneBuilder:
         self._delta_lights.append((LIGHT_POINT, pos, np.zeros(3), val, np.zeros(4)))
 
     def add_spot_light(self, position, target, intensity, cutoff_deg: float,
-                       beam_width_deg: float | None, where: str) -> None:
+                       beam_width_deg: float | None, where: str, x_axis=None,
+                       texture: Texture | None = None) -> None:
         """Mitsuba's spot: full intensity inside `beam_width_deg`, falling
-        linearly in angle to zero at `cutoff_deg`."""
+        linearly in angle to zero at `cutoff_deg`, times `texture` (an image
+        spanning the cutoff's square, `x_axis` its horizontal) if given."""
         pos, tgt = _rgb(position, f"{where}.position"), _rgb(target, f"{where}.target")
         val = _rgb(intensity, f"{where}.intensity")
         axis = tgt - pos
@@ -519,7 +536,14 @@ class SceneBuilder:
             raise SceneError(f"{where}.beam_width: must lie in (0, cutoff_angle], got {beam}")
         c, b = math.radians(cutoff_deg), math.radians(beam)
         cone = np.array([math.cos(c), math.cos(b), c, b])
-        self._delta_lights.append((LIGHT_SPOT, pos, axis / np.linalg.norm(axis), val, cone))
+        axis = axis / np.linalg.norm(axis)
+        if texture is None:
+            self._delta_lights.append((LIGHT_SPOT, pos, axis, val, cone))
+            return
+        if cutoff_deg >= 90:
+            raise SceneError(f"{where}.cutoff_angle: a textured spot's must be below 90, got {cutoff_deg}")
+        x = _image_x_axis(axis, x_axis, where)
+        self._delta_lights.append((LIGHT_SPOT, pos, axis, val, cone, x, texture))
 
     def add_directional_light(self, direction, irradiance, where: str) -> None:
         """Mitsuba's directional: parallel light travelling along
@@ -544,22 +568,23 @@ class SceneBuilder:
             raise SceneError(f"{where}.to_world: an environment takes a rotation only")
         self._environment = (np.maximum(t, 0.0), r)
 
-    def add_projector_light(self, position, axis, x_axis, irradiance, tan_half_fov: float, where: str) -> None:
-        """Mitsuba's projector with a constant irradiance (a square image):
-        the plane at distance 1 along `axis`, within +-tan_half_fov, gets
-        pi x `irradiance`."""
+    def add_projector_light(self, position, axis, x_axis, irradiance, tan_half_fov: float, where: str,
+                            texture: Texture | None = None) -> None:
+        """Mitsuba's projector: the plane at distance 1 along `axis`, within
+        +-tan_half_fov along `x_axis` (and +-tan_half_fov / aspect across
+        it, the texture's aspect), gets pi x `irradiance` (times the
+        `texture` seen there, if given)."""
         pos, val = _rgb(position, f"{where}.position"), _rgb(irradiance, f"{where}.irradiance")
-        z, x = np.asarray(axis, np.float64), np.asarray(x_axis, np.float64)
+        z = np.asarray(axis, np.float64)
         if np.any(val < 0):
             raise SceneError(f"{where}.irradiance: must be non-negative")
         if not (math.isfinite(tan_half_fov) and tan_half_fov > 0):
             raise SceneError(f"{where}.fov: must lie in (0, 180) degrees")
         z = z / np.linalg.norm(z)
-        x = x - z * (x @ z)
-        if not np.linalg.norm(x) > 1e-9:
-            raise SceneError(f"{where}.to_world: degenerate")
-        cone = np.array([tan_half_fov, tan_half_fov, 0.0, 0.0])
-        self._delta_lights.append((LIGHT_PROJECTOR, pos, z, val, cone, x / np.linalg.norm(x)))
+        x = _image_x_axis(z, x_axis, f"{where}.to_world")
+        aspect = 1.0 if texture is None else texture.texels.shape[1] / texture.texels.shape[0]
+        cone = np.array([tan_half_fov, tan_half_fov / aspect, 0.0, 0.0])
+        self._delta_lights.append((LIGHT_PROJECTOR, pos, z, val, cone, x) + ((texture,) if texture else ()))
 
     # -- building ---------------------------------------------------------
     def build(self) -> Scene:
@@ -615,6 +640,15 @@ class SceneBuilder:
                            self._environment, sphere)
 
 
+def _image_x_axis(axis, x_axis, where: str) -> np.ndarray:
+    """`x_axis` made a unit vector perpendicular to the unit `axis`."""
+    x = np.asarray(x_axis, np.float64)
+    x = x - axis * (x @ axis)
+    if not np.linalg.norm(x) > 1e-9:
+        raise SceneError(f"{where}: degenerate")
+    return x / np.linalg.norm(x)
+
+
 def bounding_radius(lo, hi) -> float:
     """The radius of the infinite lights' sphere around box (lo, hi)."""
     r = 0.5 * float(np.linalg.norm(np.asarray(hi, np.float64) - lo))
@@ -641,19 +675,32 @@ def light_table(p0, p1, p2, radiance, delta_lights=(), directional=(), environme
     rows = [p0, p1, p2, radiance, np.zeros((n, 4))]
     # One-sided Lambertian emitter: flux = pi * L * area per channel.
     power = [math.pi * area * radiance.mean(axis=1)]
-    for kind, pos, axis, val, cone, *x_axis in delta_lights:
+    textures, texture_of = [], [np.full(n, -1, np.int32)]
+    for kind, pos, axis, val, cone, *rest in delta_lights:
         rows_kind.append(np.array([kind], np.int32))
-        for i, x in enumerate((pos, axis, x_axis[0] if x_axis else np.zeros(3), val, cone)):
+        for i, x in enumerate((pos, axis, rest[0] if rest else np.zeros(3), val, cone)):
             rows[i] = np.concatenate([rows[i], np.asarray(x, np.float64)[None]])
+        if len(rest) > 1:           # textured: its flux integrates the texels it sends out
+            from dosppm_core.scene.light_textures import textured_flux
+            texture_of.append(np.array([len(textures)], np.int32))
+            textures.append(rest[1])
+            power.append(np.array([np.mean(np.asarray(val) * textured_flux(kind, np.asarray(cone), rest[1]))]))
+            continue
+        texture_of.append(np.array([-1], np.int32))
         power.append(np.array([np.mean(val) * _delta_solid_angle(kind, np.asarray(cone))]))
     env = _infinite_rows(directional, environment, sphere, rows_kind, rows, power)
+    texture_of.append(np.full(len(power) - len(texture_of), -1, np.int32))
     power = np.concatenate(power)
     total = power.sum()
     cdf = np.cumsum(power) / total if total > 0 else np.zeros_like(power)
     if cdf.size:
         cdf[-1] = 1.0
     table = LightTable(np.concatenate(rows_kind), rows[0], rows[1], rows[2], rows[3],
-                       rows[4], power, cdf)
+                       rows[4], power, cdf, texture=np.concatenate(texture_of))
+    if textures:
+        lights_textures = TextureTable.from_textures(textures)
+        table.tex_info, table.tex_uv, table.tex_texels = (lights_textures.info, lights_textures.uv_map,
+                                                          lights_textures.texels)
     if env is not None:
         table.env_texels, table.env_to_world = env
     return table

@@ -1,0 +1,70 @@
+"""Textured delta lights: Mitsuba 3's spot with a `texture` and projector
+with an `irradiance` image (src/emitters/spot.cpp, projector.cpp).
+
+Both send out, in direction d (local frame: x the image's horizontal, z
+the light's axis), their untextured value times the texel at
+
+* spot:      uv = (1/2 + x / (2 z tan cutoff), 1/2 + y / (2 z tan cutoff)),
+  the image spanning the cutoff cone's square, times the spot's falloff;
+* projector: uv = (1/2 - x / (2 z tan_x), 1/2 - y / (2 z tan_y)), the image
+  filling the frustum (Mitsuba's perspective_projection mirrors x and y),
+  times pi / cos^3 (the plane at distance 1 gets pi E).
+
+`kernels.texture.emitter_texel` evaluates that texel for the photons and
+the shadow rays; here is the flux a light's power (and so the light
+choice) needs: the integral over directions of what it sends out.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from dosppm_core.scene.textures import Texture, TextureTable
+
+# Quadrature of the spot's cone: (cos theta, phi) cells, one texel lookup each.
+SPOT_CELLS = (256, 512)
+# The projector's image plane: this many cells per texel along each side.
+PROJECTOR_CELLS_PER_TEXEL = 2
+
+
+def textured_flux(kind: int, cone: np.ndarray, texture: Texture) -> np.ndarray:
+    """RGB flux per unit value (intensity or irradiance) of a textured
+    spot or projector (`LightTable.cone` conventions)."""
+    from dosppm_core.scene.model import LIGHT_PROJECTOR
+    if kind == LIGHT_PROJECTOR:
+        return _projector_flux(cone, texture)
+    return _spot_flux(cone, texture)
+
+
+def _lookup(texture: Texture, s: np.ndarray, r: np.ndarray) -> np.ndarray:
+    from dosppm_core.kernels.texture import lookup_many
+    table = TextureTable.from_textures([texture])
+    return lookup_many(table.info, table.uv_map, table.texels, 0,
+                       np.ascontiguousarray(s, np.float64), np.ascontiguousarray(r, np.float64))
+
+
+def _spot_flux(cone: np.ndarray, texture: Texture) -> np.ndarray:
+    """Midpoint rule over d(cos theta) d(phi) of falloff x texel."""
+    cos_cut, cutoff, beam = cone[0], cone[2], cone[3]
+    nt, nphi = SPOT_CELLS
+    z = 1.0 - (np.arange(nt) + 0.5) / nt * (1.0 - cos_cut)
+    phi = (np.arange(nphi) + 0.5) / nphi * 2 * math.pi
+    z, phi = np.meshgrid(z, phi, indexing="ij")
+    sin_t = np.sqrt(np.maximum(0.0, 1.0 - z * z))
+    theta = np.arccos(np.minimum(1.0, z))
+    fall = np.where(theta <= beam, 1.0, np.clip((cutoff - theta) / max(cutoff - beam, 1e-300), 0.0, 1.0))
+    k = 0.5 / (z * math.tan(cutoff))
+    rgb = _lookup(texture, (0.5 + sin_t * np.cos(phi) * k).ravel(), (0.5 + sin_t * np.sin(phi) * k).ravel())
+    cell = (1.0 - cos_cut) / nt * 2 * math.pi / nphi
+    return (rgb * (fall.ravel() * cell)[:, None]).sum(axis=0)
+
+
+def _projector_flux(cone: np.ndarray, texture: Texture) -> np.ndarray:
+    """pi x the image plane's area x the mean texel over it (Mitsuba's
+    sample_ray weight: pi E(uv) area / pdf(uv))."""
+    h, w = texture.texels.shape[:2]
+    nu, nv = PROJECTOR_CELLS_PER_TEXEL * w, PROJECTOR_CELLS_PER_TEXEL * h
+    s, r = np.meshgrid((np.arange(nu) + 0.5) / nu, (np.arange(nv) + 0.5) / nv)
+    mean = _lookup(texture, s.ravel(), r.ravel()).mean(axis=0)
+    return math.pi * 4.0 * cone[0] * cone[1] * mean
