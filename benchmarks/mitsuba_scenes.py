@@ -190,6 +190,10 @@ _GAUSSIAN = ("no <rfilter>, so Mitsuba's default Gaussian; our film is a box (pe
 WHY_FAILS = {
     "projector/test_projector_constant_direct.xml": _GAUSSIAN,
     "texture_interp/test_texture_interp_direct.xml": _GAUSSIAN,
+    "projector/test_projector_textured_direct.xml": _GAUSSIAN,
+    "bsdf_spheres/test_roughdielectric_path.xml":
+        "Mitsuba shades sphere.obj with its vertex normals, we with face normals: with face_normals "
+        "Mitsuba's render is +4.1% of the reference and ours within 0.9% of it",
     "orthographic_sensor/test_orthographic_path.xml":
         "10% of pixels, at checker and rectangle edges, differ from Mitsuba's render of the file "
         "(90th percentile 5.7%), not by a sub-pixel shift: cause not found yet",

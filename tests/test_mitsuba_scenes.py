@@ -37,10 +37,20 @@ LOADS = {
     # a box filter is 22% off the reference at the 90th percentile, ours 2.9%
     # off that render.
     "texture_interp/test_texture_interp_direct.xml": "Gaussian pixel filter (Mitsuba's default)",
+    # The same (z-pass 72.66%, mean -0.06%): Mitsuba's render of it with a
+    # box filter has the reference's mean (ratio 0.9998) but differs from it
+    # by 100% at the 90th percentile (the image's edges); ours is 0.06% off
+    # that render's mean, 0.4% at the median pixel, 3.6% at the 90th (noise).
+    "projector/test_projector_textured_direct.xml": "Gaussian pixel filter (Mitsuba's default)",
     # z-pass 75.97%, mean 0.00%: see WHY_FAILS in benchmarks/mitsuba_scenes.py.
     "orthographic_sensor/test_orthographic_path.xml": "edges of the checkerboard differ, cause not found",
+    # Mitsuba shades sphere.obj with its vertex normals, we with the faces'
+    # (max_depth 2: the sphere shows only the lights' reflections, here a
+    # narrow beckmann 0.02 lobe). Mitsuba's own render with face_normals
+    # is +4.1% of the reference, and ours within 0.9% of that render
+    # (the point light's highlight: ours 1.07x it, 1.54x the smooth one's).
+    "bsdf_spheres/test_roughdielectric_path.xml": "z-pass 99.90%, mean +4.24%: shading normals",
     # Measured once after the materials merged, not looked into yet:
-    "bsdf_spheres/test_roughdielectric_path.xml": "z-pass 99.90% but mean +4.24%",
     "participating_media/test_surf_area_light_volpath.xml": "z-pass 99.58%, mean -0.34%",
     "infinite_mirrors/scene_path.xml": "no refs/scene_ref_rgb.exr: Mitsuba's own test skips it",
 }
@@ -71,8 +81,6 @@ REFUSED = {
     "participating_media/test_homo_obj_inside_medium_volpath.xml": '<medium type="homogeneous"',
     "participating_media/test_homo_roughdielectric_spot_volpath.xml": '<medium type="homogeneous"',
     "participating_media/test_homo_spectral_sigmat_volpathmis.xml": '<medium type="homogeneous"',
-    "projector/test_projector_textured_direct.xml": '<texture type="bitmap"',
-    "spot_light/test_spot_direct.xml": '<texture type="bitmap"',
     "various_emitters/test_various_emitters_ptracer.xml": '<texture type="bitmap"',
     "various_shapes/test_various_shapes_path.xml": '<shape type="serialized"',
 }
