@@ -186,6 +186,8 @@ def _meshes(mi, scene: Scene) -> dict:
         used, local = np.unique(faces, return_inverse=True)
         props = mi.Properties()
         props["bsdf"] = mi.load_dict(_bsdf(mats, int(mid)))
+        if mats.emission_texture[mid] >= 0:
+            raise ValueError("a textured area light has no reference render here: render the Mitsuba file itself")
         if np.max(mats.emission[mid]) > 0:
             props["emitter"] = mi.load_dict({"type": "area",
                                              "radiance": _spectrum(mats.emission[mid])})

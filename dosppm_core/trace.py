@@ -102,6 +102,8 @@ def advance_eye(surf: SurfaceData, batch: RayBatch, prim, u, v, max_depth: int,
     if len(surf.tex_info) and len(h):
         # A textured hit point carries its texel in its weight (`kernels.texture`).
         texture.fold_texels(surf, prim[h], u[h], v[h], weight)
+    if len(surf.light_tex_info) and len(lit):
+        texture.fold_emission(surf, prim[lit], u[lit], v[lit], rgb)     # a textured area light seen
     hits = HitPoints(hpos, hn, -batch.direction[h], weight,
                      surf.tri_material[prim[h]], batch.pixel[h])
     nxt = RayBatch(no, nd, nw, batch.pixel[g], batch.depth[g] + 1, st, job=batch.job[g])
@@ -163,16 +165,16 @@ def _infinite_arrays(lights: LightTable) -> tuple:
 
 
 # -- direct light -----------------------------------------------------------------
-LIGHT_TEXTURE = 14    # light_arrays()[14:18]: the lights' textures (`light_textures`)
-LIGHT_CACHE = 18      # light_arrays()[LIGHT_CACHE]: the light cache's arrays the eye passes read
-LEARN = 19            # light_arrays()[LEARN]: those the photons teach (the same, or the live ones)
-INFINITE = 20         # light_arrays()[INFINITE]: the infinite lights (`_infinite_arrays`)
+LIGHT_TEXTURE = 14    # light_arrays()[14:19]: the lights' textures (`light_textures`)
+LIGHT_CACHE = 19      # light_arrays()[LIGHT_CACHE]: the light cache's arrays the eye passes read
+LEARN = 20            # light_arrays()[LEARN]: those the photons teach (the same, or the live ones)
+INFINITE = 21         # light_arrays()[INFINITE]: the infinite lights (`_infinite_arrays`)
 
 
 def light_textures(lights: LightTable) -> tuple:
     """The textured lights' arrays as the kernels take them: (texture id
-    per light, tex_info, tex_uv, tex_texels; `LightTable`)."""
-    return (lights.texture, lights.tex_info, lights.tex_uv, lights.tex_texels)
+    per light, tex_info, tex_uv, tex_texels, tri_uv; `LightTable`)."""
+    return (lights.texture, lights.tex_info, lights.tex_uv, lights.tex_texels, lights.tri_uv)
 
 
 def light_arrays(lights: LightTable, cache: LightCache | None = None) -> tuple:
@@ -210,17 +212,20 @@ def shadow_rays(surf: SurfaceData, lights: tuple, hits: HitPoints, states, jobs)
 
 
 def shadow_results(shadows: ShadowRays, prim, t, surf: SurfaceData, total_power: float, ended=None,
-                   env: Environment | None = None):
+                   env: Environment | None = None, uv=None):
     """(pixel, rgb) that the ended rays among `shadows` bring, given their
     first hits in [0, tmax] (`prim` -1: none): a shadow ray with no hit
     reached its light; a BSDF-sampled one brings what its hit emits, or,
     with `env`, what the environment sends if it left the scene.
-    `ended` (bool) limits it to rays that end here (not leaving a chunk)."""
+    `ended` (bool) limits it to rays that end here (not leaving a chunk);
+    `uv` the hits' barycentrics (u, v), which a textured area light needs."""
     ended = np.ones(len(shadows), bool) if ended is None else ended
     lit = ended & (shadows.pdf == 0) & (prim < 0)
     found = np.flatnonzero(ended & (shadows.pdf > 0) & (prim >= 0))
     rgb = direct.emitter_radiance(shadows.direction[found], shadows.radiance[found], shadows.pdf[found],
                                   prim[found], t[found], surf, float(total_power))
+    if len(surf.light_tex_info) and len(found):
+        texture.fold_emission(surf, prim[found], uv[0][found], uv[1][found], rgb)
     out = (np.concatenate([shadows.pixel[lit], shadows.pixel[found]]),
            np.concatenate([shadows.radiance[lit], rgb]))
     if env is not None:
@@ -239,8 +244,8 @@ def trace_shadows(accel: Accelerator, surf: SurfaceData, lights: tuple, shadows:
     ends[STORED] = len(shadows)
     if not len(shadows):
         return (np.empty(0, np.int32), np.empty((0, 3), np.float32)), ends
-    prim, t, _u, _v = accel.intersect(shadows.origin, shadows.direction, shadows.tmax)
-    return shadow_results(shadows, prim, t, surf, lights[6].sum(), env=env), ends
+    prim, t, u, v = accel.intersect(shadows.origin, shadows.direction, shadows.tmax)
+    return shadow_results(shadows, prim, t, surf, lights[6].sum(), env=env, uv=(u, v)), ends
 
 
 def trace_photons(accel, surf, batch, cull_box, max_depth, deposit_from: int = 0, lights: tuple | None = None):

@@ -159,3 +159,66 @@ def test_header_carries_the_light_textures_over_the_wire(tmp_path):
     assert a.tex_texels.shape == (8, 3)
     for name, value in a.wire_fields().items():
         np.testing.assert_array_equal(getattr(b, name), value, err_msg=name)
+
+
+# -- area lights with a textured radiance -------------------------------------------------
+def _area_scene(tmp_path, radiance: str, name="area.xml", size=32) -> str:
+    """A 1 x 1 emitting rectangle facing the camera (rows 9 to 19 of the
+    view) above a diffuse floor it lights (the rows below)."""
+    text = f"""<scene version="3.0.0">
+    <sensor type="perspective"><float name="fov" value="60"/>
+        <transform name="to_world"><lookat origin="0, 1.5, 3" target="0, 0.6, 0" up="0, 1, 0"/></transform>
+        <sampler type="independent"><integer name="sample_count" value="64"/></sampler>
+        <film type="hdrfilm"><integer name="width" value="{size}"/><integer name="height" value="{size}"/>
+            <rfilter type="box"/></film>
+    </sensor>
+    <shape type="rectangle"><transform name="to_world"><scale value="0.5"/><translate y="0.8"/></transform>
+        <emitter type="area">{radiance}</emitter></shape>
+    <shape type="rectangle"><transform name="to_world"><scale value="3"/><rotate x="1" angle="-90"/>
+        <translate y="0.2"/></transform><bsdf type="diffuse"><rgb name="reflectance" value="0.8"/></bsdf></shape>
+</scene>"""
+    path = tmp_path / name
+    path.write_text(text)
+    return str(path)
+
+
+@pytest.mark.parametrize("direct", ["nee", "photons"])
+def test_constant_textured_area_light_equals_the_untextured_one(tmp_path, direct):
+    """A grey image of value g as an area light's radiance is the radiance
+    g: the same power, and the same image (the light seen and the floor it
+    lights) from the same seed."""
+    g = 150
+    png = _png(tmp_path, np.full((4, 6, 3), g))
+    textured = dp.load(_area_scene(tmp_path, _bitmap(png, "radiance"), "a.xml"))
+    plain = dp.load(_area_scene(tmp_path, f'<rgb name="radiance" value="{g / 255}"/>', "b.xml"))
+    assert (textured.lights.texture >= 0).sum() == 2 and (plain.lights.texture >= 0).sum() == 0
+    np.testing.assert_allclose(textured.lights.power, plain.lights.power, rtol=1e-6)
+    a, b = _render(textured, direct), _render(plain, direct)
+    assert b[10:18, 12:20].mean() > 0.5 and b[-8:].mean() > 0
+    np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-7)
+
+
+@pytest.mark.reference
+@pytest.mark.parametrize("direct", ["nee", "photons"])
+def test_textured_area_light_matches_mitsuba(tmp_path, direct):
+    """Four coloured quadrants as the radiance: the light seen (each
+    quadrant where Mitsuba 3 shows it) and the floor it lights within 4%
+    of Mitsuba's render of the same file, whether shadow rays or photons
+    carry the floor's light."""
+    mi = pytest.importorskip("mitsuba")
+    mi.set_variant("scalar_rgb")
+    texels = np.zeros((8, 8, 3))
+    texels[:4, :4] = (255, 40, 40)
+    texels[:4, 4:] = (40, 255, 40)
+    texels[4:, :4] = (40, 40, 255)
+    texels[4:, 4:] = (255, 255, 40)
+    path = _area_scene(tmp_path, _bitmap(_png(tmp_path, texels), "radiance", raw=False))
+    ours = _render(dp.load(path), direct, iterations=32)
+    scene = mi.load_file(path)
+    theirs = np.array(mi.render(scene, spp=256, sensor=scene.sensors()[0],
+                                integrator=mi.load_dict({"type": "direct"})))[:, :, :3]
+    light_ours, light_theirs = (x[8:20, 10:22].reshape(2, 6, 2, 6, 3).mean(axis=(1, 3)) for x in (ours, theirs))
+    assert light_theirs.sum(axis=2).min() > 0.5
+    np.testing.assert_allclose(light_ours, light_theirs, rtol=0.03, atol=0.005)
+    floor_ours, floor_theirs = (x[-10:].reshape(10, 2, 16, 3).mean(axis=(0, 2)) for x in (ours, theirs))
+    np.testing.assert_allclose(floor_ours, floor_theirs, rtol=0.04)

@@ -26,6 +26,7 @@ CLAIMED = [
     "mesh_attributes/test_mesh_attributes_3_vertex_direct.xml",
     "bsdf_spheres/test_roughplastic_linear_path.xml",
     "bsdf_spheres/test_roughplastic_nonlinear_path.xml",
+    "spot_light/test_spot_direct.xml",
 ]
 # Load but are not claimed to pass yet: scene -> why (measured figures).
 LOADS = {

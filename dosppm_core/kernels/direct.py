@@ -60,7 +60,7 @@ from dosppm_core.kernels.light_tree import sample_tree, tree_pmf
 from dosppm_core.kernels.materials import hit_point_eval, hit_point_pdf, hit_point_sample, is_coloured
 from dosppm_core.kernels.paths import offset_origin
 from dosppm_core.kernels.rng import next_float
-from dosppm_core.kernels.texture import emitter_texel
+from dosppm_core.kernels.texture import emitter_texel, triangle_texel
 from dosppm_core.scene.model import GLOSSY, LIGHT_DIRECTIONAL, LIGHT_ENV, LIGHT_POINT, LIGHT_PROJECTOR, LIGHT_TRIANGLE
 
 C_LIGHT = 0.5          # share of light samples at glossy hit points (MIS); 1 elsewhere
@@ -149,16 +149,20 @@ def _sample_light(lights, li, p0, p1, p2, u1, u2):
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
-def light_le(lights, li, w0, w1, w2):
+def light_le(lights, li, w0, w1, w2, u1, u2):
     """What light li sends toward a hit point that sees it along unit w,
-    per unit of `_sample_light`'s g: its `value`, times the texel of the
-    direction -w for a textured spot or projector (lights[14:18],
+    per unit of `_sample_light`'s g (for the numbers u1, u2): its `value`,
+    times the texel of the direction -w for a textured spot or projector,
+    or of the point sampled on a textured triangle (lights[14:19],
     `trace.light_textures`)."""
     value, t = lights[4], lights[14][li]
     if t < 0:
         return value[li, 0], value[li, 1], value[li, 2]
-    c0, c1, c2 = emitter_texel(lights[0][li], lights[2][li], lights[3][li], lights[5][li], t, lights[15],
-                               lights[16], lights[17], -w0, -w1, -w2)
+    if lights[0][li] == LIGHT_TRIANGLE:
+        c0, c1, c2 = triangle_texel(t, lights[18][li], lights[15], lights[16], lights[17], u1, u2)
+    else:
+        c0, c1, c2 = emitter_texel(lights[0][li], lights[2][li], lights[3][li], lights[5][li], t,
+                                   lights[15], lights[16], lights[17], -w0, -w1, -w2)
     return value[li, 0] * c0, value[li, 1] * c1, value[li, 2] * c2
 
 
@@ -318,7 +322,7 @@ def _light_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights, e
         scale = f * cos_x * g / p_sel
     if not _aim(i, out, p0, p1, p2, n0, n1, n2, w0, w1, w2, q0, q1, q2, eps_rel, surf.eps_abs):
         return False
-    l0, l1, l2 = light_le(lights, li, w0, w1, w2)
+    l0, l1, l2 = light_le(lights, li, w0, w1, w2, u1, u2)
     _write_radiance(i, out, scale, weight, surf.reflectance, m, l0, l1, l2)
     return True
 
@@ -366,7 +370,7 @@ def _chosen_light_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, li
         return False
     if not _aim(i, out, p0, p1, p2, n0, n1, n2, w0, w1, w2, q0, q1, q2, eps_rel, surf.eps_abs):
         return False
-    l0, l1, l2 = light_le(lights, li, w0, w1, w2)
+    l0, l1, l2 = light_le(lights, li, w0, w1, w2, u1, u2)
     _write_radiance(i, out, f * cos_x * g / pmf, weight, surf.reflectance, m, l0, l1, l2)
     return True
 
@@ -501,7 +505,7 @@ def _coloured_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights
         if not g > 0.0:
             return False
         p_light = p_sel / g
-        l0, l1, l2 = light_le(lights, li, w0, w1, w2)
+        l0, l1, l2 = light_le(lights, li, w0, w1, w2, u1, u2)
     pdf = c * p_light
     if mis and (lights[0][li] == LIGHT_TRIANGLE or lights[0][li] == LIGHT_ENV):
         pdf += (1.0 - C_LIGHT) * hit_point_pdf(kind, row, n0, n1, n2, o0, o1, o2, w0, w1, w2)

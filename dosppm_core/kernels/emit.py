@@ -8,7 +8,7 @@ from dosppm_core.kernels.bsdf import cosine_hemisphere, to_world
 from dosppm_core.kernels.envmap import env_eval, env_sample
 from dosppm_core.kernels.paths import offset_origin
 from dosppm_core.kernels.rng import EYE_STREAM, next_float, path_state
-from dosppm_core.kernels.texture import emitter_texel
+from dosppm_core.kernels.texture import emitter_texel, triangle_texel
 from dosppm_core.scene.model import LIGHT_DIRECTIONAL, LIGHT_POINT, LIGHT_PROJECTOR, LIGHT_SPOT, LIGHT_TRIANGLE
 
 EMIT_EPS_REL = 2e-5   # the bounces' spawn offset relative to |p| (tracing.EPS_REL)
@@ -102,10 +102,11 @@ def emit_photons(kind, p0, p1, p2, value, cone, power, cdf, seed, jobs, starts, 
     photons divided by the number emitted (eq. 5's N_e). Surface photons
     start `eps` off their light along its normal (Embree's tnear is 0).
     Photons of infinite lights start outside the scene (`_emit_infinite`;
-    `env` is `kernels.envmap.env_arrays`). A textured spot or projector
-    (`light_tex`: the LightTable's texture, tex_info, tex_uv, tex_texels)
-    sends its photons as the untextured one would, each weighted by the
-    texel of its direction, as Mitsuba's spot does. Returns origin,
+    `env` is `kernels.envmap.env_arrays`). A textured light (`light_tex`:
+    the LightTable's texture, tex_info, tex_uv, tex_texels, tri_uv) sends
+    its photons as the untextured one would, each weighted by the texel of
+    its direction (a spot, as Mitsuba's, or a projector) or of its point
+    (a triangle). Returns origin,
     direction, flux, rng state, and the light of each.
     """
     count = starts[-1]
@@ -144,7 +145,9 @@ def emit_photons(kind, p0, p1, p2, value, cone, power, cdf, seed, jobs, starts, 
             continue
         tex = light_tex[0][li]
         c0 = c1 = c2 = 1.0
-        if tex >= 0:
+        if tex >= 0 and kind[li] == LIGHT_TRIANGLE:
+            c0, c1, c2 = triangle_texel(tex, light_tex[4][li], light_tex[1], light_tex[2], light_tex[3], u1, u2)
+        elif tex >= 0:
             c0, c1, c2 = emitter_texel(kind[li], p1[li], p2[li], cone[li], tex, light_tex[1], light_tex[2],
                                        light_tex[3], d[0], d[1], d[2])
         for k in range(3):

@@ -113,6 +113,36 @@ def emitter_texel(kind, axis, x_axis, cone, t, info, uv_map, texels, d0, d1, d2)
     return texel(info, uv_map, texels, t, 0.5 + x * k, 0.5 + y * k)
 
 
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def triangle_texel(t, corner_uv, info, uv_map, texels, u1, u2):
+    """The texel of texture t at the point of a triangle (corner uvs
+    (u0, v0, u1, v1, u2, v2)) that `emit._emit_triangle` and
+    `direct._point_on_triangle` pick for the numbers (u1, u2)."""
+    su = math.sqrt(u1)
+    b1, b2 = 1.0 - su, u2 * su
+    b0 = 1.0 - b1 - b2
+    s = b0 * corner_uv[0] + b1 * corner_uv[2] + b2 * corner_uv[4]
+    r = b0 * corner_uv[1] + b1 * corner_uv[3] + b2 * corner_uv[5]
+    return texel(info, uv_map, texels, t, s, r)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def fold_emission(surf, prim, u, v, rgb):
+    """Emission seen at hits (triangles `prim`, barycentrics u, v) times
+    the texel of a textured area light there (`rgb` (n, 3), changed in
+    place; `SurfaceData.emission_texture`)."""
+    for i in range(prim.shape[0]):
+        tri = prim[i]
+        t = surf.emission_texture[surf.tri_material[tri]]
+        if t < 0:
+            continue
+        s, r = hit_uv(surf.uvs, surf.triangles, tri, np.float64(u[i]), np.float64(v[i]))
+        c0, c1, c2 = texel(surf.light_tex_info, surf.light_tex_uv, surf.light_texels, t, s, r)
+        rgb[i, 0] *= c0
+        rgb[i, 1] *= c1
+        rgb[i, 2] *= c2
+
+
 @nb.njit(cache=True, error_model="numpy")
 def fold_texels(surf, prim, u, v, weight):
     """Hit points' weights times the texel of their textured materials

@@ -1,5 +1,6 @@
-"""Textured delta lights: Mitsuba 3's spot with a `texture` and projector
-with an `irradiance` image (src/emitters/spot.cpp, projector.cpp).
+"""Textured lights: Mitsuba 3's spot with a `texture`, projector with an
+`irradiance` image and area light with a `radiance` texture
+(src/emitters/spot.cpp, projector.cpp, area.cpp).
 
 Both send out, in direction d (local frame: x the image's horizontal, z
 the light's axis), their untextured value times the texel at
@@ -13,6 +14,14 @@ the light's axis), their untextured value times the texel at
 `kernels.texture.emitter_texel` evaluates that texel for the photons and
 the shadow rays; here is the flux a light's power (and so the light
 choice) needs: the integral over directions of what it sends out.
+
+An area light's radiance at a point is its material's `emission` times
+the texel at the point's uv. Its texture is kept divided by its mean
+texel (`normalised`) and `emission` multiplied by it, so the triangles'
+power (pi area emission), which the light choice, the light tree and the
+BSDF-sampled rays' MIS weights all read, counts the texture on average
+without a per-triangle integral; photons and shadow rays that sample a
+point of the triangle uniformly multiply by the texel there.
 """
 from __future__ import annotations
 
@@ -35,6 +44,16 @@ def textured_flux(kind: int, cone: np.ndarray, texture: Texture) -> np.ndarray:
     if kind == LIGHT_PROJECTOR:
         return _projector_flux(cone, texture)
     return _spot_flux(cone, texture)
+
+
+def normalised(texture: Texture) -> tuple[Texture, np.ndarray]:
+    """(texture divided by its mean texel per channel, that mean); a
+    channel whose mean is 0 stays as it is (black)."""
+    mean = texture.texels.reshape(-1, 3).astype(np.float64).mean(axis=0)
+    safe = np.where(mean > 0, mean, 1.0)
+    scaled = Texture(texture.name, texture.kind, np.ascontiguousarray(texture.texels / safe, np.float32),
+                     texture.filter, texture.wrap, texture.uv_map)
+    return scaled, mean
 
 
 def _lookup(texture: Texture, s: np.ndarray, r: np.ndarray) -> np.ndarray:

@@ -63,7 +63,10 @@ class Material:
     `reflectance`). `two_sided=False` makes the back of a diffuse, mirror or
     glossy surface black, as Mitsuba does without its `twosided` wrapper.
     `texture` >= 0 (an id from `SceneBuilder.add_texture`) replaces
-    `reflectance` by that texture's value at the hit's UV.
+    `reflectance` by that texture's value at the hit's UV;
+    `emission_texture` >= 0 (from `SceneBuilder.add_emission_texture`)
+    multiplies `emission` by a texture's value there (Mitsuba's area light
+    with a textured radiance).
 
     Mitsuba's 'roughdielectric' (relative `ior` = int_ior / ext_ior,
     `roughness` alpha of the `distribution` 'ggx' or 'beckmann';
@@ -87,6 +90,7 @@ class Material:
     opacity: float = 1.0
     conductor_eta: tuple = (0.0, 0.0, 0.0)
     conductor_k: tuple = (1.0, 1.0, 1.0)
+    emission_texture: int = -1
 
     def validate(self, where: str) -> None:
         if self.kind not in MATERIAL_KINDS:
@@ -211,6 +215,9 @@ class MaterialTable:
     opacity: np.ndarray = None       # float32 (m,): Mitsuba's mask
     conductor_eta: np.ndarray = None  # float32 (m, 3): real part of a conductor's index
     conductor_k: np.ndarray = None    # float32 (m, 3): its imaginary part
+    # The texture (an index into the LightTable's own textures) that
+    # `emission` is multiplied by, -1 for none (`scene.light_textures`).
+    emission_texture: np.ndarray = None  # int32 (m,)
 
     def __post_init__(self):
         # Tables made before these columns (tests, older callers) get the
@@ -230,6 +237,8 @@ class MaterialTable:
             self.conductor_eta = np.zeros((m, 3), np.float32)
         if self.conductor_k is None:
             self.conductor_k = np.ones((m, 3), np.float32)
+        if self.emission_texture is None:
+            self.emission_texture = np.full(m, -1, np.int32)
 
     @property
     def textured(self) -> bool:
@@ -253,6 +262,7 @@ class MaterialTable:
             opacity=np.array([m.opacity for m in mats], np.float32),
             conductor_eta=np.array([_rgb(m.conductor_eta, m.name) for m in mats], np.float32).reshape(-1, 3),
             conductor_k=np.array([_rgb(m.conductor_k, m.name) for m in mats], np.float32).reshape(-1, 3),
+            emission_texture=np.array([m.emission_texture for m in mats], np.int32),
         )
 
 
@@ -281,7 +291,10 @@ class LightTable:
     into the lights' own texture arrays `tex_info`, `tex_uv`, `tex_texels`
     (a `TextureTable`'s, apart from the materials' so that every chunk has
     them); `value` stays the untextured intensity or irradiance, which the
-    kernels multiply by the texel of the direction.
+    kernels multiply by the texel of the direction. A triangle of a
+    textured area light names its material's emission texture there too,
+    with its corners' texture coordinates in `tri_uv` (u0, v0, u1, v1, u2,
+    v2), and `value` its material's emission (the texture's mean).
     """
     kind: np.ndarray     # int32 (L,)
     p0: np.ndarray       # float64 (L, 3)
@@ -298,10 +311,13 @@ class LightTable:
     tex_info: np.ndarray = field(default_factory=lambda: np.zeros((0, 6), np.int32))
     tex_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 6), np.float64))
     tex_texels: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
+    tri_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 6), np.float64))
 
     def __post_init__(self):
         if self.texture.shape != self.kind.shape:       # a table without textured lights
             self.texture = np.full(self.kind.shape, -1, np.int32)
+        if self.tri_uv.shape != (len(self.kind), 6):
+            self.tri_uv = np.zeros((len(self.kind), 6), np.float64)
 
     @property
     def total_power(self) -> float:
@@ -455,6 +471,7 @@ class SceneBuilder:
     _directional: list = field(default_factory=list)
     _environment: tuple | None = None
     _textures: list = field(default_factory=list)
+    _emission_textures: list = field(default_factory=list)
     camera: Camera | None = None
 
     def add_texture(self, texture: Texture) -> int:
@@ -462,11 +479,23 @@ class SceneBuilder:
         self._textures.append(texture)
         return len(self._textures) - 1
 
+    def add_emission_texture(self, texture: Texture) -> tuple[int, np.ndarray]:
+        """A texture an emissive material's `emission` may be multiplied by:
+        (its `emission_texture` id, the mean RGB texel, by which the kernels'
+        copy is divided: give `emission` times that mean, so that the
+        light's power counts the texture)."""
+        from dosppm_core.scene.light_textures import normalised
+        scaled, mean = normalised(texture)
+        self._emission_textures.append(scaled)
+        return len(self._emission_textures) - 1, mean
+
     def add_material(self, material: Material, where: str | None = None) -> int:
         where = where or f"{self.source}: material {material.name!r}"
         material.validate(where)
         if not -1 <= material.texture < len(self._textures):
             raise SceneError(f"{where}: texture id {material.texture} out of range")
+        if not -1 <= material.emission_texture < len(self._emission_textures):
+            raise SceneError(f"{where}: emission texture id {material.emission_texture} out of range")
         if material.name in self._material_ids:
             raise SceneError(f"{where}: duplicate material name {material.name!r}")
         self._material_ids[material.name] = len(self._materials)
@@ -475,7 +504,7 @@ class SceneBuilder:
 
     def textured(self, material: int) -> bool:
         """Whether material id `material` reads a texture (its meshes keep UVs)."""
-        return self._materials[material].texture >= 0
+        return self._materials[material].texture >= 0 or self._materials[material].emission_texture >= 0
 
     def material_id(self, name: str, where: str) -> int:
         try:
@@ -595,7 +624,7 @@ class SceneBuilder:
             raise SceneError(f"{self.source}: no geometry")
         verts, tris, mats = self._merge_meshes()
         mtable = MaterialTable.from_materials(self._materials)
-        lights = self._light_table(verts, tris, mats, mtable)
+        lights = self._light_table(verts, tris, mats, mtable, self._merged_uv())
         if lights.kind.size == 0 or lights.total_power <= 0:
             raise SceneError(f"{self.source}: no light (no emissive material, point or spot light)")
         return Scene(verts.astype(np.float32), tris.astype(np.int32), mats.astype(np.int32),
@@ -628,7 +657,7 @@ class SceneBuilder:
             raise SceneError(f"{self.source}: every triangle is degenerate")
         return verts, tris[keep], mats[keep]
 
-    def _light_table(self, verts, tris, mats, mtable: MaterialTable) -> LightTable:
+    def _light_table(self, verts, tris, mats, mtable: MaterialTable, uvs) -> LightTable:
         emit = mtable.emission.astype(np.float64)[mats]
         lit = np.flatnonzero(emit.max(axis=1) > 0)
         p0, p1, p2 = (verts[tris[lit, k]] for k in range(3))
@@ -636,8 +665,12 @@ class SceneBuilder:
         pts = np.concatenate([verts] + [d[1][None] for d in self._delta_lights])
         lo, hi = pts.min(0), pts.max(0)
         sphere = (0.5 * (lo + hi), bounding_radius(lo, hi))
+        tri_texture = mtable.emission_texture[mats[lit]]
+        tri_uv = np.zeros((len(lit), 6))
+        if len(uvs):
+            tri_uv = uvs[tris[lit]].reshape(-1, 6).astype(np.float64)
         return light_table(p0, p1, p2, emit[lit], self._delta_lights, self._directional,
-                           self._environment, sphere)
+                           self._environment, sphere, (tri_texture, tri_uv, self._emission_textures))
 
 
 def _image_x_axis(axis, x_axis, where: str) -> np.ndarray:
@@ -656,7 +689,7 @@ def bounding_radius(lo, hi) -> float:
 
 
 def light_table(p0, p1, p2, radiance, delta_lights=(), directional=(), environment=None,
-                sphere=None) -> LightTable:
+                sphere=None, emission_textures=None) -> LightTable:
     """The light table of emissive triangles and point/spot lights.
 
     p0, p1, p2: (n, 3) corners of the emissive triangles, each emitting
@@ -667,6 +700,8 @@ def light_table(p0, p1, p2, radiance, delta_lights=(), directional=(), environme
     as `SceneBuilder` from its emissive triangles alone. `directional`:
     (unit direction, irradiance) pairs; `environment`: (texels, rotation)
     or None; both need `sphere`, (centre, radius) around the scene.
+    `emission_textures`: (texture id per triangle, (n, 6) corner uvs, the
+    textures those ids index) of textured area lights, or None.
     """
     p0, p1, p2, radiance = (np.asarray(a, np.float64).reshape(-1, 3) for a in (p0, p1, p2, radiance))
     n = len(p0)
@@ -675,7 +710,11 @@ def light_table(p0, p1, p2, radiance, delta_lights=(), directional=(), environme
     rows = [p0, p1, p2, radiance, np.zeros((n, 4))]
     # One-sided Lambertian emitter: flux = pi * L * area per channel.
     power = [math.pi * area * radiance.mean(axis=1)]
-    textures, texture_of = [], [np.full(n, -1, np.int32)]
+    textures, texture_of, tri_uv = [], [np.full(n, -1, np.int32)], np.zeros((n, 6))
+    if emission_textures is not None:
+        texture_of[0] = np.asarray(emission_textures[0], np.int32).reshape(n)
+        tri_uv = np.asarray(emission_textures[1], np.float64).reshape(n, 6)
+        textures = list(emission_textures[2])
     for kind, pos, axis, val, cone, *rest in delta_lights:
         rows_kind.append(np.array([kind], np.int32))
         for i, x in enumerate((pos, axis, rest[0] if rest else np.zeros(3), val, cone)):
@@ -695,8 +734,9 @@ def light_table(p0, p1, p2, radiance, delta_lights=(), directional=(), environme
     cdf = np.cumsum(power) / total if total > 0 else np.zeros_like(power)
     if cdf.size:
         cdf[-1] = 1.0
+    tri_uv = np.concatenate([tri_uv, np.zeros((len(power) - n, 6))])
     table = LightTable(np.concatenate(rows_kind), rows[0], rows[1], rows[2], rows[3],
-                       rows[4], power, cdf, texture=np.concatenate(texture_of))
+                       rows[4], power, cdf, texture=np.concatenate(texture_of), tri_uv=tri_uv)
     if textures:
         lights_textures = TextureTable.from_textures(textures)
         table.tex_info, table.tex_uv, table.tex_texels = (lights_textures.info, lights_textures.uv_map,

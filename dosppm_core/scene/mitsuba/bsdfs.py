@@ -51,8 +51,9 @@ def material_id(reader: ReaderState, bsdf, emitter, shape: Obj) -> int:
     if key not in reader.material_ids:
         material = bsdf_material(reader, bsdf) if bsdf is not None else _default_bsdf(reader, emitter)
         if emitter is not None:
+            radiance, texture = area_radiance(reader, emitter)
             material = dataclasses.replace(material, name=f"{material.name}+{emitter.name()}",
-                                           emission=area_radiance(reader, emitter))
+                                           emission=radiance, emission_texture=texture)
         where = (bsdf or emitter or shape).where()
         reader.material_ids[key] = reader.builder.add_material(material, where)
     return reader.material_ids[key]

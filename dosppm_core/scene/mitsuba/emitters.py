@@ -1,5 +1,6 @@
-"""Emitters: `area` (its radiance becomes the emission of the material of
-the shape holding or referencing it), `point`, `spot` (optionally with a
+"""Emitters: `area` (its radiance, constant or a bitmap or checkerboard,
+becomes the emission of the material of the shape holding or referencing
+it), `point`, `spot` (optionally with a
 bitmap or checkerboard `texture`), `projector` (a constant or textured
 `irradiance`; `scene.light_textures`), and the infinitely distant ones:
 `directional`, `constant` and `envmap` (`scene.envmap`)."""
@@ -19,12 +20,18 @@ from dosppm_core.scene.mitsuba.xmltree import resolve
 
 
 def area_radiance(reader: ReaderState, emitter: Obj) -> tuple:
-    """The RGB radiance of an area emitter attached to a shape."""
+    """(RGB radiance, emission texture id or -1) of an area emitter
+    attached to a shape; a textured one's RGB is the texture's mean
+    (`SceneBuilder.add_emission_texture`)."""
     if emitter.type != "area":
         emitter.node.fail("only area emitters can be attached to a shape")
     if id(emitter) not in reader.radiance:
-        reader.children(emitter, ())
-        reader.radiance[id(emitter)] = get_rgb(emitter, "radiance", 1.0)
+        texture = light_texture(reader, emitter, "radiance")
+        if texture is None:
+            reader.radiance[id(emitter)] = (get_rgb(emitter, "radiance", 1.0), -1)
+        else:
+            tid, mean = reader.builder.add_emission_texture(texture)
+            reader.radiance[id(emitter)] = (tuple(mean), tid)
         finish(emitter)
     return reader.radiance[id(emitter)]
 
