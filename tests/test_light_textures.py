@@ -222,3 +222,32 @@ def test_textured_area_light_matches_mitsuba(tmp_path, direct):
     np.testing.assert_allclose(light_ours, light_theirs, rtol=0.03, atol=0.005)
     floor_ours, floor_theirs = (x[-10:].reshape(10, 2, 16, 3).mean(axis=(0, 2)) for x in (ours, theirs))
     np.testing.assert_allclose(floor_ours, floor_theirs, rtol=0.04)
+
+
+def test_chunked_textured_area_light_render_equals_unchunked(tmp_path):
+    """OSPPM over 8 chunks renders the textured lamp and floor as SPPM
+    does: the chunks read the light table's textures (eye rays seeing the
+    lamp, BSDF-sampled rays finding it, photons and shadow rays)."""
+    from tests.test_env_lights import _assert_chunks_render_the_scene
+    texels = np.zeros((8, 8, 3))
+    texels[:4] = (255, 40, 40)
+    texels[4:] = (40, 40, 255)
+    path = _area_scene(tmp_path, _bitmap(_png(tmp_path, texels), "radiance"), size=24)
+    _assert_chunks_render_the_scene(dp.load(path), (2, 2, 2))
+
+
+@pytest.mark.parametrize("filter_type", ["bilinear", "nearest"])
+@pytest.mark.parametrize("wrap_mode", ["repeat", "mirror", "clamp"])
+def test_flux_lookup_equals_the_kernels(filter_type, wrap_mode):
+    """The scene layer's numpy lookup (for the lights' flux) reads the
+    texels the kernels read, inside and outside [0, 1]^2, under a to_uv."""
+    from dosppm_core.kernels.texture import lookup_many
+    from dosppm_core.scene.light_textures import lookup
+    from dosppm_core.scene.textures import TextureTable, bitmap, checkerboard
+    rng = np.random.default_rng(4)
+    s, r = rng.uniform(-1.5, 2.5, 2000), rng.uniform(-1.5, 2.5, 2000)
+    for texture in (bitmap("b", rng.uniform(0, 1, (5, 7, 3)), filter_type, wrap_mode, (1.5, 0.2, 0.1, -0.3, 2, 0.4)),
+                    checkerboard("c", (0.1, 0.2, 0.3), (0.9, 0.8, 0.7), (3, 0, 0, 0, 3, 0))):
+        table = TextureTable.from_textures([texture])
+        np.testing.assert_allclose(lookup(texture, s, r),
+                                   lookup_many(table.info, table.uv_map, table.texels, 0, s, r), rtol=1e-6)

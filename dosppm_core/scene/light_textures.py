@@ -29,7 +29,7 @@ import math
 
 import numpy as np
 
-from dosppm_core.scene.textures import Texture, TextureTable
+from dosppm_core.scene.textures import CHECKERBOARD, CLAMP, MIRROR, NEAREST, REPEAT, Texture
 
 # Quadrature of the spot's cone: (cos theta, phi) cells, one texel lookup each.
 SPOT_CELLS = (256, 512)
@@ -37,11 +37,10 @@ SPOT_CELLS = (256, 512)
 PROJECTOR_CELLS_PER_TEXEL = 2
 
 
-def textured_flux(kind: int, cone: np.ndarray, texture: Texture) -> np.ndarray:
+def textured_flux(projector: bool, cone: np.ndarray, texture: Texture) -> np.ndarray:
     """RGB flux per unit value (intensity or irradiance) of a textured
     spot or projector (`LightTable.cone` conventions)."""
-    from dosppm_core.scene.model import LIGHT_PROJECTOR
-    if kind == LIGHT_PROJECTOR:
+    if projector:
         return _projector_flux(cone, texture)
     return _spot_flux(cone, texture)
 
@@ -56,11 +55,37 @@ def normalised(texture: Texture) -> tuple[Texture, np.ndarray]:
     return scaled, mean
 
 
-def _lookup(texture: Texture, s: np.ndarray, r: np.ndarray) -> np.ndarray:
-    from dosppm_core.kernels.texture import lookup_many
-    table = TextureTable.from_textures([texture])
-    return lookup_many(table.info, table.uv_map, table.texels, 0,
-                       np.ascontiguousarray(s, np.float64), np.ascontiguousarray(r, np.float64))
+def lookup(texture: Texture, s: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """(n, 3) texels at texture coordinates (s, r): `kernels.texture.texel`
+    in numpy (the scene layer imports no kernel), for the flux integrals."""
+    a = texture.uv_map
+    u, v = a[0] * s + a[1] * r + a[2], a[3] * s + a[4] * r + a[5]
+    tex = texture.texels.astype(np.float64)
+    h, w = tex.shape[:2]
+    if texture.kind == CHECKERBOARD:
+        same = (u - np.floor(u) > 0.5) == (v - np.floor(v) > 0.5)
+        return np.where(same[:, None], tex[0, 0], tex[0, 1])
+    if texture.filter == NEAREST:
+        return tex[_wrap(np.floor(v * h), h, texture.wrap), _wrap(np.floor(u * w), w, texture.wrap)]
+    fx, fy = u * w - 0.5, v * h - 0.5
+    x0, y0 = np.floor(fx), np.floor(fy)
+    ax, ay = (fx - x0)[:, None], (fy - y0)[:, None]
+    xa, xb = _wrap(x0, w, texture.wrap), _wrap(x0 + 1, w, texture.wrap)
+    ya, yb = _wrap(y0, h, texture.wrap), _wrap(y0 + 1, h, texture.wrap)
+    return ((1 - ax) * (1 - ay) * tex[ya, xa] + ax * (1 - ay) * tex[ya, xb]
+            + (1 - ax) * ay * tex[yb, xa] + ax * ay * tex[yb, xb])
+
+
+def _wrap(i: np.ndarray, size: int, mode: int) -> np.ndarray:
+    """Texel indices wrapped into [0, size) (`kernels.texture.wrap_index`)."""
+    i = np.clip(np.nan_to_num(i, nan=-1e9), -1e9, 1e9).astype(np.int64)
+    if mode == REPEAT:
+        return np.mod(i, size)
+    if mode == MIRROR:
+        i = np.mod(i, 2 * size)
+        return np.where(i >= size, 2 * size - 1 - i, i)
+    assert mode == CLAMP
+    return np.clip(i, 0, size - 1)
 
 
 def _spot_flux(cone: np.ndarray, texture: Texture) -> np.ndarray:
@@ -74,7 +99,7 @@ def _spot_flux(cone: np.ndarray, texture: Texture) -> np.ndarray:
     theta = np.arccos(np.minimum(1.0, z))
     fall = np.where(theta <= beam, 1.0, np.clip((cutoff - theta) / max(cutoff - beam, 1e-300), 0.0, 1.0))
     k = 0.5 / (z * math.tan(cutoff))
-    rgb = _lookup(texture, (0.5 + sin_t * np.cos(phi) * k).ravel(), (0.5 + sin_t * np.sin(phi) * k).ravel())
+    rgb = lookup(texture, (0.5 + sin_t * np.cos(phi) * k).ravel(), (0.5 + sin_t * np.sin(phi) * k).ravel())
     cell = (1.0 - cos_cut) / nt * 2 * math.pi / nphi
     return (rgb * (fall.ravel() * cell)[:, None]).sum(axis=0)
 
@@ -85,5 +110,5 @@ def _projector_flux(cone: np.ndarray, texture: Texture) -> np.ndarray:
     h, w = texture.texels.shape[:2]
     nu, nv = PROJECTOR_CELLS_PER_TEXEL * w, PROJECTOR_CELLS_PER_TEXEL * h
     s, r = np.meshgrid((np.arange(nu) + 0.5) / nu, (np.arange(nv) + 0.5) / nv)
-    mean = _lookup(texture, s.ravel(), r.ravel()).mean(axis=0)
+    mean = lookup(texture, s.ravel(), r.ravel()).mean(axis=0)
     return math.pi * 4.0 * cone[0] * cone[1] * mean

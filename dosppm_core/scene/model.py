@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dosppm_core.scene.errors import SceneError
+from dosppm_core.scene.light_textures import normalised, textured_flux
 from dosppm_core.scene.textures import Texture, TextureTable
 
 # Material kinds, as stored in `MaterialTable.kind` and read by the kernels.
@@ -484,7 +485,6 @@ class SceneBuilder:
         (its `emission_texture` id, the mean RGB texel, by which the kernels'
         copy is divided: give `emission` times that mean, so that the
         light's power counts the texture)."""
-        from dosppm_core.scene.light_textures import normalised
         scaled, mean = normalised(texture)
         self._emission_textures.append(scaled)
         return len(self._emission_textures) - 1, mean
@@ -720,10 +720,9 @@ def light_table(p0, p1, p2, radiance, delta_lights=(), directional=(), environme
         for i, x in enumerate((pos, axis, rest[0] if rest else np.zeros(3), val, cone)):
             rows[i] = np.concatenate([rows[i], np.asarray(x, np.float64)[None]])
         if len(rest) > 1:           # textured: its flux integrates the texels it sends out
-            from dosppm_core.scene.light_textures import textured_flux
             texture_of.append(np.array([len(textures)], np.int32))
             textures.append(rest[1])
-            power.append(np.array([np.mean(np.asarray(val) * textured_flux(kind, np.asarray(cone), rest[1]))]))
+            power.append(np.array([np.mean(np.asarray(val) * textured_flux(kind == LIGHT_PROJECTOR, np.asarray(cone), rest[1]))]))
             continue
         texture_of.append(np.array([-1], np.int32))
         power.append(np.array([np.mean(val) * _delta_solid_angle(kind, np.asarray(cone))]))
