@@ -45,6 +45,9 @@ LOADS = {
     "projector/test_projector_textured_direct.xml": "Gaussian pixel filter (Mitsuba's default)",
     # z-pass 75.97%, mean 0.00%: see WHY_FAILS in benchmarks/mitsuba_scenes.py.
     "orthographic_sensor/test_orthographic_path.xml": "edges of the checkerboard differ, cause not found",
+    # Passes in one process (z-pass 99.83%, mean -0.50%, 16 seeds); the run
+    # through the service was not finished before the session's deadline.
+    "various_emitters/test_various_emitters_ptracer.xml": "passes in one process; service run not measured",
     # Mitsuba shades sphere.obj with its vertex normals, we with the faces'
     # (max_depth 2: the sphere shows only the lights' reflections, here a
     # narrow beckmann 0.02 lobe). Mitsuba's own render with face_normals
@@ -82,7 +85,6 @@ REFUSED = {
     "participating_media/test_homo_obj_inside_medium_volpath.xml": '<medium type="homogeneous"',
     "participating_media/test_homo_roughdielectric_spot_volpath.xml": '<medium type="homogeneous"',
     "participating_media/test_homo_spectral_sigmat_volpathmis.xml": '<medium type="homogeneous"',
-    "various_emitters/test_various_emitters_ptracer.xml": '<texture type="bitmap"',
     "various_shapes/test_various_shapes_path.xml": '<shape type="serialized"',
 }
 
