@@ -201,6 +201,8 @@ def _meshes(mi, scene: Scene) -> dict:
         used, local = np.unique(faces, return_inverse=True)
         props = mi.Properties()
         props["bsdf"] = mi.load_dict(_bsdf(mats, int(mid)))
+        if mats.emission_texture[mid] >= 0:
+            raise ValueError("a textured area light has no reference render here: render the Mitsuba file itself")
         if np.max(mats.emission[mid]) > 0:
             props["emitter"] = mi.load_dict({"type": "area",
                                              "radiance": _spectrum(mats.emission[mid])})
@@ -279,6 +281,9 @@ def _coloured_bsdf(mats, mid: int, kind: int, tint: dict) -> dict:
 def _delta_emitters(mi, scene: Scene) -> dict:
     lights, out = scene.lights, {}
     for i in np.flatnonzero(lights.kind != LIGHT_TRIANGLE):
+        if lights.texture[i] >= 0:
+            raise ValueError("a textured spot or projector has no reference render here: "
+                             "render the Mitsuba file itself")
         pos, value = _vec(lights.p0[i]), _spectrum(lights.value[i])
         if lights.kind[i] == LIGHT_POINT:
             out[f"light_{i}"] = {"type": "point", "position": pos, "intensity": value}

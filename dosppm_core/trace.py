@@ -37,7 +37,7 @@ def emit_photon_jobs(scene: Scene, seed: int, keys, counts, eps_abs: float) -> R
     np.cumsum(counts, out=starts[1:])
     o, d, f, st, light = emit.emit_photons(L.kind, L.p0, L.p1, L.p2, L.value, L.cone, L.power,
                                            L.cdf, np.uint64(seed), keys, starts, eps_abs,
-                                           envmap.env_arrays(L))
+                                           envmap.env_arrays(L), light_textures(L))
     # A photon path's pixel is -1 - its light: its first hit teaches the
     # light cache (`kernels.light_cache`) which light reaches there.
     return RayBatch(o, d, f, -1 - light, np.zeros(len(light), np.int32), st,
@@ -102,6 +102,8 @@ def advance_eye(surf: SurfaceData, batch: RayBatch, prim, u, v, max_depth: int,
     if len(surf.tex_info) and len(h):
         # A textured hit point carries its texel in its weight (`kernels.texture`).
         texture.fold_texels(surf, prim[h], hmat, u[h], v[h], weight)
+    if len(surf.light_tex_info) and len(lit):
+        texture.fold_emission(surf, prim[lit], u[lit], v[lit], rgb)     # a textured area light seen
     outgoing = -batch.direction[h]
     mapped = None
     if surf.shading_mapped and len(h):
@@ -167,9 +169,16 @@ def _infinite_arrays(lights: LightTable) -> tuple:
 
 
 # -- direct light -----------------------------------------------------------------
-LIGHT_CACHE = 14      # light_arrays()[LIGHT_CACHE]: the light cache's arrays the eye passes read
-LEARN = 15            # light_arrays()[LEARN]: those the photons teach (the same, or the live ones)
-INFINITE = 16         # light_arrays()[INFINITE]: the infinite lights (`_infinite_arrays`)
+LIGHT_TEXTURE = 14    # light_arrays()[14:19]: the lights' textures (`light_textures`)
+LIGHT_CACHE = 19      # light_arrays()[LIGHT_CACHE]: the light cache's arrays the eye passes read
+LEARN = 20            # light_arrays()[LEARN]: those the photons teach (the same, or the live ones)
+INFINITE = 21         # light_arrays()[INFINITE]: the infinite lights (`_infinite_arrays`)
+
+
+def light_textures(lights: LightTable) -> tuple:
+    """The textured lights' arrays as the kernels take them: (texture id
+    per light, tex_info, tex_uv, tex_texels, tri_uv; `LightTable`)."""
+    return (lights.texture, lights.tex_info, lights.tex_uv, lights.tex_texels, lights.tri_uv)
 
 
 def light_arrays(lights: LightTable, cache: LightCache | None = None) -> tuple:
@@ -180,8 +189,8 @@ def light_arrays(lights: LightTable, cache: LightCache | None = None) -> tuple:
     and those of the infinite lights."""
     L = lights
     cache = cache if cache is not None else LightCache.empty()
-    return (L.kind, L.p0, L.p1, L.p2, L.value, L.cone, L.power, L.cdf, *build_light_tree(L), cache.read,
-            cache.arrays(), _infinite_arrays(L))
+    return (L.kind, L.p0, L.p1, L.p2, L.value, L.cone, L.power, L.cdf, *build_light_tree(L),
+            *light_textures(L), cache.read, cache.arrays(), _infinite_arrays(L))
 
 
 def freeze_light_cache(lights: tuple | None) -> None:
@@ -211,17 +220,20 @@ def shadow_rays(surf: SurfaceData, lights: tuple, hits: HitPoints, states, jobs,
 
 
 def shadow_results(shadows: ShadowRays, prim, t, surf: SurfaceData, total_power: float, ended=None,
-                   env: Environment | None = None):
+                   env: Environment | None = None, uv=None):
     """(pixel, rgb) that the ended rays among `shadows` bring, given their
     first hits in [0, tmax] (`prim` -1: none): a shadow ray with no hit
     reached its light; a BSDF-sampled one brings what its hit emits, or,
     with `env`, what the environment sends if it left the scene.
-    `ended` (bool) limits it to rays that end here (not leaving a chunk)."""
+    `ended` (bool) limits it to rays that end here (not leaving a chunk);
+    `uv` the hits' barycentrics (u, v), which a textured area light needs."""
     ended = np.ones(len(shadows), bool) if ended is None else ended
     lit = ended & (shadows.pdf == 0) & (prim < 0)
     found = np.flatnonzero(ended & (shadows.pdf > 0) & (prim >= 0))
     rgb = direct.emitter_radiance(shadows.direction[found], shadows.radiance[found], shadows.pdf[found],
                                   prim[found], t[found], surf, float(total_power))
+    if len(surf.light_tex_info) and len(found):
+        texture.fold_emission(surf, prim[found], uv[0][found], uv[1][found], rgb)
     out = (np.concatenate([shadows.pixel[lit], shadows.pixel[found]]),
            np.concatenate([shadows.radiance[lit], rgb]))
     if env is not None:
@@ -240,8 +252,8 @@ def trace_shadows(accel: Accelerator, surf: SurfaceData, lights: tuple, shadows:
     ends[STORED] = len(shadows)
     if not len(shadows):
         return (np.empty(0, np.int32), np.empty((0, 3), np.float32)), ends
-    prim, t, _u, _v = accel.intersect(shadows.origin, shadows.direction, shadows.tmax)
-    return shadow_results(shadows, prim, t, surf, lights[6].sum(), env=env), ends
+    prim, t, u, v = accel.intersect(shadows.origin, shadows.direction, shadows.tmax)
+    return shadow_results(shadows, prim, t, surf, lights[6].sum(), env=env, uv=(u, v)), ends
 
 
 def trace_photons(accel, surf, batch, cull_box, max_depth, deposit_from: int = 0, lights: tuple | None = None):

@@ -17,6 +17,7 @@ import pytest
 from dosppm_core.modes.sppm import render
 from dosppm_core.scene.model import Camera, Material, SceneBuilder
 from dosppm_core.settings import RenderSettings
+from dosppm_core.trace import LIGHT_CACHE
 
 RHO = 0.5
 SIZE = 24
@@ -207,9 +208,9 @@ def test_lamps_behind_a_wall_are_learned_away_and_the_image_stays_exact():
             r.run_iteration()
             if it == 0:
                 at = (-2.0, 0.0, 0.0, 0.0, 0.0, 1.0)
-                hidden_tree = [choice_pmf(r.lights[:14], r.lights[14], *at, li) for li in range(8, 32)]
+                hidden_tree = [choice_pmf(r.lights[:LIGHT_CACHE], r.lights[LIGHT_CACHE], *at, li) for li in range(8, 32)]
         got = r.image()[..., 0]
-        hidden = [choice_pmf(r.lights[:14], r.lights[14], *at, li) for li in range(8, 32)]
+        hidden = [choice_pmf(r.lights[:LIGHT_CACHE], r.lights[LIGHT_CACHE], *at, li) for li in range(8, 32)]
     finally:
         r.close()
     assert sum(t for _, t, _ in hidden_tree) > 0.5          # the tree alone: most choices behind the wall

@@ -506,15 +506,6 @@ def test_mitsuba_projector_scene_matches_its_reference():
     np.testing.assert_allclose(img.mean((0, 1)), ref.mean((0, 1)), rtol=0.01)
 
 
-def test_textured_projector_is_refused_at_its_texture(tmp_path):
-    emitter = """<emitter type="projector"><float name="fov" value="40"/>
-        <texture type="bitmap" name="irradiance"><string name="filename" value="x.png"/></texture></emitter>"""
-    with pytest.raises(SceneError) as err:
-        dp.load(_xml(tmp_path, emitter, _sphere("0.5")))
-    assert "\n" not in str(err.value)
-    assert str(err.value).startswith(f"{tmp_path / 'scene.xml'}:3: <texture type=\"bitmap\""), str(err.value)
-
-
 def test_environment_photons_are_culled_at_the_hit_point_box(tmp_path):
     """A close view of the sphere under a constant sky: most photons from
     the sky's disc land outside the hit points' box and are culled, and the

@@ -28,6 +28,7 @@ from dosppm_core.kernels.emit import EMIT_EPS_REL
 from dosppm_core.kernels.envmap import env_arrays
 from dosppm_core.kernels.paths import ELSEWHERE
 from dosppm_core.scene.model import DIFFUSE, GLASS, GLOSSY, MIRROR, Camera, Material, SceneBuilder
+from dosppm_core.trace import light_textures
 
 ALPHA = 1e-4
 TWO_PI = 2.0 * math.pi
@@ -554,7 +555,8 @@ def _emit(scene, count, seed=3, job=0, eps=1e-4):
     L = scene.lights
     o, d, f, _, _light = emit.emit_photons(L.kind, L.p0, L.p1, L.p2, L.value, L.cone, L.power, L.cdf,
                                            np.uint64(seed), np.array([job], np.uint64),
-                                           np.array([0, count], np.int64), eps, env_arrays(L))
+                                           np.array([0, count], np.int64), eps, env_arrays(L),
+                                           light_textures(L))
     return o.astype(np.float64), d.astype(np.float64), f.astype(np.float64)
 
 

@@ -30,6 +30,7 @@ CLAIMED = [
     "bsdf_spheres/test_bumpmap_path.xml",
     "bsdf_spheres/test_envmap_path.xml",
     "mesh_attributes/test_mesh_attributes_1_face_direct.xml",
+    "spot_light/test_spot_direct.xml",
 ]
 # Load but are not claimed to pass yet: scene -> why (measured figures).
 LOADS = {
@@ -51,8 +52,17 @@ LOADS = {
     # (1.0011, 0.9997, 0.9997) with a negative variance in red, where
     # Mitsuba's scalar_rgb and we give exactly 1; the rectangle passes.
     "orthographic_sensor/test_orthographic_path.xml": "the reference's background is off white",
-    # Measured once after the materials merged, not looked into yet:
-    "bsdf_spheres/test_roughdielectric_path.xml": "z-pass 99.90% but mean +4.24%",
+    # Re-scored after the Gaussian filter merged: see below.
+    "projector/test_projector_textured_direct.xml": "Gaussian pixel filter (Mitsuba's default)",
+    # Passes in one process (z-pass 99.83%, mean -0.50%, 16 seeds); the run
+    # through the service was not finished before the session's deadline.
+    "various_emitters/test_various_emitters_ptracer.xml": "passes in one process; service run not measured",
+    # Mitsuba shades sphere.obj with its vertex normals, we with the faces'
+    # (max_depth 2: the sphere shows only the lights' reflections, here a
+    # narrow beckmann 0.02 lobe). Mitsuba's own render with face_normals
+    # is +4.1% of the reference, and ours within 0.9% of that render
+    # (the point light's highlight: ours 1.07x it, 1.54x the smooth one's).
+    "bsdf_spheres/test_roughdielectric_path.xml": "z-pass 99.90%, mean +4.24%: shading normals",
     # Mitsuba shades the OBJ spheres with their vertex normals, we with the
     # faces': Mitsuba with face_normals reproduces our highlight and
     # silhouette differences, and against that render ours pass (z 99.93%,
@@ -98,9 +108,6 @@ REFUSED = {
     "participating_media/test_homo_obj_inside_medium_volpath.xml": '<medium type="homogeneous"',
     "participating_media/test_homo_roughdielectric_spot_volpath.xml": '<medium type="homogeneous"',
     "participating_media/test_homo_spectral_sigmat_volpathmis.xml": '<medium type="homogeneous"',
-    "projector/test_projector_textured_direct.xml": '<texture type="bitmap"',
-    "spot_light/test_spot_direct.xml": '<texture type="bitmap"',
-    "various_emitters/test_various_emitters_ptracer.xml": '<texture type="bitmap"',
     "various_shapes/test_various_shapes_path.xml": '<shape type="serialized"',
 }
 

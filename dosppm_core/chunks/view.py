@@ -36,7 +36,7 @@ class ChunkView:
         self.env = environment(header.lights)           # what eye paths leaving the scene see
         m, textures = chunk_surface_textures(geometry, header)
         self.surf = SurfaceData.from_arrays(geometry.vertices, geometry.triangles, geometry.tri_material,
-                                            m, header.spawn_epsilon(), geometry.uv, textures)
+                                            m, header.spawn_epsilon(), geometry.uv, textures, header.lights)
         # An empty chunk (air between walls) still routes rays; Embree
         # needs one triangle, so give it one that no ray can reach.
         verts, tris = geometry.vertices, geometry.triangles
@@ -211,11 +211,12 @@ def trace_shadows_in_chunk(view: ChunkView, shadows: ShadowRays):
     counts = np.zeros(END_KINDS, np.int64)
     if not len(shadows):
         return (np.empty(0, np.int32), np.empty((0, 3), np.float32)), counts, {}
-    prim, t, _u, _v, nxt, t_exit = view.intersect(shadows, shadows.tmax)
+    prim, t, u, v, nxt, t_exit = view.intersect(shadows, shadows.tmax)
     leaving = (prim < 0) & (nxt >= 0) & (t_exit < shadows.tmax)
     rows = np.flatnonzero(leaving)
     out = {}
     if len(rows):
         out = shadows.partition(nxt[rows], rows=rows, replace={"tmin": t_exit.astype(np.float32)})
     counts[STORED] = len(shadows) - len(rows)
-    return shadow_results(shadows, prim, t, view.surf, view.total_power, ~leaving, view.env), counts, out
+    return (shadow_results(shadows, prim, t, view.surf, view.total_power, ~leaving, view.env, (u, v)),
+            counts, out)

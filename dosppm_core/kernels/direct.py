@@ -60,6 +60,7 @@ from dosppm_core.kernels.light_tree import sample_tree, tree_pmf
 from dosppm_core.kernels.materials import hit_point_eval, hit_point_pdf, hit_point_sample, is_coloured
 from dosppm_core.kernels.paths import offset_origin
 from dosppm_core.kernels.rng import next_float
+from dosppm_core.kernels.texture import emitter_texel, triangle_texel
 from dosppm_core.scene.model import GLOSSY, LIGHT_DIRECTIONAL, LIGHT_ENV, LIGHT_POINT, LIGHT_PROJECTOR, LIGHT_TRIANGLE
 
 C_LIGHT = 0.5          # share of light samples at glossy hit points (MIS); 1 elsewhere
@@ -145,6 +146,24 @@ def _sample_light(lights, li, p0, p1, p2, u1, u2):
         axis = lp1[li]
         g = spot_falloff(cone[li], -(axis[0] * w0 + axis[1] * w1 + axis[2] * w2)) / dist2
     return q0, q1, q2, w0, w1, w2, dist, g
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def light_le(lights, li, w0, w1, w2, u1, u2):
+    """What light li sends toward a hit point that sees it along unit w,
+    per unit of `_sample_light`'s g (for the numbers u1, u2): its `value`,
+    times the texel of the direction -w for a textured spot or projector,
+    or of the point sampled on a textured triangle (lights[14:19],
+    `trace.light_textures`)."""
+    value, t = lights[4], lights[14][li]
+    if t < 0:
+        return value[li, 0], value[li, 1], value[li, 2]
+    if lights[0][li] == LIGHT_TRIANGLE:
+        c0, c1, c2 = triangle_texel(t, lights[18][li], lights[15], lights[16], lights[17], u1, u2)
+    else:
+        c0, c1, c2 = emitter_texel(lights[0][li], lights[2][li], lights[3][li], lights[5][li], t,
+                                   lights[15], lights[16], lights[17], -w0, -w1, -w2)
+    return value[li, 0] * c0, value[li, 1] * c1, value[li, 2] * c2
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
@@ -253,10 +272,11 @@ def _aim(i, out, p0, p1, p2, n0, n1, n2, w0, w1, w2, q0, q1, q2, eps_rel, eps_ab
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
-def _write_radiance(i, out, scale, weight, refl, m, value):
+def _write_radiance(i, out, scale, weight, refl, m, l0, l1, l2):
     """Row i's contribution if unoccluded: W refl scale Le (per channel)."""
-    for k in range(3):
-        out[3][i, k] = weight[i, k] * refl[m, k] * scale * value[k]
+    out[3][i, 0] = weight[i, 0] * refl[m, 0] * scale * l0
+    out[3][i, 1] = weight[i, 1] * refl[m, 1] * scale * l1
+    out[3][i, 2] = weight[i, 2] * refl[m, 2] * scale * l2
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
@@ -277,7 +297,7 @@ def _light_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights, e
                ul, u1, u2, eps_rel, out):
     """A shadow ray to a point sampled on a light chosen by power; writes
     row i of `out`, returns whether it may contribute."""
-    power, cdf, value = lights[6], lights[7], lights[4]
+    power, cdf = lights[6], lights[7]
     li = select_light(cdf, ul)
     p_sel = power[li] / total
     if lights[0][li] == LIGHT_ENV:
@@ -302,7 +322,8 @@ def _light_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights, e
         scale = f * cos_x * g / p_sel
     if not _aim(i, out, p0, p1, p2, n0, n1, n2, w0, w1, w2, q0, q1, q2, eps_rel, surf.eps_abs):
         return False
-    _write_radiance(i, out, scale, weight, surf.reflectance, m, value[li])
+    l0, l1, l2 = light_le(lights, li, w0, w1, w2, u1, u2)
+    _write_radiance(i, out, scale, weight, surf.reflectance, m, l0, l1, l2)
     return True
 
 
@@ -349,7 +370,8 @@ def _chosen_light_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, li
         return False
     if not _aim(i, out, p0, p1, p2, n0, n1, n2, w0, w1, w2, q0, q1, q2, eps_rel, surf.eps_abs):
         return False
-    _write_radiance(i, out, f * cos_x * g / pmf, weight, surf.reflectance, m, lights[4][li])
+    l0, l1, l2 = light_le(lights, li, w0, w1, w2, u1, u2)
+    _write_radiance(i, out, f * cos_x * g / pmf, weight, surf.reflectance, m, l0, l1, l2)
     return True
 
 
@@ -466,7 +488,7 @@ def _coloured_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights
     if mis and ut >= C_LIGHT:
         return _coloured_bsdf_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, kind, row, surf,
                                   ul, u1, u2, eps_rel, out)
-    power, cdf, value = lights[6], lights[7], lights[4]
+    power, cdf = lights[6], lights[7]
     li = select_light(cdf, ul)
     p_sel = power[li] / total
     c = C_LIGHT if mis else 1.0
@@ -483,7 +505,7 @@ def _coloured_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights
         if not g > 0.0:
             return False
         p_light = p_sel / g
-        l0, l1, l2 = value[li][0], value[li][1], value[li][2]
+        l0, l1, l2 = light_le(lights, li, w0, w1, w2, u1, u2)
     pdf = c * p_light
     if mis and (lights[0][li] == LIGHT_TRIANGLE or lights[0][li] == LIGHT_ENV):
         pdf += (1.0 - C_LIGHT) * hit_point_pdf(kind, row, n0, n1, n2, o0, o1, o2, w0, w1, w2)

@@ -8,8 +8,17 @@ from dosppm_core.kernels.bsdf import cosine_hemisphere, to_world
 from dosppm_core.kernels.envmap import env_eval, env_sample
 from dosppm_core.kernels.paths import offset_origin
 from dosppm_core.kernels.rng import EYE_STREAM, next_float, path_state
-from dosppm_core.scene.model import (FILTER_BOX, FILTER_TENT, LIGHT_DIRECTIONAL, LIGHT_POINT, LIGHT_PROJECTOR, LIGHT_SPOT,
-                                     LIGHT_TRIANGLE)
+from dosppm_core.kernels.texture import emitter_texel, triangle_texel
+from dosppm_core.scene.model import (
+    FILTER_BOX,
+    FILTER_TENT,
+    LIGHT_DIRECTIONAL,
+    LIGHT_ENV,
+    LIGHT_POINT,
+    LIGHT_PROJECTOR,
+    LIGHT_SPOT,
+    LIGHT_TRIANGLE,
+)
 
 EMIT_EPS_REL = 2e-5   # the bounces' spawn offset relative to |p| (tracing.EPS_REL)
 
@@ -173,7 +182,7 @@ def select_light(cdf, u):
 
 
 @nb.njit(cache=True, parallel=True, error_model="numpy")
-def emit_photons(kind, p0, p1, p2, value, cone, power, cdf, seed, jobs, starts, eps, env):
+def emit_photons(kind, p0, p1, p2, value, cone, power, cdf, seed, jobs, starts, eps, env, light_tex):
     """Photons of the emission jobs `jobs` (rng keys), job m's photons
     being rows [starts[m], starts[m + 1]); lights chosen in proportion to
     power. A photon depends only on (seed, its job's key, its index in the
@@ -185,8 +194,12 @@ def emit_photons(kind, p0, p1, p2, value, cone, power, cdf, seed, jobs, starts, 
     photons divided by the number emitted (eq. 5's N_e). Surface photons
     start `eps` off their light along its normal (Embree's tnear is 0).
     Photons of infinite lights start outside the scene (`_emit_infinite`;
-    `env` is `kernels.envmap.env_arrays`). Returns origin, direction,
-    flux, rng state, and the light of each.
+    `env` is `kernels.envmap.env_arrays`). A textured light (`light_tex`:
+    the LightTable's texture, tex_info, tex_uv, tex_texels, tri_uv) sends
+    its photons as the untextured one would, each weighted by the texel of
+    its direction (a spot, as Mitsuba's, or a projector) or of its point
+    (a triangle). Returns origin, direction, flux, rng state, and the
+    light of each.
     """
     count = starts[-1]
     origin = np.empty((count, 3), np.float32)
@@ -205,30 +218,46 @@ def emit_photons(kind, p0, p1, p2, value, cone, power, cdf, seed, jobs, starts, 
         st, u4 = next_float(st)
         li = select_light(cdf, ul)
         p_sel = power[li] / total
-        if kind[li] == LIGHT_TRIANGLE:
-            o, d, scale = _emit_triangle(p0[li], p1[li], p2[li], u1, u2, u3, u4, eps)
-        elif kind[li] == LIGHT_POINT:
-            o, d, scale = _emit_point(p0[li], u1, u2)
-        elif kind[li] == LIGHT_SPOT:
-            o, d, scale = _emit_spot(p0[li], p1[li], cone[li], u1, u2)
-        elif kind[li] == LIGHT_PROJECTOR:
-            o, d, scale = _emit_projector(p0[li], p1[li], p2[li], cone[li], u1, u2)
-        else:
+        if kind[li] == LIGHT_DIRECTIONAL or kind[li] == LIGHT_ENV:
             o, d, rgb = _emit_infinite(kind[li], p0[li], p1[li], cone[li, 0], value[li], env, u1, u2, u3, u4)
-            for k in range(3):
-                origin[i, k] = o[k]
-                direction[i, k] = d[k]
-                flux[i, k] = rgb[k] / p_sel
-            states[i] = st
-            light[i] = li
-            continue
+        else:
+            o, d, rgb = _emit_finite(kind[li], p0[li], p1[li], p2[li], value[li], cone[li], light_tex, li,
+                                     u1, u2, u3, u4, eps)
         for k in range(3):
             origin[i, k] = o[k]
             direction[i, k] = d[k]
-            flux[i, k] = value[li, k] * scale / p_sel
+            flux[i, k] = rgb[k] / p_sel
         states[i] = st
         light[i] = li
     return origin, direction, flux, states, light
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def _emit_finite(kind, p0, p1, p2, value, cone, light_tex, li, u1, u2, u3, u4, eps):
+    """A photon of a triangle, point, spot or projector light (row li):
+    origin, direction and flux / pdf (RGB)."""
+    if kind == LIGHT_TRIANGLE:
+        o, d, scale = _emit_triangle(p0, p1, p2, u1, u2, u3, u4, eps)
+    elif kind == LIGHT_POINT:
+        o, d, scale = _emit_point(p0, u1, u2)
+    elif kind == LIGHT_SPOT:
+        o, d, scale = _emit_spot(p0, p1, cone, u1, u2)
+    else:
+        o, d, scale = _emit_projector(p0, p1, p2, cone, u1, u2)
+    c0, c1, c2 = _texel_weight(kind, p1, p2, cone, light_tex, li, d, u1, u2)
+    return o, d, (value[0] * scale * c0, value[1] * scale * c1, value[2] * scale * c2)
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def _texel_weight(kind, axis, x_axis, cone, light_tex, li, d, u1, u2):
+    """What a photon of light li (direction d, drawn from u1, u2) is
+    weighted by: 1, or the texel of a textured light (`emit_photons`)."""
+    t = light_tex[0][li]
+    if t < 0:
+        return 1.0, 1.0, 1.0
+    if kind == LIGHT_TRIANGLE:
+        return triangle_texel(t, light_tex[4][li], light_tex[1], light_tex[2], light_tex[3], u1, u2)
+    return emitter_texel(kind, axis, x_axis, cone, t, light_tex[1], light_tex[2], light_tex[3], d[0], d[1], d[2])
 
 
 @nb.njit(cache=True, error_model="numpy")

@@ -68,19 +68,33 @@ class SurfaceData(NamedTuple):
     tex_info: np.ndarray        # int32 (K, 6), `TextureTable.info`
     tex_uv: np.ndarray          # float64 (K, 6), its to_uv maps
     texels: np.ndarray          # float32 (N, 3)
+    # Textured area lights: the texture (of the LightTable's own) that
+    # multiplies each material's emission, -1 for none, and those textures.
+    emission_texture: np.ndarray    # int32 (M,)
+    light_tex_info: np.ndarray
+    light_tex_uv: np.ndarray
+    light_texels: np.ndarray
 
     @classmethod
     def from_scene(cls, scene) -> "SurfaceData":
         return cls.from_arrays(scene.vertices, scene.triangles, scene.tri_material, scene.materials,
-                               scene.spawn_epsilon(), scene.uvs, scene.textures)
+                               scene.spawn_epsilon(), scene.uvs, scene.textures, scene.lights)
 
     @classmethod
-    def from_arrays(cls, vertices, triangles, tri_material, m, eps_abs, uvs, textures) -> "SurfaceData":
-        """From geometry arrays, a `MaterialTable` m and a `TextureTable`."""
+    def from_arrays(cls, vertices, triangles, tri_material, m, eps_abs, uvs, textures,
+                    lights=None) -> "SurfaceData":
+        """From geometry arrays, a `MaterialTable` m, a `TextureTable` and
+        the `LightTable` (its textures; None: no textured area lights)."""
+        etex = np.ascontiguousarray(m.emission_texture, np.int32)
+        light_textures = (np.zeros((0, 6), np.int32), np.zeros((0, 6)), np.zeros((0, 3), np.float32))
+        if lights is not None and len(lights.tex_info):
+            light_textures = (lights.tex_info, lights.tex_uv, lights.tex_texels)
+        else:
+            etex = np.full(len(m.kind), -1, np.int32)
         return cls(vertices, triangles, tri_material, m.kind, m.reflectance, m.emission, m.ior,
                    m.roughness, m.two_sided, eps_abs, bsdf_rows(m), np.ascontiguousarray(uvs, np.float32),
                    np.ascontiguousarray(m.texture, np.int32), textures.info, textures.uv_map,
-                   textures.texels)
+                   textures.texels, etex, *light_textures)
 
     @property
     def textured(self) -> bool:
@@ -314,7 +328,7 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
     from row a; returns (dc, gc). Tuples unpacked once per block, not per ray."""
     direction, flux, depth, states, job, pixel = rays
     (verts, tris, tri_mat, kinds, refl, _emit, ior, rough, two_sided, eps_abs, bsdf,
-     uvs, mtex, tinfo, tuv, texels) = surf
+     uvs, mtex, tinfo, tuv, texels, _etex, _ltinfo, _ltuv, _ltexels) = surf
     prim, u, v = hits
     dep_pos, dep_in, dep_n, dep_f, dep_job = dep
     new_o, new_d, new_f, new_st, new_depth, new_job, new_pix = nxt
@@ -564,7 +578,7 @@ def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp,
     """The eye bounce of rows [a, e), each written to its own row. Tuples unpacked once per block."""
     direction, weight, depth, states = rays
     (verts, tris, tri_mat, kinds, refl, emit, ior, rough, two_sided, eps_abs, bsdf,
-     uvs, mtex, tinfo, tuv, texels) = surf
+     uvs, mtex, tinfo, tuv, texels, _etex, _ltinfo, _ltuv, _ltexels) = surf
     prim, u, v = hits
     hp_pos, hp_n, hp_mat = hp
     new_o, new_d, new_w, new_st = nxt

@@ -21,6 +21,7 @@ import math
 import numba as nb
 import numpy as np
 
+from dosppm_core.scene.model import LIGHT_PROJECTOR
 from dosppm_core.scene.textures import CHECKERBOARD, CLAMP, MIRROR, NEAREST, REPEAT
 
 
@@ -128,6 +129,53 @@ def texel_at(uvs, tris, tex_info, tex_uv, texels, t, tri, u, v):
     inlined helper on every bounce cost the untextured eye bounce ~3%."""
     s, r = hit_uv(uvs, tris, tri, np.float64(u), np.float64(v))
     return texel(tex_info, tex_uv, texels, t, s, r)
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def emitter_texel(kind, axis, x_axis, cone, t, info, uv_map, texels, d0, d1, d2):
+    """The texel a textured spot or projector (`scene.light_textures`;
+    texture t of the light table's own arrays, `axis` and `x_axis` its
+    frame, `cone` its row) sends along unit direction d; 0 behind it."""
+    z = axis[0] * d0 + axis[1] * d1 + axis[2] * d2
+    if not z > 0.0:
+        return 0.0, 0.0, 0.0
+    x = x_axis[0] * d0 + x_axis[1] * d1 + x_axis[2] * d2
+    y = ((axis[1] * x_axis[2] - axis[2] * x_axis[1]) * d0 + (axis[2] * x_axis[0] - axis[0] * x_axis[2]) * d1
+         + (axis[0] * x_axis[1] - axis[1] * x_axis[0]) * d2)
+    if kind == LIGHT_PROJECTOR:
+        return texel(info, uv_map, texels, t, 0.5 - 0.5 * x / (z * cone[0]), 0.5 - 0.5 * y / (z * cone[1]))
+    k = 0.5 / (z * math.tan(cone[2]))
+    return texel(info, uv_map, texels, t, 0.5 + x * k, 0.5 + y * k)
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def triangle_texel(t, corner_uv, info, uv_map, texels, u1, u2):
+    """The texel of texture t at the point of a triangle (corner uvs
+    (u0, v0, u1, v1, u2, v2)) that `emit._emit_triangle` and
+    `direct._point_on_triangle` pick for the numbers (u1, u2)."""
+    su = math.sqrt(u1)
+    b1, b2 = 1.0 - su, u2 * su
+    b0 = 1.0 - b1 - b2
+    s = b0 * corner_uv[0] + b1 * corner_uv[2] + b2 * corner_uv[4]
+    r = b0 * corner_uv[1] + b1 * corner_uv[3] + b2 * corner_uv[5]
+    return texel(info, uv_map, texels, t, s, r)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def fold_emission(surf, prim, u, v, rgb):
+    """Emission seen at hits (triangles `prim`, barycentrics u, v) times
+    the texel of a textured area light there (`rgb` (n, 3), changed in
+    place; `SurfaceData.emission_texture`)."""
+    for i in range(prim.shape[0]):
+        tri = prim[i]
+        t = surf.emission_texture[surf.tri_material[tri]]
+        if t < 0:
+            continue
+        s, r = hit_uv(surf.uvs, surf.triangles, tri, np.float64(u[i]), np.float64(v[i]))
+        c0, c1, c2 = texel(surf.light_tex_info, surf.light_tex_uv, surf.light_texels, t, s, r)
+        rgb[i, 0] *= c0
+        rgb[i, 1] *= c1
+        rgb[i, 2] *= c2
 
 
 @nb.njit(cache=True, error_model="numpy")

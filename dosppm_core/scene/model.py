@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dosppm_core.scene.errors import SceneError
+from dosppm_core.scene.light_textures import normalised, textured_flux
 from dosppm_core.scene.textures import Texture, TextureTable
 
 # Material kinds, as stored in `MaterialTable.kind` and read by the kernels.
@@ -67,7 +68,10 @@ class Material:
     `reflectance`). `two_sided=False` makes the back of a diffuse, mirror or
     glossy surface black, as Mitsuba does without its `twosided` wrapper.
     `texture` >= 0 (an id from `SceneBuilder.add_texture`) replaces
-    `reflectance` by that texture's value at the hit's UV.
+    `reflectance` by that texture's value at the hit's UV;
+    `emission_texture` >= 0 (from `SceneBuilder.add_emission_texture`)
+    multiplies `emission` by a texture's value there (Mitsuba's area light
+    with a textured radiance).
 
     Mitsuba's 'roughdielectric' (relative `ior` = int_ior / ext_ior,
     `roughness` alpha of the `distribution` 'ggx' or 'beckmann';
@@ -112,6 +116,7 @@ class Material:
     blend: tuple = (-1, -1)
     blend_weight: float = 0.0
     blend_texture: int = -1
+    emission_texture: int = -1
 
     def validate(self, where: str) -> None:
         if self.kind not in MATERIAL_KINDS:
@@ -285,6 +290,9 @@ class MaterialTable:
     blend: np.ndarray = None          # int32 (m, 2): a blendbsdf's two materials, -1 for none
     blend_weight: np.ndarray = None   # float32 (m,): the second one's probability
     blend_texture: np.ndarray = None  # int32 (m,): a textured weight, -1 for none
+    # The texture (an index into the LightTable's own textures) that
+    # `emission` is multiplied by, -1 for none (`scene.light_textures`).
+    emission_texture: np.ndarray = None  # int32 (m,)
 
     def __post_init__(self):
         # Tables made before these columns (tests, older callers) get the
@@ -307,7 +315,7 @@ class MaterialTable:
         for name, dtype, value in (("normal_map", np.int32, -1), ("bump_map", np.int32, -1),
                                    ("bump_scale", np.float32, 1.0), ("shading_flags", np.int32, 3),
                                    ("opacity_texture", np.int32, -1), ("blend_weight", np.float32, 0.0),
-                                   ("blend_texture", np.int32, -1)):
+                                   ("blend_texture", np.int32, -1), ("emission_texture", np.int32, -1)):
             if getattr(self, name) is None:
                 setattr(self, name, np.full(m, value, dtype))
         if self.blend is None:
@@ -348,6 +356,7 @@ class MaterialTable:
             blend=np.array([m.blend for m in mats], np.int32).reshape(-1, 2),
             blend_weight=np.array([m.blend_weight for m in mats], np.float32),
             blend_texture=np.array([m.blend_texture for m in mats], np.int32),
+            emission_texture=np.array([m.emission_texture for m in mats], np.int32),
         )
 
 
@@ -370,6 +379,16 @@ class LightTable:
     `env_to_world`. `power` is the emitted flux per row (RGB mean; pi R^2
     times the irradiance, or the integral of the radiance over the sphere,
     for the infinite ones), and `cdf` its normalised running sum.
+
+    A textured spot or projector (`scene.light_textures`) keeps its image's
+    x axis in p2 and names its texture in `texture` (-1: none), an index
+    into the lights' own texture arrays `tex_info`, `tex_uv`, `tex_texels`
+    (a `TextureTable`'s, apart from the materials' so that every chunk has
+    them); `value` stays the untextured intensity or irradiance, which the
+    kernels multiply by the texel of the direction. A triangle of a
+    textured area light names its material's emission texture there too,
+    with its corners' texture coordinates in `tri_uv` (u0, v0, u1, v1, u2,
+    v2), and `value` its material's emission (the texture's mean).
     """
     kind: np.ndarray     # int32 (L,)
     p0: np.ndarray       # float64 (L, 3)
@@ -382,6 +401,17 @@ class LightTable:
     # A black 2x2 map when the scene has no environment: the kernels' types stay one.
     env_texels: np.ndarray = field(default_factory=lambda: np.zeros((2, 2, 3), np.float32))
     env_to_world: np.ndarray = field(default_factory=lambda: np.eye(3))
+    texture: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))     # int32 (L,)
+    tex_info: np.ndarray = field(default_factory=lambda: np.zeros((0, 6), np.int32))
+    tex_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 6), np.float64))
+    tex_texels: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
+    tri_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 6), np.float64))
+
+    def __post_init__(self):
+        if self.texture.shape != self.kind.shape:       # a table without textured lights
+            self.texture = np.full(self.kind.shape, -1, np.int32)
+        if self.tri_uv.shape != (len(self.kind), 6):
+            self.tri_uv = np.zeros((len(self.kind), 6), np.float64)
 
     @property
     def total_power(self) -> float:
@@ -535,6 +565,7 @@ class SceneBuilder:
     _directional: list = field(default_factory=list)
     _environment: tuple | None = None
     _textures: list = field(default_factory=list)
+    _emission_textures: list = field(default_factory=list)
     camera: Camera | None = None
 
     def add_texture(self, texture: Texture) -> int:
@@ -542,12 +573,23 @@ class SceneBuilder:
         self._textures.append(texture)
         return len(self._textures) - 1
 
+    def add_emission_texture(self, texture: Texture) -> tuple[int, np.ndarray]:
+        """A texture an emissive material's `emission` may be multiplied by:
+        (its `emission_texture` id, the mean RGB texel, by which the kernels'
+        copy is divided: give `emission` times that mean, so that the
+        light's power counts the texture)."""
+        scaled, mean = normalised(texture)
+        self._emission_textures.append(scaled)
+        return len(self._emission_textures) - 1, mean
+
     def add_material(self, material: Material, where: str | None = None) -> int:
         where = where or f"{self.source}: material {material.name!r}"
         material.validate(where)
         for name in ("texture", "opacity_texture", "blend_texture", "normal_map", "bump_map"):
             if not -1 <= getattr(material, name) < len(self._textures):
                 raise SceneError(f"{where}: {name} id {getattr(material, name)} out of range")
+        if not -1 <= material.emission_texture < len(self._emission_textures):
+            raise SceneError(f"{where}: emission texture id {material.emission_texture} out of range")
         if material.blend != (-1, -1) and not all(0 <= b < len(self._materials) for b in material.blend):
             raise SceneError(f"{where}: blend of material ids {material.blend}, not two earlier materials")
         if material.name in self._material_ids:
@@ -559,9 +601,10 @@ class SceneBuilder:
     def textured(self, material: int) -> bool:
         """Whether material id `material` reads a texture (its meshes keep
         UVs): its colour, a mask's opacity, a blend's weight or its parts',
-        a normal or bump map."""
+        a normal or bump map, or its emission."""
         m = self._materials[material]
-        if max(m.texture, m.opacity_texture, m.blend_texture, m.normal_map, m.bump_map) >= 0:
+        if max(m.texture, m.opacity_texture, m.blend_texture, m.normal_map, m.bump_map,
+               m.emission_texture) >= 0:
             return True
         return m.blend != (-1, -1) and any(self.textured(b) for b in m.blend)
 
@@ -607,9 +650,11 @@ class SceneBuilder:
         self._delta_lights.append((LIGHT_POINT, pos, np.zeros(3), val, np.zeros(4)))
 
     def add_spot_light(self, position, target, intensity, cutoff_deg: float,
-                       beam_width_deg: float | None, where: str) -> None:
+                       beam_width_deg: float | None, where: str, x_axis=None,
+                       texture: Texture | None = None) -> None:
         """Mitsuba's spot: full intensity inside `beam_width_deg`, falling
-        linearly in angle to zero at `cutoff_deg`."""
+        linearly in angle to zero at `cutoff_deg`, times `texture` (an image
+        spanning the cutoff's square, `x_axis` its horizontal) if given."""
         pos, tgt = _rgb(position, f"{where}.position"), _rgb(target, f"{where}.target")
         val = _rgb(intensity, f"{where}.intensity")
         axis = tgt - pos
@@ -622,7 +667,14 @@ class SceneBuilder:
             raise SceneError(f"{where}.beam_width: must lie in (0, cutoff_angle], got {beam}")
         c, b = math.radians(cutoff_deg), math.radians(beam)
         cone = np.array([math.cos(c), math.cos(b), c, b])
-        self._delta_lights.append((LIGHT_SPOT, pos, axis / np.linalg.norm(axis), val, cone))
+        axis = axis / np.linalg.norm(axis)
+        if texture is None:
+            self._delta_lights.append((LIGHT_SPOT, pos, axis, val, cone))
+            return
+        if cutoff_deg >= 90:
+            raise SceneError(f"{where}.cutoff_angle: a textured spot's must be below 90, got {cutoff_deg}")
+        x = _image_x_axis(axis, x_axis, where)
+        self._delta_lights.append((LIGHT_SPOT, pos, axis, val, cone, x, texture))
 
     def add_directional_light(self, direction, irradiance, where: str) -> None:
         """Mitsuba's directional: parallel light travelling along
@@ -647,22 +699,23 @@ class SceneBuilder:
             raise SceneError(f"{where}.to_world: an environment takes a rotation only")
         self._environment = (np.maximum(t, 0.0), r)
 
-    def add_projector_light(self, position, axis, x_axis, irradiance, tan_half_fov: float, where: str) -> None:
-        """Mitsuba's projector with a constant irradiance (a square image):
-        the plane at distance 1 along `axis`, within +-tan_half_fov, gets
-        pi x `irradiance`."""
+    def add_projector_light(self, position, axis, x_axis, irradiance, tan_half_fov: float, where: str,
+                            texture: Texture | None = None) -> None:
+        """Mitsuba's projector: the plane at distance 1 along `axis`, within
+        +-tan_half_fov along `x_axis` (and +-tan_half_fov / aspect across
+        it, the texture's aspect), gets pi x `irradiance` (times the
+        `texture` seen there, if given)."""
         pos, val = _rgb(position, f"{where}.position"), _rgb(irradiance, f"{where}.irradiance")
-        z, x = np.asarray(axis, np.float64), np.asarray(x_axis, np.float64)
+        z = np.asarray(axis, np.float64)
         if np.any(val < 0):
             raise SceneError(f"{where}.irradiance: must be non-negative")
         if not (math.isfinite(tan_half_fov) and tan_half_fov > 0):
             raise SceneError(f"{where}.fov: must lie in (0, 180) degrees")
         z = z / np.linalg.norm(z)
-        x = x - z * (x @ z)
-        if not np.linalg.norm(x) > 1e-9:
-            raise SceneError(f"{where}.to_world: degenerate")
-        cone = np.array([tan_half_fov, tan_half_fov, 0.0, 0.0])
-        self._delta_lights.append((LIGHT_PROJECTOR, pos, z, val, cone, x / np.linalg.norm(x)))
+        x = _image_x_axis(z, x_axis, f"{where}.to_world")
+        aspect = 1.0 if texture is None else texture.texels.shape[1] / texture.texels.shape[0]
+        cone = np.array([tan_half_fov, tan_half_fov / aspect, 0.0, 0.0])
+        self._delta_lights.append((LIGHT_PROJECTOR, pos, z, val, cone, x) + ((texture,) if texture else ()))
 
     # -- building ---------------------------------------------------------
     def build(self) -> Scene:
@@ -673,7 +726,7 @@ class SceneBuilder:
             raise SceneError(f"{self.source}: no geometry")
         verts, tris, mats = self._merge_meshes()
         mtable = MaterialTable.from_materials(self._materials)
-        lights = self._light_table(verts, tris, mats, mtable)
+        lights = self._light_table(verts, tris, mats, mtable, self._merged_uv())
         if lights.kind.size == 0 or lights.total_power <= 0:
             raise SceneError(f"{self.source}: no light (no emissive material, point or spot light)")
         return Scene(verts.astype(np.float32), tris.astype(np.int32), mats.astype(np.int32),
@@ -706,7 +759,7 @@ class SceneBuilder:
             raise SceneError(f"{self.source}: every triangle is degenerate")
         return verts, tris[keep], mats[keep]
 
-    def _light_table(self, verts, tris, mats, mtable: MaterialTable) -> LightTable:
+    def _light_table(self, verts, tris, mats, mtable: MaterialTable, uvs) -> LightTable:
         emit = mtable.emission.astype(np.float64)[mats]
         lit = np.flatnonzero(emit.max(axis=1) > 0)
         p0, p1, p2 = (verts[tris[lit, k]] for k in range(3))
@@ -714,8 +767,21 @@ class SceneBuilder:
         pts = np.concatenate([verts] + [d[1][None] for d in self._delta_lights])
         lo, hi = pts.min(0), pts.max(0)
         sphere = (0.5 * (lo + hi), bounding_radius(lo, hi))
+        tri_texture = mtable.emission_texture[mats[lit]]
+        tri_uv = np.zeros((len(lit), 6))
+        if len(uvs):
+            tri_uv = uvs[tris[lit]].reshape(-1, 6).astype(np.float64)
         return light_table(p0, p1, p2, emit[lit], self._delta_lights, self._directional,
-                           self._environment, sphere)
+                           self._environment, sphere, (tri_texture, tri_uv, self._emission_textures))
+
+
+def _image_x_axis(axis, x_axis, where: str) -> np.ndarray:
+    """`x_axis` made a unit vector perpendicular to the unit `axis`."""
+    x = np.asarray(x_axis, np.float64)
+    x = x - axis * (x @ axis)
+    if not np.linalg.norm(x) > 1e-9:
+        raise SceneError(f"{where}: degenerate")
+    return x / np.linalg.norm(x)
 
 
 def bounding_radius(lo, hi) -> float:
@@ -725,7 +791,7 @@ def bounding_radius(lo, hi) -> float:
 
 
 def light_table(p0, p1, p2, radiance, delta_lights=(), directional=(), environment=None,
-                sphere=None) -> LightTable:
+                sphere=None, emission_textures=None) -> LightTable:
     """The light table of emissive triangles and point/spot lights.
 
     p0, p1, p2: (n, 3) corners of the emissive triangles, each emitting
@@ -736,6 +802,8 @@ def light_table(p0, p1, p2, radiance, delta_lights=(), directional=(), environme
     as `SceneBuilder` from its emissive triangles alone. `directional`:
     (unit direction, irradiance) pairs; `environment`: (texels, rotation)
     or None; both need `sphere`, (centre, radius) around the scene.
+    `emission_textures`: (texture id per triangle, (n, 6) corner uvs, the
+    textures those ids index) of textured area lights, or None.
     """
     p0, p1, p2, radiance = (np.asarray(a, np.float64).reshape(-1, 3) for a in (p0, p1, p2, radiance))
     n = len(p0)
@@ -744,19 +812,36 @@ def light_table(p0, p1, p2, radiance, delta_lights=(), directional=(), environme
     rows = [p0, p1, p2, radiance, np.zeros((n, 4))]
     # One-sided Lambertian emitter: flux = pi * L * area per channel.
     power = [math.pi * area * radiance.mean(axis=1)]
-    for kind, pos, axis, val, cone, *x_axis in delta_lights:
+    textures, texture_of, tri_uv = [], [np.full(n, -1, np.int32)], np.zeros((n, 6))
+    if emission_textures is not None:
+        texture_of[0] = np.asarray(emission_textures[0], np.int32).reshape(n)
+        tri_uv = np.asarray(emission_textures[1], np.float64).reshape(n, 6)
+        textures = list(emission_textures[2])
+    for kind, pos, axis, val, cone, *rest in delta_lights:
         rows_kind.append(np.array([kind], np.int32))
-        for i, x in enumerate((pos, axis, x_axis[0] if x_axis else np.zeros(3), val, cone)):
+        for i, x in enumerate((pos, axis, rest[0] if rest else np.zeros(3), val, cone)):
             rows[i] = np.concatenate([rows[i], np.asarray(x, np.float64)[None]])
+        if len(rest) > 1:           # textured: its flux integrates the texels it sends out
+            texture_of.append(np.array([len(textures)], np.int32))
+            textures.append(rest[1])
+            power.append(np.array([np.mean(np.asarray(val) * textured_flux(kind == LIGHT_PROJECTOR, np.asarray(cone), rest[1]))]))
+            continue
+        texture_of.append(np.array([-1], np.int32))
         power.append(np.array([np.mean(val) * _delta_solid_angle(kind, np.asarray(cone))]))
     env = _infinite_rows(directional, environment, sphere, rows_kind, rows, power)
+    texture_of.append(np.full(len(power) - len(texture_of), -1, np.int32))
     power = np.concatenate(power)
     total = power.sum()
     cdf = np.cumsum(power) / total if total > 0 else np.zeros_like(power)
     if cdf.size:
         cdf[-1] = 1.0
+    tri_uv = np.concatenate([tri_uv, np.zeros((len(power) - n, 6))])
     table = LightTable(np.concatenate(rows_kind), rows[0], rows[1], rows[2], rows[3],
-                       rows[4], power, cdf)
+                       rows[4], power, cdf, texture=np.concatenate(texture_of), tri_uv=tri_uv)
+    if textures:
+        lights_textures = TextureTable.from_textures(textures)
+        table.tex_info, table.tex_uv, table.tex_texels = (lights_textures.info, lights_textures.uv_map,
+                                                          lights_textures.texels)
     if env is not None:
         table.env_texels, table.env_to_world = env
     return table

@@ -57,8 +57,9 @@ def material_id(reader: ReaderState, bsdf, emitter, shape: Obj) -> int:
     if key not in reader.material_ids:
         material = bsdf_material(reader, bsdf) if bsdf is not None else _default_bsdf(reader, emitter)
         if emitter is not None:
+            radiance, texture = area_radiance(reader, emitter)
             material = dataclasses.replace(material, name=f"{material.name}+{emitter.name()}",
-                                           emission=area_radiance(reader, emitter))
+                                           emission=radiance, emission_texture=texture)
         if material.name in reader.builder._material_ids:
             # Two BSDFs on one line (a blend and its part) share a name.
             material = dataclasses.replace(material, name=f"{material.name}#{len(reader.material_ids)}")

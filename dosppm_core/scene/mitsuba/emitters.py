@@ -1,8 +1,9 @@
-"""Emitters: `area` (its radiance becomes the emission of the material of
-the shape holding or referencing it), `point`, `spot`, `projector` (a
-constant irradiance; a textured one is refused at its <texture>), and the
-infinitely distant ones: `directional`, `constant` and `envmap`
-(`scene.envmap`)."""
+"""Emitters: `area` (its radiance, constant or a bitmap or checkerboard,
+becomes the emission of the material of the shape holding or referencing
+it), `point`, `spot` (optionally with a
+bitmap or checkerboard `texture`), `projector` (a constant or textured
+`irradiance`; `scene.light_textures`), and the infinitely distant ones:
+`directional`, `constant` and `envmap` (`scene.envmap`)."""
 from __future__ import annotations
 
 import math
@@ -14,16 +15,23 @@ from dosppm_core.scene import envmap
 from dosppm_core.scene.mitsuba.params import finish, get_float, get_matrix, get_point, get_rgb, get_str, required
 from dosppm_core.scene.mitsuba.sensors import field_of_view
 from dosppm_core.scene.mitsuba.state import ReaderState
+from dosppm_core.scene.mitsuba.textures import light_texture
 from dosppm_core.scene.mitsuba.xmltree import resolve
 
 
 def area_radiance(reader: ReaderState, emitter: Obj) -> tuple:
-    """The RGB radiance of an area emitter attached to a shape."""
+    """(RGB radiance, emission texture id or -1) of an area emitter
+    attached to a shape; a textured one's RGB is the texture's mean
+    (`SceneBuilder.add_emission_texture`)."""
     if emitter.type != "area":
         emitter.node.fail("only area emitters can be attached to a shape")
     if id(emitter) not in reader.radiance:
-        reader.children(emitter, ())
-        reader.radiance[id(emitter)] = get_rgb(emitter, "radiance", 1.0)
+        texture = light_texture(reader, emitter, "radiance")
+        if texture is None:
+            reader.radiance[id(emitter)] = (get_rgb(emitter, "radiance", 1.0), -1)
+        else:
+            tid, mean = reader.builder.add_emission_texture(texture)
+            reader.radiance[id(emitter)] = (tuple(mean), tid)
         finish(emitter)
     return reader.radiance[id(emitter)]
 
@@ -33,7 +41,8 @@ def read_emitter(reader: ReaderState, obj: Obj) -> None:
     if obj.type == "area":                # a definition: some shape must reference it
         reader.loose_area_emitters.append(obj)
         return
-    reader.children(obj, ())
+    if obj.type not in ("spot", "projector"):
+        reader.children(obj, ())
     if obj.type in INFINITE:
         INFINITE[obj.type](reader, obj)
         return
@@ -50,9 +59,11 @@ def read_emitter(reader: ReaderState, obj: Obj) -> None:
         return
     m = get_matrix(obj)
     cutoff, beam = get_float(obj, "cutoff_angle", 20.0), get_float(obj, "beam_width")
+    texture = light_texture(reader, obj, "texture")
     finish(obj)
     target = m[:3, 3] + m[:3, :3] @ np.array([0.0, 0.0, 1.0])
-    reader.builder.add_spot_light(m[:3, 3], target, intensity, cutoff, beam, obj.where())
+    reader.builder.add_spot_light(m[:3, 3], target, intensity, cutoff, beam, obj.where(),
+                                  m[:3, :3] @ np.array([1.0, 0.0, 0.0]), texture)
 
 
 def _directional(reader: ReaderState, obj: Obj) -> None:
@@ -91,15 +102,21 @@ def _envmap(reader: ReaderState, obj: Obj) -> None:
 
 
 def _projector(reader: ReaderState, obj: Obj) -> None:
-    """Mitsuba's projector with a constant irradiance: a square image, so
-    every fov_axis but diagonal means the same fov."""
-    irradiance = np.multiply(get_rgb(obj, "irradiance", 1.0), get_float(obj, "scale", 1.0))
-    fov, _axis = field_of_view(obj, 1, 1)
+    """Mitsuba's projector: a constant irradiance (a square image) or an
+    image; the fov is the x one its aspect gives (Mitsuba's parse_fov)."""
+    texture = light_texture(reader, obj, "irradiance")
+    scale = get_float(obj, "scale", 1.0)
+    irradiance = np.multiply(get_rgb(obj, "irradiance", 1.0) if texture is None else 1.0, scale)
+    height, width = (1, 1) if texture is None else texture.texels.shape[:2]
+    fov, axis = field_of_view(obj, width, height)
+    tan_x = math.tan(math.radians(fov) / 2)
+    if axis == "y" or (axis == "smaller" and height < width) or (axis == "larger" and height > width):
+        tan_x *= width / height
     m = get_matrix(obj)
     finish(obj)
     reader.builder.add_projector_light(m[:3, 3], m[:3, :3] @ np.array([0.0, 0.0, 1.0]),
                                        m[:3, :3] @ np.array([1.0, 0.0, 0.0]), irradiance,
-                                       math.tan(math.radians(fov) / 2), obj.where())
+                                       tan_x, obj.where(), texture)
 
 
 # Read apart from point and spot (no `intensity`).

@@ -42,6 +42,27 @@ def read_texture(reader: ReaderState, obj: Obj) -> int:
     return reader.textures[id(obj)]
 
 
+def light_texture(reader: ReaderState, obj: Obj, name: str) -> tx.Texture | None:
+    """The texture an emitter gives under parameter `name` (nested or by
+    reference), read apart from the materials' table (`LightTable` keeps its
+    own); None if it gives none. Any other nested object is refused."""
+    found = None
+    for child, target in zip(obj.children, reader.children(obj, ("texture",))):
+        if child.node.attrib.get("name") != name or found is not None:
+            child.node.fail(f"{obj.node.label} takes one texture, named {name!r}")
+        if target.type not in ("bitmap", "checkerboard"):
+            child.node.fail(f"a {target.type} texture is unsupported on an emitter")
+        if name in obj.props:
+            child.node.fail(f"parameter {name!r} given twice (a value and a texture)")
+        found = target
+    if found is None:
+        return None
+    reader.children(found, ())
+    texture = _bitmap(reader, found) if found.type == "bitmap" else _checkerboard(found)
+    finish(found)
+    return texture
+
+
 def _uv_map(obj: Obj) -> tuple:
     """Mitsuba's to_uv: the 2D affine part (rows and columns x, y and the
     translation) of the 4x4 transform given."""
