@@ -8,11 +8,11 @@ shrinking radius), so our mean and the variance of that mean come from K
 independent seeds (K >= `MIN_SEEDS`), and the reference's own noise
 (per-sample variance over `REFERENCE_SPP`) is added:
 
-    z = (mean_k ours_k - ref) / sqrt(max(var_k(ours_k) / K + max(ref_var, 1e-4) / 32000,
-                                         1e-4 / spp))
+    z = (mean_k ours_k - ref) / sqrt(max(var_k(ours_k) / K + max(ref_var, 1e-4) / 32000, 1e-4 / spp))
 
 per pixel channel, spp being the samples per pixel Mitsuba's test renders
-at (2e6 over the image's pixels). What follows is Mitsuba's, step by step: every image
+at (2e6 over the image's pixels): 1e-4 / spp is Mitsuba's floor on the
+variance of the tested mean. What follows is Mitsuba's, step by step: every image
 (ours, the reference, its variance image) is converted from linear sRGB
 to XYZ with Mitsuba's matrix before the test; the reference variance is
 floored at 1e-4; the test is two-sided at significance 0.01 with the
@@ -27,16 +27,19 @@ threshold (4.6 sigma at 48x48) would fail about 2% of channels of a
 perfectly unbiased render. The p-value is Student's t with K - 1 degrees
 of freedom (`p_values` says where not).
 
-Mitsuba's floor, kept: its test takes the variance of the tested mean as
-max(ref_var, 1e-4) / spp, so however exact a render, a pixel channel is
-never judged on a standard error below sqrt(1e-4 / spp) (0.00045 at 64 x
-64). Where our seeds agree exactly (a constant background, an emitter
-seen directly: no variance of ours) and the reference's own 32,000 spp
-are nearly noise-free, the same floor bounds ours, or a reference that
-is 0.1% off white there (spectral references of a white background are)
-would fail a render that is exactly right, which Mitsuba's own test
-passes. Everywhere else ours is the stricter: our seeds' variance, not
-the reference's per-sample one over spp. On top, issue 33 bounds the bias of the mean:
+Where all K seeds agree exactly (a white background, an emitter seen
+directly, a direct-only scene's exact shading) we have no estimate of our
+variance, and there Mitsuba's own model judges: max(ref_var, 1e-4) / spp,
+the reference's per-sample variance over the test render's samples (or
+the reference's own noise, if larger). A
+reference whose spectral variant is off the RGB answer by a few of its
+own standard errors would otherwise fail a render that is exactly right,
+which Mitsuba's test passes: in projector_constant's lit square we (and
+Mitsuba's scalar_rgb) give 1, the reference 0.9975 in G with a per-sample
+variance of 0.0025, judged by Mitsuba's test on sqrt(0.0025 / 868) =
+0.0017 (z 1.5) and by a zero variance on the floor, 0.00034 (z 7).
+Wherever our seeds vary, their variance judges, stricter than Mitsuba's
+test (which takes the reference's per-sample variance for the render's). On top, issue 33 bounds the bias of the mean:
 |mean Y(ours) - mean Y(ref)| / mean Y(ref) <= 1%, Y the luminance.
 """
 from __future__ import annotations
@@ -123,9 +126,10 @@ def p_values(ours_xyz: np.ndarray, ref_xyz: np.ndarray, ref_var_xyz: np.ndarray,
     agree = np.all(ours_xyz == ours_xyz[:1], axis=0)
     var_ours = np.where(agree, 0.0, ours_xyz.var(axis=0, ddof=1) / k)
     var_ref = np.maximum(ref_var_xyz, VARIANCE_FLOOR) / reference_spp
-    floored = var_ours + var_ref < VARIANCE_FLOOR / spp        # Mitsuba's floor (module doc)
-    var_ours = np.where(floored, 0.0, var_ours)
-    var = np.where(floored, VARIANCE_FLOOR / spp, var_ours + var_ref)
+    floored = var_ours + var_ref < VARIANCE_FLOOR / spp
+    var = np.maximum(var_ours + var_ref, VARIANCE_FLOOR / spp)
+    # No estimate of ours: Mitsuba's model of its own render (module doc).
+    var = np.where(agree, np.maximum(var, np.maximum(ref_var_xyz, VARIANCE_FLOOR) / spp), var)
     with np.errstate(invalid="ignore", divide="ignore"):
         z = (ours_xyz.mean(axis=0) - ref_xyz) / np.sqrt(var)
     # Student's t with K - 1 degrees of freedom: exact when the reference's
@@ -135,7 +139,7 @@ def p_values(ours_xyz: np.ndarray, ref_xyz: np.ndarray, ref_var_xyz: np.ndarray,
     # grows large and takes the normal's tail. Pixels whose seeds agree
     # exactly (black, an emitter seen directly) carry no estimate: the
     # reference's noise alone, nearly normal; so do those under the floor.
-    dof = np.where(var_ours > 0, k - 1.0, reference_spp - 1.0)
+    dof = np.where((var_ours > 0) & ~floored, k - 1.0, reference_spp - 1.0)
     return student_t_two_sided(z, dof)
 
 
