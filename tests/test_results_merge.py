@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dosppm_core.jobs import END_NAMES
+from dosppm_core.jobs import END_NAMES, HitPoints
 from services import wire
 from services.credit import Account, by_job, split
 from services.tracer.merge import MergedResults, mergeable, merged
@@ -87,15 +87,35 @@ def test_held_results_are_due_after_the_hold_and_only_then():
     rng = np.random.default_rng(2)
     held = MergedResults(hold_s=0.05)
     f, _ = _results(rng, np.repeat(np.array([3], np.int64), 10), np.array([0], np.int64), chunk=0)
-    assert not held.due(10.0) and held.take() is None
+    assert not held.due(10.0) and held.take() == []
     held.add(f, 10.0)
     assert not held.due(10.04) and held.due(10.05)
-    assert held.take() is f and not held.due(11.0)
+    assert held.take() == [f] and not held.due(11.0)
 
 
-def test_results_with_deposits_hits_or_light_are_never_merged():
+def test_results_of_eye_iterations_merge_per_iteration_with_the_hit_points_made():
+    rng = np.random.default_rng(5)
+    held = MergedResults()
+    parts = {}
+    for n, e in enumerate([None, 4, None, 5, 4, 4]):
+        f, _ = _results(rng, np.repeat(np.array([10 + n], np.int64), 50), np.array([0], np.int64), chunk=0)
+        if e is not None:
+            f.update(eye_iteration=e, hits=HitPoints.empty(), hit_points_made=100 + n)
+        held.add(f, 1.0)
+        parts.setdefault(e, []).append(f)
+    last_queued = f["queued"]
+    out = held.take()
+    assert [m.get("eye_iteration") for m in out] == [None, 4, 5]       # photons first, then by iteration
+    for m in out:
+        e = m.get("eye_iteration")
+        msg = wire.decode(wire.encode("results", **m))
+        assert _credit([m]) == _credit(parts[e]) and _ended([m]) == _ended(parts[e])
+        assert msg.hit_points_made == sum(p.get("hit_points_made", 0) for p in parts[e])
+        assert msg.queued == last_queued                 # the latest queue in every one
+
+
+def test_results_with_deposits_hit_points_or_light_are_never_merged():
     base = dict(deposits=None, hits=None, emitted_pixels=None, eye_iteration=None)
-    assert mergeable(base)
-    for k, v in (("deposits", object()), ("hits", object()), ("emitted_pixels", np.zeros(1)),
-                 ("eye_iteration", 3)):
+    assert mergeable(base) and mergeable(dict(base, hits=HitPoints.empty(), eye_iteration=3))
+    for k, v in (("deposits", object()), ("hits", np.zeros(2)), ("emitted_pixels", np.zeros(1))):
         assert not mergeable(dict(base, **{k: v}))

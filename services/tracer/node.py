@@ -427,8 +427,7 @@ class TracerProcess:
         self._flush_outbox()
 
     def _send_merged(self) -> None:
-        fields = self.merged.take()
-        if fields is not None:
+        for fields in self.merged.take():
             self._to_server_counted(wire.encode("results", **fields))
 
     def _to_server_counted(self, frames) -> None:
