@@ -89,3 +89,16 @@ def test_the_shares_of_server_cpu_add_up():
     assert sum(f[k] for k in parts) == pytest.approx(1.0)
     assert "| server CPU per photon applied" in replay.report(
         {"scene": "x", "tracers": 1, "seconds": 5.0, "replay": dict(f, repeats=1)})
+
+
+def test_a_server_that_does_not_end_in_time_is_killed_with_its_tracers():
+    """A replay server that hung once outlived its harness by 1.5 h: the
+    harness gives up after `wait_s` and no process it started lives on."""
+    import subprocess
+    import sys
+    sleeper = [sys.executable, "-c", "import time; time.sleep(120)"]
+    server = subprocess.Popen(sleeper)
+    tracers = [subprocess.Popen(sleeper, stdout=subprocess.PIPE, text=True) for _ in range(2)]
+    with pytest.raises(RuntimeError, match="did not end within"):
+        replay._awaited(server, tracers, wait_s=0.5)
+    assert server.poll() is not None and all(t.poll() is not None for t in tracers)

@@ -106,9 +106,12 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def run(scene: str, tracers: int, seconds: float, work: str, extra=(), hosts: dict | None = None) -> dict:
+def run(scene: str, tracers: int, seconds: float, work: str, extra=(), hosts: dict | None = None,
+        wait_s: float | None = None) -> dict:
     """One server and `tracers` synthetic tracers for `seconds`; returns the
-    server's summary (its JSON) and the tracers' recorded rates. `hosts`:
+    server's summary (its JSON) and the tracers' recorded rates. `wait_s`:
+    how long the server may take to end (default ten times `seconds` and 5
+    minutes) before it is killed and this raises. `hosts`:
     {"server": (namespace, address), "tracers": [namespace, ...]} to run
     each process in its own network namespace (services/evaluation/netns.py)
     instead of all on 127.0.0.1."""
@@ -133,18 +136,30 @@ def run(scene: str, tracers: int, seconds: float, work: str, extra=(), hosts: di
     procs = [subprocess.Popen([*w, sys.executable, "-m", "services.evaluation.replay", "--tracer", endpoint,
                                "--store", store.path], env=env, stdout=subprocess.PIPE, text=True)
              for w in wrap["tracers"]]
-    try:
-        server.wait(timeout=seconds * 10 + 300)
-        # Each synthetic tracer prints its counters as it ends.
-        counters = [json.loads(p.communicate(timeout=30)[0] or "{}") for p in procs]
-    finally:
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
+    counters = _awaited(server, procs, seconds * 10 + 300 if wait_s is None else wait_s)
     if server.returncode != 0:
         raise RuntimeError(f"replay: the server exited with status {server.returncode}")
     with open(os.path.splitext(out)[0] + ".json", encoding="utf-8") as f:
         return dict(json.load(f), replay_tracers=counters)
+
+
+def _awaited(server: subprocess.Popen, procs: list, wait_s: float) -> list[dict]:
+    """The synthetic tracers' counters once the server has ended. Whatever
+    happens meanwhile (a server that never ends, an interrupt), no process
+    outlives this: a replay server that hung once ran on for 1.5 h after
+    its harness gave up, holding a core of a shared machine."""
+    try:
+        try:
+            server.wait(timeout=wait_s)
+        except subprocess.TimeoutExpired:
+            raise RuntimeError(f"replay: the server did not end within {wait_s:.0f} s; killed") from None
+        # Each synthetic tracer prints its counters as it ends.
+        return [json.loads(p.communicate(timeout=30)[0] or "{}") for p in procs]
+    finally:
+        for p in (server, *procs):
+            if p.poll() is None:
+                p.kill()
+                p.wait()
 
 
 def tracer_rate(scene: str, photons: int = 400_000) -> float:
