@@ -126,7 +126,6 @@ def p_values(ours_xyz: np.ndarray, ref_xyz: np.ndarray, ref_var_xyz: np.ndarray,
     agree = np.all(ours_xyz == ours_xyz[:1], axis=0)
     var_ours = np.where(agree, 0.0, ours_xyz.var(axis=0, ddof=1) / k)
     var_ref = np.maximum(ref_var_xyz, VARIANCE_FLOOR) / reference_spp
-    floored = var_ours + var_ref < VARIANCE_FLOOR / spp
     var = np.maximum(var_ours + var_ref, VARIANCE_FLOOR / spp)
     # No estimate of ours: Mitsuba's model of its own render (module doc).
     var = np.where(agree, np.maximum(var, np.maximum(ref_var_xyz, VARIANCE_FLOOR) / spp), var)
@@ -138,8 +137,9 @@ def p_values(ours_xyz: np.ndarray, ref_xyz: np.ndarray, ref_var_xyz: np.ndarray,
     # failed unbiased renders: where four seeds happen to agree closely it
     # grows large and takes the normal's tail. Pixels whose seeds agree
     # exactly (black, an emitter seen directly) carry no estimate: the
-    # reference's noise alone, nearly normal; so do those under the floor.
-    dof = np.where((var_ours > 0) & ~floored, k - 1.0, reference_spp - 1.0)
+    # reference's noise alone, nearly normal. A floored variance keeps
+    # Student's t: it is max(our estimate, floor), the estimate still random.
+    dof = np.where(var_ours > 0, k - 1.0, reference_spp - 1.0)
     return student_t_two_sided(z, dof)
 
 
