@@ -40,15 +40,16 @@ def pytest_runtest_makereport(item, call):
     """Tally outcomes per marker (printed at the end), and under
     DOSPPM_REQUIRE_ALL turn a skip for a missing tool into a failure."""
     rep = (yield).get_result()
-    if rep.when == "call" or rep.skipped:
-        tiers = [m for m in MARKERS if item.get_closest_marker(m)] or ["fast"]
-        for tier in tiers:
-            _TALLY[tier][rep.outcome] += 1
     if rep.skipped:
         reason = str(rep.longrepr[2] if isinstance(rep.longrepr, tuple) else rep.longrepr)
         _SKIPS[reason] += 1
         if os.environ.get("DOSPPM_REQUIRE_ALL") == "1" and any(w in reason.lower() for w in REQUIRED):
             rep.outcome, rep.longrepr = "failed", f"DOSPPM_REQUIRE_ALL=1, and this test would skip: {reason}"
+    # Tallied after that, so the tier counts say "failed" as pytest does.
+    if rep.when == "call" or rep.outcome != "passed":
+        tiers = [m for m in MARKERS if item.get_closest_marker(m)] or ["fast"]
+        for tier in tiers:
+            _TALLY[tier][rep.outcome] += 1
 
 
 @pytest.hookimpl(hookwrapper=True)
