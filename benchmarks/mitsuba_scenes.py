@@ -185,20 +185,10 @@ def survey(root: str = SCENES) -> list:
 SAMPLE_BUDGET = 2_000_000
 SEEDS, SERVICE_SEEDS, MIN_ITERATIONS = 16, 4, 16
 # Why a scene that loads fails, where it was looked into (the table says so).
-_TAILS = ("pixels that the Gaussian filter reaches only in its tail (0.1% of its weight) get no hit from our "
-          "eye rays, which sample the filter (Mitsuba splats every sample into 4x4 pixels)")
 WHY_FAILS = {
-    "projector/test_projector_constant_direct.xml":
-        "the reference is 0.04% dark and noisy inside the lit square, where Mitsuba's scalar_rgb and we give "
-        "exactly 1 (its own render scores 88.5% here); and " + _TAILS,
-    "texture_interp/test_texture_interp_direct.xml":
-        _TAILS + "; at 54 iterations a seed, not 16, it passes (99.80%)",
     "bsdf_spheres/test_roughdielectric_path.xml":
         "Mitsuba shades sphere.obj with its vertex normals, we with face normals: with face_normals "
         "Mitsuba's render is +4.1% of the reference and ours within 0.9% of it",
-    "orthographic_sensor/test_orthographic_path.xml":
-        "the reference's constant environment is (1.0011, 0.9997, 0.9997) and noisy (its red variance negative), "
-        "where Mitsuba's scalar_rgb and we give exactly 1: the background fails, the checkered rectangle passes",
     "participating_media/test_surf_area_light_volpath.xml":
         "Mitsuba shades the OBJ spheres with their vertex normals, we with the faces' (Mitsuba with face_normals "
         "differs from the reference as we do, and ours pass against it)",
@@ -206,10 +196,6 @@ WHY_FAILS = {
         "z-test passes; mean +1.4% +- 0.5% over 48 seeds, all of it the smooth conductor sphere's "
         "reflection of the area light (+5.2% +- 1.5%; the masks -0.2% +- 0.3%): our meshes have no shading normals, and "
         "Mitsuba itself renders that sphere +2.5% with face_normals",
-    "bsdf_spheres/test_constant_path.xml":
-        "the background (the constant emitter) is exactly 1 in every seed, the reference 1.001 there: with "
-        "no variance of ours the z-test fails it (at 16 seeds it passes only because the variance of 16 "
-        "equal values rounds to 2e-31)",
     "bsdf_spheres/test_pointlight_path.xml":
         "z-test passes; mean +1.9% +- 1.8% over 16 seeds: one pixel, the point light's highlight on the "
         "alpha 0.05 rough conductor, carries the whole bias and its noise",
