@@ -17,6 +17,7 @@ wi the scattered one, as in `bsdf.py`.
 import math
 
 import numba as nb
+import numpy as np
 
 from dosppm_core.kernels.materials import (
     B_ALPHA,
@@ -26,9 +27,13 @@ from dosppm_core.kernels.materials import (
     B_ANISO,
     B_DIST,
     conductor_tint,
+    hit_point_eval,
+    hit_point_pdf,
+    hit_point_sample,
     scalar_at,
 )
 from dosppm_core.kernels.microfacet import distribution_d_aniso, sample_visible_aniso, smith_g1_aniso
+from dosppm_core.kernels.shading import tangents
 
 _NONE = (False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
@@ -145,3 +150,77 @@ def sample_world(row, au, av, s, t, n, w0, w1, w2, u2, u3):
     ok, ix, iy, iz, f0, f1, f2 = sample_local(row, au, av, ox, oy, oz, u2, u3)
     return (ok, ix * s[0] + iy * t[0] + iz * n[0], ix * s[1] + iy * t[1] + iz * n[1],
             ix * s[2] + iy * t[2] + iz * n[2], f0, f1, f2)
+
+
+# -- at a surface point ---------------------------------------------------------------
+@nb.njit(cache=True, error_model="numpy")
+def surface_lobe(surf, m, tri, u, v, n0, n1, n2):
+    """(s, t, alpha_u, alpha_v) of material m at barycentrics (u, v) of
+    triangle tri, whose (shading) normal n faces the arriving ray."""
+    du, _dv = tangents(surf.vertices, surf.triangles, surf.uvs, tri, n0, n1, n2)
+    s, t = frame(du[0], du[1], du[2], n0, n1, n2)
+    au, av = alphas(surf.bsdf[m], surf.uvs, surf.triangles, surf.tex_info, surf.tex_uv, surf.texels,
+                    tri, np.float64(u), np.float64(v))
+    return s, t, au, av
+
+
+@nb.njit(cache=True, error_model="numpy")
+def scatter(surf, m, tri, u, v, n0, n1, n2, w0, w1, w2, u2, u3):
+    """A photon's bounce off an anisotropic conductor (n: its shading
+    normal, turned to face w as `paths.sample_scatter` does for a
+    two-sided one): (ok, direction, throughput rgb)."""
+    if n0 * w0 + n1 * w1 + n2 * w2 < 0.0:
+        n0, n1, n2 = -n0, -n1, -n2
+    s, t, au, av = surface_lobe(surf, m, tri, u, v, n0, n1, n2)
+    return sample_world(surf.bsdf[m], au, av, s, t, (n0, n1, n2), w0, w1, w2, u2, u3)
+
+
+@nb.njit(cache=True, parallel=True, error_model="numpy")
+def hit_point_frames(surf, prim, material, u, v, normal):
+    """float64 (n, 5) per hit point: s (3), alpha_u, alpha_v where its
+    material (`material`: what a mask or blend chose) is anisotropic, about
+    its stored normal (facing the eye, perturbed by a normal map); zeros
+    elsewhere. What `direct` needs besides the hit point (t = n x s)."""
+    n = prim.shape[0]
+    out = np.zeros((n, 5))
+    for i in nb.prange(n):
+        m = material[i]
+        if not is_anisotropic(surf.bsdf, m):
+            continue
+        s, _t, au, av = surface_lobe(surf, m, prim[i], u[i], v[i], np.float64(normal[i, 0]),
+                                     np.float64(normal[i, 1]), np.float64(normal[i, 2]))
+        out[i, 0], out[i, 1], out[i, 2], out[i, 3], out[i, 4] = s[0], s[1], s[2], au, av
+    return out
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def _hit_frame(frames, i, n0, n1, n2):
+    s = (frames[i, 0], frames[i, 1], frames[i, 2])
+    return s, (n1 * s[2] - n2 * s[1], n2 * s[0] - n0 * s[2], n0 * s[1] - n1 * s[0]), frames[i, 3], frames[i, 4]
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def hp_eval(kind, row, frames, i, n0, n1, n2, w0, w1, w2, i0, i1, i2):
+    """`materials.hit_point_eval`, in hit point i's frame when anisotropic."""
+    if row[B_ANISO] > 0.0:
+        s, t, au, av = _hit_frame(frames, i, n0, n1, n2)
+        return eval_world(row, au, av, s, t, (n0, n1, n2), w0, w1, w2, i0, i1, i2)
+    return hit_point_eval(kind, row, n0, n1, n2, w0, w1, w2, i0, i1, i2)
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def hp_pdf(kind, row, frames, i, n0, n1, n2, w0, w1, w2, i0, i1, i2):
+    """`materials.hit_point_pdf`, likewise."""
+    if row[B_ANISO] > 0.0:
+        s, t, au, av = _hit_frame(frames, i, n0, n1, n2)
+        return pdf_world(row, au, av, s, t, (n0, n1, n2), w0, w1, w2, i0, i1, i2)
+    return hit_point_pdf(kind, row, n0, n1, n2, w0, w1, w2, i0, i1, i2)
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def hp_sample(kind, row, frames, i, n0, n1, n2, w0, w1, w2, u1, u2, u3):
+    """`materials.hit_point_sample`, likewise."""
+    if row[B_ANISO] > 0.0:
+        s, t, au, av = _hit_frame(frames, i, n0, n1, n2)
+        return sample_world(row, au, av, s, t, (n0, n1, n2), w0, w1, w2, u2, u3)
+    return hit_point_sample(kind, row, n0, n1, n2, w0, w1, w2, u1, u2, u3)

@@ -22,8 +22,10 @@ import numba as nb
 import numpy as np
 
 from dosppm_core.jobs import ABSORBED, CONTINUES, ESCAPED, MAX_DEPTH, STORED
+from dosppm_core.kernels.anisotropic import scatter
 from dosppm_core.kernels.bsdf import is_specular, sample_bsdf
 from dosppm_core.kernels.materials import (
+    B_ANISO,
     B_BUMP_MAP,
     B_CHOICE,
     B_NORMAL_MAP,
@@ -99,6 +101,11 @@ class SurfaceData(NamedTuple):
     @property
     def textured(self) -> bool:
         return bool(np.any(self.mat_texture >= 0))
+
+    @property
+    def anisotropic(self) -> bool:
+        """Whether a material needs a tangent frame (`kernels.anisotropic`)."""
+        return bool(np.any(self.bsdf[:, B_ANISO] > 0))
 
     @property
     def shading_mapped(self) -> bool:
@@ -363,8 +370,11 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
             end[i] = MAX_DEPTH
             continue
         st, u1, u2, u3, ur = _four_floats(st)
-        ok, d0, d1, d2, t0, t1, t2, _es = sample_scatter(two_sided, ior, rough, refl, bsdf, m, kind,
-                                                         s0, s1, s2, w0, w1, w2, u1, u2, u3, False)
+        if bsdf[m, B_ANISO] > 0.0:     # an anisotropic conductor: its lobe in the surface's frame
+            ok, d0, d1, d2, t0, t1, t2 = scatter(surf, m, tri, u[i], v[i], s0, s1, s2, w0, w1, w2, u2, u3)
+        else:
+            ok, d0, d1, d2, t0, t1, t2, _es = sample_scatter(two_sided, ior, rough, refl, bsdf, m, kind,
+                                                             s0, s1, s2, w0, w1, w2, u1, u2, u3, False)
         if ok and mapped:
             ok, t0, t1, t2 = _adjoint(t0, t1, t2, k_in, n0, n1, n2, s0, s1, s2, d0, d1, d2, front)
         if not ok:

@@ -545,10 +545,11 @@ class SceneBuilder:
     def textured(self, material: int) -> bool:
         """Whether material id `material` reads a texture (its meshes keep
         UVs): its colour, a mask's opacity, a blend's weight or its parts',
-        a normal or bump map, or its emission."""
+        a normal or bump map, or its emission; or it is anisotropic (its
+        frame follows dp/du)."""
         m = self._materials[material]
         if max(m.texture, m.opacity_texture, m.blend_texture, m.normal_map, m.bump_map,
-               m.emission_texture, m.alpha_u_texture, m.alpha_v_texture) >= 0:
+               m.emission_texture, m.alpha_u_texture, m.alpha_v_texture) >= 0 or m.roughness_v >= 0:
             return True
         return m.blend != (-1, -1) and any(self.textured(b) for b in m.blend)
 
