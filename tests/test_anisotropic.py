@@ -195,30 +195,105 @@ def _render(path, iterations=2, seed=1):
 
 def test_textured_constant_roughness_renders_as_the_constant(tmp_path):
     """alpha_u and alpha_v from checkerboards of one value render as the
-    values given as numbers (direct light and photons: max_depth 3)."""
+    values given as numbers: the direct light to float rounding, and with
+    photons (max_depth 3) nearly so (the texel's luminance differs from the
+    number in its last bits, which flips a few Russian roulette choices)."""
     extra = '<shape type="sphere"><point name="center" x="0" y="0.6" z="0.4"/><float name="radius" value="0.3"/></shape>'
-    numbers = _render(_scene_file(tmp_path, CONDUCTOR.format(dist="ggx", alphas=_alphas(0.3, 0.08)), 3, extra,
-                                  "numbers.xml"))
-    textured = _render(_scene_file(tmp_path, CONDUCTOR.format(dist="ggx", alphas=_constant_textures(0.3, 0.08)),
-                                   3, extra, "textured.xml"))
-    assert numbers.max() > 0
-    np.testing.assert_allclose(textured, numbers, rtol=1e-4, atol=1e-6 * numbers.max())
+    for depth in (2, 3):
+        numbers = _render(_scene_file(tmp_path, CONDUCTOR.format(dist="ggx", alphas=_alphas(0.3, 0.08)), depth,
+                                      extra, "numbers.xml"))
+        textured = _render(_scene_file(tmp_path, CONDUCTOR.format(dist="ggx", alphas=_constant_textures(0.3, 0.08)),
+                                       depth, extra, "textured.xml"))
+        assert numbers.max() > 0
+        close = np.isclose(textured, numbers, rtol=1e-4, atol=1e-6 * numbers.max())
+        assert close.all() if depth == 2 else close.mean() > 0.75     # measured 0.83
+        assert np.abs(textured - numbers).max() < 5e-3 * numbers.max()  # measured 8e-4
+        assert textured.mean() == pytest.approx(numbers.mean(), rel=1e-3)
 
 
 @pytest.mark.reference
 @pytest.mark.parametrize("dist", ["ggx", "beckmann"])
 def test_direct_light_off_an_anisotropic_plane_matches_mitsuba(mi, tmp_path, dist):
     """A rectangle (dp/du along x) of alpha_u 0.3, alpha_v 0.05 under a
-    directional light: our image within 3% of Mitsuba's on average where
-    lit (10% per pixel), and far from the one with the alphas swapped
+    directional light: our image within 2% of Mitsuba's on average where
+    lit (12% per pixel, its noise), and far from the one with the alphas swapped
     (the frame's s is Mitsuba's, not any tangent)."""
     path = _scene_file(tmp_path, CONDUCTOR.format(dist=dist, alphas=_alphas(0.3, 0.05)))
-    ours = _render(path, iterations=64)
-    ref = np.asarray(mi.render(mi.load_file(path), spp=256, seed=1))[..., :3]
+    ours = _render(path, iterations=256)
+    ref = np.asarray(mi.render(mi.load_file(path), spp=1024, seed=1))[..., :3]
     swapped = _render(_scene_file(tmp_path, CONDUCTOR.format(dist=dist, alphas=_alphas(0.05, 0.3)), name="s.xml"),
                       iterations=64)
     lit = ref > 0.05 * ref.max()
     assert lit.sum() > 20
-    assert ours[lit].mean() == pytest.approx(ref[lit].mean(), rel=0.03)
-    np.testing.assert_allclose(ours[lit], ref[lit], rtol=0.1)
+    assert ours[lit].mean() == pytest.approx(ref[lit].mean(), rel=0.02)    # measured -0.2% (beckmann)
+    np.testing.assert_allclose(ours[lit], ref[lit], rtol=0.12)             # measured at most 7.4%
     assert np.abs(swapped[lit] - ref[lit]).max() > 0.3 * ref.max()
+
+
+# A floor of textured anisotropic roughness under a narrow spot, and a wall
+# lit only by what the floor's lobe sends it (photons); far off, a
+# checkerboard diffuse (texture 0), so the floor's alpha textures (1, 2)
+# are renumbered in its chunk.
+BOUNCE = """<scene version="3.0.0">
+  <integrator type="path"><integer name="max_depth" value="3"/></integrator>
+  <sensor type="perspective"><float name="fov" value="50"/>
+    <transform name="to_world"><lookat origin="2.5,0,1.2" target="-2,0,0.6" up="0,0,1"/></transform>
+    <film type="hdrfilm"><integer name="width" value="24"/><integer name="height" value="24"/>
+      <rfilter type="box"/></film>
+  </sensor>
+  <shape type="rectangle"><transform name="to_world"><translate x="-12"/></transform>
+    <bsdf type="diffuse"><texture name="reflectance" type="checkerboard"/></bsdf></shape>
+  <shape type="rectangle"><transform name="to_world"><scale value="2"/></transform>
+    <bsdf type="roughconductor"><string name="distribution" value="beckmann"/>
+      <texture name="alpha_u" type="checkerboard"><float name="color0" value="0.05"/>
+        <float name="color1" value="0.4"/></texture>
+      <texture name="alpha_v" type="checkerboard"><float name="color0" value="0.4"/>
+        <float name="color1" value="0.1"/></texture></bsdf></shape>
+  <shape type="rectangle"><transform name="to_world"><scale value="2"/><rotate y="1" angle="90"/>
+    <translate x="-2" z="2"/></transform>
+    <bsdf type="diffuse"><rgb name="reflectance" value="0.8"/></bsdf></shape>
+  <emitter type="spot">
+    <transform name="to_world"><lookat origin="1,0,3" target="0,0,0" up="0,1,0"/></transform>
+    <float name="cutoff_angle" value="25"/><float name="beam_width" value="20"/>
+    <rgb name="intensity" value="80"/>
+  </emitter>
+</scene>
+"""
+
+
+def test_chunked_equals_unchunked_for_a_textured_alpha(tmp_path, chunk_store):
+    """The scene above cut by the real subdivider into 2 chunks and
+    rendered by OSPPM from the store: the unchunked image up to float
+    noise (the chunk carries its alpha textures, renumbered)."""
+    from dosppm_core.chunks.store import ChunkGeometry
+    from dosppm_core.chunks.textures import attach_textures, chunk_surface_textures
+    from dosppm_core.modes.osppm import OutOfCoreRenderer
+    from dosppm_core.modes.sppm import Renderer
+    from dosppm_core.scene.mitsuba import load_mitsuba_xml
+    from dosppm_core.settings import RenderSettings
+    path = tmp_path / "bounce.xml"
+    path.write_text(BOUNCE)
+    scene = load_mitsuba_xml(str(path))
+    floor = int(np.flatnonzero(scene.materials.alpha_u_texture >= 0)[0])
+    assert (scene.materials.alpha_u_texture[floor], scene.materials.alpha_v_texture[floor]) == (1, 2)
+    chunk = ChunkGeometry(np.eye(3, dtype=np.float32), np.array([[0, 1, 2]], np.int32),
+                          np.array([floor], np.int32), np.zeros(1, np.int32), np.zeros((3, 2), np.float32))
+    mats, _table = chunk_surface_textures(attach_textures(chunk, scene.header()), scene.header())
+    assert (mats.alpha_u_texture[floor], mats.alpha_v_texture[floor]) == (0, 1)
+    settings = RenderSettings(seed=11, photons_per_iteration=30_000)
+    store = chunk_store(scene, chunks=2)
+    assert store.chunk_count == 2
+    images = []
+    for r in (Renderer(scene, settings), OutOfCoreRenderer(store, settings, pipelined=False)):
+        try:
+            for _ in range(3):
+                r.run_iteration()
+            images.append(np.asarray(r.image()))
+        finally:
+            r.close()
+    ref, img = images
+    wall = np.zeros(ref.shape[:2], bool)
+    wall[:12] = True
+    assert ref[wall].mean() > 0.01 * ref.mean() > 0     # the wall sees the floor's photons
+    rel = np.abs(img - ref) / np.maximum(ref, 1e-6 * ref.max())
+    assert np.mean(rel > 1e-4) < 0.02 and rel.max() < 0.01
