@@ -34,6 +34,8 @@ from dosppm_core.kernels.materials import (
 )
 from dosppm_core.kernels.microfacet import distribution_d_aniso, sample_visible_aniso, smith_g1_aniso
 from dosppm_core.kernels.shading import tangents
+from dosppm_core.kernels.texture import LUMINANCE
+from dosppm_core.scene.textures import CHECKERBOARD, INFO_KIND, INFO_OFFSET
 
 _NONE = (False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
@@ -61,11 +63,29 @@ def frame(du0, du1, du2, n0, n1, n2):
 
 
 @nb.njit(cache=True, error_model="numpy")
+def _eval_1(row, col, tex_col, uvs, tris, tinfo, tuv, texels, tri, u, v):
+    """Mitsuba's eval_1 of the parameter: `materials.scalar_at`, except
+    that a checkerboard gives the other colour. Mitsuba 3's checkerboard
+    eval_1 (what roughconductor reads its alphas with) returns color1
+    where its eval returns color0 and vice versa (3.9.1, checked in
+    tests/test_anisotropic.py), and its reference images show it."""
+    value = scalar_at(row, col, tex_col, uvs, tris, tinfo, tuv, texels, tri, u, v)
+    t = int(row[tex_col])
+    if t < 0 or tinfo[t, INFO_KIND] != CHECKERBOARD:
+        return value
+    off = tinfo[t, INFO_OFFSET]
+    c0 = LUMINANCE[0] * texels[off, 0] + LUMINANCE[1] * texels[off, 1] + LUMINANCE[2] * texels[off, 2]
+    c1 = LUMINANCE[0] * texels[off + 1, 0] + LUMINANCE[1] * texels[off + 1, 1] + LUMINANCE[2] * texels[off + 1, 2]
+    c0, c1 = min(1.0, max(0.0, c0)), min(1.0, max(0.0, c1))
+    return c1 if value == c0 else c0
+
+
+@nb.njit(cache=True, error_model="numpy")
 def alphas(row, uvs, tris, tinfo, tuv, texels, tri, u, v):
     """(alpha_u, alpha_v) of the material at the hit: its constants, or
     its textures' values there (Mitsuba's eval_1), at least 1e-4."""
-    au = scalar_at(row, B_ALPHA, B_ALPHA_TEX_U, uvs, tris, tinfo, tuv, texels, tri, u, v)
-    av = scalar_at(row, B_ALPHA_V, B_ALPHA_TEX_V, uvs, tris, tinfo, tuv, texels, tri, u, v)
+    au = _eval_1(row, B_ALPHA, B_ALPHA_TEX_U, uvs, tris, tinfo, tuv, texels, tri, u, v)
+    av = _eval_1(row, B_ALPHA_V, B_ALPHA_TEX_V, uvs, tris, tinfo, tuv, texels, tri, u, v)
     return max(au, 1e-4), max(av, 1e-4)
 
 
@@ -180,7 +200,10 @@ def hit_point_frames(surf, prim, material, u, v, normal):
     """float64 (n, 5) per hit point: s (3), alpha_u, alpha_v where its
     material (`material`: what a mask or blend chose) is anisotropic, about
     its stored normal (facing the eye, perturbed by a normal map); zeros
-    elsewhere. What `direct` needs besides the hit point (t = n x s)."""
+    elsewhere. What `direct` needs besides the hit point (t = n x s).
+    The `hp_*` below are not inlined: inlined into the parallel direct
+    kernel, numba's parfor array analysis failed on them ("Dimension
+    mismatch"), and they cost a call only at coloured hit points."""
     n = prim.shape[0]
     out = np.zeros((n, 5))
     for i in nb.prange(n):
@@ -193,13 +216,13 @@ def hit_point_frames(surf, prim, material, u, v, normal):
     return out
 
 
-@nb.njit(inline="always", cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy")
 def _hit_frame(frames, i, n0, n1, n2):
     s = (frames[i, 0], frames[i, 1], frames[i, 2])
     return s, (n1 * s[2] - n2 * s[1], n2 * s[0] - n0 * s[2], n0 * s[1] - n1 * s[0]), frames[i, 3], frames[i, 4]
 
 
-@nb.njit(inline="always", cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy")
 def hp_eval(kind, row, frames, i, n0, n1, n2, w0, w1, w2, i0, i1, i2):
     """`materials.hit_point_eval`, in hit point i's frame when anisotropic."""
     if row[B_ANISO] > 0.0:
@@ -208,7 +231,7 @@ def hp_eval(kind, row, frames, i, n0, n1, n2, w0, w1, w2, i0, i1, i2):
     return hit_point_eval(kind, row, n0, n1, n2, w0, w1, w2, i0, i1, i2)
 
 
-@nb.njit(inline="always", cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy")
 def hp_pdf(kind, row, frames, i, n0, n1, n2, w0, w1, w2, i0, i1, i2):
     """`materials.hit_point_pdf`, likewise."""
     if row[B_ANISO] > 0.0:
@@ -217,7 +240,7 @@ def hp_pdf(kind, row, frames, i, n0, n1, n2, w0, w1, w2, i0, i1, i2):
     return hit_point_pdf(kind, row, n0, n1, n2, w0, w1, w2, i0, i1, i2)
 
 
-@nb.njit(inline="always", cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy")
 def hp_sample(kind, row, frames, i, n0, n1, n2, w0, w1, w2, u1, u2, u3):
     """`materials.hit_point_sample`, likewise."""
     if row[B_ANISO] > 0.0:
