@@ -31,7 +31,6 @@ CLAIMED = [
     "bsdf_spheres/test_envmap_path.xml",
     "mesh_attributes/test_mesh_attributes_1_face_direct.xml",
     "spot_light/test_spot_direct.xml",
-    "bsdf_spheres/test_normalmap_identity_roughconductor_path.xml",
     "bsdf_spheres/test_normalmap_roughconductor_path.xml",
 ]
 # Load but are not claimed to pass yet: scene -> why (measured figures).
@@ -89,6 +88,10 @@ LOADS = {
     # 2e-31, not 0, which buys the t-test's 15 degrees of freedom: a pass
     # by rounding.
     "bsdf_spheres/test_constant_path.xml": "a background of exactly 1 against the reference's 1.001",
+    # Anisotropic GGX (0.25, 0.05) under the identity normal map: one
+    # process (16 seeds) z-pass 100.00%, bias -0.00%; its service run timed
+    # out (600 s) while the tracers compiled the kernels on a loaded machine.
+    "bsdf_spheres/test_normalmap_identity_roughconductor_path.xml": "passes in one process; service run timed out",
     # Beckmann alpha_u, alpha_v from checkerboards (read as Mitsuba's
     # eval_1, whose checkerboard swaps the colours): before that swap z-pass
     # 87.2%, bias -0.28%; re-scored after it: see below.
