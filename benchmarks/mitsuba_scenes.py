@@ -155,14 +155,15 @@ def later_part(message: str) -> bool:
     (textures, materials, lights, media, other shapes): an unsupported
     plugin of a family and type in `LATER`, or one refused with its reason
     (`objects.REFUSED`: principled, out of scope), a conductor's eta and k,
-    or a textured roughness."""
+    or an anisotropic or textured roughness of a rough dielectric or plastic
+    (the rough conductor has both: `kernels.anisotropic`)."""
     if re.search(r': <\w+ name="(eta|k)">: unsupported parameter of <bsdf type="(rough)?conductor">$', message):
         return True     # a conductor's complex index of refraction: the materials part
     if re.search(r': <texture type="[^"]*"[^>]*>: not allowed inside <emitter type="(spot|projector|area)"', message):
         return True     # a textured emitter: the lights part (the textures part reads BSDFs' textures)
-    if re.search(r': <bsdf type="roughconductor">: anisotropic roughness is unsupported', message) or \
+    if re.search(r': <bsdf type="rough(dielectric|plastic)">: anisotropic roughness is unsupported', message) or \
             re.search(r': <texture type="[^"]*" name="alpha(_[uv])?">: a texture for', message):
-        return True     # anisotropic or textured roughness (a tangent frame at hit points): the materials part
+        return True     # a rough dielectric's or plastic's (the conductor's is built): the materials part
     found = re.search(r': <(\w+) type="([^"]*)"[^>]*>: (.+)$', message)
     if not found:
         return False

@@ -41,6 +41,10 @@ CLAIMED = [
     "texture_interp/test_texture_interp_direct.xml",
     "bsdf_spheres/test_constant_path.xml",
     "various_emitters/test_various_emitters_ptracer.xml",
+    "bsdf_spheres/test_normalmap_roughconductor_path.xml",
+    # Service: z-pass 100.00%, bias +0.92% (one process failed at 87.18%,
+    # -0.28% before the alphas were read as Mitsuba's checkerboard eval_1).
+    "bsdf_spheres/test_textured_roughconductor_path.xml",
 ]
 # Load but are not claimed to pass yet: scene -> why (measured figures).
 LOADS = {
@@ -65,13 +69,14 @@ LOADS = {
     # z-pass 100%, mean +1.9% +- 1.8% (16 seeds): one highlight pixel of the
     # point light on the alpha 0.05 rough conductor carries it.
     "bsdf_spheres/test_pointlight_path.xml": "mean +1.9%, within its noise (+-1.8%)",
+    # Anisotropic GGX (0.25, 0.05) under the identity normal map: one
+    # process (16 seeds) z-pass 100.00%, bias -0.00%; its service run timed
+    # out (600 s) while the tracers compiled the kernels on a loaded machine.
+    "bsdf_spheres/test_normalmap_identity_roughconductor_path.xml": "passes in one process; service run timed out",
 }
 # Refused, with the element the one-line error names (the first outside our subset),
 # to its first attribute.
 REFUSED = {
-    "bsdf_spheres/test_normalmap_identity_roughconductor_path.xml": '<bsdf type="roughconductor"',
-    "bsdf_spheres/test_normalmap_roughconductor_path.xml": '<bsdf type="roughconductor"',
-    "bsdf_spheres/test_textured_roughconductor_path.xml": '<texture type="checkerboard"',
     "bsdf_spheres/test_texturedprincipled1_path.xml": '<bsdf type="principled"',
     "bsdf_spheres/test_texturedprincipled2_path.xml": '<bsdf type="principled"',
     "bsdf_spheres/test_texturedprincipledthin_path.xml": '<bsdf type="principledthin"',
