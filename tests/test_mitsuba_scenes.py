@@ -70,9 +70,10 @@ LOADS = {
     # point light on the alpha 0.05 rough conductor carries it.
     "bsdf_spheres/test_pointlight_path.xml": "mean +1.9%, within its noise (+-1.8%)",
     # Anisotropic GGX (0.25, 0.05) under the identity normal map: one
-    # process (16 seeds) z-pass 100.00%, bias -0.00%; its service run timed
-    # out (600 s) while the tracers compiled the kernels on a loaded machine.
-    "bsdf_spheres/test_normalmap_identity_roughconductor_path.xml": "passes in one process; service run timed out",
+    # process (16 seeds) z-pass 100.00%, bias -0.00%; through the service
+    # (4 seeds) z-pass 100.00% but bias -1.03%, over the 1% bound (noise of
+    # 4 seeds or not: not looked into yet).
+    "bsdf_spheres/test_normalmap_identity_roughconductor_path.xml": "service bias -1.03% (4 seeds)",
 }
 # Refused, with the element the one-line error names (the first outside our subset),
 # to its first attribute.
