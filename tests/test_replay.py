@@ -27,7 +27,7 @@ def test_a_relabelled_step_is_a_valid_results_message_for_the_package():
     fields, paths = _recorded(rng)
     jobs = np.repeat(np.array([40, 7, 12], np.int64), [1024, 1024, 512])
     credit = (np.array([40, 7, 12, 12], np.int64), np.array([0, 1, 2, 2], np.int64))
-    out = replay._relabelled(fields, paths, jobs, chunk=0, queued=0, credit=credit)
+    out = replay._relabelled(fields, paths, jobs, chunk=0, queue=(0, 4096), credit=credit)
     msg = wire.decode(wire.encode("results", **out))
     assert msg.credit_job.tolist() == [40, 7, 12, 12] and msg.credit_exp.tolist() == [0, 1, 2, 2]
     assert sorted(msg.job_ids.tolist()) == [7, 12, 40]
@@ -36,6 +36,27 @@ def test_a_relabelled_step_is_a_valid_results_message_for_the_package():
     assert msg.ends.sum() == len(jobs)                       # every path of the package ended once
     assert set(np.unique(msg.deposits.job)) == {7, 12, 40}
     assert len(msg.deposits) == round(1700 * len(jobs) / 1000)   # the recorded deposits per path
+    assert msg.queue_target == 4096
+
+
+def test_relabelled_steps_gathered_at_the_tracer_merge_like_a_real_tracers():
+    # Gathering at the tracers, the deposits stay behind and the rest is
+    # accounting that merge.py holds and merges: it reads every field a
+    # real tracer's results carry (a missing queue_target crashed it).
+    from services.tracer.merge import MergedResults, mergeable
+    rng = np.random.default_rng(2)
+    fields, paths = _recorded(rng)
+    held = MergedResults()
+    for j in (5, 6):
+        out = replay._relabelled(fields, paths, np.full(256, j, np.int64), chunk=0, queue=(j, 100 + j),
+                                 credit=(np.array([j], np.int64), np.array([0], np.int64)))
+        out.pop("deposits")
+        assert mergeable(out)
+        held.add(out, now=0.0)
+    (one,) = held.take()
+    msg = wire.decode(wire.encode("results", **one))
+    assert msg.job_ids.tolist() == [5, 6] and msg.ends.sum() == 512
+    assert (msg.queued, msg.queue_target) == (6, 106)       # the latest queue
 
 
 @pytest.fixture(scope="module")

@@ -74,16 +74,18 @@ class ReplayState(TracerState):
         fields, paths = self.recorded[self.counters["replayed_steps"] % len(self.recorded)]
         self.counters["replayed_steps"] += 1
         self.counters["rays_traced"] += len(jobs)
-        replayed = _relabelled(fields, paths, jobs, view.index, self.queued_rays, concat_credit(taken.items))
+        replayed = _relabelled(fields, paths, jobs, view.index, (self.queued_rays, self.queue_target()),
+                               concat_credit(taken.items))
         if self.epochs is not None:     # gathered here, when the server asks for the epoch's sums
             self.epochs.add(replayed.pop("deposits"))
         return [Out(SERVER, "results", replayed)]
 
 
-def _relabelled(fields: dict, paths: int, jobs: np.ndarray, chunk: int, queued: int, credit: tuple) -> dict:
+def _relabelled(fields: dict, paths: int, jobs: np.ndarray, chunk: int, queue: tuple, credit: tuple) -> dict:
     """A recorded step's results for a package of paths of `jobs`: deposits
     cycled to the package's size and spread over its jobs, every path
-    ended, so all of the package's `credit` returned."""
+    ended, so all of the package's `credit` returned. `queue`: the
+    tracer's (queued rays, queue target), as every results message says."""
     ids, fed = np.unique(jobs, return_counts=True)
     rec = fields["deposits"]
     n = int(round(len(rec) * len(jobs) / max(paths, 1)))
@@ -92,7 +94,7 @@ def _relabelled(fields: dict, paths: int, jobs: np.ndarray, chunk: int, queued: 
     ends = np.asarray(fields["ends"]) * len(jobs) // max(paths, 1)
     ends[np.argmax(ends)] += len(jobs) - ends.sum()      # the wire checks: every path ended once
     return dict(chunk=chunk, ends=ends, culled=0, deposits=deposits, job_ids=ids.astype(np.int64),
-                job_fed=fed.astype(np.int64), job_left=np.zeros(len(ids), np.int64), queued=queued,
+                job_fed=fed.astype(np.int64), job_left=np.zeros(len(ids), np.int64), queued=queue[0], queue_target=queue[1],
                 credit_job=credit[0], credit_exp=credit[1])
 
 
@@ -289,6 +291,8 @@ def main(argv=None) -> int:
                    help="where photons are gathered (the server's --gather-at)")
     p.add_argument("--hit-point-stride", type=int, default=None,
                    help="the server's --hit-point-stride (default: its own; 1: every eye iteration installs)")
+    p.add_argument("--server-arg", action="append", default=[], metavar="ARG",
+                   help="one more argument for the server, as in --server-arg=--photon-batch=4000000 (repeatable)")
     p.add_argument("--json", help="write the runs, with provenance, here")
     args = p.parse_args(argv)
     if args.tracer:
@@ -299,11 +303,12 @@ def main(argv=None) -> int:
         for _ in range(args.repeats):       # alternated: drift on a shared machine hits both alike
             per_core = tracer_rate(args.scene)
             extra = ("--gather-at", args.gather_at) + (
-                () if args.hit_point_stride is None else ("--hit-point-stride", str(args.hit_point_stride)))
+                () if args.hit_point_stride is None else ("--hit-point-stride", str(args.hit_point_stride))) + tuple(
+                args.server_arg)
             s = run(args.scene, args.tracers, args.seconds, work, extra)
             runs.append(dict(figures(s, per_core), **tracer_gather(s)))
     res = {"scene": args.scene, "tracers": args.tracers, "seconds": args.seconds, "gather_at": args.gather_at,
-           "hit_point_stride": args.hit_point_stride, "replay": median_of(runs)}
+           "hit_point_stride": args.hit_point_stride, "server_args": args.server_arg, "replay": median_of(runs)}
     print(report(res))
     if args.json:
         write_results(args.json, res)
