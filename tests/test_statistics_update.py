@@ -46,3 +46,19 @@ def test_an_update_accepts_statistics_restored_as_views():
     st.apply_sums(np.array([3]), np.array([2.0]), np.array([[1.0, 2.0, 3.0]]), emitted=10)
     assert st.photon_count[3] == np.float64(0.7 * 2)
     assert np.allclose(st.tau[3], np.array([1.0, 2.0, 3.0]) * 0.7)
+
+
+def test_add_rows_is_numpys_add_at_distinct_rows():
+    # The server sums tracers' sparse sums and light with it.
+    from dosppm_core.sppm.statistics import add_rows
+    rng = np.random.default_rng(3)
+    for shape in ((50,), (50, 3)):
+        out, want = rng.random(shape), None
+        want = out.copy()
+        rows = np.sort(rng.choice(50, 20, replace=False))
+        vals = rng.random((20, *shape[1:]))
+        want[rows] += vals
+        add_rows(out, rows, vals)
+        assert np.array_equal(out, want)
+        add_rows(out, rows[:0], vals[:0])           # a tracer whose deposits reached no hit point
+        assert np.array_equal(out, want)
