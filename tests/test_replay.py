@@ -123,3 +123,27 @@ def test_a_server_that_does_not_end_in_time_is_killed_with_its_tracers():
     with pytest.raises(RuntimeError, match="did not end within"):
         replay._awaited(server, tracers, wait_s=0.5)
     assert server.poll() is not None and all(t.poll() is not None for t in tracers)
+
+
+def test_replayed_epochs_answer_with_a_recorded_sums_answer_and_keep_no_deposit():
+    # slow_link.py's synthetic tracers: past RECORDED_EPOCHS real gathers,
+    # an epoch's sums are a recorded answer's rows cycled to the hit points.
+    from types import SimpleNamespace
+    from dosppm_core.jobs import HitPoints
+    from services.tracer.epochs import EpochDeposits
+    rng = np.random.default_rng(4)
+    ep = replay.ReplayedEpochs(EpochDeposits(8, materials=None))
+    ep.recorded = [dict(deposits=70, flux=np.ones(3), m=np.array([0.0, 2.0, 1.0]), phi=np.arange(9.0).reshape(3, 3))
+                   for _ in range(replay.RECORDED_EPOCHS)]
+    assert not ep.keeps_deposits
+    ep.add(random_record(PhotonDeposits, 50, rng))
+    assert ep.rows == 0                                        # nothing held once replaying
+    ep.set_hit_points(3, random_record(HitPoints, 7, rng))
+    msg = SimpleNamespace(epoch=9, phase="sums", hits_version=3)
+    out = ep.reply(msg)
+    got = wire.decode(wire.encode("epoch_sums", **out))
+    assert got.epoch == 9 and got.deposits == 70
+    from services.tracer.epochs import dense_sums
+    m, phi = dense_sums(7, got.m, got.phi, got.fields.get("rows"))
+    assert m.tolist() == [0, 2, 1, 0, 2, 1, 0]
+    assert np.array_equal(phi[4], [3.0, 4.0, 5.0])
