@@ -19,7 +19,10 @@ allows the paper's wire format, and the same ratio for that mode's own
 ceiling. The synthetic tracers replay recorded epochs (replay.py's
 `replay_epochs`), so their gather costs nothing; still, two of them
 sharing two cores with the server make about 3M photons/s, below the
-server's ceiling at 1 Gbit/s: `--rate 1e8` shows a link that limits.
+server's ceiling at 1 Gbit/s, so "limited by" names the tracers. (At
+`--rate 1e8` neither figure is clean: each epoch's hit points, 7 MB to
+two tracers, take 0.6 s to cross, and the epochs' round trips, not the
+average rate, hold the photons.)
 
     python benchmarks/slow_link.py [--rate 1e9] [--seconds 15] [--repeats 3]
 
