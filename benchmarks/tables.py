@@ -153,6 +153,11 @@ def _evaluation(budget_s: float | None = None, mirror: bool = False):
     return table
 
 
+def _slow_link(doc: dict) -> str:
+    import slow_link
+    return slow_link.report(doc)
+
+
 def _many_lights(doc: dict) -> str:
     import many_lights
     return many_lights.report(doc)
@@ -197,6 +202,8 @@ TABLES = {
     "radius-20s": ("benchmarks/results/issue12-radius/results.json", _evaluation(20.0)),
     "radius-80s": ("benchmarks/results/issue12-radius/results.json", _evaluation(80.0)),
     "replay": ("benchmarks/results/replay.json", _replay),
+    "replay-gather-tracers": ("benchmarks/results/replay-gather-tracers.json", _replay),
+    "slow-link": ("benchmarks/results/slow-link.json", _slow_link),
     "render-default": ("benchmarks/results/render-default.json", _render_default),
     "reliability": ("benchmarks/results/reliability.json", _reliability),
     "reliability-short": ("benchmarks/results/reliability.json", _reliability_short),
