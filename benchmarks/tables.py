@@ -159,6 +159,11 @@ def _slow_link(doc: dict) -> str:
     return slow_link.report(doc)
 
 
+def _texture_lookup(doc: dict) -> str:
+    import texture_lookup
+    return texture_lookup.report(doc)
+
+
 def _many_lights(doc: dict) -> str:
     import many_lights
     return many_lights.report(doc)
@@ -205,6 +210,7 @@ TABLES = {
     "replay": ("benchmarks/results/replay.json", _replay),
     "replay-gather-tracers": ("benchmarks/results/replay-gather-tracers.json", _replay),
     "slow-link": ("benchmarks/results/slow-link.json", _slow_link),
+    "texture-lookup": ("benchmarks/results/texture-lookup.json", _texture_lookup),
     "render-default": ("benchmarks/results/render-default.json", _render_default),
     "reliability": ("benchmarks/results/reliability.json", _reliability),
     "reliability-short": ("benchmarks/results/reliability.json", _reliability_short),
