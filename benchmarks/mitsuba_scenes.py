@@ -384,7 +384,7 @@ def main(argv=None) -> int:
         p.error("--only scores part of the scenes: the results file holds all of them, so drop --out")
     scored = score_all(args.root, args) if args.score else {}
     if args.out:
-        from services.evaluation.provenance import write_results
+        from harness.provenance import write_results
         short = {n: (m and m.replace(args.root + os.sep, "")) for n, m in results}
         write_results(args.out, {"scenes": short, "loads": loads, "refusals": dict(counts.most_common()),
                                  "plugins_needed": needs,

@@ -49,7 +49,7 @@ Variant: the caller's choice, `scalar_rgb` (`SAFE_VARIANT`) by default.
 `llvm_ad_rgb` is about 3x faster, but an unsupported libLLVM aborts the
 whole process while compiling a kernel (it cannot be caught), so whether it
 works here is found by trying it in a child process, which a library must
-not start: `services.evaluation.mitsuba_probe.best_variant()` does that,
+not start: `harness.mitsuba_probe.best_variant()` does that,
 and its answer is passed in as `variant`.
 """
 from __future__ import annotations

@@ -23,7 +23,7 @@ import pytest
 
 from tests.helpers.paths import REPO
 
-PACKAGES = ("dosppm_core", "services")
+PACKAGES = ("dosppm_core", "services", "harness")
 CORE_MUST_NOT_IMPORT = ("services", "argparse", "zmq", "subprocess", "http", "socket")
 # library (top-level module name) -> the one file allowed to import it
 ONE_MODULE_PER_LIBRARY = {

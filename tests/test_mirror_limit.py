@@ -16,7 +16,7 @@ from dosppm_core.reference import render_reference
 from dosppm_core.scene.model import Camera, Material, SceneBuilder
 from dosppm_core.scene.suite import rectangle_mesh
 from dosppm_core.settings import RenderSettings
-from services.evaluation import evaluate
+from harness import evaluate
 from tests.helpers.scenes import small_scene
 
 MIRROR_RHO = np.array([0.5, 0.6, 0.7])

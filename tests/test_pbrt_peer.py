@@ -1,4 +1,4 @@
-"""pbrt-v4 as a peer renderer (services/evaluation/pbrt.py) and the cases
+"""pbrt-v4 as a peer renderer (harness/pbrt.py) and the cases
 that need the shared folder.
 
 With a pbrt binary ($DOSPPM_PBRT or `pbrt` on the PATH), the exported
@@ -16,8 +16,8 @@ import pytest
 from dosppm_core import metrics
 from dosppm_core.scene import builtin
 from dosppm_core.settings import RenderSettings
+from harness import evaluate, pbrt, suites
 from services.cli.main import main
-from services.evaluation import evaluate, pbrt, suites
 from tests.helpers import paths
 
 BANDS = 4

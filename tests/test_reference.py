@@ -10,8 +10,8 @@ from dosppm_core import reference
 from dosppm_core.film import read_exr
 from dosppm_core.scene import loaders
 from dosppm_core.scene.model import Camera, Material, SceneBuilder, SceneError
+from harness.mitsuba_probe import best_variant
 from services.cli.main import main as dosppm_main
-from services.evaluation.mitsuba_probe import best_variant
 
 pytestmark = pytest.mark.reference   # skipped without Mitsuba (tests/conftest.py)
 
