@@ -46,19 +46,18 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 
 import dosppm_core as dp
-from dosppm_core import metrics
 from dosppm_core.accel import Accelerator
 from dosppm_core.film import one_line, read_exr
 from dosppm_core.kernels.bsdf import is_specular
-from dosppm_core.mirror_limit import LimitSettings, mirror_limit
-from dosppm_core.reference import cached_reference, render_reference
 from dosppm_core.scene import builtin
 from dosppm_core.scene.loaders import load_scene
 from dosppm_core.scene.model import Scene
 from dosppm_core.settings import DIRECT_MODES, RenderSettings
 from dosppm_core.trace import eye_ray_job
-from harness import pbrt
+from harness import metrics, pbrt
+from harness.mirror_limit import LimitSettings, mirror_limit
 from harness.provenance import provenance
+from harness.reference import cached_reference, render_reference
 from harness.suites import (CAUSTIC_SCENES, METHODS, SUITES, Case, CaseSkipped, Method, Sample, Suite,
                             shared_dir, shared_file)
 

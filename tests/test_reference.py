@@ -6,10 +6,10 @@ import sys
 import numpy as np
 import pytest
 
-from dosppm_core import reference
 from dosppm_core.film import read_exr
 from dosppm_core.scene import loaders
 from dosppm_core.scene.model import Camera, Material, SceneBuilder, SceneError
+from harness import reference
 from harness.mitsuba_probe import best_variant
 from services.cli.main import main as dosppm_main
 

@@ -11,7 +11,7 @@ import json
 
 import numpy as np
 
-from dosppm_core import metrics
+from harness import metrics
 from dosppm_core.film import FilmError, read_exr
 from services.cli.errors import EXIT_OK, fail
 

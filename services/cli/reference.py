@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import time
 
-from dosppm_core import reference
+from harness import reference
 from dosppm_core.film import FilmError, write_exr
 from dosppm_core.scene import loaders
 from dosppm_core.scene.model import SceneError
