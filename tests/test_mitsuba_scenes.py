@@ -146,8 +146,8 @@ def test_claimed_scenes_pass_in_one_process(name):
 @pytest.mark.slow
 @pytest.mark.parametrize("name", CLAIMED)
 def test_claimed_scenes_pass_through_the_service_in_chunks(name, tmp_path):
-    from harness import render_test
     from dosppm_core.film import read_exr
+    from harness import render_test
     survey = _survey()
     path = _path(name)
     ref, var = (read_exr(f)[0] for f in survey.reference_files(path))

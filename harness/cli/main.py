@@ -6,6 +6,8 @@ same without the render service's command:
 """
 from __future__ import annotations
 
+import argparse
+
 from harness.cli import bench, compare, evaluate, reference
 from services.cli.errors import Parser
 
@@ -16,7 +18,7 @@ VERBS = (bench, reference, compare, evaluate)
 def build_parser() -> Parser:
     # prog "dosppm": a verb's usage and one-line errors read as the
     # command the user typed ("dosppm evaluate: error: ...").
-    parser = Parser(prog="dosppm", description=__doc__)
+    parser = Parser(prog="dosppm", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
     for verb in VERBS:
         verb.add_parser(sub)
