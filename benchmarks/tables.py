@@ -32,7 +32,7 @@ MARKED = re.compile(r"(<!-- table:([\w-]+) -->\n)(.*?)(<!-- /table:\2 -->)", re.
 
 
 def _core(doc: dict) -> str:
-    from services.evaluation import bench
+    from harness import bench
     return bench.report(doc["results"])
 
 
@@ -120,7 +120,7 @@ def _render_default(doc: dict) -> str:
 
 
 def _replay(doc: dict) -> str:
-    from services.evaluation import replay
+    from harness import replay
     return replay.report(doc)
 
 
@@ -142,7 +142,7 @@ def _evaluation(budget_s: float | None = None, mirror: bool = False):
     """A relMSE (bias) table of a `dosppm evaluate` results.json, at its
     last budget or at `budget_s`; `mirror`: the mirror-limit table instead."""
     def table(doc: dict) -> str:
-        from services.evaluation import evaluate
+        from harness import evaluate
         ev = evaluate.read_results_doc(doc)
         budget = budget_s if budget_s is not None else ev.budget_s
         if mirror:
@@ -225,9 +225,10 @@ TABLES = {
 
 
 # What every table's figures measure: the product's code (whatever a render
-# runs). A results file is stale once a commit after the one it names
-# touched these paths or the script its command ran (`staleness`, `--fresh`).
-PRODUCT_PATHS = ("dosppm_core", "services", ":(exclude)services/evaluation/charts.py")
+# runs) and the harness that drives and times it (its charts aside). A
+# results file is stale once a commit after the one it names touched these
+# paths or the script its command ran (`staleness`, `--fresh`).
+PRODUCT_PATHS = ("dosppm_core", "services", "harness", ":(exclude)harness/charts.py")
 
 
 def _provenance(doc) -> dict | None:
@@ -242,7 +243,7 @@ def _script(command: str | None) -> list[str]:
     for word in (command or "").split():
         if word.endswith((".py", ".sh")):
             return [word if os.path.isabs(word) else word.lstrip("./")]
-        if word.startswith(("services.", "benchmarks.")):
+        if word.startswith(("harness.", "services.", "benchmarks.")):
             return [word.replace(".", "/") + ".py"]
     return []
 

@@ -60,7 +60,7 @@ def test_a_file_measured_on_the_last_code_is_fresh_and_docs_do_not_age_it(repo):
     assert tables.staleness("replay", str(root)) is None
 
 
-@pytest.mark.parametrize("changed", ["dosppm_core/kernel.py", "benchmarks/bench_x.py"])
+@pytest.mark.parametrize("changed", ["dosppm_core/kernel.py", "harness/replay.py", "benchmarks/bench_x.py"])
 def test_a_later_change_to_the_code_or_its_script_makes_it_stale(repo, changed):
     root, code = repo
     _measured(root, code)
