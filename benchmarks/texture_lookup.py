@@ -34,7 +34,7 @@ sys.path.insert(0, ROOT)
 
 from dosppm_core.kernels.texture import lookup_many  # noqa: E402
 from dosppm_core.scene import textures as tx  # noqa: E402
-from services.evaluation.provenance import write_results  # noqa: E402
+from harness.provenance import write_results  # noqa: E402
 
 SIZE = 1024
 
