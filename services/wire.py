@@ -25,9 +25,10 @@ Dtypes are numpy strings, always little-endian ("<f4", "<i4", "<u8", "|u1");
 shapes are lists of ints. Arrays travel out of band: `encode` returns
 memoryviews of the caller's arrays (sent with `copy=False`), and `decode`
 wraps each frame with `np.frombuffer` (both through the one array codec,
-`dosppm_core.arrays`), so a 1M-ray batch is never copied by this module. Exception: a frame that libzmq hands over misaligned for its
-dtype (small frames over tcp sit at odd offsets in the receive buffer) is
-copied, because numba's kernels want aligned arrays. Decoded arrays may be
+`dosppm_core.arrays`), so a 1M-ray batch is never copied by this module.
+Exception: a frame that libzmq hands over misaligned for its dtype (small
+frames over tcp sit at odd offsets in the receive buffer) is copied,
+because numba's kernels want aligned arrays. Decoded arrays may be
 read-only (a `bytes` frame); copy before writing in place. No pickle.
 
 Records (`RayBatch`, `PhotonDeposits`, `HitPoints`, `ShadowRays`) travel as one array per

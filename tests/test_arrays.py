@@ -157,7 +157,8 @@ def test_checkpoint_writes_the_legacy_bytes_and_reads_them(tmp_path):
     meta = dict(store_key="k", settings={}, next_job=3, next_eye_iteration=1, counters={})
     checkpoint.write(str(tmp_path), stats, meta)
     doc = msgpack.unpackb((tmp_path / checkpoint.FILE).read_bytes())
-    legacy = dict(doc, arrays={n: _legacy_pack(np.asarray(getattr(stats, n), "<f8")) for n in checkpoint.ARRAYS})
+    legacy = dict(doc, arrays={n: _legacy_pack(np.asarray(getattr(stats, n), "<f8"))
+                               for n in checkpoint.ARRAYS})
     assert (tmp_path / checkpoint.FILE).read_bytes() == msgpack.packb(legacy, use_bin_type=True)
     read = checkpoint.read(str(tmp_path))
     assert all(np.array_equal(read["arrays"][n], getattr(stats, n)) for n in checkpoint.ARRAYS)
@@ -178,8 +179,9 @@ def test_ledger_records_keep_the_legacy_encoding():
         kind, photons_emitted, jobs = "photons", 4096, (keys, paths, boxes)
     book.record(Update)
     rec = book.records[0]
-    assert msgpack.packb(rec) == msgpack.packb({"kind": "photons", "emitted": 4096, "keys": _legacy_pack(keys),
-                                                "paths": _legacy_pack(paths), "boxes": _legacy_pack(boxes)})
+    legacy = {"kind": "photons", "emitted": 4096, "keys": _legacy_pack(keys), "paths": _legacy_pack(paths),
+              "boxes": _legacy_pack(boxes)}
+    assert msgpack.packb(rec) == msgpack.packb(legacy)
 
 
 def test_the_wire_reports_a_short_frame_through_the_codec():
