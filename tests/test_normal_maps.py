@@ -13,6 +13,7 @@ from dosppm_core.kernels.shading import shading_normal, terminator
 from dosppm_core.scene.mitsuba import load_mitsuba_xml
 from dosppm_core.scene.model import MATERIAL_KINDS, Material, MaterialTable
 from dosppm_core.scene.textures import TextureTable, bitmap
+from tests.helpers.renders import assert_equal_up_to_float_noise, one_triangle_chunk, sppm_and_osppm_images
 
 SIDE = 2.0      # the triangle's legs: dp/du = SIDE * s, so a bump's gradient is scaled as Mitsuba scales it
 
@@ -251,8 +252,6 @@ def test_chunked_equals_unchunked(tmp_path, chunk_store):
     the floor's normal map is texture 1, renumbered 0 in its chunk), cut by
     the real subdivider into 2 chunks and rendered by OSPPM from the
     store: the unchunked image up to float noise."""
-    from dosppm_core.modes.osppm import OutOfCoreRenderer
-    from dosppm_core.modes.sppm import Renderer
     from dosppm_core.settings import RenderSettings
     floor = '<shape type="rectangle"><transform name="to_world"><scale value="2"/></transform>'
     far = ('<shape type="rectangle"><transform name="to_world"><translate x="-12"/></transform>'
@@ -262,39 +261,21 @@ def test_chunked_equals_unchunked(tmp_path, chunk_store):
     path = tmp_path / "chunked.xml"
     path.write_text(text)
     scene = load_mitsuba_xml(str(path))
-    settings = RenderSettings(seed=11, photons_per_iteration=30_000)
-    renderers = [Renderer(scene, settings)]
     store = chunk_store(scene, chunks=2)
     assert store.chunk_count == 2 and len(store.header.textures) == 2
     _floor_chunk_renumbers_its_map(scene)
-    renderers.append(OutOfCoreRenderer(store, settings, pipelined=False))
-    images = []
-    for r in renderers:
-        try:
-            for _ in range(3):
-                r.run_iteration()
-            images.append(np.asarray(r.image()))
-        finally:
-            r.close()
-    ref, img = images
+    ref, img = sppm_and_osppm_images(scene, store, RenderSettings(seed=11, photons_per_iteration=30_000), 3)
     assert ref.mean() > 0
-    rel = np.abs(img - ref) / np.maximum(ref, 1e-6 * ref.max())
-    assert np.mean(rel > 1e-4) < 0.02 and rel.max() < 0.01
+    assert_equal_up_to_float_noise(img, ref)
 
 
 def _floor_chunk_renumbers_its_map(scene):
     """A chunk holding only the floor carries only its normal map (texture
     1 of the scene), which its kernels then read as texture 0."""
-    from dosppm_core.chunks.store import ChunkGeometry
-    from dosppm_core.chunks.textures import attach_textures, chunk_surface_textures
     floor = int(np.flatnonzero(scene.materials.normal_map >= 0)[0])
     assert scene.materials.normal_map[floor] == 1
-    tri = np.array([[0, 1, 2]], np.int32)
-    chunk = ChunkGeometry(np.eye(3, dtype=np.float32), tri, np.array([floor], np.int32),
-                          np.zeros(1, np.int32), np.zeros((3, 2), np.float32))
-    chunk = attach_textures(chunk, scene.header())
+    chunk, mats, table = one_triangle_chunk(scene, floor)
     assert chunk.tex_ids.tolist() == [1]
-    mats, table = chunk_surface_textures(chunk, scene.header())
     assert mats.normal_map[floor] == 0 and len(table) == 1 and (mats.texture == -1).all()
 
 
