@@ -11,7 +11,12 @@ from dosppm_core.kernels import anisotropic as an
 from dosppm_core.kernels.materials import B_ANISO, bsdf_rows, eval_colour, pdf_colour
 from dosppm_core.kernels.microfacet import sample_visible_aniso, sample_visible_local
 from dosppm_core.scene.model import MATERIAL_KINDS, Material, MaterialTable
-from tests.helpers.renders import assert_equal_up_to_float_noise, one_triangle_chunk, sppm_and_osppm_images
+from tests.helpers.renders import (
+    assert_equal_up_to_float_noise,
+    floor_and_wall,
+    one_triangle_chunk,
+    sppm_and_osppm_images,
+)
 
 ETA, K = (0.2, 0.9, 1.1), (3.9, 2.4, 2.2)
 CASES = {
@@ -235,31 +240,11 @@ def test_direct_light_off_an_anisotropic_plane_matches_mitsuba(mi, tmp_path, dis
 # lit only by what the floor's lobe sends it (photons); far off, a
 # checkerboard diffuse (texture 0), so the floor's alpha textures (1, 2)
 # are renumbered in its chunk.
-BOUNCE = """<scene version="3.0.0">
-  <integrator type="path"><integer name="max_depth" value="3"/></integrator>
-  <sensor type="perspective"><float name="fov" value="50"/>
-    <transform name="to_world"><lookat origin="2.5,0,1.2" target="-2,0,0.6" up="0,0,1"/></transform>
-    <film type="hdrfilm"><integer name="width" value="24"/><integer name="height" value="24"/>
-      <rfilter type="box"/></film>
-  </sensor>
-  <shape type="rectangle"><transform name="to_world"><translate x="-12"/></transform>
-    <bsdf type="diffuse"><texture name="reflectance" type="checkerboard"/></bsdf></shape>
-  <shape type="rectangle"><transform name="to_world"><scale value="2"/></transform>
-    <bsdf type="roughconductor"><string name="distribution" value="beckmann"/>
+BOUNCE = floor_and_wall("""<bsdf type="roughconductor"><string name="distribution" value="beckmann"/>
       <texture name="alpha_u" type="checkerboard"><float name="color0" value="0.05"/>
         <float name="color1" value="0.4"/></texture>
       <texture name="alpha_v" type="checkerboard"><float name="color0" value="0.4"/>
-        <float name="color1" value="0.1"/></texture></bsdf></shape>
-  <shape type="rectangle"><transform name="to_world"><scale value="2"/><rotate y="1" angle="90"/>
-    <translate x="-2" z="2"/></transform>
-    <bsdf type="diffuse"><rgb name="reflectance" value="0.8"/></bsdf></shape>
-  <emitter type="spot">
-    <transform name="to_world"><lookat origin="1,0,3" target="0,0,0" up="0,1,0"/></transform>
-    <float name="cutoff_angle" value="25"/><float name="beam_width" value="20"/>
-    <rgb name="intensity" value="80"/>
-  </emitter>
-</scene>
-"""
+        <float name="color1" value="0.1"/></texture></bsdf>""", far=True)
 
 
 def test_chunked_equals_unchunked_for_a_textured_alpha(tmp_path, chunk_store):

@@ -32,6 +32,36 @@ def mitsuba_scene(tmp_path, emitter: str, shapes: str, size=32, origin="0, 0.3, 
     return str(path)
 
 
+def floor_and_wall(floor_bsdf: str, spot_target="0,0,0", cutoff=25, beam=20, far=False) -> str:
+    """Mitsuba XML: a 4 x 4 floor of `floor_bsdf` at z = 0 under a narrow
+    spot (at 1,0,3 aiming at `spot_target`), and a wall at x = -2 the spot
+    does not reach, so that all the wall's light comes off the floor; seen
+    from the side, 24 x 24 pixels, paths of depth 3. `far`: a checkerboard
+    diffuse plane far off (texture 0 of the scene, in another chunk)."""
+    far_plane = ("""<shape type="rectangle"><transform name="to_world"><translate x="-12"/></transform>
+    <bsdf type="diffuse"><texture name="reflectance" type="checkerboard"/></bsdf></shape>
+  """ if far else "")
+    return f"""<scene version="3.0.0">
+  <integrator type="path"><integer name="max_depth" value="3"/></integrator>
+  <sensor type="perspective"><float name="fov" value="50"/>
+    <transform name="to_world"><lookat origin="2.5,0,1.2" target="-2,0,0.6" up="0,0,1"/></transform>
+    <film type="hdrfilm"><integer name="width" value="24"/><integer name="height" value="24"/>
+      <rfilter type="box"/></film>
+  </sensor>
+  {far_plane}<shape type="rectangle"><transform name="to_world"><scale value="2"/></transform>
+    {floor_bsdf}</shape>
+  <shape type="rectangle"><transform name="to_world"><scale value="2"/><rotate y="1" angle="90"/>
+    <translate x="-2" z="2"/></transform>
+    <bsdf type="diffuse"><rgb name="reflectance" value="0.8"/></bsdf></shape>
+  <emitter type="spot">
+    <transform name="to_world"><lookat origin="1,0,3" target="{spot_target}" up="0,1,0"/></transform>
+    <float name="cutoff_angle" value="{cutoff}"/><float name="beam_width" value="{beam}"/>
+    <rgb name="intensity" value="80"/>
+  </emitter>
+</scene>
+"""
+
+
 def quadrants() -> np.ndarray:
     """(8, 8, 3) 8-bit values: red, green, blue and yellow quadrants, so an
     image mirrored or turned shows."""
