@@ -218,10 +218,8 @@ def add_rows(out: np.ndarray, rows: np.ndarray, values: np.ndarray) -> None:
     """out[rows] += values, in place, for distinct rows (a tracer's sums
     or light per hit point or pixel, summed at the server): one compiled
     pass, 10x numpy's gather-add-scatter over 65k rows. `out` float64 and
-    C-contiguous, 1-D or (n, k)."""
-    flat = out.reshape(len(out), -1)
-    if not np.shares_memory(flat, out):
-        raise ValueError("add_rows needs a contiguous float64 array to add into")
+    1-D or (n, k)."""
+    flat = out if out.ndim == 2 else out[:, None]      # a view either way, empty or not
     vals = np.ascontiguousarray(values, np.float64).reshape(len(rows), flat.shape[1])
     _add_rows(flat, np.ascontiguousarray(rows, np.int64), vals)
 
