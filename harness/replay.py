@@ -45,10 +45,14 @@ import numpy as np
 
 from services.tracer.epochs import EpochDeposits, dense_sums, sparse_sums
 from services.tracer.node import TracerError, TracerOptions, TracerProcess
+from services.credit import split as split_credit
 from services.tracer.state import SERVER, TracerState, concat_credit
 from services.wire import Out
 
 RECORDED_STEPS = 16
+# Replaying emission too, fewer: a step traced for real on a loaded
+# machine takes a second or more, and 16 of them took most of a 15 s run.
+RECORDED_STEPS_EMISSION = 2
 RECORDED_EPOCHS = 2
 REPLAY_RETRY_S = 10.0
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -59,6 +63,8 @@ class ReplayState(TracerState):
     RECORDED_STEPS of them were traced for real."""
 
     replay_epochs = False           # `ReplayedEpochs` once RECORDED_EPOCHS are gathered
+    replay_emission = False         # photon job messages answered at once (`emit`)
+    steps_to_record = RECORDED_STEPS
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
@@ -69,7 +75,7 @@ class ReplayState(TracerState):
         super().hold_epochs(ReplayedEpochs(epochs) if self.replay_epochs and epochs is not None else epochs)
 
     def _trace_photons(self, view, taken):
-        if len(self.recorded) < RECORDED_STEPS:
+        if len(self.recorded) < self.steps_to_record:
             t0 = time.perf_counter()
             epochs, self.epochs = self.epochs, None      # the record keeps the step's deposits
             try:
@@ -84,18 +90,59 @@ class ReplayState(TracerState):
                 epochs.add(fields["deposits"])
                 out[0] = Out(SERVER, "results", {k: v for k, v in fields.items() if k != "deposits"})
             return out
-        jobs = np.concatenate([p.batch.job for p in taken.items])
-        fields, paths = self.recorded[self.counters["replayed_steps"] % len(self.recorded)]
+        ids, fed = np.unique(np.concatenate([p.batch.job for p in taken.items]), return_counts=True)
+        return [self._replayed(view.index, ids, fed, concat_credit(taken.items))]
+
+    def emit(self, job_ids, rng_keys, counts, cull_box, credit: tuple) -> list[Out]:
+        """With `replay_emission`, once the recorded steps are in hand, a
+        photon job message is answered at once, as if its photons were
+        made and traced: one results message per recorded step's worth of
+        paths (the message rate a real tracer's steps give the server),
+        splitting the message's credit among them."""
+        if not (self.replay_emission and len(self.recorded) >= self.steps_to_record) or not len(job_ids):
+            return super().emit(job_ids, rng_keys, counts, cull_box, credit)
+        jobs = np.repeat(np.asarray(job_ids, np.int64), counts)
+        self.counters["photons_emitted"] += len(jobs)
+        step = max(self.recorded[0][1], 1)
+        pieces = [_runs(jobs[i:i + step]) for i in range(0, len(jobs), step)]
+        kept, shares = split_credit(*credit, [ids for ids, _fed in pieces])
+        whole = self._whole_paths()
+        out = []
+        for i, ((ids, fed), share) in enumerate(zip(pieces, shares)):
+            if i == 0:          # the rest of the message's credit comes back with the first
+                share = tuple(np.concatenate([a, b]) for a, b in zip(share, kept))
+            out.append(self._replayed(0, ids, fed, share, whole))
+        return out
+
+    def _whole_paths(self) -> tuple[dict, int]:
+        """The recorded steps as one record of whole photon paths: all their
+        deposits over all the paths they ended. A step's deposits per ray
+        traced would undercount a path's (a path is several rays, and with
+        direct light by shadow rays its first surface deposits nothing),
+        and only the paper's format, which sends every deposit, would
+        notice: its bytes per photon are the slow link's yardstick."""
+        if len(self.recorded) != getattr(self, "_whole_of", None):
+            fields = [f for f, _ in self.recorded]
+            ends = np.sum([f["ends"] for f in fields], axis=0)
+            self._whole = ({"deposits": type(fields[0]["deposits"]).concat([f["deposits"] for f in fields]),
+                            "ends": ends}, int(ends.sum()))
+            self._whole_of = len(self.recorded)
+        return self._whole
+
+    def _replayed(self, chunk: int, ids: np.ndarray, fed: np.ndarray, credit: tuple, record=None) -> Out:
+        """The next recorded step's results (or `record`, (fields, paths)),
+        relabelled to paths of jobs `ids` (`fed` paths each), every path ended."""
+        fields, paths = record or self.recorded[self.counters["replayed_steps"] % len(self.recorded)]
         self.counters["replayed_steps"] += 1
-        self.counters["rays_traced"] += len(jobs)
+        self.counters["rays_traced"] += int(fed.sum())
         keeps = getattr(self.epochs, "keeps_deposits", True)
-        replayed = _relabelled(fields, paths, jobs, view.index, (self.queued_rays, self.queue_target()),
-                               concat_credit(taken.items), with_deposits=keeps)
+        replayed = _relabelled(fields, paths, ids, fed, chunk, (self.queued_rays, self.queue_target()),
+                               credit, with_deposits=keeps)
         if self.epochs is not None:     # gathered here, when the server asks for the epoch's sums
             deposits = replayed.pop("deposits")
             if keeps:
                 self.epochs.add(deposits)
-        return [Out(SERVER, "results", replayed)]
+        return Out(SERVER, "results", replayed)
 
 
 class ReplayedEpochs(EpochDeposits):
@@ -134,19 +181,27 @@ class ReplayedEpochs(EpochDeposits):
                     chosen=0, flux=rec["flux"], **sparse_sums(rec["m"][rows], rec["phi"][rows]))
 
 
-def _relabelled(fields: dict, paths: int, jobs: np.ndarray, chunk: int, queue: tuple, credit: tuple,
-                with_deposits: bool = True) -> dict:
-    """A recorded step's results for a package of paths of `jobs`: deposits
-    cycled to the package's size and spread over its jobs, every path
-    ended, so all of the package's `credit` returned. `queue`: the
-    tracer's (queued rays, queue target), as every results message says."""
-    ids, fed = np.unique(jobs, return_counts=True)
+def _runs(jobs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(ids, paths of each) of a job column whose equal ids are contiguous
+    (a job message's photons, made job by job): np.unique without its sort."""
+    starts = np.r_[0, np.flatnonzero(jobs[1:] != jobs[:-1]) + 1]
+    return jobs[starts], np.diff(np.r_[starts, len(jobs)])
+
+
+def _relabelled(fields: dict, paths: int, ids: np.ndarray, fed: np.ndarray, chunk: int, queue: tuple,
+                credit: tuple, with_deposits: bool = True) -> dict:
+    """A recorded step's results for a package of paths of jobs `ids`
+    (`fed` paths each): deposits cycled to the package's size and spread
+    over its jobs, every path ended, so all of the package's `credit`
+    returned. `queue`: the tracer's (queued rays, queue target), as every
+    results message says."""
+    total = int(fed.sum())
     rec = fields["deposits"]
-    n = int(round(len(rec) * len(jobs) / max(paths, 1))) if with_deposits else 0
+    n = int(round(len(rec) * total / max(paths, 1))) if with_deposits else 0
     rows = np.arange(n) % max(len(rec), 1)
     deposits = dataclasses.replace(rec.take(rows), job=ids[np.arange(n) % len(ids)].astype(np.int64))
-    ends = np.asarray(fields["ends"]) * len(jobs) // max(paths, 1)
-    ends[np.argmax(ends)] += len(jobs) - ends.sum()      # the wire checks: every path ended once
+    ends = np.asarray(fields["ends"]) * total // max(paths, 1)
+    ends[np.argmax(ends)] += total - ends.sum()      # the wire checks: every path ended once
     return dict(chunk=chunk, ends=ends, culled=0, deposits=deposits, job_ids=ids.astype(np.int64),
                 job_fed=fed.astype(np.int64), job_left=np.zeros(len(ids), np.int64), queued=queue[0],
                 queue_target=queue[1], credit_job=credit[0], credit_exp=credit[1])
@@ -163,7 +218,7 @@ def _free_port() -> int:
 
 
 def run(scene: str, tracers: int, seconds: float, work: str, extra=(), hosts: dict | None = None,
-        wait_s: float | None = None, replay_epochs: bool = False) -> dict:
+        wait_s: float | None = None, replay_epochs: bool = False, replay_emission: bool = False) -> dict:
     """One server and `tracers` synthetic tracers for `seconds`; returns the
     server's summary (its JSON) and the tracers' recorded rates. `wait_s`:
     how long the server may take to end (default ten times `seconds` and 5
@@ -172,7 +227,9 @@ def run(scene: str, tracers: int, seconds: float, work: str, extra=(), hosts: di
     each process in its own network namespace (harness/netns.py)
     instead of all on 127.0.0.1. `replay_epochs`: the tracers answer
     epochs past the first RECORDED_EPOCHS with recorded sums
-    (`ReplayedEpochs`) instead of gathering."""
+    (`ReplayedEpochs`) instead of gathering. `replay_emission`: they
+    answer photon job messages at once, without making photons
+    (`ReplayState.emit`)."""
     from dosppm_core.chunks.subdivide import open_or_subdivide
     from dosppm_core.scene import builtin
     from dosppm_core.scene.soup import SceneSource
@@ -192,7 +249,8 @@ def run(scene: str, tracers: int, seconds: float, work: str, extra=(), hosts: di
                                "--time", str(seconds), "--min-tracers", str(tracers), "--out", out,
                                "--http", "off", "--quiet", *extra], env=env)
     procs = [subprocess.Popen([*w, sys.executable, "-m", "harness.replay", "--tracer", endpoint,
-                               "--store", store.path, *(["--replay-epochs"] if replay_epochs else [])],
+                               "--store", store.path, *(["--replay-epochs"] if replay_epochs else []),
+                               *(["--replay-emission"] if replay_emission else [])],
                               env=env, stdout=subprocess.PIPE, text=True)
              for w in wrap["tracers"]]
     counters = _awaited(server, procs, seconds * 10 + 300 if wait_s is None else wait_s)
@@ -256,6 +314,7 @@ def figures(s: dict, per_core: float) -> dict:
     emitted, cpu = max(c["photons_emitted"], 1), max(r["cpu_s"], 1e-9)
     server_rate = photons / cpu                      # photons per server CPU-second
     return {"seconds": secs, "photons": photons, "photons_per_s": photons / secs,
+            "steady_photons_per_s": steady_rate(s),
             "server_cpu_s": cpu, "server_cpu_whole_process_s": s.get("cpu_s", 0.0),
             "server_cpu_load": cpu / secs, "photons_per_server_cpu_s": server_rate,
             "server_cpu_us_per_photon": 1e6 * cpu / max(photons, 1),
@@ -269,6 +328,17 @@ def figures(s: dict, per_core: float) -> dict:
             **cpu_shares(r, cpu),
             "tracer_photons_per_core_s": per_core,
             "tracer_cores_per_server_core": server_rate / max(per_core, 1e-9)}
+
+
+def steady_rate(s: dict) -> float:
+    """Photons per second once past the start (the synthetic tracers' real
+    steps, the first epochs gathered for real): the median of the status
+    history's rates (photons emitted, over 5 s windows) in the run's
+    second half, or the whole run's rate without a history. Every photon
+    emitted is applied by the end (`photons_committed`)."""
+    h = s.get("history") or {}
+    half = [r for t, r in zip(h.get("t", []), h.get("photons_per_s", [])) if t >= s["seconds"] / 2]
+    return float(np.median(half)) if half else s["counters"]["photons_committed"] / s["seconds"]
 
 
 def tracer_gather(s: dict) -> dict:
@@ -296,6 +366,9 @@ def _tracer_main(args) -> int:
     # through (benchmarks/slow_link.py): give up after REPLAY_RETRY_S of
     # silence, not a worker's minute, and still report.
     ReplayState.replay_epochs = bool(args.replay_epochs)
+    ReplayState.replay_emission = bool(args.replay_emission)
+    if args.replay_emission:
+        ReplayState.steps_to_record = RECORDED_STEPS_EMISSION
     tp = ReplayTracer(TracerOptions(args.tracer, store=args.store, threads=1, tracer_id=f"replay-{os.getpid()}",
                                     connect_timeout_s=REPLAY_RETRY_S))
     try:
@@ -344,6 +417,9 @@ def main(argv=None) -> int:
     p.add_argument("--replay-epochs", action="store_true",
                    help="gathering at the tracers, answer epochs with recorded sums after the first "
                         f"{RECORDED_EPOCHS} (the tracers' gather then costs nothing)")
+    p.add_argument("--replay-emission", action="store_true",
+                   help="answer photon job messages at once, without making their photons, once the recorded "
+                        "steps are in hand (the tracers' emission then costs nothing)")
     p.add_argument("--scene", default="cornell-glass")
     p.add_argument("--tracers", type=int, default=2)
     p.add_argument("--seconds", type=float, default=20.0)
@@ -366,11 +442,13 @@ def main(argv=None) -> int:
             extra = ("--gather-at", args.gather_at) + (
                 () if args.hit_point_stride is None else ("--hit-point-stride", str(args.hit_point_stride))) + tuple(
                 args.server_arg)
-            s = run(args.scene, args.tracers, args.seconds, work, extra, replay_epochs=args.replay_epochs)
+            s = run(args.scene, args.tracers, args.seconds, work, extra, replay_epochs=args.replay_epochs,
+                    replay_emission=args.replay_emission)
             runs.append(dict(figures(s, per_core), **tracer_gather(s)))
     res = {"scene": args.scene, "tracers": args.tracers, "seconds": args.seconds, "gather_at": args.gather_at,
            "hit_point_stride": args.hit_point_stride, "server_args": args.server_arg,
-           "replay_epochs": args.replay_epochs, "replay": median_of(runs)}
+           "replay_epochs": args.replay_epochs, "replay_emission": args.replay_emission,
+           "replay": median_of(runs)}
     print(report(res))
     if args.json:
         write_results(args.json, res)

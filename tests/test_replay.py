@@ -27,7 +27,9 @@ def test_a_relabelled_step_is_a_valid_results_message_for_the_package():
     fields, paths = _recorded(rng)
     jobs = np.repeat(np.array([40, 7, 12], np.int64), [1024, 1024, 512])
     credit = (np.array([40, 7, 12, 12], np.int64), np.array([0, 1, 2, 2], np.int64))
-    out = replay._relabelled(fields, paths, jobs, chunk=0, queue=(0, 4096), credit=credit)
+    ids, fed = replay._runs(jobs)
+    assert ids.tolist() == [40, 7, 12] and fed.tolist() == [1024, 1024, 512]
+    out = replay._relabelled(fields, paths, ids, fed, chunk=0, queue=(0, 4096), credit=credit)
     msg = wire.decode(wire.encode("results", **out))
     assert msg.credit_job.tolist() == [40, 7, 12, 12] and msg.credit_exp.tolist() == [0, 1, 2, 2]
     assert sorted(msg.job_ids.tolist()) == [7, 12, 40]
@@ -48,7 +50,7 @@ def test_relabelled_steps_gathered_at_the_tracer_merge_like_a_real_tracers():
     fields, paths = _recorded(rng)
     held = MergedResults()
     for j in (5, 6):
-        out = replay._relabelled(fields, paths, np.full(256, j, np.int64), chunk=0, queue=(j, 100 + j),
+        out = replay._relabelled(fields, paths, np.array([j]), np.array([256]), chunk=0, queue=(j, 100 + j),
                                  credit=(np.array([j], np.int64), np.array([0], np.int64)))
         out.pop("deposits")
         assert mergeable(out)
@@ -57,6 +59,38 @@ def test_relabelled_steps_gathered_at_the_tracer_merge_like_a_real_tracers():
     msg = wire.decode(wire.encode("results", **one))
     assert msg.job_ids.tolist() == [5, 6] and msg.ends.sum() == 512
     assert (msg.queued, msg.queue_target) == (6, 106)       # the latest queue
+
+
+def test_a_replayed_job_message_returns_every_path_and_all_its_credit_in_step_sized_results():
+    # slow_link.py's synthetic tracers answer photon job messages at once:
+    # a results message per recorded step's paths, which together end
+    # every photon once and return the message's credit exactly.
+    from dosppm_core.scene import builtin
+    from services.tracer.state import SERVER
+    from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
+    from tests.helpers.credit import credit_sum
+    scene = builtin.make("cornell-box")
+    t = replay.ReplayState("inproc://t", MemoryChunks(scene, uniform_tree(root_box(scene), (1, 1, 1))), 10, seed=7)
+    rng = np.random.default_rng(3)
+    try:
+        t.replay_emission = True
+        t.recorded = [_recorded(rng, paths=1000)] * replay.RECORDED_STEPS
+        ids, counts = np.array([40, 41, 42], np.int64), np.array([1500, 2500, 700], np.int64)
+        credit = (np.array([40, 41, 42, 42], np.int64), np.array([0, 0, 1, 1], np.int64))
+        out = t.emit(ids, np.arange(3), counts, np.zeros((2, 3)), credit)
+    finally:
+        t.close()
+    msgs = [wire.decode(wire.encode("results", **o.fields)) for o in out]
+    assert all(o.dest == SERVER for o in out) and len(msgs) == 5          # 4,700 paths, 1,000 a step
+    assert [int(m.ends.sum()) for m in msgs] == [1000] * 4 + [700]
+    assert [len(m.deposits) for m in msgs] == [1700] * 4 + [1190]     # the recorded deposits per path
+    fed = {}
+    for m in msgs:
+        for j, n in zip(m.job_ids.tolist(), m.job_fed.tolist()):
+            fed[j] = fed.get(j, 0) + n
+    assert fed == {40: 1500, 41: 2500, 42: 700}
+    # Each job's credit, all of it, once (the message brought 1 each).
+    assert credit_sum([(m.credit_job, m.credit_exp) for m in msgs]) == {40: 1, 41: 1, 42: 1}
 
 
 @pytest.fixture(scope="module")
