@@ -13,7 +13,14 @@ count (1, 2, 4, ... spp); pbrt-v4 (`harness.pbrt`) once per
 sample count or SPPM iteration count, each run timed as a whole process
 (its start and scene load, about 0.3 s on Sponza, count); DOSPPM runs
 `dosppm render --mode dosppm --time T` once per budget, as a user would,
-and its clock is the server's (`seconds` in OUT.json).
+timed as a whole process too (start-up and drain count).
+
+Equal time means equal: the peers' sample counts are calibrated to each
+budget by pilot runs (`calibrated`) and DOSPPM's `--time` by its last
+run's start-up, and a run that misses its budget by more than 5% runs
+again re-sized. One that still misses (a budget shorter than one sample,
+or than DOSPPM's start-up) is scored at its measured time, and the
+tables say so.
 
 References come from Mitsuba 3 at high sample counts, cached on disk:
 `path`, or `ptracer` where a point light's caustic is seen directly (a
@@ -195,27 +202,21 @@ def _progressive(method: Method, scene: Scene, seed: int, budgets):
 
 
 def _mitsuba(scene: Scene, integrator: str, budgets, seed: int):
-    """Mitsuba at 1, 2, 4, ... spp, each timed alone, up to the last budget;
-    each render is filed under the smallest budget it fits."""
+    """Mitsuba at a sample count calibrated to each budget (`calibrated`),
+    each render timed alone, its scene load left out."""
     render_reference(scene, 1, integrator=integrator, seed=seed)   # load and warm up
-    out, spp = [], 1
-    while True:
+
+    def run(spp: int):
         t0 = time.perf_counter()
         image = render_reference(scene, spp, integrator=integrator, seed=seed + spp)
-        seconds = time.perf_counter() - t0
-        if seconds > budgets[-1] * 1.25 and out:
-            return out
-        budget = next((b for b in budgets if seconds <= b), budgets[-1])
-        out.append((budget, seconds, 0, image))
-        if seconds > budgets[-1]:
-            return out
-        spp *= 2
+        return time.perf_counter() - t0, 0, image
+    return calibrated(run, budgets)
 
 
 def _pbrt(method: Method, scene: Scene, budgets, seed: int, work: str, pbrt_file: str | None):
-    """pbrt-v4 at 1, 2, 4, ... spp (`path`) or iterations (`sppm`), each run
-    timed alone as a whole process, then once sized to the last budget;
-    each run is filed under the smallest budget it fits, as Mitsuba's are."""
+    """pbrt-v4 at a sample count (`path`) or iteration count (`sppm`)
+    calibrated to each budget (`calibrated`), each run timed as a whole
+    process (its start and scene load count)."""
     world = pbrt_file or pbrt.write_scene(scene, tempfile.mkdtemp(prefix="pbrt-", dir=work))
     with open(world, encoding="utf-8") as f:
         text = f.read()
@@ -225,18 +226,72 @@ def _pbrt(method: Method, scene: Scene, budgets, seed: int, work: str, pbrt_file
                                    radius=_pbrt_radius(method, scene),
                                    pixel_filter=pbrt.pixel_filter_line(scene.camera))
     target, run_file = os.path.join(work, "pbrt.exr"), os.path.join(work, "pbrt-run.pbrt")
-    out = []
-    while settings.samples:
+
+    def run(samples: int):
+        at = replace(settings, samples=samples)
         with open(run_file, "w", encoding="utf-8") as f:
-            f.write(pbrt.with_render_settings(text, pbrt.render_directives(settings, target),
+            f.write(pbrt.with_render_settings(text, pbrt.render_directives(at, target),
                                               os.path.dirname(os.path.abspath(world))))
-        seconds, image = pbrt.render(run_file, target, seed + settings.samples)
-        if seconds > budgets[-1] * 1.25 and out:
-            return out
-        photons = settings.samples * settings.photons_per_iteration if integrator == "sppm" else 0
-        out.append((next((b for b in budgets if seconds <= b), budgets[-1]), seconds, photons, image))
-        settings = replace(settings, samples=_next_samples(settings.samples, seconds, budgets[-1]))
+        seconds, image = pbrt.render(run_file, target, seed + samples)
+        return seconds, samples * at.photons_per_iteration if integrator == "sppm" else 0, image
+    return calibrated(run, budgets)
+
+
+# A run within this share of its budget counts as at it; tables give the
+# measured time of any other (`off_budget`).
+ON_BUDGET = 0.05
+CALIBRATION_RUNS = 3        # runs per budget at most: the first sized by the pilots, two re-sized
+
+
+def calibrated(run, budgets) -> list:
+    """[(budget, seconds, photons, image)], one run per budget, each of `n`
+    samples sized to take the budget: `run(n)` -> (seconds, photons,
+    image). Pilots at 1, 2, 4, ... samples, until one takes a tenth of the
+    smallest budget (two at least), then every run so far fit seconds = fixed + n x
+    per_sample (through the last two sample counts: a secant, so a rate
+    that drifts is followed); a run that misses its budget by more than
+    ON_BUDGET is re-sized and run again, up to CALIBRATION_RUNS times. The
+    last run stands, at its measured time, whether or not it made the
+    budget: a single sample may take longer than a small budget."""
+    seen = [(1, run(1)[0])]
+    while len(seen) < 2 or seen[-1][1] < 0.1 * budgets[0]:
+        n = 2 * seen[-1][0]
+        seen.append((n, run(n)[0]))
+    out = []
+    for budget in budgets:
+        n = _samples_for(budget, *_fit(seen))
+        for _attempt in range(CALIBRATION_RUNS):
+            seconds, photons, image = run(n)
+            seen.append((n, seconds))
+            again = _samples_for(budget, *_fit(seen))
+            if not off_budget(budget, seconds) or again == n:
+                break
+            n = again
+        out.append((budget, seconds, photons, image))
     return out
+
+
+def _fit(seen: list) -> tuple[float, float]:
+    """(fixed seconds, seconds per sample) through the last run (n, seconds)
+    and the latest before it of another n; with none, all of it per sample."""
+    n1, s1 = seen[-1]
+    other = next(((n, s) for n, s in reversed(seen) if n != n1), None)
+    if other is None:
+        return 0.0, max(s1 / n1, 1e-9)
+    n0, s0 = other
+    per_sample = (s1 - s0) / (n1 - n0)
+    if per_sample <= 0:               # noise larger than the difference: the last run's rate alone
+        return 0.0, max(s1 / n1, 1e-9)
+    return max(s1 - per_sample * n1, 0.0), per_sample
+
+
+def _samples_for(budget: float, fixed: float, per_sample: float) -> int:
+    return max(1, int(round((budget - fixed) / per_sample)))
+
+
+def off_budget(budget: float, seconds: float) -> bool:
+    """Whether a run missed its budget by more than ON_BUDGET."""
+    return abs(seconds - budget) > ON_BUDGET * budget
 
 
 def _pbrt_radius(method: Method, scene: Scene) -> float:
@@ -248,16 +303,6 @@ def _pbrt_radius(method: Method, scene: Scene) -> float:
     if "radius_of_diagonal" in method.options:
         return method.options["radius_of_diagonal"] * scene.diagonal()
     return pbrt_sppm_radius(scene)
-
-
-def _next_samples(samples: int, seconds: float, budget: float) -> int:
-    """Double while the next run fits the budget, then once more sized to
-    fill it at this run's rate (doubling alone may end at half the budget,
-    where the progressive methods are scored at all of it); 0: done."""
-    if 2 * seconds <= budget:
-        return 2 * samples
-    fill = int(samples * 0.95 * budget / seconds)
-    return fill if seconds < 0.8 * budget and fill > samples else 0
 
 
 def pbrt_sppm_radius(scene: Scene, pixels_across: float = 3.0) -> float:
@@ -283,23 +328,42 @@ def pbrt_sppm_radius(scene: Scene, pixels_across: float = 3.0) -> float:
 
 def _dosppm(scene: Scene, budgets, seed: int, work: str):
     """`dosppm render --mode dosppm` per budget, on the scene's built-in
-    name or file; the clock is the server's render time from OUT.json."""
-    out = []
+    name or file, timed as a whole process: its start-up (processes,
+    store, kernels) and drain count, as a user waits for them. Its
+    `--time` is the budget less what the last run spent beyond its own
+    `--time`; a run off its budget by more than ON_BUDGET runs again
+    re-sized (up to CALIBRATION_RUNS), and a budget shorter than the
+    start-up stands at its measured time."""
+    out, beyond = [], 0.0
     spec = scene.source if os.path.isfile(scene.source) else scene.name
     for budget in budgets:
-        target = os.path.join(work, f"dosppm-{scene.name}-{budget:g}.exr")
-        cmd = [sys.executable, "-m", "services.cli", "render", spec, "--mode", "dosppm",
-               "--time", f"{budget:g}", "--seed", str(seed), "--width", str(scene.camera.width),
-               "--height", str(scene.camera.height), "--out", target, "--quiet", "--http", "off"]
-        done = subprocess.run(cmd, capture_output=True, text=True, timeout=budget * 4 + 120)
-        if done.returncode != 0:
-            raise RuntimeError(f"dosppm render failed: {done.stderr.strip().splitlines()[-1:]}")
-        with open(os.path.splitext(target)[0] + ".json", encoding="utf-8") as f:
-            summary = json.load(f)
-        seconds = float(summary["seconds"])          # rendering, the final drain included
-        photons = int(summary["photons_in_image"])
-        out.append((budget, seconds, photons, read_exr(target)[0]))
+        for _attempt in range(CALIBRATION_RUNS):
+            render_s = max(budget - beyond, MIN_DOSPPM_TIME_S)
+            seconds, photons, image = _dosppm_run(spec, scene, render_s, seed, work)
+            beyond = seconds - render_s
+            if not off_budget(budget, seconds) or budget - beyond < MIN_DOSPPM_TIME_S:
+                break
+        out.append((budget, seconds, photons, image))
     return out
+
+
+MIN_DOSPPM_TIME_S = 0.25      # the shortest --time asked: below it the start-up is the run
+
+
+def _dosppm_run(spec: str, scene: Scene, render_s: float, seed: int, work: str):
+    """(wall seconds, photons in the image, image) of one `dosppm render`."""
+    target = os.path.join(work, f"dosppm-{scene.name}-{render_s:.3f}.exr")
+    cmd = [sys.executable, "-m", "services.cli", "render", spec, "--mode", "dosppm",
+           "--time", f"{render_s:.3f}", "--seed", str(seed), "--width", str(scene.camera.width),
+           "--height", str(scene.camera.height), "--out", target, "--quiet", "--http", "off"]
+    t0 = time.perf_counter()
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=render_s * 4 + 120)
+    seconds = time.perf_counter() - t0
+    if done.returncode != 0:
+        raise RuntimeError(f"dosppm render failed: {done.stderr.strip().splitlines()[-1:]}")
+    with open(os.path.splitext(target)[0] + ".json", encoding="utf-8") as f:
+        photons = int(json.load(f)["photons_in_image"])
+    return seconds, photons, read_exr(target)[0]
 
 
 # -- scoring --------------------------------------------------------------------
@@ -564,10 +628,16 @@ def relmse_table(ev: Evaluation, budget_s: float | None = None, methods: list | 
         for m in methods:
             s = last.get((scene, m))
             cells.append("-" if s is None else "!" if not s.finite else
-                         f"{s.relmse:.3g} ({s.bias:+.1%})" if math.isfinite(s.bias) else
-                         f"{s.relmse:.3g} (Y {s.mean_luminance:.2g})")
+                         (f"{s.relmse:.3g} ({s.bias:+.1%})" if math.isfinite(s.bias) else
+                          f"{s.relmse:.3g} (Y {s.mean_luminance:.2g})") + _measured(s))
         lines.append(f"| {scene} | " + " | ".join(cells) + " |")
     return lines
+
+
+def _measured(s: Sample) -> str:
+    """' at T s' for a run that missed its budget by more than ON_BUDGET
+    (`calibrated`): its score is at that time, not the budget's."""
+    return f" at {s.seconds:.1f} s" if off_budget(s.budget_s, s.seconds) else ""
 
 
 def summary_markdown(ev: Evaluation) -> str:
@@ -575,7 +645,8 @@ def summary_markdown(ev: Evaluation) -> str:
     methods = list(dict.fromkeys(s.method for s in ev.samples))
     lines = [f"relMSE at {ev.budget_s:g} s of render time (suite `{ev.suite}`), with the "
              "mean-luminance bias, or the mean luminance Y where the reference is black "
-             "(light that leaked); ! = a non-finite pixel", "", *relmse_table(ev, None, methods)]
+             "(light that leaked); ! = a non-finite pixel; 'at T s': a run that missed the budget by "
+             f"more than {ON_BUDGET:.0%}, scored at its measured time", "", *relmse_table(ev, None, methods)]
     lines += mirror_limit_table(ev, last, methods)
     lines += ["", *claims(ev)]
     if ev.skipped:
@@ -623,7 +694,7 @@ def _pbrt_claims(ev: Evaluation, last: dict) -> list[str]:
             continue
         out.append(f"- {scene}: pbrt-v4 sppm relMSE / SPPM grid relMSE = "
                    f"{peer.relmse / ours.relmse:.3g}; mean bias SPPM grid {ours.bias:+.1%}, "
-                   f"pbrt-v4 sppm {peer.bias:+.1%}")
+                   f"pbrt-v4 sppm {peer.bias:+.1%}{_times(ours, peer)}")
     return out
 
 
@@ -640,8 +711,16 @@ def _mitsuba_claims(ev: Evaluation, last: dict) -> list[str]:
         ratio = path.relmse / ours.relmse if ours.relmse > 0 else math.inf
         kind = "caustic" if scene in CAUSTIC_SCENES else "other"
         out.append(f"- {scene} ({kind}): Mitsuba path relMSE / SPPM grid relMSE = {ratio:.3g} "
-                   f"({'SPPM lower' if ratio > 1 else 'path lower'})")
+                   f"({'SPPM lower' if ratio > 1 else 'path lower'}){_times(ours, path)}")
     return out
+
+
+def _times(a: Sample, b: Sample) -> str:
+    """Where either of a compared pair missed its budget, both measured
+    times: the ratio is then not at equal time."""
+    if not (off_budget(a.budget_s, a.seconds) or off_budget(b.budget_s, b.seconds)):
+        return ""
+    return f" (not at equal time: {a.seconds:.1f} s against {b.seconds:.1f} s)"
 
 
 def _scene_order(ev: Evaluation) -> list[str]:

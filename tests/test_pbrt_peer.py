@@ -93,29 +93,23 @@ def test_the_red_wall_is_on_the_same_side_as_in_mitsuba(pbrt_binary, tmp_path):
 
 
 def test_pbrt_sppm_stops_at_growing_iteration_counts(pbrt_binary, tmp_path):
-    """The evaluation's pbrt-sppm method on the exported box: iterations
-    grow (100k photons each), every image finite, and the longest one
-    near the path-traced energy (SPPM's bias is a few percent here)."""
+    """The evaluation's pbrt-sppm method on the exported box: one run per
+    budget, its iterations (100k photons each) calibrated to it, every
+    image finite, and the longest one near the path-traced energy (SPPM's
+    bias is a few percent here)."""
     scene = _cornell(grey=True)
     stops = evaluate.run_method(evaluate.METHODS["pbrt-sppm"], scene, [0.25, 0.5, 1.0, 2.0], 1,
                                 str(tmp_path))
     photons = [p for _, _, p, _ in stops]
-    assert len(stops) >= 2 and photons[:2] == [100_000, 200_000]
-    assert all(p % 100_000 == 0 for p in photons) and photons == sorted(set(photons))
+    assert [b for b, *_ in stops] == [0.25, 0.5, 1.0, 2.0]          # one run per budget
+    assert all(p % 100_000 == 0 for p in photons) and photons == sorted(photons) and photons[-1] > photons[0]
     assert all(np.isfinite(image).all() for *_, image in stops)
-    assert all(b in (0.25, 0.5, 1.0, 2.0) and (s <= b or b == 2.0) for b, s, _, _ in stops)
+    assert abs(stops[-1][1] - 2.0) < 0.3       # calibrated to its budget (5% asked; a shared machine)
     path = _pbrt_path(scene, 256, tmp_path / "path")
     assert abs(metrics.mean_luminance_bias(stops[-1][3], path)) < 0.1
 
 
 # -- without pbrt -------------------------------------------------------------------
-
-def test_pbrt_runs_double_then_one_fills_the_budget():
-    assert evaluate._next_samples(4, 2.0, 20.0) == 8
-    assert evaluate._next_samples(32, 12.0, 20.0) == 50      # 32 x 0.95 x 20 / 12
-    assert evaluate._next_samples(50, 19.0, 20.0) == 0
-    assert evaluate._next_samples(1, 17.0, 20.0) == 0        # no room for another sample
-
 
 def test_pbrt_methods_are_unavailable_with_the_reason(monkeypatch, tmp_path):
     monkeypatch.setenv("DOSPPM_PBRT", str(tmp_path / "nowhere"))
