@@ -173,7 +173,7 @@ def _long_renders(store: str, args) -> dict:
 
 def _waiting(d: dict) -> float:
     """The larger of the two tracers' share of the render spent waiting:
-    idle (for portal packages, the server's credit, eye tiles) or for a
+    idle (for portal packages, the server's queue allowance, eye tiles) or for a
     chunk load. What is neither is tracing or handling messages. Median
     over the runs."""
     def most(s):

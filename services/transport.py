@@ -32,17 +32,19 @@ Nothing is dropped silently:
   message can be a ray batch of tens of MB (56 B per ray: an eye job's
   tile, a tracer's coalesced portal packages and results; a photon job
   is a few hundred bytes, its photons made by the tracer);
-- memory stays bounded by credit, not by queue: the server sends photon
-  jobs to a tracer only while the rays it last reported queued, plus the
-  rays sent to it since, stay under a ray credit (`ServerState.credit`:
-  `queue_target_rays`, shared out so that the rays queued at all tracers
-  together stay under TOTAL_CREDIT_RAYS). Jobs past the credit wait at the
-  server, not yet emitted, so a slow tracer slows its own share instead of
-  growing buffers;
+- memory stays bounded by the queue allowance, not by the queue: the
+  server sends photon jobs to a tracer only while the rays it last
+  reported queued, plus the rays sent to it since, stay under its queue
+  allowance (`ServerState.queue_allowance`: `queue_target_rays`, shared
+  out so that the rays queued at all tracers together stay under
+  TOTAL_ALLOWANCE_RAYS). Jobs past the allowance wait at the server, not
+  yet emitted, so a slow tracer slows its own share instead of growing
+  buffers;
 - peers send portal packages non-blocking and keep what does not fit in
   an outbox while they keep receiving: two tracers blocked sending to each
   other would deadlock. The rays waiting in a tracer's outbox count as
-  queued in its results, so the server's credit stops its photon jobs too;
+  queued in its results, so the server's queue allowance stops its photon
+  jobs too;
 - a bad message is answered with `error` (or `refused`, for a register in
   another version) and logged (`recv_or_reply`); an `error` or `refused` is
   never answered, so two confused peers cannot ping-pong.

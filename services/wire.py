@@ -1,7 +1,10 @@
 """The wire protocol of the distributed service (DOSPPM, Günther & Grosch
 §3.1 "Network", §3.3, §4.3): every message, the protocol version, encoding
 and validation. A codec only: `services.transport` moves the frames over
-ZeroMQ sockets (and is the only module that imports zmq).
+ZeroMQ sockets (and is the only module that imports zmq). How a message
+is declared and the frame codec every message shares are in
+services/_wire_codec.py, which only this module imports: the rest import
+the protocol from here.
 
 API
 ---
@@ -117,22 +120,25 @@ Exact accounting (job ids, path counts, credit): docs/how-it-works.md.
 """
 from __future__ import annotations
 
-import re
-from dataclasses import dataclass, field
-from functools import cached_property
+from dataclasses import dataclass
 
-import msgpack
 import numpy as np
 
-from dosppm_core import arrays
 from dosppm_core.jobs import CONTINUES, END_NAMES, HitPoints, PhotonDeposits, RayBatch, ShadowRays
 from services import credit
+# The declaration vocabulary and the generic frame codec (no message of
+# their own) are kept apart so that this module reads as the protocol:
+# the version, the limits, every message and its rules, the calls.
+from services._wire_codec import (
+    BOOL, DATA, FINITE, INT, MAX_ELEMENTS, NOT_NAN, STR, Choice, Group, Hex, Int, ListOf, Nullable, Spec,
+    Struct, WireError, pack, plain, read_fields, read_header, record, shape_text,
+)
 
 PROTOCOL_VERSION = 7   # 2 shadow rays; 3 credit; 4 photon jobs made by the tracer; 5 the gather at the
                        # tracers; 6 eye tiles made by the tracer; 7 eye light held at the tracers
 
 # -- policy ---------------------------------------------------------------------
-MAX_ELEMENTS = 1 << 28           # per array: sanity cap on a declared size
+# MAX_ELEMENTS (the codec's cap on one array's declared size) bounds a frame:
 MAX_FRAME_BYTES = MAX_ELEMENTS * 8   # the largest frame a socket takes (transport's MAXMSGSIZE)
 CHUNK_PART_BYTES = 16 << 20      # chunk_data splits chunk files into parts this big
 # Paths one job message may ask a tracer to make (64 B each: 4M is 256 MB):
@@ -140,16 +146,6 @@ CHUNK_PART_BYTES = 16 << 20      # chunk_data splits chunk files into parts this
 MAX_EMITTED = 1 << 22
 # The rounds of an epoch's gather at the tracers (services/tracer/epochs.py).
 GATHER_PHASES = ("count", "pilot", "sums")
-
-
-class WireError(ValueError):
-    """A message that cannot be encoded or accepted; one line naming the
-    message type and field. `prefix` is the sender's envelope, when known."""
-
-    def __init__(self, text: str, msg_type: str | None = None, field: str | None = None):
-        super().__init__(text)
-        self.msg_type, self.field = msg_type, field
-        self.prefix: list = []
 
 
 class VersionMismatch(WireError):
@@ -161,166 +157,10 @@ class VersionMismatch(WireError):
         self.theirs, self.ours = theirs, PROTOCOL_VERSION
 
 
-# -- scalar field types ---------------------------------------------------------
-class _Type:
-    label = "?"
-
-    def ok(self, v) -> bool:
-        raise NotImplementedError
-
-
-class _Int(_Type):
-    """An int that fits numpy's int64 (ids and counts end up in arrays)."""
-
-    def __init__(self, minimum: int = 0):
-        self.minimum, self.label = minimum, f"int >= {minimum}"
-
-    def ok(self, v) -> bool:   # bool is an int to Python, never to the wire
-        return type(v) is int and self.minimum <= v < 2**63
-
-
-class _Of(_Type):
-    def __init__(self, label: str, *types):
-        self.label, self.types = label, types
-
-    def ok(self, v) -> bool:
-        return type(v) in self.types
-
-
-class _Hex(_Type):
-    label = "64 lowercase hex digits"
-
-    def ok(self, v) -> bool:
-        return type(v) is str and re.fullmatch(r"[0-9a-f]{64}", v) is not None
-
-
-class _Choice(_Type):
-    def __init__(self, *values):
-        self.values, self.label = values, " or ".join(map(repr, values))
-
-    def ok(self, v) -> bool:
-        return type(v) is str and v in self.values
-
-
-class _Nullable(_Type):
-    def __init__(self, inner: _Type):
-        self.inner, self.label = inner, f"{inner.label} or None"
-
-    def ok(self, v) -> bool:
-        return v is None or self.inner.ok(v)
-
-
-class _List(_Type):
-    def __init__(self, item: _Type):
-        self.item, self.label = item, f"list of {item.label}"
-
-    def ok(self, v) -> bool:
-        return type(v) is list and all(self.item.ok(x) for x in v)
-
-
-class _Struct(_Type):
-    def __init__(self, **members: _Type):
-        self.members = members
-        self.label = "{" + ", ".join(f"{k}: {t.label}" for k, t in members.items()) + "}"
-
-    def ok(self, v) -> bool:
-        return (type(v) is dict and set(v) == set(self.members)
-                and all(t.ok(v[k]) for k, t in self.members.items()))
-
-
-class _Data(_Type):
-    """A msgpack map of plain data (str keys; None, bool, int, float, str,
-    bytes, lists, maps), to be read by its own from_wire. Walked without
-    recursion: nesting depth is the sender's choice."""
-    label = "map of plain data"
-    PLAIN = (type(None), bool, int, float, str, bytes)
-
-    def ok(self, v) -> bool:
-        if type(v) is not dict:
-            return False
-        stack = [v]
-        while stack:
-            x = stack.pop()
-            if type(x) is dict:
-                if any(type(k) is not str for k in x):
-                    return False
-                stack.extend(x.values())
-            elif type(x) is list:
-                stack.extend(x)
-            elif type(x) not in self.PLAIN:
-                return False
-        return True
-
-
-INT, STR, BOOL, DATA = _Int(0), _Of("str", str), _Of("bool", bool), _Data()
-
-
-# -- array groups ---------------------------------------------------------------
-FINITE, NOT_NAN = "finite", "not NaN"
-
-
-@dataclass(frozen=True)
-class Column:
-    wire: str            # name in the header's "arrays" list
-    key: str             # the record field, or the message field for plain arrays
-    dtype: np.dtype
-    trailing: tuple
-    values: str | None   # FINITE, NOT_NAN or None (no check)
-
-
-@dataclass(frozen=True)
-class Group:
-    """Arrays that travel together with one leading length: a record (its
-    columns rebuild `record`), or plain arrays that become message fields."""
-    name: str
-    columns: tuple
-    record: type | None = None
-    rows: int | None = None       # a fixed leading length, or any length
-    optional: bool = False
-
-    @property
-    def keys(self) -> tuple:
-        """The message fields this group fills."""
-        return (self.name,) if self.record else tuple(c.key for c in self.columns)
-
-
-def _le(dtype) -> np.dtype:
-    return np.dtype(dtype).newbyteorder("<")   # "|u1" stays "|u1"
-
-
-def record(name: str, cls, optional: bool = False) -> Group:
-    """A record group from the class's SCHEMA; every float column finite."""
-    cols = tuple(Column(f"{name}.{col}", col, _le(dt), tuple(shape),
-                        FINITE if np.dtype(dt).kind == "f" else None)
-                 for col, (dt, shape) in cls.SCHEMA.items())
-    return Group(name, cols, record=cls, optional=optional)
-
-
-def plain(name: str, *cols, rows: int | None = None, optional: bool = False) -> Group:
-    """Plain arrays: (field name, dtype, trailing shape, values check)."""
-    return Group(name, tuple(Column(k, k, _le(dt), tuple(tr), v) for k, dt, tr, v in cols),
-                 rows=rows, optional=optional)
-
-
+# -- message specs --------------------------------------------------------------
 def _cull_box(optional: bool = False) -> Group:
     # +-inf allowed: NO_CULL is [-inf, inf]; NaN would make culling undefined.
     return plain("cull_box", ("cull_box", np.float64, (3,), NOT_NAN), rows=2, optional=optional)
-
-
-# -- message specs --------------------------------------------------------------
-@dataclass(frozen=True)
-class Spec:
-    name: str
-    route: str                            # who sends it to whom (documentation)
-    fields: dict                          # scalar field -> _Type
-    groups: tuple = ()
-    check: object = None                  # fields -> error text naming a field, or None
-    any_version: bool = False             # frozen forever: decodes under any version
-    defaults: dict = field(default_factory=dict)   # encode fills these when omitted
-
-    @cached_property
-    def array_names(self) -> frozenset:
-        return frozenset(c.wire for g in self.groups for c in g.columns)
 
 
 def _credit() -> Group:
@@ -433,13 +273,13 @@ def _increasing_field(name: str):
 
 _T2S, _S2T, _T2T, _ANY = "tracer->server", "server->tracer", "tracer->tracer", "any->any"
 _SPECS = (
-    Spec("register", _T2S, {"tracer_id": STR, "capacity": _Struct(cores=_Int(1), memory_bytes=INT),
-                            "endpoint": STR, "has_store": BOOL, "store_key": _Nullable(STR),
-                            "public_key": _Nullable(STR)},
+    Spec("register", _T2S, {"tracer_id": STR, "capacity": Struct(cores=Int(1), memory_bytes=INT),
+                            "endpoint": STR, "has_store": BOOL, "store_key": Nullable(STR),
+                            "public_key": Nullable(STR)},
          defaults={"store_key": None, "public_key": None}),
     Spec("heartbeat", "both", {"status": DATA}, defaults={"status": {}}),
-    Spec("results", _T2S, {"chunk": _Nullable(INT), "culled": INT, "queued": INT, "queue_target": INT,
-                           "eye_iteration": _Nullable(INT), "hit_points_made": INT},
+    Spec("results", _T2S, {"chunk": Nullable(INT), "culled": INT, "queued": INT, "queue_target": INT,
+                           "eye_iteration": Nullable(INT), "hit_points_made": INT},
          (plain("ends", ("ends", np.int64, (), None), rows=len(END_NAMES)),
           plain("job_paths", ("job_ids", np.int64, (), None), ("job_fed", np.int64, (), None),
                 ("job_left", np.int64, (), None)),
@@ -451,13 +291,13 @@ _SPECS = (
          check=_check_results, defaults={"culled": 0, "queued": 0, "queue_target": 0, "eye_iteration": None,
                                          "hit_points_made": 0}),
     Spec("chunk_request", _T2S, {"chunk": INT}),
-    Spec("error", _ANY, {"reason": STR, "about": _Nullable(STR)}, any_version=True,
+    Spec("error", _ANY, {"reason": STR, "about": Nullable(STR)}, any_version=True,
          defaults={"about": None}),
     Spec("welcome", _S2T, {"tracer_index": INT, "settings": DATA, "scene": DATA, "tree": DATA,
-                           "store_key": STR, "chunks": _List(INT), "manifest": _Nullable(DATA)},
+                           "store_key": STR, "chunks": ListOf(INT), "manifest": Nullable(DATA)},
          defaults={"manifest": None}),
     Spec("refused", _S2T, {"reason": STR}, any_version=True),
-    Spec("peers", _S2T, {"table_version": INT, "peers": _List(_List(STR)), "keys": DATA},
+    Spec("peers", _S2T, {"table_version": INT, "peers": ListOf(ListOf(STR)), "keys": DATA},
          defaults={"keys": {}}),
     Spec("photon_job", _S2T, {},
          (plain("jobs", ("job_ids", np.int64, (), None), ("rng_keys", np.int64, (), None),
@@ -467,12 +307,12 @@ _SPECS = (
          (plain("tiles", ("job_ids", np.int64, (), None), ("pixel_starts", np.int64, (), None),
                 ("counts", np.int64, (), None)), _credit()),
          check=lambda f: _check_jobs(f, "pixel_starts", "ids and pixel starts")),
-    Spec("chunk_data", _S2T, {"chunk": INT, "sha256": _Hex(), "part": INT, "parts": _Int(1),
+    Spec("chunk_data", _S2T, {"chunk": INT, "sha256": Hex(), "part": INT, "parts": Int(1),
                               "offset": INT, "file_bytes": INT},
          (plain("data", ("data", np.uint8, (), None)),), check=_check_chunk_data),
     Spec("shutdown", _S2T, {"reason": STR}, defaults={"reason": ""}),
     Spec("hit_points", _S2T, {"hits_version": INT}, (record("hits", HitPoints),)),
-    Spec("gather", _S2T, {"epoch": INT, "phase": _Choice(*GATHER_PHASES), "hits_version": INT, "total": INT,
+    Spec("gather", _S2T, {"epoch": INT, "phase": Choice(*GATHER_PHASES), "hits_version": INT, "total": INT,
                           "most": INT},
          (plain("jobs", ("job_ids", np.int64, (), None), ("job_boxes", np.float64, (2, 3), NOT_NAN)),
           plain("radii", ("rows", np.int64, (), None), ("radius", np.float64, (), FINITE))),
@@ -483,14 +323,14 @@ _SPECS = (
     Spec("eye_light", _T2S, {"round": INT}, (plain("light", ("pixels", np.int32, (), None),
                                                      ("rgb", np.float32, (3,), FINITE)),),
          check=_increasing_field("pixels")),
-    Spec("epoch_sums", _T2S, {"epoch": INT, "phase": _Choice(*GATHER_PHASES), "hits_version": INT,
+    Spec("epoch_sums", _T2S, {"epoch": INT, "phase": Choice(*GATHER_PHASES), "hits_version": INT,
                               "deposits": INT, "chosen": INT},
          (plain("flux", ("flux", np.float64, (), FINITE), rows=3),
           plain("sums", ("m", np.float64, (), FINITE), ("phi", np.float64, (3,), FINITE)),
           plain("sparse", ("rows", np.int64, (), None), optional=True)),
          check=_check_epoch_sums, defaults={"deposits": 0, "chosen": 0}),
-    Spec("portal_rays", _T2T, {"kind": _Choice("photon", "eye", "shadow"), "chunk": INT,
-                               "eye_iteration": _Nullable(INT)},
+    Spec("portal_rays", _T2T, {"kind": Choice("photon", "eye", "shadow"), "chunk": INT,
+                               "eye_iteration": Nullable(INT)},
          (_cull_box(optional=True), record("batch", RayBatch, optional=True),
           record("shadows", ShadowRays, optional=True), _credit()),
          check=_check_portal_rays, defaults={"eye_iteration": None}),
@@ -499,7 +339,6 @@ MESSAGES: dict[str, Spec] = {s.name: s for s in _SPECS}
 # The messages that carry work to a tracer: counted by both ends since the
 # tracer's welcome, and acknowledged in its heartbeats.
 JOB_MESSAGES = ("photon_job", "eye_job")
-_RESERVED = ("v", "type", "arrays")
 
 
 def describe() -> str:
@@ -510,14 +349,10 @@ def describe() -> str:
         for g in s.groups:
             what = (g.record.__name__ if g.record else
                     ", ".join(f"{c.key + ' ' if len(g.columns) > 1 else ''}{c.dtype.str} "
-                              f"{_shape_text(g.rows, c.trailing)}" for c in g.columns))
+                              f"{shape_text(g.rows, c.trailing)}" for c in g.columns))
             cols.append(f"{g.name}{'?' if g.optional else ''}: {what}")
         lines.append(f"{s.name:14s} {s.route:15s} " + "; ".join(cols))
     return "\n".join(lines)
-
-
-def _shape_text(rows, trailing) -> str:
-    return str(("n" if rows is None else rows,) + tuple(trailing)).replace("'", "")
 
 
 # -- the message ----------------------------------------------------------------
@@ -546,47 +381,7 @@ class Out:
     fields: dict
 
 
-# -- encode ---------------------------------------------------------------------
-_MISSING = object()
-
-
-def _plain_scalar(v):
-    """numpy scalars and tuples are easy to pass by accident; msgpack takes neither."""
-    if isinstance(v, np.generic):
-        return v.item()
-    return list(v) if isinstance(v, tuple) else v
-
-
-def _group_columns(spec: Spec, g: Group, given: dict) -> dict | None:
-    """{wire name: array} for one group from encode's arguments, or None if
-    an optional group is absent."""
-    if g.record:
-        rec = given.pop(g.name, None)
-        if rec is None:
-            return None
-        if not isinstance(rec, g.record):
-            raise WireError(f"{spec.name}: field {g.name!r} must be a {g.record.__name__}, "
-                            f"got {type(rec).__name__}", spec.name, g.name)
-        return {c.wire: getattr(rec, c.key) for c in g.columns}
-    cols = {c.wire: given.pop(c.key, None) for c in g.columns}
-    present = [k for k, a in cols.items() if a is not None]
-    if not present:
-        return None
-    if len(present) < len(cols):
-        missing = next(k for k, a in cols.items() if a is None)
-        raise WireError(f"{spec.name}: field {missing!r} must come with {present[0]!r}", spec.name, missing)
-    return cols
-
-
-def _frame_of(spec: Spec, c: Column, a) -> tuple[dict, memoryview]:
-    a = np.asarray(a)
-    if a.dtype != c.dtype:
-        raise WireError(f"{spec.name}: array {c.wire!r} has dtype {a.dtype.str}, the wire wants "
-                        f"{c.dtype.str}", spec.name, c.wire)
-    dtype, shape, buf = arrays.frame(a)   # no copy of the records' own arrays
-    return {"name": c.wire, "dtype": dtype, "shape": shape}, buf
-
-
+# -- encode and decode ----------------------------------------------------------
 def encode(msg_type: str, **fields_) -> list:
     """Frames for one message: [header bytes, array memoryviews...]. The
     result is checked by the same rules as `decode` (except the cheap-to-
@@ -594,55 +389,9 @@ def encode(msg_type: str, **fields_) -> list:
     spec = MESSAGES.get(msg_type)
     if spec is None:
         raise WireError(f"unknown message type {msg_type!r}", msg_type, "type")
-    given = dict(fields_)
-    header = {"v": PROTOCOL_VERSION, "type": msg_type}
-    for k in spec.fields:
-        header[k] = _plain_scalar(given.pop(k)) if k in given else spec.defaults.get(k, _MISSING)
-    entries, frames = [], []
-    for g in spec.groups:
-        cols = _group_columns(spec, g, given)
-        for c in g.columns if cols is not None else ():
-            entry, frame = _frame_of(spec, c, cols[c.wire])
-            entries.append(entry)
-            frames.append(frame)
-    if given:
-        raise WireError(f"{msg_type}: unexpected field {sorted(given)[0]!r}", msg_type, sorted(given)[0])
-    header["arrays"] = entries
-    header = {k: v for k, v in header.items() if v is not _MISSING}
-    try:
-        head = msgpack.packb(header, use_bin_type=True)
-    except (TypeError, ValueError, OverflowError) as e:
-        raise WireError(f"{msg_type}: cannot encode the header: {e}", msg_type) from None
-    _validate([head, *frames], check_values=False)
-    return [head, *frames]
-
-
-# -- decode ---------------------------------------------------------------------
-def _fail(spec_name: str, field_: str | None, text: str):
-    where = f"field {field_!r} " if field_ else ""
-    raise WireError(f"{spec_name}: {where}{text}", spec_name, field_)
-
-
-def _show(v) -> str:
-    """A bad value for an error line: short scalars as themselves."""
-    if isinstance(v, (bool, int, float, type(None))) or (isinstance(v, (str, bytes)) and len(v) <= 40):
-        return f"{type(v).__name__} {v!r}"
-    return type(v).__name__
-
-
-def _ext_refused(code, data):
-    raise ValueError(f"msgpack extension type {code} is not part of the protocol")
-
-
-def _read_header(frame) -> dict:
-    try:
-        header = msgpack.unpackb(frame, raw=False, strict_map_key=True, use_list=True,
-                                 ext_hook=_ext_refused, timestamp=0)
-    except Exception as e:   # msgpack raises a zoo of types on garbage; all mean "malformed"
-        raise WireError(f"malformed msgpack header: {type(e).__name__}: {e}"[:200]) from None
-    if type(header) is not dict:
-        raise WireError(f"header is a {type(header).__name__}, not a map")
-    return header
+    frames = pack(spec, {"v": PROTOCOL_VERSION, "type": msg_type}, dict(fields_))
+    _validate(frames, check_values=False)
+    return frames
 
 
 def _spec_and_version(header: dict) -> Spec:
@@ -658,98 +407,12 @@ def _spec_and_version(header: dict) -> Spec:
     return spec
 
 
-def _check_scalars(spec: Spec, header: dict) -> dict:
-    expected = set(spec.fields) | set(_RESERVED)
-    for k in header:
-        if k not in expected:
-            _fail(spec.name, str(k)[:60], "is not part of the message")
-    out = {}
-    for k, t in spec.fields.items():
-        if k not in header:
-            _fail(spec.name, k, "is missing")
-        if not t.ok(header[k]):
-            _fail(spec.name, k, f"must be {t.label}, got {_show(header[k])}")
-        out[k] = header[k]
-    if "arrays" not in header:
-        _fail(spec.name, "arrays", "is missing")
-    return out
-
-
-def _array_entries(spec: Spec, header: dict, nframes: int) -> dict:
-    """{wire name: (dtype str, shape, frame index)} from the header."""
-    entries = header["arrays"]
-    if type(entries) is not list:
-        _fail(spec.name, "arrays", "must be a list")
-    if len(entries) != nframes - 1:
-        _fail(spec.name, "arrays", f"lists {len(entries)} arrays but {nframes - 1} array frames follow")
-    out = {}
-    for i, e in enumerate(entries):
-        if not (type(e) is dict and set(e) == {"name", "dtype", "shape"} and type(e["name"]) is str
-                and type(e["dtype"]) is str and type(e["shape"]) is list
-                and all(type(s) is int for s in e["shape"])):
-            _fail(spec.name, "arrays", f"entry {i} is not {{name: str, dtype: str, shape: [int]}}")
-        if e["name"] not in spec.array_names:
-            _fail(spec.name, e["name"][:60], "is not an array of this message")
-        if e["name"] in out:
-            _fail(spec.name, e["name"][:60], "is listed twice")
-        out[e["name"]] = (e["dtype"], e["shape"], i + 1)
-    return out
-
-
-def _check_column(spec: Spec, c: Column, dtype: str, shape: list, frame) -> np.ndarray:
-    if dtype != c.dtype.str:
-        _fail(spec.name, c.wire, f"has dtype {dtype[:20]!r}, expected {c.dtype.str!r}")
-    if len(shape) != 1 + len(c.trailing) or tuple(shape[1:]) != c.trailing or shape[0] < 0:
-        _fail(spec.name, c.wire, f"has shape {tuple(shape[:8])}, expected {_shape_text(None, c.trailing)}")
-    count = shape[0] * int(np.prod(c.trailing, dtype=np.int64))   # Python ints: no overflow
-    if count > MAX_ELEMENTS:
-        _fail(spec.name, c.wire, f"declares {shape[:4]}: over the cap of {MAX_ELEMENTS} elements")
-    try:
-        return arrays.from_bytes(frame, dtype, shape, f"{spec.name}: field {c.wire!r}")
-    except arrays.ArrayError as e:
-        raise WireError(str(e), spec.name, c.wire) from None
-
-
-def _check_values(spec: Spec, c: Column, a: np.ndarray) -> None:
-    if c.values == FINITE and not np.isfinite(a).all():
-        _fail(spec.name, c.wire, "holds NaN or infinite values")
-    if c.values == NOT_NAN and np.isnan(a).any():
-        _fail(spec.name, c.wire, "holds NaN values")
-
-
-def _decode_group(spec: Spec, g: Group, entries: dict, frames, check_values: bool) -> dict:
-    present = [c.wire for c in g.columns if c.wire in entries]
-    if not present and g.optional:
-        return dict.fromkeys(g.keys)
-    if len(present) < len(g.columns):
-        missing = next(c.wire for c in g.columns if c.wire not in entries)
-        _fail(spec.name, missing, "is missing from the arrays")
-    cols = {}
-    for c in g.columns:
-        dtype, shape, i = entries.pop(c.wire)
-        cols[c] = _check_column(spec, c, dtype, shape, frames[i])
-    lengths = {c.wire: a.shape[0] for c, a in cols.items()}
-    want = g.rows if g.rows is not None else next(iter(lengths.values()))
-    for name, n in lengths.items():
-        if n != want:
-            _fail(spec.name, name, f"has {n} rows, {g.name} has {want}")
-    for c, a in cols.items():
-        if check_values:
-            _check_values(spec, c, a)
-    if g.record:
-        return {g.name: g.record(**{c.key: a for c, a in cols.items()})}
-    return {c.key: a for c, a in cols.items()}
-
-
 def _validate(frames, check_values: bool = True) -> Message:
     if len(frames) == 0:
         raise WireError("empty message: no header frame")
-    header = _read_header(frames[0])
+    header = read_header(frames[0])
     spec = _spec_and_version(header)
-    out = _check_scalars(spec, header)
-    entries = _array_entries(spec, header, len(frames))
-    for g in spec.groups:
-        out.update(_decode_group(spec, g, entries, frames, check_values))
+    out = read_fields(spec, header, frames, check_values)
     problem = spec.check(out) if spec.check else None
     if problem:
         raise WireError(f"{spec.name}: {problem}", spec.name)

@@ -10,8 +10,8 @@ leaving a step (services/tracer/state.py `TracerState.emit`).
   returns what its packages do not carry, so the job still completes
   exactly once, also when the tracer that emits serves none of the chunks
   its photons start in and forwards every one.
-- The tracers of the lights' chunks emit, spread by their credit left, and
-  a render's image is a function of its seed.
+- The tracers of the lights' chunks emit, spread by their queue
+  allowance left, and a render's image is a function of its seed.
 """
 from __future__ import annotations
 
@@ -144,7 +144,7 @@ def test_photons_emitted_for_another_tracers_chunk_are_forwarded_and_each_job_co
 
 @pytest.mark.parametrize("cells, emitters", [((1, 2, 1), {"t1"}), ((1, 1, 1), {"t0", "t1"})],
                          ids=["light in t1's chunk", "one shared chunk"])
-def test_the_tracers_of_the_lights_chunks_emit_spread_by_their_credit(cells, emitters):
+def test_the_tracers_of_the_lights_chunks_emit_spread_by_their_queue_allowance(cells, emitters):
     _, c = _render(cells, 2)
     try:
         c.run(photons=40_000)

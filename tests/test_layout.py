@@ -13,6 +13,8 @@ resolved, is an edge of the module graph.
   module.
 - One module per foreign library: zmq only in services/transport.py,
   embreex only in dosppm_core/accel.py, OpenEXR only in dosppm_core/film.py.
+- The wire protocol is one module: services/_wire_codec.py (its generic
+  codec, kept apart for length) is imported by services/wire.py alone.
 - No import cycles between modules.
 - Modules of at most 800 lines, functions of at most 60.
 
@@ -44,6 +46,8 @@ ONE_MODULE_PER_LIBRARY = {
     "embreex": "dosppm_core/accel.py",
     "OpenEXR": "dosppm_core/film.py",
 }
+# private module -> the one module that may import it (the rest import that one)
+PRIVATE_TO = {"services._wire_codec": "services.wire"}
 MAX_MODULE_LINES = 800
 MAX_FUNCTION_LINES = 60
 
@@ -290,6 +294,14 @@ def test_each_foreign_library_has_one_module(modules, library):
     others = {path: lines for path, lines in importers(modules, library).items() if path != owner}
     assert not others, f"only {owner} may import {library}; also: " + \
         ", ".join(f"{path}:{','.join(map(str, lines))}" for path, lines in sorted(others.items()))
+
+
+@pytest.mark.parametrize("private", list(PRIVATE_TO))
+def test_a_private_module_is_imported_by_its_owner_alone(modules, private):
+    assert private in modules, f"{private} is gone: update PRIVATE_TO"
+    users = sorted({f"{e.path}:{e.line}" for e in module_edges(modules)
+                    if e.target == private and e.source != PRIVATE_TO[private]})
+    assert not users, f"only {PRIVATE_TO[private]} may import {private}: {users}"
 
 
 def harness_imports_outside_it(modules: dict[str, Module]) -> list[str]:

@@ -1,8 +1,8 @@
 """Load: sixteen tracers on this 2-core machine, 1k photon jobs in flight,
 c = 16. The server's resident memory stays under a stated limit, no
 message is dropped (every photon accounted for exactly once), and a tracer
-stopped for a while back-pressures the others through the server's credit
-instead of letting their outboxes grow without bound."""
+stopped for a while back-pressures the others through the server's queue
+allowance instead of letting their outboxes grow without bound."""
 from __future__ import annotations
 
 import json
@@ -21,10 +21,10 @@ TRACERS = 16
 # flight: about 150 MiB idle (Python, numba, the kernels) plus a few copies
 # of one 1M-deposit photon batch (56 MB each: held, concatenated, split,
 # queued for the statistics thread, sorted), plus photon jobs under the
-# tracers' shared credit (TOTAL_CREDIT_RAYS, 64 MB). Measured 654-736 MiB.
+# tracers' shared queue allowance (TOTAL_ALLOWANCE_RAYS, 64 MB). Measured 654-736 MiB.
 SERVER_RSS_LIMIT = 900 << 20
-# Rays one tracer may hold for its peers: credit (262,144 rays) plus what
-# was in flight to it when credit ran out, with margin.
+# Rays one tracer may hold for its peers: its queue allowance (262,144
+# rays) plus what was in flight to it when that ran out, with margin.
 OUTBOX_RAYS_LIMIT = 2_000_000
 
 

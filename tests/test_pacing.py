@@ -1,5 +1,5 @@
 """Work chosen to hide chunk loads (issue 17): the pacing rule, a tracer's
-queue target, the server's credit that follows it, and OSPPM's photons per
+queue target, the server's queue allowance that follows it, and OSPPM's photons per
 iteration growing only when chunks do not all fit."""
 from __future__ import annotations
 
@@ -151,7 +151,7 @@ def test_a_tracer_whose_chunks_do_not_fit_asks_for_a_sweep_of_dwells_within_its_
         # dwells, 900k rays, is less than the 1.2M got through in 3 s.
         clock.t = 3.0
         assert _measured(t, 12, 3.0, 15.0, 1_500_000) == pytest.approx(4 * dwell * 100_000, rel=1e-6)
-        # A tracer that got through little still gets the server's first credit.
+        # A tracer that got through little still gets the server's first queue allowance.
         clock.t = 103.0
         assert _measured(t, 16, 4.0, 16.0, 1_600_000) == pacing.FIRST_QUEUE_RAYS
         # Bounded by --queue-memory.
@@ -165,7 +165,7 @@ def test_a_tracer_whose_chunks_do_not_fit_asks_for_a_sweep_of_dwells_within_its_
         t.close()
 
 
-def test_a_tracer_holding_all_its_chunks_leaves_the_credit_to_the_server(four_chunks):
+def test_a_tracer_holding_all_its_chunks_leaves_the_queue_allowance_to_the_server(four_chunks):
     t = _tracer(four_chunks, None)
     try:
         assert _measured(t, 4, 1.0, 1.0, 1_000_000) == 0
@@ -182,16 +182,16 @@ def test_the_server_sends_what_a_tracer_asks_for_a_tick_at_a_time():
     def photons_sent(now):
         return sum(int(o.fields["counts"].sum()) for o in state.tick(now) if o.type == "photon_job")
 
-    assert photons_sent(0.0) <= 4096 + 1024            # the server's credit
+    assert photons_sent(0.0) <= 4096 + 1024            # the server's queue allowance
     asked = 3 * EMIT_PHOTONS_PER_TICK
     msg = _results([], [])
     msg.queue_target = asked
     state.on_message("a", msg, 0.05)
-    assert state.credit_of(state.tracers["a"]) == asked
+    assert state.allowance_of(state.tracers["a"]) == asked
     assert state.photon_jobs_in_flight <= state.min_photon_jobs + 5
     ticks = [photons_sent(0.1 * i) for i in range(1, 6)]
     assert max(ticks) <= EMIT_PHOTONS_PER_TICK             # the loop stays responsive
-    # Then it stops at the new credit, overshooting by less than a job.
+    # Then it stops at the new allowance, overshooting by less than a job.
     assert 0.95 * asked <= sum(ticks) <= asked + 1024
     assert state.photon_jobs_in_flight >= asked // 1024
     # The time limit counts the queue's drain: its rays at the tracer's rate.

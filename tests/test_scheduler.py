@@ -150,7 +150,7 @@ def test_photons_that_deposit_nothing_commit_once_a_batch_of_them_is_complete(st
     assert state.counters["photons_committed"] == 1024
 
 
-def test_a_tracer_that_does_not_report_gets_no_more_than_its_credit(state):
+def test_a_tracer_that_does_not_report_gets_no_more_than_its_queue_allowance(state):
     _register(state, "a")
     state.cull_box = np.array([[-1e9] * 3, [1e9] * 3])
     state.eye_completed = 1
@@ -160,7 +160,7 @@ def test_a_tracer_that_does_not_report_gets_no_more_than_its_credit(state):
             if o.type in sent:
                 sent[o.type] += _rays(o)
     # Eye tiles are not held back (hit points gate everything); photons
-    # stop at the credit, overshooting by at most one job, and nothing
+    # stop at the queue allowance, overshooting by at most one job, and nothing
     # more goes out without a report.
     assert sent["eye_job"] == 32 * 32            # every pixel's ray, made at the tracer
     assert 4096 <= sum(sent.values()) <= 4096 + 512

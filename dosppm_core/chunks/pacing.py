@@ -34,8 +34,8 @@ QUEUE_MEMORY_MIN, QUEUE_MEMORY_MAX = 32 << 20, 1 << 30
 # What a dosppm process holds before any chunk: the interpreter, numpy,
 # numba's kernels and Embree (measured 170-185 MiB in issue 17's runs).
 PROCESS_BASE_BYTES = 192 << 20
-# A tracer's queued rays before any pacing: the server's default credit per
-# tracer, and where a tracer's queue target starts growing.
+# A tracer's queued rays before any pacing: the server's default queue
+# allowance per tracer, and where a tracer's queue target starts growing.
 FIRST_QUEUE_RAYS = 262_144
 
 

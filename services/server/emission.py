@@ -1,9 +1,13 @@
 """`ServerState`'s emission: how many photon jobs are wanted in flight
 (§3.3's 1k, or what the tracers' queues ask for, bounded by the deposits
 held), and how they go out: as (id, rng key, count) to the tracers of the
-lights' chunks, each message to the one with the most credit left. Also
-the alternating schedule DOSPPM improves on (Figure 15). A mixin of
-services/server/state.py.
+lights' chunks, each message to the one with the most queue allowance
+left. Also the alternating schedule DOSPPM improves on (Figure 15). A
+mixin of services/server/state.py.
+
+"Queue allowance" (rays a tracer may have queued before it gets no more
+photon jobs) is flow control; "credit" is job completion only
+(services/credit.py).
 """
 from __future__ import annotations
 
@@ -14,39 +18,39 @@ from services.server.held import DISCARDED
 from services.server.records import TracerInfo
 from services.wire import MAX_EMITTED, Out
 
-MESSAGE_RAYS = 32_768         # a tracer's credit is never below this (rays)
-TOTAL_CREDIT_RAYS = 1 << 20   # rays queued at all tracers together, at most (see `credit`)
-EMIT_PHOTONS_PER_TICK = 1 << 17   # so long queues (`credit_of`) do not hold the loop from heartbeats
+MESSAGE_RAYS = 32_768             # a tracer's queue allowance is never below this (rays)
+TOTAL_ALLOWANCE_RAYS = 1 << 20    # rays queued at all tracers together, at most (see `queue_allowance`)
+EMIT_PHOTONS_PER_TICK = 1 << 17   # so long queues (`allowance_of`) do not hold the loop from heartbeats
 JOBS_PER_MESSAGE = 16     # photon jobs a tracer emits in one kernel call (one per job costs more)
 
 
 class EmissionMixin:
     @property
-    def credit(self) -> int:
+    def queue_allowance(self) -> int:
         """Rays a tracer may have queued before it gets no more photon jobs:
         `queue_target_rays`, shared out when many tracers join, so the
         photon jobs in the server's outboxes and tracers' pipes stay under
-        TOTAL_CREDIT_RAYS whatever their number (16 tracers: 65,536 each)."""
-        share = TOTAL_CREDIT_RAYS // max(len(self.tracers), 1)
+        TOTAL_ALLOWANCE_RAYS whatever their number (16 tracers: 65,536 each)."""
+        share = TOTAL_ALLOWANCE_RAYS // max(len(self.tracers), 1)
         return min(self.queue_target, max(MESSAGE_RAYS, share))
 
-    def credit_of(self, t: TracerInfo) -> int:
-        """The server's credit, or the longer queue the tracer asks for to hide its chunk loads."""
-        return max(self.credit, t.queue_target)
+    def allowance_of(self, t: TracerInfo) -> int:
+        """The server's queue allowance, or the longer queue the tracer asks for to hide its chunk loads."""
+        return max(self.queue_allowance, t.queue_target)
 
     def _photon_jobs_wanted(self) -> int:
         """`min_photon_jobs` (the paper's 1k), or as many as the queues tracers
         ask for hold; but no more than the deposits held fit (`HeldDeposits`)."""
         ppj = self.settings.photons_per_job
-        credit = sum(t.queue_target for t in self.tracers.values())
+        asked = sum(t.queue_target for t in self.tracers.values())
         # Out of core a job stays in flight until its last path ends, sweeps
         # after most of its rays have left the queues: such jobs take no
         # queue room, so they do not count against the queues asked for.
         # (Counted, they left the tracers' queues at a fifth of their target.)
         sent = self.photon_jobs_in_flight - len(self._photon_pending)
         queued = sum(t.load_estimate for t in self.tracers.values())
-        spent = max(0, sent - -(-queued // ppj)) if credit else 0
-        wanted = max(self.min_photon_jobs, -(-credit // ppj) + spent)
+        spent = max(0, sent - -(-queued // ppj)) if asked else 0
+        wanted = max(self.min_photon_jobs, -(-asked // ppj) + spent)
         c = self.counters
         per_photon = c["deposits_received"] / c["photon_paths_ended"] if c["photon_paths_ended"] else None
         return min(wanted, self.held.jobs_that_fit(ppj, per_photon))
@@ -71,20 +75,21 @@ class EmissionMixin:
     @thread_cpu("job_making_cpu_s")
     def _send_photon_jobs(self) -> list[Out]:
         """Photon jobs go out as (id, rng key, count), each message to the
-        emitting tracer with the most credit left, and no larger than that
-        room or its share of the pending jobs: emission spreads, and a slow tracer is never sent more than one
-        job past its credit. It queues the photons or passes them on
+        emitting tracer with the most queue allowance left, and no larger
+        than what is left or its share of the pending jobs: emission
+        spreads, and a slow tracer is never sent more than one job past its
+        queue allowance. It queues the photons or passes them on
         (`TracerState.emit`); they count against its queue until it reports."""
         out, sent, ppj = [], 0, self.settings.photons_per_job
         emitters = self._emitters()
         while self._photon_pending and emitters and sent < EMIT_PHOTONS_PER_TICK and not self.held.full:
-            t = max(emitters, key=lambda t: self.credit_of(t) - t.load_estimate)
-            room = self.credit_of(t) - t.load_estimate
-            if room <= 0:
+            t = max(emitters, key=lambda t: self.allowance_of(t) - t.load_estimate)
+            left = self.allowance_of(t) - t.load_estimate
+            if left <= 0:
                 break
             # Its share of the pending: with 16 in flight one message took all.
             share = -(-len(self._photon_pending) // len(emitters))
-            n = min(-(-room // ppj), JOBS_PER_MESSAGE, MAX_EMITTED // ppj, share)
+            n = min(-(-left // ppj), JOBS_PER_MESSAGE, MAX_EMITTED // ppj, share)
             out.append(self._photon_job(t, [self._photon_pending.popleft() for _ in range(n)]))
             sent += int(out[-1].fields["counts"].sum())
         return out

@@ -339,7 +339,7 @@ class ServerProcess:
 
     def _flush(self, tid: str) -> None:
         """Non-blocking, in order; what the tracer's pipe cannot take yet
-        waits in its outbox (bounded by the credit the state gives it)."""
+        waits in its outbox (bounded by the queue allowance the state gives it)."""
         box = self._outbox[tid]
         while box:
             try:

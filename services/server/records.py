@@ -28,7 +28,7 @@ class TracerInfo:
     jobs_sent: int = 0              # job messages sent since the welcome...
     unacked: deque = field(default_factory=deque)   # ...and when, for those not yet acknowledged
     queued: int = 0                 # rays waiting at the tracer, as last reported
-    queue_target: int = 0           # rays it asks to have queued (0: the server's credit)
+    queue_target: int = 0           # rays it asks to have queued (0: the server's queue allowance)
     sent_since_report: int = 0      # rays sent to it since
     status: dict = field(default_factory=dict)
     rays_sent: int = 0

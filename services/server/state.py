@@ -13,11 +13,12 @@ exact accounting, batching, the clock and the status. What it does:
   by tracers k, k + c, ...), and every tracer gets the table of who serves
   which chunk whenever it changes.
 - Emission: photon jobs are created while fewer than `min_photon_jobs`
-  (§3.3), or than the tracers' credit holds, are in flight, and sent as
-  (id, rng key, count) to the tracers of the lights' chunks, which make
-  the photons; a tracer whose reported queue plus what was sent since
-  passes its credit (the server's, or the longer queue it asks for to hide
-  chunk loads) gets nothing more until it reports again (back-pressure).
+  (§3.3), or than the tracers' queue allowances hold, are in flight, and
+  sent as (id, rng key, count) to the tracers of the lights' chunks,
+  which make the photons; a tracer whose reported queue plus what was
+  sent since passes its queue allowance (the server's, or the longer
+  queue it asks for to hide chunk loads) gets nothing more until it
+  reports again (back-pressure).
   Eye iterations are split into tiles (§5.6), sent as (id, pixel start,
   count) to the tracers of the chunks their rays start in, which make the
   rays; they run at the same time as photons: the next starts once

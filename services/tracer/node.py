@@ -411,8 +411,8 @@ class TracerProcess:
         for o in outs:
             if o.type == "results":
                 # Rays waiting for a slow peer count as queued here: the
-                # server's credit then stops this tracer's share of new jobs
-                # instead of its outbox growing without bound.
+                # server's queue allowance then stops this tracer's share of
+                # new jobs instead of its outbox growing without bound.
                 o.fields["queued"] += self._outbox_rays
                 if mergeable(o.fields):       # sent with the next ones (merge.py)
                     self.merged.add(o.fields, time.monotonic())

@@ -322,7 +322,7 @@ class TracerState:
 
     def queue_target(self) -> int:
         """Rays this tracer asks the server to keep queued here (0: the
-        server's default credit). See `_pace`."""
+        server's default queue allowance). See `_pace`."""
         return self._queue_target
 
     def _pace(self) -> None:
