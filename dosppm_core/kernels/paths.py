@@ -39,6 +39,7 @@ from dosppm_core.kernels.materials import (
 from dosppm_core.scene.model import PLASTIC
 from dosppm_core.kernels.rng import next_float
 from dosppm_core.kernels.shading import is_mapped, photon_shading
+from dosppm_core.kernels.smooth import arrival_factor, smooth_adjoint, smooth_normal
 from dosppm_core.kernels.texture import texel_at
 
 # `prim` of a ray whose hit lies in another chunk (it left through a
@@ -46,6 +47,7 @@ from dosppm_core.kernels.texture import texel_at
 # split and copied before each bounce; only the leaving rows are moved.
 ELSEWHERE = -2
 SKIPPED = -1    # its end code: counted nowhere, output nowhere
+FLAT, MAPPED, SMOOTH = 0, 1, 2      # where a photon's shading normal comes from (`_photon_normal`)
 
 
 class SurfaceData(NamedTuple):
@@ -74,17 +76,21 @@ class SurfaceData(NamedTuple):
     light_tex_info: np.ndarray
     light_tex_uv: np.ndarray
     light_texels: np.ndarray
+    # Smooth meshes' vertex normals (`kernels.smooth`): float32 (V, 3), or
+    # (0, 3) in a scene of flat meshes only.
+    normals: np.ndarray
 
     @classmethod
     def from_scene(cls, scene) -> "SurfaceData":
         return cls.from_arrays(scene.vertices, scene.triangles, scene.tri_material, scene.materials,
-                               scene.spawn_epsilon(), scene.uvs, scene.textures, scene.lights)
+                               scene.spawn_epsilon(), scene.uvs, scene.textures, scene.lights, scene.normals)
 
     @classmethod
     def from_arrays(cls, vertices, triangles, tri_material, m, eps_abs, uvs, textures,
-                    lights=None) -> "SurfaceData":
-        """From geometry arrays, a `MaterialTable` m, a `TextureTable` and
-        the `LightTable` (its textures; None: no textured area lights)."""
+                    lights=None, normals=None) -> "SurfaceData":
+        """From geometry arrays, a `MaterialTable` m, a `TextureTable`,
+        the `LightTable` (its textures; None: no textured area lights) and
+        the vertex normals (None: no smooth meshes)."""
         etex = np.ascontiguousarray(m.emission_texture, np.int32)
         light_textures = (np.zeros((0, 6), np.int32), np.zeros((0, 6)), np.zeros((0, 3), np.float32))
         if lights is not None and len(lights.tex_info):
@@ -94,7 +100,8 @@ class SurfaceData(NamedTuple):
         return cls(vertices, triangles, tri_material, m.kind, m.reflectance, m.emission, m.ior,
                    m.roughness, m.two_sided, eps_abs, bsdf_rows(m), np.ascontiguousarray(uvs, np.float32),
                    np.ascontiguousarray(m.texture, np.int32), textures.info, textures.uv_map,
-                   textures.texels, etex, *light_textures)
+                   textures.texels, etex, *light_textures,
+                   np.ascontiguousarray(np.zeros((0, 3)) if normals is None else normals, np.float32))
 
     @property
     def textured(self) -> bool:
@@ -328,7 +335,7 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
     from row a; returns (dc, gc). Tuples unpacked once per block, not per ray."""
     direction, flux, depth, states, job, pixel = rays
     (verts, tris, tri_mat, kinds, refl, _emit, ior, rough, two_sided, eps_abs, bsdf,
-     uvs, mtex, tinfo, tuv, texels, _etex, _ltinfo, _ltuv, _ltexels) = surf
+     uvs, mtex, tinfo, tuv, texels, _etex, _ltinfo, _ltuv, _ltexels, normals) = surf
     prim, u, v = hits
     dep_pos, dep_in, dep_n, dep_f, dep_job = dep
     new_o, new_d, new_f, new_st, new_depth, new_job, new_pix = nxt
@@ -365,8 +372,10 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
         st, u1, u2, u3, ur = _four_floats(st)
         ok, d0, d1, d2, t0, t1, t2, _es = sample_scatter(two_sided, ior, rough, refl, bsdf, m, kind,
                                                          s0, s1, s2, w0, w1, w2, u1, u2, u3, False)
-        if ok and mapped:
+        if ok and mapped == MAPPED:
             ok, t0, t1, t2 = _adjoint(t0, t1, t2, k_in, n0, n1, n2, s0, s1, s2, d0, d1, d2, front)
+        elif ok and mapped == SMOOTH:
+            ok, t0, t1, t2 = smooth_adjoint(t0, t1, t2, k_in, n0, n1, n2, s0, s1, s2, d0, d1, d2)
         if not ok:
             end[i] = ABSORBED
             continue
@@ -385,15 +394,20 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
 def _photon_normal(surf, m, tri, u, v, n0, n1, n2, front, w0, w1, w2):
-    """(mapped, shading normal s, Veach's factor k_in) of material m at the
-    hit: a normal or bump map's (`kernels.shading`), else the geometric
-    normal and 1."""
+    """(FLAT, MAPPED or SMOOTH, shading normal s, Veach's factor k_in) of
+    material m at the hit: a normal or bump map's (`kernels.shading`: s
+    facing the photon), a smooth mesh's (`kernels.smooth`: s on the
+    winding's side), else the geometric normal and 1."""
     if not is_mapped(surf.bsdf, m):
-        return False, n0, n1, n2, 1.0
+        smooth, s0, s1, s2 = smooth_normal(surf.normals, surf.triangles, tri, np.float64(u), np.float64(v),
+                                           n0, n1, n2, w0, w1, w2)
+        if smooth:
+            return SMOOTH, s0, s1, s2, arrival_factor(n0, n1, n2, s0, s1, s2, w0, w1, w2)
+        return FLAT, n0, n1, n2, 1.0
     tex = (surf.uvs, surf.triangles, surf.tex_info, surf.tex_uv, surf.texels)
     s0, s1, s2, k_in = photon_shading(surf.bsdf, m, surf.vertices, tex, tri, u, v, n0, n1, n2, front,
                                       w0, w1, w2)
-    return True, s0, s1, s2, k_in
+    return MAPPED, s0, s1, s2, k_in
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
@@ -578,7 +592,7 @@ def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp,
     """The eye bounce of rows [a, e), each written to its own row. Tuples unpacked once per block."""
     direction, weight, depth, states = rays
     (verts, tris, tri_mat, kinds, refl, emit, ior, rough, two_sided, eps_abs, bsdf,
-     uvs, mtex, tinfo, tuv, texels, _etex, _ltinfo, _ltuv, _ltexels) = surf
+     uvs, mtex, tinfo, tuv, texels, _etex, _ltinfo, _ltuv, _ltexels, normals) = surf
     prim, u, v = hits
     hp_pos, hp_n, hp_mat = hp
     new_o, new_d, new_w, new_st = nxt
@@ -600,6 +614,10 @@ def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp,
             kind = kinds[m]
         hp_mat[i] = m
         coat = False
+        s0, s1, s2 = n0, n1, n2     # the shading normal: a smooth mesh's (`kernels.smooth`)
+        if not is_mapped(bsdf, m):
+            _smooth, s0, s1, s2 = smooth_normal(normals, tris, tri, np.float64(u[i]), np.float64(v[i]),
+                                                n0, n1, n2, w0, w1, w2)
         if not is_specular(kind):
             if not front and not two_sided[m]:
                 end[i] = ABSORBED
@@ -607,10 +625,10 @@ def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp,
             if kind == PLASTIC:     # the coating's mirror with probability q (kernels.materials)
                 s = 1.0 if front else -1.0
                 coat = side_float(states[i], 1) < plastic_specular_probability(
-                    bsdf[m], s * n0, s * n1, s * n2, w0, w1, w2)
+                    bsdf[m], s * s0, s * s1, s * s2, w0, w1, w2)
             if not coat and depth[i] < max_depth:
-                # A rough dielectric's hit point keeps its geometric normal: the side decides eta.
-                write_facing(hp_pos, hp_n, i, p0, p1, p2, n0, n1, n2, front or is_transmissive(kind))
+                # A rough dielectric's hit point keeps its normal on the winding's side: the side decides eta.
+                write_facing(hp_pos, hp_n, i, p0, p1, p2, s0, s1, s2, front or is_transmissive(kind))
                 end[i] = STORED
                 continue
         if depth[i] >= max_depth:
@@ -620,7 +638,7 @@ def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp,
         st, ur = next_float(st)
         new_st[i] = st
         ok, d0, d1, d2, t0, t1, t2, eta_scale = sample_scatter(
-            two_sided, ior, rough, refl, bsdf, m, kind, n0, n1, n2, w0, w1, w2,
+            two_sided, ior, rough, refl, bsdf, m, kind, s0, s1, s2, w0, w1, w2,
             0.0 if coat else u1, 0.5, 0.5, True)
         if not ok:
             end[i] = ABSORBED
