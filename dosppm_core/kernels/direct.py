@@ -148,13 +148,15 @@ def _sample_light(lights, li, p0, p1, p2, u1, u2):
     return q0, q1, q2, w0, w1, w2, dist, g
 
 
-@nb.njit(inline="always", cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy")
 def light_le(lights, li, w0, w1, w2, u1, u2):
     """What light li sends toward a hit point that sees it along unit w,
     per unit of `_sample_light`'s g (for the numbers u1, u2): its `value`,
     times the texel of the direction -w for a textured spot or projector,
     or of the point sampled on a textured triangle (lights[14:19],
-    `trace.light_textures`)."""
+    `trace.light_textures`). A call, not inlined: inlining it (and the
+    texel lookups it inlines) into every shadow-ray path multiplied the
+    kernel's IR until one compile took minutes and gigabytes."""
     value, t = lights[4], lights[14][li]
     if t < 0:
         return value[li, 0], value[li, 1], value[li, 2]
