@@ -1,7 +1,7 @@
 """Issue 13: the four ways to run, at equal work, on the same 2 cores.
 
 SPPM in one process, OSPPM (one process, the scene in chunks), and DOSPPM
-with one and two tracer processes render the same scene for the same time
+with one and two tracer processes (two also gathering at the tracers) render the same scene for the same time
 with the same photons per iteration: one eye pass, and so one hit point
 per pixel that sees a surface, per PHOTONS photons, and statistics updated
 per PHOTONS deposits at most. What each then delivers is reported side by
@@ -47,6 +47,9 @@ def run(args) -> dict:
             lambda: OutOfCoreRenderer(stores[args.chunks], settings), args.seconds),
         "DOSPPM c = 1, n = 1": lambda: service_bench._dosppm(stores[1].path, 1, args.seconds, work, same),
         "DOSPPM c = 1, n = 2": lambda: service_bench._dosppm(stores[1].path, 2, args.seconds, work, same),
+        # Issue 32's way: tracers make the photons and gather them by epochs.
+        "DOSPPM c = 1, n = 2, gather at the tracers": lambda: service_bench._dosppm(
+            stores[1].path, 2, args.seconds, work, same + ["--gather-at", "tracers"]),
     }
     runs = {}
     for _ in range(args.repeats):       # interleaved: drift on a shared machine hits every row alike

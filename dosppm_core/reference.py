@@ -384,9 +384,12 @@ def reference_key(scene: Scene, spp: int, max_depth: int = DEFAULT_MAX_DEPTH,
     later = ("specular", "distribution", "nonlinear", "opacity", "conductor_eta", "conductor_k",
              "opacity_texture", "blend", "blend_weight", "blend_texture")
     mapped = ("normal_map", "bump_map", "bump_scale", "shading_flags")    # likewise, normal and bump maps
+    rough = ("roughness_v", "alpha_u_texture", "alpha_v_texture")   # likewise, anisotropic roughness
+    anisotropic = (mats.roughness_v >= 0).any() or (mats.alpha_u_texture >= 0).any() or \
+        (mats.alpha_v_texture >= 0).any()
     arrays.update({f"mat.{k}": v for k, v in vars(mats).items()
                    if k != "names" and (newer or k not in later)
-                   and (mats.shading_mapped or k not in mapped)})
+                   and (mats.shading_mapped or k not in mapped) and (anisotropic or k not in rough)})
     arrays.update({f"light.{k}": v for k, v in scene.lights.wire_fields().items()})
     for name in sorted(arrays):
         arr = np.ascontiguousarray(arrays[name])

@@ -8,9 +8,11 @@ shrinking radius), so our mean and the variance of that mean come from K
 independent seeds (K >= `MIN_SEEDS`), and the reference's own noise
 (per-sample variance over `REFERENCE_SPP`) is added:
 
-    z = (mean_k ours_k - ref) / sqrt(var_k(ours_k) / K + max(ref_var, 1e-4) / 32000)
+    z = (mean_k ours_k - ref) / sqrt(max(var_k(ours_k) / K + max(ref_var, 1e-4) / 32000, 1e-4 / spp))
 
-per pixel channel. What follows is Mitsuba's, step by step: every image
+per pixel channel, spp being the samples per pixel Mitsuba's test renders
+at (2e6 over the image's pixels): 1e-4 / spp is Mitsuba's floor on the
+variance of the tested mean. What follows is Mitsuba's, step by step: every image
 (ours, the reference, its variance image) is converted from linear sRGB
 to XYZ with Mitsuba's matrix before the test; the reference variance is
 floored at 1e-4; the test is two-sided at significance 0.01 with the
@@ -23,7 +25,21 @@ variance of our mean is itself a random estimate (K - 1 degrees of
 freedom), so z follows Student's t, not the normal: at K = 4 a normal
 threshold (4.6 sigma at 48x48) would fail about 2% of channels of a
 perfectly unbiased render. The p-value is Student's t with K - 1 degrees
-of freedom (`p_values` says where not). On top, issue 33 bounds the bias of the mean:
+of freedom (`p_values` says where not).
+
+Where all K seeds agree exactly (a white background, an emitter seen
+directly, a direct-only scene's exact shading) we have no estimate of our
+variance, and there Mitsuba's own model judges: max(ref_var, 1e-4) / spp,
+the reference's per-sample variance over the test render's samples (or
+the reference's own noise, if larger). A
+reference whose spectral variant is off the RGB answer by a few of its
+own standard errors would otherwise fail a render that is exactly right,
+which Mitsuba's test passes: in projector_constant's lit square we (and
+Mitsuba's scalar_rgb) give 1, the reference 0.9975 in G with a per-sample
+variance of 0.0025, judged by Mitsuba's test on sqrt(0.0025 / 868) =
+0.0017 (z 1.5) and by a zero variance on the floor, 0.00034 (z 7).
+Wherever our seeds vary, their variance judges, stricter than Mitsuba's
+test (which takes the reference's per-sample variance for the render's). On top, issue 33 bounds the bias of the mean:
 |mean Y(ours) - mean Y(ref)| / mean Y(ref) <= 1%, Y the luminance.
 """
 from __future__ import annotations
@@ -39,6 +55,7 @@ SIGNIFICANCE = 0.01
 PASS_FRACTION = 0.9975
 REFERENCE_SPP = 32_000
 VARIANCE_FLOOR = 1e-4          # Mitsuba's floor on the reference's per-sample variance
+SAMPLE_BUDGET = 2_000_000       # Mitsuba's test renders 2e6 samples over the image
 MIN_SEEDS = 4
 BIAS_BOUND = 0.01
 # Mitsuba's linear sRGB -> XYZ (src/core/color.h, srgb_to_xyz), as its
@@ -83,7 +100,8 @@ def score(renders, reference, reference_var, reference_spp: int = REFERENCE_SPP)
         raise ValueError(f"shapes differ: renders {ours.shape[1:]}, reference {ref.shape}, "
                          f"variance {ref_var.shape} (each (H, W, 3))")
     k, pixels = len(ours), ref.shape[0] * ref.shape[1]
-    p = p_values(ours @ SRGB_TO_XYZ.T, ref @ SRGB_TO_XYZ.T, ref_var @ SRGB_TO_XYZ.T, reference_spp)
+    p = p_values(ours @ SRGB_TO_XYZ.T, ref @ SRGB_TO_XYZ.T, ref_var @ SRGB_TO_XYZ.T, reference_spp,
+                 mitsuba_spp(pixels))
     alpha = 1.0 - (1.0 - SIGNIFICANCE) ** (1.0 / pixels)
     fraction = float(np.count_nonzero(p > alpha)) / 3 / pixels
     bias = mean_bias(ours.mean(axis=0), ref)
@@ -91,25 +109,36 @@ def score(renders, reference, reference_var, reference_spp: int = REFERENCE_SPP)
     return Score(bool(passed), fraction, bias, k, pixels, alpha, float(np.nanmin(p)) if np.any(p == p) else math.nan)
 
 
+def mitsuba_spp(pixels: int) -> int:
+    """The samples per pixel of Mitsuba's test render of an image of `pixels`."""
+    return max(1, SAMPLE_BUDGET // pixels)
+
+
 def p_values(ours_xyz: np.ndarray, ref_xyz: np.ndarray, ref_var_xyz: np.ndarray,
-             reference_spp: int = REFERENCE_SPP) -> np.ndarray:
+             reference_spp: int = REFERENCE_SPP, spp: int | None = None) -> np.ndarray:
     """Two-sided p-values per pixel channel of the K renders `ours_xyz`
-    (K, H, W, 3) against the reference (see the module doc)."""
+    (K, H, W, 3) against the reference (see the module doc); `spp`, that
+    of Mitsuba's test render, by default `mitsuba_spp` of the image's pixels."""
     k = ours_xyz.shape[0]
+    spp = mitsuba_spp(ref_xyz.shape[0] * ref_xyz.shape[1]) if spp is None else spp
     # Seeds that agree exactly have no variance; `var` could leave a
     # rounding residue of their mean (it does for 16 equal values, not for 4).
     agree = np.all(ours_xyz == ours_xyz[:1], axis=0)
     var_ours = np.where(agree, 0.0, ours_xyz.var(axis=0, ddof=1) / k)
     var_ref = np.maximum(ref_var_xyz, VARIANCE_FLOOR) / reference_spp
+    var = np.maximum(var_ours + var_ref, VARIANCE_FLOOR / spp)
+    # No estimate of ours: Mitsuba's model of its own render (module doc).
+    var = np.where(agree, np.maximum(var, np.maximum(ref_var_xyz, VARIANCE_FLOOR) / spp), var)
     with np.errstate(invalid="ignore", divide="ignore"):
-        z = (ours_xyz.mean(axis=0) - ref_xyz) / np.sqrt(var_ours + var_ref)
+        z = (ours_xyz.mean(axis=0) - ref_xyz) / np.sqrt(var)
     # Student's t with K - 1 degrees of freedom: exact when the reference's
     # noise is negligible, conservative otherwise (the textbook lower bound
     # of Welch's). Welch and Satterthwaite's estimate of them was tried and
     # failed unbiased renders: where four seeds happen to agree closely it
     # grows large and takes the normal's tail. Pixels whose seeds agree
     # exactly (black, an emitter seen directly) carry no estimate: the
-    # reference's noise alone, nearly normal.
+    # reference's noise alone, nearly normal. A floored variance keeps
+    # Student's t: it is max(our estimate, floor), the estimate still random.
     dof = np.where(var_ours > 0, k - 1.0, reference_spp - 1.0)
     return student_t_two_sided(z, dof)
 

@@ -123,6 +123,19 @@ def scene_settings(hints: dict) -> dict:
 # photons/s out of core against 601-828k, and 822-854k with every chunk
 # resident against 728-763k; 8,192 gained nothing more (880k, 835k).
 SERVICE_JOB_SIZES = {"photons_per_job": 4_096, "tile_pixels": 4_096}
+# Gathering at the tracers (issue 32) a photon job is only (id, rng key,
+# count) and its deposits stay at the tracer: the server pays per job for
+# making, sending and accounting it, and nothing per deposit. Jobs of one
+# tracer step's 16,384 photons fed 23.7 tracer cores per server core in the
+# replay against 20.1 at 4,096 (medians of 3, cornell-glass, 2 tracers).
+GATHER_AT_TRACERS_PHOTONS_PER_JOB = 16_384
+
+
+def service_job_sizes(gather_at: str | None = "server") -> dict:
+    """The service's default job sizes, for where photons are gathered."""
+    if gather_at == "tracers":
+        return dict(SERVICE_JOB_SIZES, photons_per_job=GATHER_AT_TRACERS_PHOTONS_PER_JOB)
+    return dict(SERVICE_JOB_SIZES)
 # A scene cut into chunks on the fly (a soup directory, `--chunks`): memory
 # per chunk, and where the store is kept for the next render.
 DEFAULT_BUDGET_BYTES = 512 * 2 ** 20

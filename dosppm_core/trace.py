@@ -9,7 +9,7 @@ import numpy as np
 
 from dosppm_core.accel import Accelerator
 from dosppm_core.jobs import STORED, HitPoints, PhotonDeposits, RayBatch, ShadowRays
-from dosppm_core.kernels import direct, emit, envmap, light_cache, paths, shading, texture
+from dosppm_core.kernels import anisotropic, direct, emit, envmap, light_cache, paths, shading, texture
 from dosppm_core.kernels.light_cache import LightCache
 from dosppm_core.kernels.light_tree import build_light_tree
 from dosppm_core.kernels.paths import SurfaceData
@@ -113,7 +113,10 @@ def advance_eye(surf: SurfaceData, batch: RayBatch, prim, u, v, max_depth: int,
     nxt = RayBatch(no, nd, nw, batch.pixel[g], batch.depth[g] + 1, st, job=batch.job[g])
     shadows = ShadowRays.empty()
     if lights is not None and len(hits):
-        shadows = shadow_rays(surf, lights, hits, batch.rng[h], batch.job[h], mapped)
+        frames = None
+        if surf.anisotropic:    # the tangent frames of anisotropic hit points (`kernels.anisotropic`)
+            frames = anisotropic.hit_point_frames(surf, prim[h], hmat, u[h], v[h], hn)
+        shadows = shadow_rays(surf, lights, hits, batch.rng[h], batch.job[h], mapped, frames)
         ends[STORED] -= len(shadows)
     seen = (batch.pixel[lit], rgb)
     if env is not None:
@@ -202,16 +205,18 @@ def freeze_light_cache(lights: tuple | None) -> None:
 
 
 def shadow_rays(surf: SurfaceData, lights: tuple, hits: HitPoints, states, jobs,
-                mapped: tuple | None = None) -> ShadowRays:
+                mapped: tuple | None = None, frames: np.ndarray | None = None) -> ShadowRays:
     """The direct-light ray of each hit point (`kernels.direct`: a shadow
     ray to a light sample, or on glossy surfaces under triangle lights a
     BSDF-sampled one, by one-sample MIS); hit points whose sample cannot
     contribute get none. `mapped`: (geometric normals, a2) of hit points
-    whose normal a normal or bump map perturbed (`kernels.shading`)."""
+    whose normal a normal or bump map perturbed (`kernels.shading`);
+    `frames` those of anisotropic hit points (`kernels.anisotropic`)."""
+    frames = np.zeros((0, 5)) if frames is None else frames
     mis = bool(np.any((lights[0] == LIGHT_TRIANGLE) | ((lights[0] == LIGHT_ENV) & (lights[6] > 0))))
     kernel = direct.sample_direct if len(hits) >= paths.SERIAL_BELOW else direct.sample_direct_serial
     rows, o, d, tmax, rgb, pdf = kernel(
-        (hits.position, hits.normal, hits.outgoing, hits.weight, hits.material),
+        (hits.position, hits.normal, hits.outgoing, hits.weight, hits.material, frames),
         np.ascontiguousarray(states), surf, lights[:LIGHT_CACHE], lights[LIGHT_CACHE], lights[INFINITE],
         mis, EPS_REL)
     if mapped is not None:

@@ -20,6 +20,7 @@ import tomllib
 from dataclasses import dataclass
 
 from dosppm_core.settings import (DEFAULT_BUDGET_BYTES, DIRECT_MODES, SERVICE_JOB_SIZES, RenderSettings,
+                                  GATHER_AT_TRACERS_PHOTONS_PER_JOB, service_job_sizes,
                                   default_store_cache, scene_settings)
 
 
@@ -131,7 +132,8 @@ RENDER = (
     _opt("photons_per_iteration", int, _LIBRARY.photons_per_iteration, "photons between eye iterations "
          "(default: 1.5 per pixel, at least 10,000; osppm with more chunks than fit: grown until "
          "their loads are hidden, within --queue-memory)", rule="count"),
-    _opt("photons_per_job", int, SERVICE_JOB_SIZES["photons_per_job"], "photons per photon job", rule="count"),
+    _opt("photons_per_job", int, None, f"photons per photon job (default {SERVICE_JOB_SIZES['photons_per_job']}, "
+         f"{GATHER_AT_TRACERS_PHOTONS_PER_JOB} with --gather-at tracers)", rule="count"),
     _opt("photon_batch", int, _LIBRARY.photon_batch, "deposits per statistics update (server batching)", rule="count"),
     _opt("width", int, None, "image width override", rule="count"),
     _opt("height", int, None, "image height override", rule="count"),
@@ -347,7 +349,7 @@ def render_settings(values: dict, service: bool = False, scene_hints: dict | Non
     None) replace the defaults of one process, or of the service, and
     those the scene file's integrator fixes (`scene_hints`, its
     `render_settings`: a Mitsuba max_depth)."""
-    base = RenderSettings(**SERVICE_JOB_SIZES) if service else RenderSettings()
+    base = RenderSettings(**service_job_sizes(values.get("gather_at"))) if service else RenderSettings()
     base = dataclasses.replace(base, **scene_settings(scene_hints or {}))
     given = {k: values[k] for k in _SETTINGS_FIELDS if values.get(k) is not None}
     settings = dataclasses.replace(base, **given)

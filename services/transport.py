@@ -293,10 +293,13 @@ def finish_process() -> None:
     """Before the process exits: let the shared context's queued messages
     go (each socket's linger, LINGER_MS at most: a server's goodbyes, a
     tracer's last results) and stop its I/O thread. Without it the thread
-    dies with the process and LINGER_MS means nothing."""
+    dies with the process and LINGER_MS means nothing. The linger is set
+    again on every socket first: one made elsewhere (zmq's default linger
+    is forever) would hold `term` until its peer took its last message,
+    and a process whose peers are gone would never exit."""
     ctx = zmq.Context._instance
     if ctx is not None and not ctx.closed:
-        ctx.destroy()
+        ctx.destroy(linger=LINGER_MS)
 
 
 def make_keys(directory: str, name: str) -> tuple[str, str]:

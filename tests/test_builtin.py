@@ -193,3 +193,18 @@ def test_furnace_sphere_layout():
     assert mesh.is_watertight
     doc = builtin.furnace_sphere.__doc__
     assert "rho * I / (pi * R^2 * (1 - rho))" in doc and "sum_{k < D} rho^k" in doc
+
+
+def test_a_mesh_file_is_placed_in_the_cornell_box_in_glass(tmp_path):
+    # `dosppm bench --mesh` and the equal-work benchmark's dragon scene.
+    from dosppm_core.scene.builtin import cornell_with_mesh
+    obj = tmp_path / "tet.obj"
+    obj.write_text("v 0 0 0\nv 2 0 0\nv 0 2 0\nv 0 0 2\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")
+    scene = cornell_with_mesh(str(obj), size_mm=100.0)
+    assert scene.name == "cornell-tet"
+    glass = scene.tri_material == scene.tri_material[-1]
+    assert glass.sum() == 4                                  # the mesh's faces, in one material of their own
+    v = scene.vertices[np.unique(scene.triangles[glass])].astype(np.float64)
+    assert np.isclose(np.ptp(v, axis=0).max(), 100.0, atol=1e-3)   # scaled to size_mm
+    floor = scene.vertices[:, 1].min()
+    assert np.isclose(v[:, 1].min() - floor, 1.0, atol=1e-3)       # resting 1 mm above the floor

@@ -81,6 +81,12 @@ def test_render_defaults_are_the_library_s_but_the_service_s_job_sizes():
     here = config.render_settings(vars(args))
     assert (here.photons_per_job, here.tile_pixels) == (library.photons_per_job, library.tile_pixels)
     assert config.render_settings(vars(_args(["render", "--photons-per-job", "64"]))).photons_per_job == 64
+    # Gathering at the tracers, a job costs the server only its accounting: larger by default.
+    v = config.resolve(_args(["server", "--gather-at", "tracers"]), "server", config.SERVER, environ={})
+    assert config.render_settings(v, service=True).photons_per_job == 16384
+    v = config.resolve(_args(["server", "--gather-at", "tracers", "--photons-per-job", "2048"]), "server",
+                       config.SERVER, environ={})
+    assert config.render_settings(v, service=True).photons_per_job == 2048
 
 
 # -- every numeric or address setting is checked, wherever it comes from --------

@@ -1096,7 +1096,7 @@ def test_serial_eye_and_direct_kernels_equal_the_parallel_ones():
             np.testing.assert_array_equal(x, y)
         ends, _lit, (h, hpos, hn, hmat), (g, no, nd, nw, st) = a
         if len(h):
-            hits = (hpos, hn, -batch.direction[h], batch.weight[h], hmat)
+            hits = (hpos, hn, -batch.direction[h], batch.weight[h], hmat, np.zeros((0, 5)))
             dargs = (hits, np.ascontiguousarray(batch.rng[h]), surf, lights[:LIGHT_CACHE], lights[LIGHT_CACHE],
                      lights[INFINITE], True, EPS_REL)
             for x, y in zip(direct.sample_direct(*dargs), direct.sample_direct_serial(*dargs)):

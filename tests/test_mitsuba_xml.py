@@ -423,9 +423,11 @@ BAD = [  # (snippet, line offset, element as written, what the message says)
      '<string name="distribution">', "distribution 'phong' is unknown (ggx or beckmann)"),
     ('<bsdf type="conductor" id="r">\n<spectrum name="k" value="400:1, 700:2"/></bsdf>', 1,
      '<spectrum name="k">', "a conductor's eta and k as a spectrum list are unsupported"),
-    ('<bsdf type="roughconductor" id="r"><string name="distribution" value="ggx"/>\n'
+    ('<bsdf type="roughplastic" id="r"><string name="distribution" value="ggx"/>\n'
      '<float name="alpha_u" value="0.1"/><float name="alpha_v" value="0.2"/></bsdf>', 0,
-     '<bsdf type="roughconductor" id="r">', "anisotropic"),
+     '<bsdf type="roughplastic" id="r">', "anisotropic"),
+    ('<bsdf type="roughconductor" id="r">\n<float name="alpha_u" value="0.1"/></bsdf>', 0,
+     '<bsdf type="roughconductor" id="r">', "needs alpha_v"),
     ('<shape type="obj">\n<string name="filename" value="missing.obj"/></shape>', 1,
      '<string name="filename">', "file 'missing.obj' not found"),
     ('<foo/>', 0, '<foo>', "unsupported element"),

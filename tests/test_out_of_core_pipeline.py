@@ -26,6 +26,17 @@ pytestmark = pytest.mark.slow
 # here: generate 142, subdivide 276, OSPPM 284, server 271, tracers 248 and
 # 249 MiB; CI's machine has measured about 60 MiB more a process.
 LIMIT_MIB = 500
+# Run to run, the images' mean luminance is this close (issue 34). Measured
+# on this test's store and flags (`dosppm render STORE --mode osppm
+# --photons 150000 --memory 96MiB --queue-memory 16MiB --seed S`, and the
+# server with 2 workers likewise): OSPPM at 4 seeds 0.37444, standard
+# deviation 0.18%, range 0.40%; DOSPPM at 2 seeds +0.42% and +0.37% over
+# that mean (its drain applies more photons: 352k and 950k against 184k),
+# +0.39% at the same seed. The bound is that offset plus five standard
+# deviations of a difference of two runs (5 x 1.41 x 0.18%), rounded up.
+# The failure it was written for, a DOSPPM image holding no photon job,
+# was 25% dark.
+MEAN_TOLERANCE = 0.02
 
 
 def test_a_scene_twice_the_memory_of_each_process_renders_within_the_limits(tmp_path):
@@ -54,4 +65,4 @@ def test_a_scene_twice_the_memory_of_each_process_renders_within_the_limits(tmp_
     # whole): the same mean within their noise.
     applied = {m: r["photons_applied"] for m, r in doc["renders"].items()}
     assert all(n >= 150_000 for n in applied.values()), applied
-    assert abs(lum["osppm"] - lum["dosppm"]) < 0.1 * lum["osppm"], (lum, applied)
+    assert abs(lum["osppm"] - lum["dosppm"]) < MEAN_TOLERANCE * lum["osppm"], (lum, applied)

@@ -27,7 +27,7 @@ def test_a_relabelled_step_is_a_valid_results_message_for_the_package():
     fields, paths = _recorded(rng)
     jobs = np.repeat(np.array([40, 7, 12], np.int64), [1024, 1024, 512])
     credit = (np.array([40, 7, 12, 12], np.int64), np.array([0, 1, 2, 2], np.int64))
-    out = replay._relabelled(fields, paths, jobs, chunk=0, queued=0, credit=credit)
+    out = replay._relabelled(fields, paths, jobs, chunk=0, queue=(0, 4096), credit=credit)
     msg = wire.decode(wire.encode("results", **out))
     assert msg.credit_job.tolist() == [40, 7, 12, 12] and msg.credit_exp.tolist() == [0, 1, 2, 2]
     assert sorted(msg.job_ids.tolist()) == [7, 12, 40]
@@ -36,6 +36,27 @@ def test_a_relabelled_step_is_a_valid_results_message_for_the_package():
     assert msg.ends.sum() == len(jobs)                       # every path of the package ended once
     assert set(np.unique(msg.deposits.job)) == {7, 12, 40}
     assert len(msg.deposits) == round(1700 * len(jobs) / 1000)   # the recorded deposits per path
+    assert msg.queue_target == 4096
+
+
+def test_relabelled_steps_gathered_at_the_tracer_merge_like_a_real_tracers():
+    # Gathering at the tracers, the deposits stay behind and the rest is
+    # accounting that merge.py holds and merges: it reads every field a
+    # real tracer's results carry (a missing queue_target crashed it).
+    from services.tracer.merge import MergedResults, mergeable
+    rng = np.random.default_rng(2)
+    fields, paths = _recorded(rng)
+    held = MergedResults()
+    for j in (5, 6):
+        out = replay._relabelled(fields, paths, np.full(256, j, np.int64), chunk=0, queue=(j, 100 + j),
+                                 credit=(np.array([j], np.int64), np.array([0], np.int64)))
+        out.pop("deposits")
+        assert mergeable(out)
+        held.add(out, now=0.0)
+    (one,) = held.take()
+    msg = wire.decode(wire.encode("results", **one))
+    assert msg.job_ids.tolist() == [5, 6] and msg.ends.sum() == 512
+    assert (msg.queued, msg.queue_target) == (6, 106)       # the latest queue
 
 
 @pytest.fixture(scope="module")
@@ -89,3 +110,40 @@ def test_the_shares_of_server_cpu_add_up():
     assert sum(f[k] for k in parts) == pytest.approx(1.0)
     assert "| server CPU per photon applied" in replay.report(
         {"scene": "x", "tracers": 1, "seconds": 5.0, "replay": dict(f, repeats=1)})
+
+
+def test_a_server_that_does_not_end_in_time_is_killed_with_its_tracers():
+    """A replay server that hung once outlived its harness by 1.5 h: the
+    harness gives up after `wait_s` and no process it started lives on."""
+    import subprocess
+    import sys
+    sleeper = [sys.executable, "-c", "import time; time.sleep(120)"]
+    server = subprocess.Popen(sleeper)
+    tracers = [subprocess.Popen(sleeper, stdout=subprocess.PIPE, text=True) for _ in range(2)]
+    with pytest.raises(RuntimeError, match="did not end within"):
+        replay._awaited(server, tracers, wait_s=0.5)
+    assert server.poll() is not None and all(t.poll() is not None for t in tracers)
+
+
+def test_replayed_epochs_answer_with_a_recorded_sums_answer_and_keep_no_deposit():
+    # slow_link.py's synthetic tracers: past RECORDED_EPOCHS real gathers,
+    # an epoch's sums are a recorded answer's rows cycled to the hit points.
+    from types import SimpleNamespace
+    from dosppm_core.jobs import HitPoints
+    from services.tracer.epochs import EpochDeposits
+    rng = np.random.default_rng(4)
+    ep = replay.ReplayedEpochs(EpochDeposits(8, materials=None))
+    ep.recorded = [dict(deposits=70, flux=np.ones(3), m=np.array([0.0, 2.0, 1.0]), phi=np.arange(9.0).reshape(3, 3))
+                   for _ in range(replay.RECORDED_EPOCHS)]
+    assert not ep.keeps_deposits
+    ep.add(random_record(PhotonDeposits, 50, rng))
+    assert ep.rows == 0                                        # nothing held once replaying
+    ep.set_hit_points(3, random_record(HitPoints, 7, rng))
+    msg = SimpleNamespace(epoch=9, phase="sums", hits_version=3)
+    out = ep.reply(msg)
+    got = wire.decode(wire.encode("epoch_sums", **out))
+    assert got.epoch == 9 and got.deposits == 70
+    from services.tracer.epochs import dense_sums
+    m, phi = dense_sums(7, got.m, got.phi, got.fields.get("rows"))
+    assert m.tolist() == [0, 2, 1, 0, 2, 1, 0]
+    assert np.array_equal(phi[4], [3.0, 4.0, 5.0])

@@ -92,12 +92,16 @@ def test_dosppm_bench_writes_every_timing_and_its_provenance(tmp_path):
 
 
 def test_provenance_looks_for_changes_in_the_whole_repository(tmp_path, monkeypatch):
-    """A figure measured with an edit in dosppm_core/ or benchmarks/ is
-    dirty, not only one with an edit in services/ (issue 34)."""
+    """A figure measured with any change in the tree is dirty: an edit in
+    dosppm_core/, services/ or benchmarks/, staged or not, or a new file
+    git does not ignore; not one in benchmarks/results/ (issue 34: ROOT was
+    services/, so edits elsewhere left a figure labelled clean)."""
     assert os.path.exists(os.path.join(provenance.ROOT, "pyproject.toml"))
-    for name in ("dosppm_core/k.py", "benchmarks/b.py", "benchmarks/results/r.json"):
+    for name in ("dosppm_core/k.py", "services/s.py", "benchmarks/b.py", "benchmarks/results/r.json"):
         os.makedirs(tmp_path / os.path.dirname(name), exist_ok=True)
         (tmp_path / name).write_text("x = 1\n")
+    (tmp_path / ".gitignore").write_text("*.exr\n")
+
     def git(*args):
         subprocess.run(["git", "-c", "user.name=t", "-c", "user.email=t@t", *args], cwd=tmp_path, check=True,
                        capture_output=True)
@@ -105,8 +109,22 @@ def test_provenance_looks_for_changes_in_the_whole_repository(tmp_path, monkeypa
     git("add", ".")
     git("commit", "-q", "-m", "c")
     monkeypatch.setattr(provenance, "ROOT", str(tmp_path))
-    assert not provenance.commit().endswith("+dirty")
-    (tmp_path / "benchmarks/results/r.json").write_text("x = 2\n")     # results files do not count
-    assert not provenance.commit().endswith("+dirty")
-    (tmp_path / "dosppm_core/k.py").write_text("x = 2\n")
-    assert provenance.commit().endswith("+dirty")
+
+    def dirty_after(change) -> bool:
+        change()
+        out = provenance.commit().endswith("+dirty")
+        git("reset", "-q", "--hard")
+        git("clean", "-q", "-fd")
+        return out
+    assert not dirty_after(lambda: None)
+    assert not dirty_after(lambda: (tmp_path / "benchmarks/results/r.json").write_text("x = 2\n"))
+    assert not dirty_after(lambda: (tmp_path / "benchmarks/results/new.json").write_text("{}\n"))
+    assert not dirty_after(lambda: (tmp_path / "out.exr").write_text("ignored\n"))
+    for name in ("dosppm_core/k.py", "services/s.py", "benchmarks/b.py"):
+        assert dirty_after(lambda: (tmp_path / name).write_text("x = 2\n")), name
+    assert dirty_after(lambda: (tmp_path / "dosppm_core/new.py").write_text("x = 3\n")), "an untracked module"
+
+    def staged():
+        (tmp_path / "benchmarks/b.py").write_text("x = 2\n")
+        git("add", "benchmarks/b.py")
+    assert dirty_after(staged)

@@ -250,3 +250,24 @@ def test_results_wait_no_longer_than_the_servers_silence_allows(ctx):
             assert least_s <= time.monotonic() - t0 <= most_s
     finally:
         tracer._close()
+
+
+def test_finish_process_ends_a_process_whose_peer_never_takes_its_messages():
+    """A socket made with zmq's default linger (forever) and a message
+    queued for a peer that never answers: the process still exits, within
+    about LINGER_MS (a hung replay server once outlived its harness)."""
+    import subprocess
+    import sys
+    code = ("import zmq; from services import transport\n"
+            "s = zmq.Context.instance().socket(zmq.DEALER)\n"
+            "s.connect('tcp://127.0.0.1:9'); s.send(b'never taken')\n"
+            "transport.finish_process()\n")
+    t0 = time.monotonic()
+    proc = subprocess.Popen([sys.executable, "-c", code], env=dict(os.environ, PYTHONPATH=os.getcwd()))
+    try:
+        assert proc.wait(timeout=transport.LINGER_MS / 1000 + 20) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert time.monotonic() - t0 < transport.LINGER_MS / 1000 + 15

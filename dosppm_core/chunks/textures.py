@@ -17,8 +17,10 @@ from dosppm_core.scene.textures import TextureTable
 
 
 # The material columns that name a texture: the colour, a mask's opacity,
-# a blend's weight, a normal map and a bump map (`scene.model.Material`).
-TEXTURE_COLUMNS = ("texture", "opacity_texture", "blend_texture", "normal_map", "bump_map")
+# a blend's weight, a normal map and a bump map, a rough conductor's alpha_u
+# and alpha_v (`scene.model.Material`).
+TEXTURE_COLUMNS = ("texture", "opacity_texture", "blend_texture", "normal_map", "bump_map",
+                   "alpha_u_texture", "alpha_v_texture")
 
 
 def _reachable(materials, used) -> np.ndarray:

@@ -57,7 +57,8 @@ from dosppm_core.kernels.emit import select_light
 from dosppm_core.kernels.envmap import env_eval, env_sample
 from dosppm_core.kernels.light_cache import cell_pmf, pick_in_cell, read_cell
 from dosppm_core.kernels.light_tree import sample_tree, tree_pmf
-from dosppm_core.kernels.materials import hit_point_eval, hit_point_pdf, hit_point_sample, is_coloured
+from dosppm_core.kernels.anisotropic import hp_eval, hp_pdf, hp_sample
+from dosppm_core.kernels.materials import is_coloured
 from dosppm_core.kernels.paths import offset_origin
 from dosppm_core.kernels.rng import next_float
 from dosppm_core.kernels.texture import emitter_texel, triangle_texel
@@ -179,7 +180,9 @@ def _beyond_sphere(centre, radius, p0, p1, p2):
 @nb.njit(cache=True, parallel=True, error_model="numpy")
 def sample_direct(hits, states, surf, lights, cache, infinite, mis, eps_rel):
     """One direct-light ray per hit point. `hits` is (position, normal,
-    outgoing, weight, material) of `jobs.HitPoints`, `states` each eye
+    outgoing, weight, material) of `jobs.HitPoints` and the frames of
+    anisotropic hit points (`anisotropic.hit_point_frames`, (0, 5) in a
+    scene without them), `states` each eye
     path's rng state at its hit point, `surf` a `SurfaceData`, `lights`
     the LightTable's (kind, p0, p1, p2, value, cone, power, cdf) and its
     light tree's arrays, `cache` the light cache's arrays (frozen: no
@@ -228,7 +231,7 @@ def _kept_rays(out, keep):
 def _direct_ray(i, hits, states, surf, lights, cache, infinite, mis, eps_rel, total, out):
     """Hit point i's ray into row i of `out`; whether it may contribute."""
     env = (infinite[2], infinite[3], infinite[4], infinite[5], infinite[6])
-    position, normal, outgoing, weight, material = hits
+    position, normal, outgoing, weight, material, frames = hits
     m = material[i]
     glossy = mis and surf.kind[m] == GLOSSY
     st, ul = next_float(states[i])
@@ -240,7 +243,7 @@ def _direct_ray(i, hits, states, surf, lights, cache, infinite, mis, eps_rel, to
     if is_coloured(surf.kind[m]):
         st, ut = next_float(st)
         return _coloured_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights, env, total,
-                             mis, ut, ul, u1, u2, eps_rel, out)
+                             mis, ut, ul, u1, u2, eps_rel, out, frames)
     if glossy:
         st, ut = next_float(st)
         if ut >= C_LIGHT:
@@ -480,7 +483,7 @@ def emitter_radiance(direction, radiance, pdf, prim, t, surf, total_power):
 # -- the coloured materials (kernels.materials) --------------------------------------
 @nb.njit(inline="always", cache=True, error_model="numpy")
 def _coloured_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights, env, total, mis,
-                  ut, ul, u1, u2, eps_rel, out):
+                  ut, ul, u1, u2, eps_rel, out, frames):
     """Direct light at a hit point of a rough dielectric, a plastic or a
     conductor: the glossy hit point's one-sample MIS (a light chosen by
     power, or with probability 1 - C_LIGHT a direction from the hit point's
@@ -489,7 +492,7 @@ def _coloured_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights
     kind, row = surf.kind[m], surf.bsdf[m]
     if mis and ut >= C_LIGHT:
         return _coloured_bsdf_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, kind, row, surf,
-                                  ul, u1, u2, eps_rel, out)
+                                  ul, u1, u2, eps_rel, out, frames)
     power, cdf = lights[6], lights[7]
     li = select_light(cdf, ul)
     p_sel = power[li] / total
@@ -510,26 +513,26 @@ def _coloured_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, m, surf, lights
         l0, l1, l2 = light_le(lights, li, w0, w1, w2, u1, u2)
     pdf = c * p_light
     if mis and (lights[0][li] == LIGHT_TRIANGLE or lights[0][li] == LIGHT_ENV):
-        pdf += (1.0 - C_LIGHT) * hit_point_pdf(kind, row, n0, n1, n2, o0, o1, o2, w0, w1, w2)
+        pdf += (1.0 - C_LIGHT) * hp_pdf(kind, row, frames, i, n0, n1, n2, o0, o1, o2, w0, w1, w2)
     if not _aim(i, out, p0, p1, p2, n0, n1, n2, w0, w1, w2, q0, q1, q2, eps_rel, surf.eps_abs):
         return False
     out[3][i, 0] = weight[i, 0] * l0 / pdf
     out[3][i, 1] = weight[i, 1] * l1 / pdf
     out[3][i, 2] = weight[i, 2] * l2 / pdf
-    return _tint_row(i, out, kind, row, n0, n1, n2, o0, o1, o2, w0, w1, w2)
+    return _tint_row(i, out, kind, row, n0, n1, n2, o0, o1, o2, w0, w1, w2, frames)
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
 def _coloured_bsdf_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, kind, row, surf, ul, u1, u2,
-                       eps_rel, out):
+                       eps_rel, out, frames):
     """A direction from the hit point's BSDF, looking for an emitter (or the
     environment): radiance W f |cos|, pdf (1 - C_LIGHT) p_bsdf."""
-    ok, w0, w1, w2, _t0, _t1, _t2 = hit_point_sample(kind, row, n0, n1, n2, o0, o1, o2, ul, u1, u2)
+    ok, w0, w1, w2, _t0, _t1, _t2 = hp_sample(kind, row, frames, i, n0, n1, n2, o0, o1, o2, ul, u1, u2)
     if not ok:
         return False
     wl = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
     w0, w1, w2 = w0 / wl, w1 / wl, w2 / wl
-    p_bsdf = hit_point_pdf(kind, row, n0, n1, n2, o0, o1, o2, w0, w1, w2)
+    p_bsdf = hp_pdf(kind, row, frames, i, n0, n1, n2, o0, o1, o2, w0, w1, w2)
     if not p_bsdf > 0.0:
         return False
     origin, direction, tmax, radiance, pdfs = out
@@ -540,13 +543,13 @@ def _coloured_bsdf_ray(i, p0, p1, p2, n0, n1, n2, o0, o1, o2, weight, kind, row,
     pdfs[i] = (1.0 - C_LIGHT) * p_bsdf
     for k in range(3):
         radiance[i, k] = weight[i, k]
-    return _tint_row(i, out, kind, row, n0, n1, n2, o0, o1, o2, w0, w1, w2)
+    return _tint_row(i, out, kind, row, n0, n1, n2, o0, o1, o2, w0, w1, w2, frames)
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
-def _tint_row(i, out, kind, row, n0, n1, n2, o0, o1, o2, w0, w1, w2):
+def _tint_row(i, out, kind, row, n0, n1, n2, o0, o1, o2, w0, w1, w2, frames):
     """Multiply row i's radiance by f(wo, wi) |cos| (rgb); whether it may contribute."""
-    f0, f1, f2 = hit_point_eval(kind, row, n0, n1, n2, o0, o1, o2, w0, w1, w2)
+    f0, f1, f2 = hp_eval(kind, row, frames, i, n0, n1, n2, o0, o1, o2, w0, w1, w2)
     c = abs(n0 * w0 + n1 * w1 + n2 * w2)
     out[3][i, 0] *= f0 * c
     out[3][i, 1] *= f1 * c

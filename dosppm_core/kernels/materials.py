@@ -69,7 +69,10 @@ B_NORMAL_MAP, B_BUMP_MAP, B_BUMP_SCALE, B_SHADING_FLAGS = B_CK + 3, B_CK + 4, B_
 # textured weight; CHOICE 1 when a hit must first choose what scatters
 # (`resolve_surface`). Texture and material ids as floats, -1 for none.
 B_OPACITY_TEX, B_BLEND_A, B_BLEND_B, B_BLEND_W, B_BLEND_TEX, B_CHOICE = range(B_CK + 7, B_CK + 13)
-B_COLS = B_CHOICE + 1
+# A rough conductor's alpha_v (B_ALPHA is alpha_u), the textures of both
+# (-1 none), and ANISO 1 when it needs a tangent frame (`kernels.anisotropic`).
+B_ALPHA_V, B_ALPHA_TEX_U, B_ALPHA_TEX_V, B_ANISO = range(B_CHOICE + 1, B_CHOICE + 5)
+B_COLS = B_ANISO + 1
 
 
 def bsdf_rows(materials) -> np.ndarray:
@@ -98,6 +101,13 @@ def bsdf_rows(materials) -> np.ndarray:
     rows[:, B_BLEND_W] = materials.blend_weight
     rows[:, B_BLEND_TEX] = materials.blend_texture
     rows[:, B_CHOICE] = (rows[:, B_OPACITY] < 1.0) | (materials.blend[:, 1] >= 0)
+    alpha_v = np.where(materials.roughness_v >= 0, materials.roughness_v, materials.roughness)
+    rows[:, B_ALPHA_V] = np.maximum(alpha_v, 1e-4)
+    rows[:, B_ALPHA_TEX_U] = materials.alpha_u_texture
+    rows[:, B_ALPHA_TEX_V] = materials.alpha_v_texture
+    rows[:, B_ANISO] = (materials.kind == ROUGH_CONDUCTOR) & (
+        (rows[:, B_ALPHA_V] != rows[:, B_ALPHA]) | (materials.alpha_u_texture >= 0)
+        | (materials.alpha_v_texture >= 0))
     for i in range(m):
         k = int(materials.kind[i])
         if k not in (PLASTIC, ROUGH_PLASTIC):
@@ -201,7 +211,7 @@ def fresnel_conductor(cos_i, eta, k):
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _conductor_tint(row, cos_h):
+def conductor_tint(row, cos_h):
     """F(cos_h) times the specular tint, per channel."""
     return (fresnel_conductor(cos_h, row[B_CETA], row[B_CK]) * row[B_SPEC],
             fresnel_conductor(cos_h, row[B_CETA + 1], row[B_CK + 1]) * row[B_SPEC + 1],
@@ -212,7 +222,7 @@ def _conductor_tint(row, cos_h):
 def _rough_conductor(row, cos_o, cos_i, n0, n1, n2, w0, w1, w2, i0, i1, i2):
     """Mitsuba's roughconductor: F(wo.h) D G / (4 cos_o cos_i), tinted."""
     wo_h, k = _microfacet(row, cos_o, cos_i, n0, n1, n2, w0, w1, w2, i0, i1, i2)
-    f0, f1, f2 = _conductor_tint(row, wo_h)
+    f0, f1, f2 = conductor_tint(row, wo_h)
     return f0 * k, f1 * k, f2 * k
 
 
@@ -363,7 +373,7 @@ def _sample_conductor(kind, row, n0, n1, n2, w0, w1, w2, cos_o, u2, u3):
     Mitsuba's roughconductor sample: a visible normal m, the reflection
     about it, weight F(wo.m) G1(wi, m) s."""
     if kind == CONDUCTOR:
-        f0, f1, f2 = _conductor_tint(row, cos_o)
+        f0, f1, f2 = conductor_tint(row, cos_o)
         k = 2.0 * cos_o
         return True, k * n0 - w0, k * n1 - w1, k * n2 - w2, f0, f1, f2, 1.0, True
     dist, alpha = int(row[B_DIST]), row[B_ALPHA]
@@ -374,7 +384,7 @@ def _sample_conductor(kind, row, n0, n1, n2, w0, w1, w2, cos_o, u2, u3):
     g = smith_g1(dist, alpha, cos_i, dot(i0, i1, i2, m0, m1, m2)) if cos_i > 0.0 else 0.0
     if not g > 0.0:
         return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, False
-    f0, f1, f2 = _conductor_tint(row, c)
+    f0, f1, f2 = conductor_tint(row, c)
     return True, i0, i1, i2, f0 * g, f1 * g, f2 * g, 1.0, False
 
 
@@ -487,7 +497,7 @@ MAX_NESTING = 4
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _scalar_at(row, col, tex_col, uvs, tris, tinfo, tuv, texels, tri, u, v):
+def scalar_at(row, col, tex_col, uvs, tris, tinfo, tuv, texels, tri, u, v):
     """A [0, 1] parameter of the row: the constant, or the texture's
     luminance at the hit clipped to [0, 1] (Mitsuba's eval_1 of an RGB
     texture; a grey one gives its value)."""
@@ -520,14 +530,14 @@ def resolve_surface(bsdf, m, state, eye, uvs, tris, tinfo, tuv, texels, tri, u, 
     for level in range(MAX_NESTING):
         row = bsdf[m]
         if row[B_OPACITY] < 1.0:
-            a = _scalar_at(row, B_OPACITY, B_OPACITY_TEX, uvs, tris, tinfo, tuv, texels, tri, u, v)
+            a = scalar_at(row, B_OPACITY, B_OPACITY_TEX, uvs, tris, tinfo, tuv, texels, tri, u, v)
             # salt 0: the first mask's choice as before blends existed; 1 is plastic's.
             state, x = _draw(state, eye, 0 if level == 0 else 2 + 2 * level)
             if x >= a:
                 return state, m, True
         if row[B_BLEND_B] < 0.0:
             return state, m, False
-        w = _scalar_at(row, B_BLEND_W, B_BLEND_TEX, uvs, tris, tinfo, tuv, texels, tri, u, v)
+        w = scalar_at(row, B_BLEND_W, B_BLEND_TEX, uvs, tris, tinfo, tuv, texels, tri, u, v)
         state, x = _draw(state, eye, 3 + 2 * level)
         m = int(row[B_BLEND_B]) if x < w else int(row[B_BLEND_A])
     return state, m, False

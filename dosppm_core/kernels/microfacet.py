@@ -6,7 +6,9 @@ Isotropic GGX and Beckmann: D, Smith's separable G1 (Beckmann by Mitsuba's
 rational approximation), and sampling of the visible normals (Heitz and
 d'Eon 2014, Mitsuba's `sample_visible_11`). Vectors are world-space with
 the unit macro normal `n`; the local frame is `bsdf.basis(n)` (any frame
-about n will do: the distributions are isotropic).
+about n will do: the distributions are isotropic). The `_aniso` forms
+take local vectors in a frame (s, t, n) that the surface defines
+(`kernels.anisotropic`): alpha_u along s, alpha_v along t.
 
 `coating_table` precomputes, per rough plastic, the coating's directional
 transmittance and internal reflectance exactly as Mitsuba's roughplastic
@@ -86,6 +88,37 @@ def smith_g1(dist, alpha, cos_v, v_dot_m):
 
 
 @nb.njit(cache=True, error_model="numpy")
+def distribution_d_aniso(dist, alpha_u, alpha_v, x, y, z):
+    """Mitsuba's anisotropic D(m), m = (x, y, z) unit in the frame (s, t, n)."""
+    c2 = z * z
+    a = x / alpha_u
+    b = y / alpha_v
+    if dist == BECKMANN:
+        d = math.exp(-(a * a + b * b) / c2) / (math.pi * alpha_u * alpha_v * c2 * c2)
+    else:
+        t = a * a + b * b + c2
+        d = 1.0 / (math.pi * alpha_u * alpha_v * t * t)
+    return d if d * z > 1e-20 else 0.0
+
+
+@nb.njit(cache=True, error_model="numpy")
+def smith_g1_aniso(dist, alpha_u, alpha_v, x, y, z, v_dot_m):
+    """Mitsuba's anisotropic smith_g1(v, m), v = (x, y, z) local."""
+    if v_dot_m * z <= 0.0:
+        return 0.0
+    xy2 = (alpha_u * x) ** 2 + (alpha_v * y) ** 2
+    if xy2 == 0.0:
+        return 1.0
+    tan2 = xy2 / (z * z)
+    if dist == BECKMANN:
+        a = 1.0 / math.sqrt(tan2)
+        if a >= 1.6:
+            return 1.0
+        return (3.535 * a + 2.181 * a * a) / (1.0 + 2.276 * a + 2.577 * a * a)
+    return 2.0 / (1.0 + math.sqrt(1.0 + tan2))
+
+
+@nb.njit(cache=True, error_model="numpy")
 def erfinv(x):
     """Inverse error function (Giles 2010, drjit's single-precision fit)."""
     w = -math.log(max((1.0 - x) * (1.0 + x), 1e-300))
@@ -145,7 +178,15 @@ def _visible_11(dist, cos_i, u1, u2):
 @nb.njit(cache=True, error_model="numpy")
 def sample_visible_local(dist, alpha, x, y, z, u1, u2):
     """A microfacet normal visible from local direction (x, y, z), z > 0."""
-    sx, sy, sz = alpha * x, alpha * y, z
+    return sample_visible_aniso(dist, alpha, alpha, x, y, z, u1, u2)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def sample_visible_aniso(dist, alpha_u, alpha_v, x, y, z, u1, u2):
+    """Mitsuba's MicrofacetDistribution::sample with visible normals, in
+    the local frame (s, t, n): alpha_u along s, alpha_v along t (equal:
+    the isotropic distribution, with the same arithmetic)."""
+    sx, sy, sz = alpha_u * x, alpha_v * y, z
     sl = math.sqrt(sx * sx + sy * sy + sz * sz)
     sx, sy, sz = sx / sl, sy / sl, sz / sl
     sin2 = 1.0 - sz * sz
@@ -155,8 +196,8 @@ def sample_visible_local(dist, alpha, x, y, z, u1, u2):
         inv = 1.0 / math.sqrt(sin2)
         cos_phi, sin_phi = min(max(sx * inv, -1.0), 1.0), min(max(sy * inv, -1.0), 1.0)
     s0, s1 = _visible_11(dist, sz, u1, u2)
-    m0 = (cos_phi * s0 - sin_phi * s1) * alpha
-    m1 = (sin_phi * s0 + cos_phi * s1) * alpha
+    m0 = (cos_phi * s0 - sin_phi * s1) * alpha_u
+    m1 = (sin_phi * s0 + cos_phi * s1) * alpha_v
     ml = math.sqrt(m0 * m0 + m1 * m1 + 1.0)
     return -m0 / ml, -m1 / ml, 1.0 / ml
 

@@ -22,8 +22,10 @@ import numba as nb
 import numpy as np
 
 from dosppm_core.jobs import ABSORBED, CONTINUES, ESCAPED, MAX_DEPTH, STORED
+from dosppm_core.kernels.anisotropic import scatter
 from dosppm_core.kernels.bsdf import is_specular, sample_bsdf
 from dosppm_core.kernels.materials import (
+    B_ANISO,
     B_BUMP_MAP,
     B_CHOICE,
     B_NORMAL_MAP,
@@ -106,6 +108,11 @@ class SurfaceData(NamedTuple):
     @property
     def textured(self) -> bool:
         return bool(np.any(self.mat_texture >= 0))
+
+    @property
+    def anisotropic(self) -> bool:
+        """Whether a material needs a tangent frame (`kernels.anisotropic`)."""
+        return bool(np.any(self.bsdf[:, B_ANISO] > 0))
 
     @property
     def shading_mapped(self) -> bool:
@@ -370,8 +377,8 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
             end[i] = MAX_DEPTH
             continue
         st, u1, u2, u3, ur = _four_floats(st)
-        ok, d0, d1, d2, t0, t1, t2, _es = sample_scatter(two_sided, ior, rough, refl, bsdf, m, kind,
-                                                         s0, s1, s2, w0, w1, w2, u1, u2, u3, False)
+        ok, d0, d1, d2, t0, t1, t2 = _photon_scatter(surf, m, kind, tri, u[i], v[i], s0, s1, s2, w0, w1, w2,
+                                                     u1, u2, u3)
         if ok and mapped == MAPPED:
             ok, t0, t1, t2 = _adjoint(t0, t1, t2, k_in, n0, n1, n2, s0, s1, s2, d0, d1, d2, front)
         elif ok and mapped == SMOOTH:
@@ -408,6 +415,18 @@ def _photon_normal(surf, m, tri, u, v, n0, n1, n2, front, w0, w1, w2):
     s0, s1, s2, k_in = photon_shading(surf.bsdf, m, surf.vertices, tex, tri, u, v, n0, n1, n2, front,
                                       w0, w1, w2)
     return MAPPED, s0, s1, s2, k_in
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def _photon_scatter(surf, m, kind, tri, u, v, s0, s1, s2, w0, w1, w2, u1, u2, u3):
+    """A photon's `sample_scatter` about its (shading) normal s, or an
+    anisotropic conductor's lobe in the surface's frame there
+    (`kernels.anisotropic`). Returns (ok, direction, throughput rgb)."""
+    if surf.bsdf[m, B_ANISO] > 0.0:
+        return scatter(surf, m, tri, u, v, s0, s1, s2, w0, w1, w2, u2, u3)
+    ok, d0, d1, d2, t0, t1, t2, _es = sample_scatter(surf.two_sided, surf.ior, surf.roughness, surf.reflectance,
+                                                     surf.bsdf, m, kind, s0, s1, s2, w0, w1, w2, u1, u2, u3, False)
+    return ok, d0, d1, d2, t0, t1, t2
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")

@@ -89,7 +89,7 @@ def cornell_with_mesh(path: str, size_mm: float = 330.0) -> Scene:
     resting 1 mm above the floor: how `dosppm bench --mesh` places the
     Stanford dragon, like the paper's Cornell dragon scene."""
     name = f"cornell-{os.path.splitext(os.path.basename(path))[0]}"
-    vertices, faces = load_mesh_file(path, path, "mesh")
+    vertices, faces, _uv = load_mesh_file(path, path, "mesh")    # a glass mesh reads no texture
     builder = cornell_builder(name, CORNELL_SHELL)
     builder.add_material(Material("glass", "glass", reflectance=(1.0, 1.0, 1.0), ior=1.5))
     extent = float(np.ptp(vertices, axis=0).max())

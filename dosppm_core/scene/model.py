@@ -123,6 +123,9 @@ class Material:
     blend_weight: float = 0.0
     blend_texture: int = -1
     emission_texture: int = -1
+    roughness_v: float = -1.0       # a roughconductor's alpha_v; < 0: `roughness` (isotropic)
+    alpha_u_texture: int = -1       # textured alpha_u (replaces `roughness`), -1 for none
+    alpha_v_texture: int = -1       # textured alpha_v
 
     def validate(self, where: str) -> None:
         if self.kind not in MATERIAL_KINDS:
@@ -147,6 +150,8 @@ class Material:
             raise SceneError(f"{where}: a conductor's eta and k must be non-negative")
         if not (math.isfinite(self.opacity) and 0.0 <= self.opacity <= 1.0):
             raise SceneError(f"{where}.opacity: must lie in [0, 1], got {self.opacity!r}")
+        if self.roughness_v >= 0 and not (math.isfinite(self.roughness_v) and 1e-4 <= self.roughness_v <= 1.0):
+            raise SceneError(f"{where}.roughness_v: must lie in [1e-4, 1], got {self.roughness_v!r}")
         if not (math.isfinite(self.blend_weight) and 0.0 <= self.blend_weight <= 1.0):
             raise SceneError(f"{where}.blend_weight: must lie in [0, 1], got {self.blend_weight!r}")
 
@@ -299,6 +304,10 @@ class MaterialTable:
     # The texture (an index into the LightTable's own textures) that
     # `emission` is multiplied by, -1 for none (`scene.light_textures`).
     emission_texture: np.ndarray = None  # int32 (m,)
+    # Anisotropic and textured roughness of a rough conductor (`Material`).
+    roughness_v: np.ndarray = None      # float32 (m,): alpha_v, < 0 for `roughness`
+    alpha_u_texture: np.ndarray = None  # int32 (m,)
+    alpha_v_texture: np.ndarray = None  # int32 (m,)
 
     def __post_init__(self):
         # Tables made before these columns (tests, older callers) get the
@@ -321,7 +330,9 @@ class MaterialTable:
         for name, dtype, value in (("normal_map", np.int32, -1), ("bump_map", np.int32, -1),
                                    ("bump_scale", np.float32, 1.0), ("shading_flags", np.int32, 3),
                                    ("opacity_texture", np.int32, -1), ("blend_weight", np.float32, 0.0),
-                                   ("blend_texture", np.int32, -1), ("emission_texture", np.int32, -1)):
+                                   ("blend_texture", np.int32, -1), ("emission_texture", np.int32, -1),
+                                   ("roughness_v", np.float32, -1.0), ("alpha_u_texture", np.int32, -1),
+                                   ("alpha_v_texture", np.int32, -1)):
             if getattr(self, name) is None:
                 setattr(self, name, np.full(m, value, dtype))
         if self.blend is None:
@@ -363,6 +374,9 @@ class MaterialTable:
             blend_weight=np.array([m.blend_weight for m in mats], np.float32),
             blend_texture=np.array([m.blend_texture for m in mats], np.int32),
             emission_texture=np.array([m.emission_texture for m in mats], np.int32),
+            roughness_v=np.array([m.roughness_v for m in mats], np.float32),
+            alpha_u_texture=np.array([m.alpha_u_texture for m in mats], np.int32),
+            alpha_v_texture=np.array([m.alpha_v_texture for m in mats], np.int32),
         )
 
 
@@ -521,7 +535,8 @@ class SceneBuilder:
     def add_material(self, material: Material, where: str | None = None) -> int:
         where = where or f"{self.source}: material {material.name!r}"
         material.validate(where)
-        for name in ("texture", "opacity_texture", "blend_texture", "normal_map", "bump_map"):
+        for name in ("texture", "opacity_texture", "blend_texture", "normal_map", "bump_map",
+                     "alpha_u_texture", "alpha_v_texture"):
             if not -1 <= getattr(material, name) < len(self._textures):
                 raise SceneError(f"{where}: {name} id {getattr(material, name)} out of range")
         if not -1 <= material.emission_texture < len(self._emission_textures):
@@ -537,10 +552,11 @@ class SceneBuilder:
     def textured(self, material: int) -> bool:
         """Whether material id `material` reads a texture (its meshes keep
         UVs): its colour, a mask's opacity, a blend's weight or its parts',
-        a normal or bump map, or its emission."""
+        a normal or bump map, or its emission; or it is anisotropic (its
+        frame follows dp/du)."""
         m = self._materials[material]
         if max(m.texture, m.opacity_texture, m.blend_texture, m.normal_map, m.bump_map,
-               m.emission_texture) >= 0:
+               m.emission_texture, m.alpha_u_texture, m.alpha_v_texture) >= 0 or m.roughness_v >= 0:
             return True
         return m.blend != (-1, -1) and any(self.textured(b) for b in m.blend)
 

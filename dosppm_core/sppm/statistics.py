@@ -187,6 +187,45 @@ def reorder_deposits(deposits: PhotonDeposits, box: np.ndarray | None,
     return GatherPhotons(out[:, 0:3], out[:, 3:6], None, out[:, 6:9])
 
 
+@nb.njit(cache=True, nogil=True)
+def _update_pixels(pixel, m, phi, alpha, photon_count, radius, tau):
+    """Eqs. 1, 2 and 4 for the hit points that met photons (m > 0), in
+    place: one pass, where the same arithmetic in numpy fancy indexing took
+    11 ms an update over 65k scattered pixels, a fifth of a server's CPU
+    gathering at the tracers (issue 32). A pixel has one hit point."""
+    for i in range(pixel.shape[0]):
+        if not m[i] > 0:
+            continue
+        p = pixel[i]
+        n_old = photon_count[p]
+        n_new = n_old + alpha * m[i]                                     # eq. 1
+        shrink = n_new / (n_old + m[i])                                  # (R_{i+1}/R_i)^2, eq. 2
+        radius[p] *= math.sqrt(shrink)
+        for k in range(3):
+            tau[p, k] = (tau[p, k] + phi[i, k]) * shrink                 # eq. 4
+        photon_count[p] = n_new
+
+
+@nb.njit(cache=True, nogil=True)
+def _add_rows(out, rows, values):
+    for i in range(rows.shape[0]):
+        r = rows[i]
+        for k in range(values.shape[1]):
+            out[r, k] += values[i, k]
+
+
+def add_rows(out: np.ndarray, rows: np.ndarray, values: np.ndarray) -> None:
+    """out[rows] += values, in place, for distinct rows (a tracer's sums
+    or light per hit point or pixel, summed at the server): one compiled
+    pass, 10x numpy's gather-add-scatter over 65k rows. `out` float64 and
+    C-contiguous, 1-D or (n, k)."""
+    flat = out.reshape(len(out), -1)
+    if not np.shares_memory(flat, out):
+        raise ValueError("add_rows needs a contiguous float64 array to add into")
+    vals = np.ascontiguousarray(values, np.float64).reshape(len(rows), flat.shape[1])
+    _add_rows(flat, np.ascontiguousarray(rows, np.int64), vals)
+
+
 def _morton_sorted(pos: np.ndarray, box: np.ndarray | None) -> np.ndarray:
     """(Morton key << 32 | row) of every point, sorted. Sorting one packed
     uint64 is 3-5x faster than a stable argsort here, and as deterministic."""
@@ -473,14 +512,13 @@ class PixelStatistics:
             self._update(np.asarray(pixel), np.asarray(m, np.float64), np.asarray(phi, np.float64))
 
     def _update(self, pixel: np.ndarray, m: np.ndarray, phi: np.ndarray) -> None:
-        got = m > 0
-        pix, m, phi = pixel[got], m[got], phi[got]
-        n_old = self.photon_count[pix]
-        n_new = n_old + self.alpha * m                                   # eq. 1
-        shrink = n_new / (n_old + m)                                     # (R_{i+1}/R_i)^2, eq. 2
-        self.radius[pix] *= np.sqrt(shrink)
-        self.tau[pix] = (self.tau[pix] + phi) * shrink[:, None]          # eq. 4
-        self.photon_count[pix] = n_new
+        for name in ("photon_count", "radius", "tau"):      # a checkpoint's arrays may be views
+            a = getattr(self, name)
+            if not (a.flags.c_contiguous and a.dtype == np.float64):
+                setattr(self, name, np.ascontiguousarray(a, np.float64))
+        _update_pixels(np.ascontiguousarray(pixel, np.int64), np.ascontiguousarray(m, np.float64),
+                       np.ascontiguousarray(phi, np.float64), float(self.alpha),
+                       self.photon_count, self.radius, self.tau)
 
     # -- the image ------------------------------------------------------------
     def radiance(self) -> np.ndarray:

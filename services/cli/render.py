@@ -25,7 +25,7 @@ from dosppm_core.scene import builtin
 from dosppm_core.scene.loaders import load_scene
 from dosppm_core.scene.model import SceneError
 from dosppm_core.scene.soupfile import is_soup
-from dosppm_core.settings import SERVICE_JOB_SIZES, RenderSettings
+from dosppm_core.settings import GATHER_AT_TRACERS_PHOTONS_PER_JOB, SERVICE_JOB_SIZES, RenderSettings
 from services import config
 from services.cli.errors import EXIT_INTERRUPTED, EXIT_OK, fail, warnings_as_lines
 from services.local import run_server, warm_kernels
@@ -34,8 +34,9 @@ from services.progress import COMPILING, ProgressReporter, kernels_cached, stder
 MODES = ("dosppm", "sppm", "osppm")
 # Photons per job is the one setting whose default depends on the mode.
 _RENDER = tuple(dataclasses.replace(o, default=None, help=(
-    f"{o.help} (default {RenderSettings().photons_per_job} in one process, "
-    f"{SERVICE_JOB_SIZES['photons_per_job']} in the service)"))
+    f"photons per photon job (default {RenderSettings().photons_per_job} in one process, "
+    f"{SERVICE_JOB_SIZES['photons_per_job']} in the service, {GATHER_AT_TRACERS_PHOTONS_PER_JOB} "
+    f"gathering at the tracers)"))
     if o.name == "photons_per_job" else o for o in config.RENDER)
 # The local server's status page: loopback, on any free port.
 _SERVICE = tuple(dataclasses.replace(o, default="127.0.0.1:0") if o.name == "http" else o

@@ -20,13 +20,15 @@ ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 
 
 def commit() -> str:
-    """HEAD's hash, with '+dirty' when tracked files differ from it (the
-    figure then measured code no commit holds). Results files do not count:
-    one script regenerating several writes each in turn."""
+    """HEAD's hash, with '+dirty' when the tree differs from it anywhere:
+    an edit, staged or not, or a new file git does not ignore (a module not
+    yet added is code no commit holds as much as an edited one). Results
+    files do not count: one script regenerating several writes each in
+    turn."""
     def git(*args):
         return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True).stdout.strip()
     head = git("rev-parse", "HEAD") or "unknown"
-    changed = git("status", "--porcelain", "--untracked-files=no", "--", ".", ":(exclude)benchmarks/results")
+    changed = git("status", "--porcelain", "--untracked-files=normal", "--", ".", ":(exclude)benchmarks/results")
     return head + ("+dirty" if changed else "")
 
 

@@ -11,6 +11,13 @@ server's exactly-once accounting holds. Eye and shadow rays are traced
 for real: they are a small share of a render's rays and their hit points
 must be right for the statistics.
 
+Gathering at the tracers, a synthetic tracer gathers its first
+RECORDED_EPOCHS epochs for real; with `replay_epochs` it then answers
+each epoch's sums with a recorded answer (`ReplayedEpochs`) and keeps no
+deposits, so the server meets epochs at the rate the photon accounting
+alone allows (benchmarks/slow_link.py: a real tracer's gather would cap
+two tracers on this machine far below what the server or the link take).
+
 The server's own counters then give what one server core does at most:
 photons applied per second of server CPU, CPU per photon and per results
 message, where that CPU goes (the message loop's thread: making photon
@@ -36,11 +43,13 @@ import time
 
 import numpy as np
 
+from services.tracer.epochs import EpochDeposits, dense_sums, sparse_sums
 from services.tracer.node import TracerError, TracerOptions, TracerProcess
 from services.tracer.state import SERVER, TracerState, concat_credit
 from services.wire import Out
 
 RECORDED_STEPS = 16
+RECORDED_EPOCHS = 2
 REPLAY_RETRY_S = 10.0
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -49,10 +58,15 @@ class ReplayState(TracerState):
     """TracerState whose photon steps replay recorded results once
     RECORDED_STEPS of them were traced for real."""
 
+    replay_epochs = False           # `ReplayedEpochs` once RECORDED_EPOCHS are gathered
+
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self.recorded: list[tuple[dict, int]] = []   # (results fields, paths traced)
         self.counters.update(replayed_steps=0, recorded_paths=0, recorded_s=0.0)
+
+    def hold_epochs(self, epochs) -> None:
+        super().hold_epochs(ReplayedEpochs(epochs) if self.replay_epochs and epochs is not None else epochs)
 
     def _trace_photons(self, view, taken):
         if len(self.recorded) < RECORDED_STEPS:
@@ -74,26 +88,68 @@ class ReplayState(TracerState):
         fields, paths = self.recorded[self.counters["replayed_steps"] % len(self.recorded)]
         self.counters["replayed_steps"] += 1
         self.counters["rays_traced"] += len(jobs)
-        replayed = _relabelled(fields, paths, jobs, view.index, self.queued_rays, concat_credit(taken.items))
+        keeps = getattr(self.epochs, "keeps_deposits", True)
+        replayed = _relabelled(fields, paths, jobs, view.index, (self.queued_rays, self.queue_target()),
+                               concat_credit(taken.items), with_deposits=keeps)
         if self.epochs is not None:     # gathered here, when the server asks for the epoch's sums
-            self.epochs.add(replayed.pop("deposits"))
+            deposits = replayed.pop("deposits")
+            if keeps:
+                self.epochs.add(deposits)
         return [Out(SERVER, "results", replayed)]
 
 
-def _relabelled(fields: dict, paths: int, jobs: np.ndarray, chunk: int, queued: int, credit: tuple) -> dict:
+class ReplayedEpochs(EpochDeposits):
+    """A tracer's epochs that are gathered for real until RECORDED_EPOCHS
+    sums answers are recorded; then every `sums` request is answered with
+    a recorded one, its rows cycled to the hit points asked about, and no
+    deposit is kept. The other phases (a count, a pilot) are answered as
+    usual, from whatever is held (nothing, once replaying: no pixel is
+    fitted then, and it tries again at the next epoch)."""
+
+    def __init__(self, base: EpochDeposits):
+        self.__dict__.update(base.__dict__)
+        self.recorded: list[dict] = []
+
+    @property
+    def keeps_deposits(self) -> bool:
+        return len(self.recorded) < RECORDED_EPOCHS
+
+    def add(self, deposits) -> None:
+        if self.keeps_deposits:
+            super().add(deposits)
+
+    def reply(self, msg) -> dict:
+        if msg.phase != "sums" or self.keeps_deposits:
+            out = super().reply(msg)
+            if msg.phase == "sums":
+                hp = self._hits(msg.hits_version)
+                m, phi = dense_sums(len(hp), out["m"], out["phi"], out.get("rows"))
+                self.recorded.append(dict(out, m=m, phi=phi))
+            return out
+        rec = self.recorded[self.counters["epochs_gathered"] % len(self.recorded)]
+        self.held.pop(int(msg.epoch), None)
+        rows = np.arange(len(self._hits(msg.hits_version))) % max(len(rec["m"]), 1)
+        self.counters["epochs_gathered"] += 1
+        return dict(epoch=int(msg.epoch), phase="sums", hits_version=msg.hits_version, deposits=rec["deposits"],
+                    chosen=0, flux=rec["flux"], **sparse_sums(rec["m"][rows], rec["phi"][rows]))
+
+
+def _relabelled(fields: dict, paths: int, jobs: np.ndarray, chunk: int, queue: tuple, credit: tuple,
+                with_deposits: bool = True) -> dict:
     """A recorded step's results for a package of paths of `jobs`: deposits
     cycled to the package's size and spread over its jobs, every path
-    ended, so all of the package's `credit` returned."""
+    ended, so all of the package's `credit` returned. `queue`: the
+    tracer's (queued rays, queue target), as every results message says."""
     ids, fed = np.unique(jobs, return_counts=True)
     rec = fields["deposits"]
-    n = int(round(len(rec) * len(jobs) / max(paths, 1)))
+    n = int(round(len(rec) * len(jobs) / max(paths, 1))) if with_deposits else 0
     rows = np.arange(n) % max(len(rec), 1)
     deposits = dataclasses.replace(rec.take(rows), job=ids[np.arange(n) % len(ids)].astype(np.int64))
     ends = np.asarray(fields["ends"]) * len(jobs) // max(paths, 1)
     ends[np.argmax(ends)] += len(jobs) - ends.sum()      # the wire checks: every path ended once
     return dict(chunk=chunk, ends=ends, culled=0, deposits=deposits, job_ids=ids.astype(np.int64),
-                job_fed=fed.astype(np.int64), job_left=np.zeros(len(ids), np.int64), queued=queued,
-                credit_job=credit[0], credit_exp=credit[1])
+                job_fed=fed.astype(np.int64), job_left=np.zeros(len(ids), np.int64), queued=queue[0],
+                queue_target=queue[1], credit_job=credit[0], credit_exp=credit[1])
 
 
 class ReplayTracer(TracerProcess):
@@ -106,12 +162,17 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def run(scene: str, tracers: int, seconds: float, work: str, extra=(), hosts: dict | None = None) -> dict:
+def run(scene: str, tracers: int, seconds: float, work: str, extra=(), hosts: dict | None = None,
+        wait_s: float | None = None, replay_epochs: bool = False) -> dict:
     """One server and `tracers` synthetic tracers for `seconds`; returns the
-    server's summary (its JSON) and the tracers' recorded rates. `hosts`:
+    server's summary (its JSON) and the tracers' recorded rates. `wait_s`:
+    how long the server may take to end (default ten times `seconds` and 5
+    minutes) before it is killed and this raises. `hosts`:
     {"server": (namespace, address), "tracers": [namespace, ...]} to run
     each process in its own network namespace (services/evaluation/netns.py)
-    instead of all on 127.0.0.1."""
+    instead of all on 127.0.0.1. `replay_epochs`: the tracers answer
+    epochs past the first RECORDED_EPOCHS with recorded sums
+    (`ReplayedEpochs`) instead of gathering."""
     from dosppm_core.chunks.subdivide import open_or_subdivide
     from dosppm_core.scene import builtin
     from dosppm_core.scene.soup import SceneSource
@@ -131,20 +192,33 @@ def run(scene: str, tracers: int, seconds: float, work: str, extra=(), hosts: di
                                "--time", str(seconds), "--min-tracers", str(tracers), "--out", out,
                                "--http", "off", "--quiet", *extra], env=env)
     procs = [subprocess.Popen([*w, sys.executable, "-m", "services.evaluation.replay", "--tracer", endpoint,
-                               "--store", store.path], env=env, stdout=subprocess.PIPE, text=True)
+                               "--store", store.path, *(["--replay-epochs"] if replay_epochs else [])],
+                              env=env, stdout=subprocess.PIPE, text=True)
              for w in wrap["tracers"]]
-    try:
-        server.wait(timeout=seconds * 10 + 300)
-        # Each synthetic tracer prints its counters as it ends.
-        counters = [json.loads(p.communicate(timeout=30)[0] or "{}") for p in procs]
-    finally:
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
+    counters = _awaited(server, procs, seconds * 10 + 300 if wait_s is None else wait_s)
     if server.returncode != 0:
         raise RuntimeError(f"replay: the server exited with status {server.returncode}")
     with open(os.path.splitext(out)[0] + ".json", encoding="utf-8") as f:
         return dict(json.load(f), replay_tracers=counters)
+
+
+def _awaited(server: subprocess.Popen, procs: list, wait_s: float) -> list[dict]:
+    """The synthetic tracers' counters once the server has ended. Whatever
+    happens meanwhile (a server that never ends, an interrupt), no process
+    outlives this: a replay server that hung once ran on for 1.5 h after
+    its harness gave up, holding a core of a shared machine."""
+    try:
+        try:
+            server.wait(timeout=wait_s)
+        except subprocess.TimeoutExpired:
+            raise RuntimeError(f"replay: the server did not end within {wait_s:.0f} s; killed") from None
+        # Each synthetic tracer prints its counters as it ends.
+        return [json.loads(p.communicate(timeout=30)[0] or "{}") for p in procs]
+    finally:
+        for p in (server, *procs):
+            if p.poll() is None:
+                p.kill()
+                p.wait()
 
 
 def tracer_rate(scene: str, photons: int = 400_000) -> float:
@@ -221,6 +295,7 @@ def _tracer_main(args) -> int:
     # A server behind a saturated link may exit before its shutdown gets
     # through (benchmarks/slow_link.py): give up after REPLAY_RETRY_S of
     # silence, not a worker's minute, and still report.
+    ReplayState.replay_epochs = bool(args.replay_epochs)
     tp = ReplayTracer(TracerOptions(args.tracer, store=args.store, threads=1, tracer_id=f"replay-{os.getpid()}",
                                     connect_timeout_s=REPLAY_RETRY_S))
     try:
@@ -266,6 +341,9 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--tracer", help=argparse.SUPPRESS)      # internal: be one synthetic tracer
     p.add_argument("--store", help=argparse.SUPPRESS)
+    p.add_argument("--replay-epochs", action="store_true",
+                   help="gathering at the tracers, answer epochs with recorded sums after the first "
+                        f"{RECORDED_EPOCHS} (the tracers' gather then costs nothing)")
     p.add_argument("--scene", default="cornell-glass")
     p.add_argument("--tracers", type=int, default=2)
     p.add_argument("--seconds", type=float, default=20.0)
@@ -274,6 +352,8 @@ def main(argv=None) -> int:
                    help="where photons are gathered (the server's --gather-at)")
     p.add_argument("--hit-point-stride", type=int, default=None,
                    help="the server's --hit-point-stride (default: its own; 1: every eye iteration installs)")
+    p.add_argument("--server-arg", action="append", default=[], metavar="ARG",
+                   help="one more argument for the server, as in --server-arg=--photon-batch=4000000 (repeatable)")
     p.add_argument("--json", help="write the runs, with provenance, here")
     args = p.parse_args(argv)
     if args.tracer:
@@ -284,11 +364,13 @@ def main(argv=None) -> int:
         for _ in range(args.repeats):       # alternated: drift on a shared machine hits both alike
             per_core = tracer_rate(args.scene)
             extra = ("--gather-at", args.gather_at) + (
-                () if args.hit_point_stride is None else ("--hit-point-stride", str(args.hit_point_stride)))
-            s = run(args.scene, args.tracers, args.seconds, work, extra)
+                () if args.hit_point_stride is None else ("--hit-point-stride", str(args.hit_point_stride))) + tuple(
+                args.server_arg)
+            s = run(args.scene, args.tracers, args.seconds, work, extra, replay_epochs=args.replay_epochs)
             runs.append(dict(figures(s, per_core), **tracer_gather(s)))
     res = {"scene": args.scene, "tracers": args.tracers, "seconds": args.seconds, "gather_at": args.gather_at,
-           "hit_point_stride": args.hit_point_stride, "replay": median_of(runs)}
+           "hit_point_stride": args.hit_point_stride, "server_args": args.server_arg,
+           "replay_epochs": args.replay_epochs, "replay": median_of(runs)}
     print(report(res))
     if args.json:
         write_results(args.json, res)

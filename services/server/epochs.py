@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dosppm_core.sppm.statistics import add_rows
 from dosppm_core.trace import NO_CULL
 
 # What an epoch brings into the server, at most, per photon (issue 32's
@@ -191,9 +192,9 @@ def total(answers: dict, n: int) -> dict:
             continue
         rows = msg.fields.get("rows")
         if rows is None:
-            out["m"] = out["m"] + msg.m
-            out["phi"] = out["phi"] + msg.phi
-        else:
-            out["m"][rows] += msg.m       # rows are distinct (the wire checks they increase)
-            out["phi"][rows] += msg.phi
+            out["m"] += msg.m
+            out["phi"] += msg.phi
+        else:                             # rows are distinct (the wire checks they increase)
+            add_rows(out["m"], rows, msg.m)
+            add_rows(out["phi"], rows, msg.phi)
     return out

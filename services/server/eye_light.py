@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dosppm_core.sppm.statistics import add_rows
 from services.server.records import Update
 from services.wire import Out
 
@@ -88,7 +89,7 @@ def summed(parts: list, n_pixels: int) -> np.ndarray:
     """A round's answers added up per pixel, (n_pixels, 3) float64."""
     out = np.zeros((n_pixels, 3))
     for pixels, rgb in parts:
-        out[pixels] += rgb          # pixels are distinct within an answer (the wire checks)
+        add_rows(out, pixels, rgb)      # pixels are distinct within an answer (the wire checks)
     return out
 
 

@@ -41,7 +41,7 @@ from services.server.history import StatusHistory, progress
 from services.server.options import ServerOptions
 from services.server.http import StatusServer
 from services.server.state import ServerState, Update
-from services.server.statistics import ServerStatistics
+from services.server.statistics import ServerStatistics, moves_box
 
 log = logging.getLogger("dosppm.server")
 ACCEPT = {"register", "heartbeat", "results", "chunk_request", "error", "epoch_sums", "eye_light"}
@@ -313,8 +313,13 @@ class ServerProcess:
             self._queue(tid, frames)
 
     def _send(self, outs) -> None:
+        last = None      # (type, fields, frames): a broadcast's one message is encoded once
         for o in outs:
-            frames = self._encoded_job(o) if o.type == "photon_job" else wire.encode(o.type, **o.fields)
+            if last is not None and o.fields is last[1] and o.type == last[0]:
+                frames = last[2]      # send copies the frames (transport.Socket.send)
+            else:
+                frames = self._encoded_job(o) if o.type == "photon_job" else wire.encode(o.type, **o.fields)
+                last = (o.type, o.fields, frames)
             size = sum(memoryview(f).nbytes for f in frames)
             self.bytes_out_by_type[o.type] = self.bytes_out_by_type.get(o.type, 0) + size
             self._queue(o.dest, frames)
@@ -421,7 +426,7 @@ class ServerProcess:
                 self._boxes.put(None)
             finally:
                 self._updates.task_done()
-            if u.kind != "checkpoint":
+            if moves_box(u):
                 self._measure_radius()
 
     def _measure_radius(self) -> None:

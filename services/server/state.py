@@ -138,6 +138,7 @@ class ServerState(MembershipMixin, EmissionMixin, EyeScheduleMixin, EpochStateMi
         self.counters = dict.fromkeys(COUNTERS, 0)
         self.path_ends = np.zeros(len(END_NAMES), np.int64)
         self._latencies: deque = deque(maxlen=LATENCIES_KEPT)     # of the last photon jobs complete
+        self._latency_median: float | None = None
         self.job_making_cpu_s = 0.0     # a part of the server's cost per photon (costs.py)
         self._init_epochs(o.gather_at, o.min_tracers)
         self.hit_point_stride = self._hit_point_stride(o.hit_point_stride)
@@ -262,6 +263,7 @@ class ServerState(MembershipMixin, EmissionMixin, EyeScheduleMixin, EpochStateMi
             self.counters["photons_completed"] += job.paths
             self.counters["photon_jobs_completed"] += 1
             self._latencies.append(self._now - job.sent_s)
+            self._latency_median = None
             if self.epochs is not None:      # its deposits stay at the tracers, by epoch
                 self.epochs.complete(j, job.rng_key, job.paths, job.cull_box)
                 return
@@ -446,7 +448,9 @@ class ServerState(MembershipMixin, EmissionMixin, EyeScheduleMixin, EpochStateMi
         deadline is unlikely to count. (Jobs made but not sent wait at the
         server, and are dropped when emission stops.)"""
         if self._latencies:
-            return float(np.median(self._latencies))
+            if self._latency_median is None:      # asked every pass of the loop: made once per change
+                self._latency_median = float(np.median(self._latencies))
+            return self._latency_median
         made = [job.sent_s for job in self.jobs.values() if job.kind == "photon" and job.sent]
         return self._now - min(made) if made else 0.0
 

@@ -25,6 +25,7 @@ from dosppm_core.scene.model import SceneHeader
 from services import transport, wire
 from services.tracer.epochs import from_welcome
 from services.tracer.light import LightHold
+from services.tracer.merge import MergedResults, mergeable
 from services.tracer.fetch import FetchedStore
 from services.tracer.state import SERVER, STEP_RAYS, TracerState
 
@@ -97,6 +98,7 @@ class TracerProcess:
         self.state: TracerState | None = None
         self.peers: dict[str, transport.Socket] = {}
         self.outbox: list = []        # (endpoint, frames) waiting for a full peer pipe
+        self.merged = MergedResults()   # accounting-only results, sent together (merge.py)
         self.stopped: str | None = None
         self.session = None            # the registration the server last welcomed
         self.jobs_received = 0         # job messages since that welcome (acknowledged in heartbeats)
@@ -304,6 +306,8 @@ class TracerProcess:
             self.loop_s["receive_s"] += t1 - now
             if self.state.has_work():
                 self._send(self.state.step())
+            if not self.state.has_work() or self.merged.due(time.monotonic()):
+                self._send_merged()
             self._flush_outbox()
             self.loop_s["step_send_s"] += time.monotonic() - t1
             if now - last_beat >= HEARTBEAT_INTERVAL_S:
@@ -341,6 +345,7 @@ class TracerProcess:
                 # discarded or never knew.
                 self.session = msg.settings.get("session")
                 self.jobs_received = 0
+                self.merged.clear()       # of jobs the server discarded or never knew
                 self.state.reset()
                 self.state.header = SceneHeader.from_wire(msg.scene)     # the eye rays' camera
                 self.state.hit_point_stride = int(msg.settings.get("hit_point_stride", 1))
@@ -409,15 +414,25 @@ class TracerProcess:
                 # server's credit then stops this tracer's share of new jobs
                 # instead of its outbox growing without bound.
                 o.fields["queued"] += self._outbox_rays
-            frames = wire.encode(o.type, **o.fields)
+                if mergeable(o.fields):       # sent with the next ones (merge.py)
+                    self.merged.add(o.fields, time.monotonic())
+                    continue
             if o.dest == SERVER:
-                self._to_server(frames)
-                self.bytes_to_server += sum(memoryview(f).nbytes for f in frames)
-            else:
-                rays = len(o.fields["shadows" if o.fields["kind"] == "shadow" else "batch"])
-                self.outbox.append((o.dest, frames, rays))
-                self._outbox_rays += rays
+                self._send_merged()           # what came before goes first
+                self._to_server_counted(wire.encode(o.type, **o.fields))
+                continue
+            rays = len(o.fields["shadows" if o.fields["kind"] == "shadow" else "batch"])
+            self.outbox.append((o.dest, wire.encode(o.type, **o.fields), rays))
+            self._outbox_rays += rays
         self._flush_outbox()
+
+    def _send_merged(self) -> None:
+        for fields in self.merged.take():
+            self._to_server_counted(wire.encode("results", **fields))
+
+    def _to_server_counted(self, frames) -> None:
+        self._to_server(frames)
+        self.bytes_to_server += sum(memoryview(f).nbytes for f in frames)
 
     def _to_server(self, frames, disposable: bool = False) -> None:
         """Heartbeats and registers are dropped when the pipe to the server

@@ -212,11 +212,46 @@ def _roughconductor(reader: ReaderState, obj: Obj) -> Material:
     distribution = _distribution(obj)
     colour = params.rgb("specular_reflectance", 1.0)
     eta_k = _metal_index(obj)
-    params.finish()                       # a textured alpha is refused here
-    if eta_k is None and distribution == "ggx":
-        return _coloured(obj.name(), "glossy", colour, roughness=_alpha(obj), two_sided=False)
+    rough = _conductor_alpha(obj, params)
+    params.finish()
+    if eta_k is None and distribution == "ggx" and len(rough) == 1:
+        return _coloured(obj.name(), "glossy", colour, two_sided=False, **rough)
     return _metal(obj.name(), "roughconductor", colour, eta_k or ((0.0,) * 3, (1.0,) * 3),
-                  roughness=_alpha(obj), distribution=distribution)
+                  distribution=distribution, **rough)
+
+
+def _conductor_alpha(obj: Obj, params: TextureParams) -> dict:
+    """The roughness fields of a rough conductor: {roughness} when
+    isotropic and constant, else alpha_u and alpha_v (Mitsuba: `alpha`
+    sets both; without it both alpha_u and alpha_v are needed), each a
+    value or a texture (kernels.anisotropic)."""
+    if "alpha_u" not in obj.props and "alpha_u" not in params.named and \
+            "alpha_v" not in obj.props and "alpha_v" not in params.named:
+        alpha, texture = params.scalar("alpha", 0.1)
+        if texture < 0:
+            return {"roughness": _checked_alpha(obj, "alpha", alpha)}
+        return {"alpha_u_texture": texture, "alpha_v_texture": texture}
+    if "alpha" in obj.props or "alpha" in params.named:
+        obj.node.fail("give alpha, or alpha_u and alpha_v, not both")
+    out = {}
+    for name, value_field, texture_field in (("alpha_u", "roughness", "alpha_u_texture"),
+                                             ("alpha_v", "roughness_v", "alpha_v_texture")):
+        if name not in obj.props and name not in params.named:
+            obj.node.fail(f"needs {name} with the other of alpha_u and alpha_v")
+        value, texture = params.scalar(name, None)
+        if texture >= 0:
+            out[texture_field] = texture
+        else:
+            out[value_field] = _checked_alpha(obj, name, value)
+    if out.get("roughness") == out.get("roughness_v", -1.0) and len(out) == 2:
+        return {"roughness": out["roughness"]}      # alpha_u == alpha_v: isotropic
+    return out
+
+
+def _checked_alpha(obj: Obj, name: str, value: float) -> float:
+    if not 1e-4 <= value <= 1.0:
+        obj.node.fail(f"{name} must lie in [1e-4, 1], got {value}")
+    return value
 
 
 def _metal(name: str, kind: str, colour: tuple, eta_k, **kw) -> Material:
