@@ -253,5 +253,8 @@ def test_the_service_renders_a_smooth_scene_as_one_process(tmp_path, chunk_store
         c.close()
     portal_rays = sum(t.counters["portal_rays_out"] for t in c.tracers.values())
     assert portal_rays > 0 and len(per_iteration) >= 3
+    # As many eye iterations as SPPM's: the light seen in the mirror (a few
+    # pixels' worth of the mean) is averaged over as many eye samples.
+    assert c.server.eye_completed == iterations
     assert per_iteration[:3] == hit_points[:3]
     assert_same_within_noise(np.asarray(c.image()), sppm[5], sppm[9])
