@@ -36,7 +36,9 @@ RUN python3 -m venv /opt/dosppm \
  && pip install -q -r /tmp/requirements.txt \
  && rm /tmp/requirements.txt
 
-# The project itself (a regular, non-editable install).
+# The project itself (a regular, non-editable install): the library and
+# the services. The harness (harness/: dosppm bench, reference, compare,
+# evaluate) stays out of the image; those verbs say so in one line here.
 COPY README.md /src/README.md
 COPY dosppm_core /src/dosppm_core
 COPY services /src/services

@@ -42,7 +42,7 @@ from dosppm_core.scene.generate import generate_building  # noqa: E402
 from dosppm_core.scene.soup import SceneSource  # noqa: E402
 from dosppm_core.scene.soupfile import open_soup  # noqa: E402
 from dosppm_core.settings import RenderSettings  # noqa: E402
-from services.evaluation.provenance import median_of, write_results  # noqa: E402
+from harness.provenance import median_of, write_results  # noqa: E402
 
 DRAGON = os.path.join(ROOT, "..", "shared", "scenes", "stanford_dragon", "dragon_100k.ply")
 PAPER = {  # Günther & Grosch, photons per machine-second (Table 3, best: GPU cluster)

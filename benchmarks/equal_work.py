@@ -31,7 +31,7 @@ from dosppm_core.modes.osppm import OutOfCoreRenderer  # noqa: E402
 from dosppm_core.modes.sppm import Renderer  # noqa: E402
 from dosppm_core.scene.soup import SceneSource  # noqa: E402
 from dosppm_core.settings import RenderSettings  # noqa: E402
-from services.evaluation.provenance import median_of, write_results  # noqa: E402
+from harness.provenance import median_of, write_results  # noqa: E402
 
 
 def run(args) -> dict:

@@ -119,7 +119,7 @@ def main(argv=None) -> int:
         res["ratio_this_to_base"] = {k: median["this"][k] / median["base"][k]
                                      for k in ("hit_points_per_eye_s", "photons_per_photon_s")}
     sys.path.insert(0, ROOT)
-    from services.evaluation.provenance import write_results
+    from harness.provenance import write_results
     write_results(args.json, res)
     print(report(res))
     return 0

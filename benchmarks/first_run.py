@@ -27,7 +27,7 @@ import tempfile
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-from services.evaluation.provenance import write_results  # noqa: E402
+from harness.provenance import write_results  # noqa: E402
 
 
 def _render(dosppm: str, out: str, env: dict, cwd: str, seconds: float) -> int:

@@ -62,7 +62,7 @@ from dosppm_core.jobs import HitPoints, RayBatch
 from dosppm_core.scene import builtin
 from dosppm_core.sppm import hash as hash_gather
 from dosppm_core.sppm.statistics import pixel_footprint, reorder_deposits, spatial_order
-from services.evaluation.provenance import provenance
+from harness.provenance import provenance
 
 # isort: split
 import numba

@@ -28,14 +28,14 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-from dosppm_core import metrics  # noqa: E402
 from dosppm_core.chunks.store import ChunkStore  # noqa: E402
 from dosppm_core.chunks.subdivide import subdivide  # noqa: E402
 from dosppm_core.modes.osppm import OutOfCoreRenderer  # noqa: E402
 from dosppm_core.scene.generate import generate_building  # noqa: E402
 from dosppm_core.scene.soupfile import open_soup  # noqa: E402
 from dosppm_core.settings import RenderSettings  # noqa: E402
-from services.evaluation.provenance import write_results  # noqa: E402
+from harness import metrics  # noqa: E402
+from harness.provenance import write_results  # noqa: E402
 
 ESTIMATORS = {"shadow rays (default: light tree + light cache)": {"direct": "nee"},
               "shadow rays, light tree alone": {"direct": "nee", "light_cache": 0},

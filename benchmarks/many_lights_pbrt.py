@@ -2,7 +2,7 @@
 equal wall time, scored against a converged pbrt-v4 `path` reference.
 
 A generated building (rooms of about five ceiling lamps each) is exported
-by services/evaluation/pbrt.py; its tinted glass is made grey in both
+by harness/pbrt.py; its tinted glass is made grey in both
 renderers (pbrt-v4 has no tinted dielectric). The reference is pbrt-v4
 `path` at --ref-spp samples a pixel, kept in --cache under the scene's
 parameters (it takes a while). Then, for --seconds each, whole processes
@@ -36,13 +36,13 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-from dosppm_core import metrics  # noqa: E402
 from dosppm_core.film import read_exr, write_exr  # noqa: E402
 from dosppm_core.modes.sppm import render  # noqa: E402
 from dosppm_core.scene.generate import building_scene  # noqa: E402
 from dosppm_core.settings import RenderSettings  # noqa: E402
-from services.evaluation import pbrt  # noqa: E402
-from services.evaluation.provenance import write_results  # noqa: E402
+from harness import metrics  # noqa: E402
+from harness import pbrt  # noqa: E402
+from harness.provenance import write_results  # noqa: E402
 
 # pbrt's maxdepth. Ours is 256 with Russian roulette (RenderSettings): at
 # 10 the reference lost the light of the longer paths, and both our
@@ -98,7 +98,7 @@ def second_opinion(scene, ref: np.ndarray, spp: int) -> dict | None:
     """Mitsuba 3 `path` at `spp` against the pbrt reference (None without
     Mitsuba): the two renderers should agree on the mean within noise."""
     try:
-        from dosppm_core.reference import render_reference
+        from harness.reference import render_reference
         t0 = time.perf_counter()
         img = np.asarray(render_reference(scene, spp, max_depth=DEPTH))
     except Exception as e:       # not installed, or no variant: say so in the results

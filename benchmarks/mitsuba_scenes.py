@@ -13,7 +13,7 @@ errors of reading its language in full, with provenance.
 
 --score (issue 33, part 6) also renders every scene that loads, at its own
 size, in one process at `--seeds` seeds and scores the images against
-Mitsuba's reference as Mitsuba's own test does (dosppm_core/render_test.py);
+Mitsuba's reference as Mitsuba's own test does (harness/render_test.py);
 a scene that passes is rendered again through the render service
 (`dosppm render --chunks 2`: a server, 2 tracers, the scene in 2 chunks) at
 `--service-seeds` seeds of as many iterations and scored again. The budget
@@ -264,7 +264,7 @@ def score_scene(path: str, seeds: int = SEEDS, service_seeds: int = SERVICE_SEED
     """One scene's entry of the `scores` table: its refusal, or what the
     scorer made of our renders in one process and, if those pass, through
     the service (`service_seeds` 0: not tried)."""
-    from dosppm_core import render_test
+    from harness import render_test
     from dosppm_core.film import read_exr
     refusal = try_load(path)
     if refusal is not None:
@@ -382,7 +382,7 @@ def main(argv=None) -> int:
         p.error("--only scores part of the scenes: the results file holds all of them, so drop --out")
     scored = score_all(args.root, args) if args.score else {}
     if args.out:
-        from services.evaluation.provenance import write_results
+        from harness.provenance import write_results
         short = {n: (m and m.replace(args.root + os.sep, "")) for n, m in results}
         write_results(args.out, {"scenes": short, "loads": loads, "refusals": dict(counts.most_common()),
                                  "plugins_needed": needs,

@@ -38,7 +38,7 @@ from dosppm_core.scene.generate import generate_building  # noqa: E402
 from dosppm_core.scene.soup import SceneSource  # noqa: E402
 from dosppm_core.scene.soupfile import open_soup  # noqa: E402
 from dosppm_core.settings import RenderSettings  # noqa: E402
-from services.evaluation.provenance import write_results  # noqa: E402
+from harness.provenance import write_results  # noqa: E402
 
 CHUNKS = (1, 2, 4, 8, 16)
 DRAGON = os.path.join(ROOT, "..", "shared", "scenes", "stanford_dragon", "dragon_100k.ply")

@@ -43,8 +43,8 @@ from dosppm_core.film import read_exr  # noqa: E402
 from dosppm_core.scene.generate import building_scene  # noqa: E402
 from dosppm_core.scene.soupfile import SoupWriter, open_soup  # noqa: E402
 from many_lights_pbrt import pbrt_reference, score  # noqa: E402
-from services.evaluation import pbrt  # noqa: E402
-from services.evaluation.provenance import write_results  # noqa: E402
+from harness import pbrt  # noqa: E402
+from harness.provenance import write_results  # noqa: E402
 
 WORK = os.path.join(os.path.expanduser("~"), ".cache", "dosppm", "bench", "building-5M-grey")
 

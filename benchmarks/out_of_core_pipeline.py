@@ -233,7 +233,7 @@ def _stop(doc: dict) -> str:
 
 def main(argv=None) -> int:
     from services.config import parse_bytes
-    from services.evaluation.provenance import write_results
+    from harness.provenance import write_results
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--triangles", type=float, default=34e6)
     p.add_argument("--limit", default="400MiB", help="the per-process memory limit the store is twice of")

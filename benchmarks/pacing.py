@@ -33,7 +33,7 @@ import time
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-from services.evaluation.provenance import median_of, write_results  # noqa: E402
+from harness.provenance import median_of, write_results  # noqa: E402
 
 MiB = 1 << 20
 

@@ -28,10 +28,10 @@ sys.path.insert(0, ROOT)
 
 from dosppm_core.modes.sppm import Renderer  # noqa: E402
 from dosppm_core.settings import RenderSettings  # noqa: E402
-from services.evaluation import pbrt  # noqa: E402
-from services.evaluation.evaluate import pbrt_sppm_radius, suite_scene  # noqa: E402
-from services.evaluation.provenance import median_of, write_results  # noqa: E402
-from services.evaluation.suites import SUITES  # noqa: E402
+from harness import pbrt  # noqa: E402
+from harness.evaluate import pbrt_sppm_radius, suite_scene  # noqa: E402
+from harness.provenance import median_of, write_results  # noqa: E402
+from harness.suites import SUITES  # noqa: E402
 
 PHOTONS = 100_000
 DEPTH = 10

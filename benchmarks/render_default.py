@@ -19,7 +19,7 @@ import tempfile
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-from services.evaluation.provenance import median_of, write_results  # noqa: E402
+from harness.provenance import median_of, write_results  # noqa: E402
 
 
 def one(seconds: float, work: str) -> dict:

@@ -1,9 +1,9 @@
 """Issue 32 step 6: what one server feeds through a 1 Gbit/s link.
 
-The replay harness (services/evaluation/replay.py: a real server, fed at
+The replay harness (harness/replay.py: a real server, fed at
 full speed by synthetic tracers that answer photon jobs with recorded
 results) runs across network namespaces, the server on its own host whose
-link is capped at `--rate` each way (`tc tbf`, services/evaluation/netns.py),
+link is capped at `--rate` each way (`tc tbf`, harness/netns.py),
 once with the paper's wire format (`--gather-at server`: every deposit goes
 to the server) and once with the gather at the tracers (per-hit-point sums
 by epoch), alternated run by run.
@@ -40,9 +40,9 @@ import time
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-from services.evaluation import replay  # noqa: E402
-from services.evaluation.netns import NetnsUnavailable, lan, limit_rate, link_bytes  # noqa: E402
-from services.evaluation.provenance import median_of, write_results  # noqa: E402
+from harness import replay  # noqa: E402
+from harness.netns import NetnsUnavailable, lan, limit_rate, link_bytes  # noqa: E402
+from harness.provenance import median_of, write_results  # noqa: E402
 
 PREFIX = f"dosppm-link-{os.getpid()}"
 SUBNET = f"10.216.{os.getpid() % 250 + 1}"

@@ -19,6 +19,7 @@ import argparse
 import json
 import os
 import re
+import subprocess
 import sys
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -31,7 +32,7 @@ MARKED = re.compile(r"(<!-- table:([\w-]+) -->\n)(.*?)(<!-- /table:\2 -->)", re.
 
 
 def _core(doc: dict) -> str:
-    from services.evaluation import bench
+    from harness import bench
     return bench.report(doc["results"])
 
 
@@ -119,7 +120,7 @@ def _render_default(doc: dict) -> str:
 
 
 def _replay(doc: dict) -> str:
-    from services.evaluation import replay
+    from harness import replay
     return replay.report(doc)
 
 
@@ -141,7 +142,7 @@ def _evaluation(budget_s: float | None = None, mirror: bool = False):
     """A relMSE (bias) table of a `dosppm evaluate` results.json, at its
     last budget or at `budget_s`; `mirror`: the mirror-limit table instead."""
     def table(doc: dict) -> str:
-        from services.evaluation import evaluate
+        from harness import evaluate
         ev = evaluate.read_results_doc(doc)
         budget = budget_s if budget_s is not None else ev.budget_s
         if mirror:
@@ -151,6 +152,16 @@ def _evaluation(budget_s: float | None = None, mirror: bool = False):
         head = f"relMSE at {budget:g} s (mean-luminance bias; Y: mean luminance where the reference is black):"
         return head + "\n\n" + "\n".join(evaluate.relmse_table(ev, budget_s))
     return table
+
+
+def _slow_link(doc: dict) -> str:
+    import slow_link
+    return slow_link.report(doc)
+
+
+def _texture_lookup(doc: dict) -> str:
+    import texture_lookup
+    return texture_lookup.report(doc)
 
 
 def _many_lights(doc: dict) -> str:
@@ -197,6 +208,9 @@ TABLES = {
     "radius-20s": ("benchmarks/results/issue12-radius/results.json", _evaluation(20.0)),
     "radius-80s": ("benchmarks/results/issue12-radius/results.json", _evaluation(80.0)),
     "replay": ("benchmarks/results/replay.json", _replay),
+    "replay-gather-tracers": ("benchmarks/results/replay-gather-tracers.json", _replay),
+    "slow-link": ("benchmarks/results/slow-link.json", _slow_link),
+    "texture-lookup": ("benchmarks/results/texture-lookup.json", _texture_lookup),
     "render-default": ("benchmarks/results/render-default.json", _render_default),
     "reliability": ("benchmarks/results/reliability.json", _reliability),
     "reliability-short": ("benchmarks/results/reliability.json", _reliability_short),
@@ -210,15 +224,71 @@ TABLES = {
 }
 
 
+# What every table's figures measure: the product's code (whatever a render
+# runs) and the harness that drives and times it (its charts aside). A
+# results file is stale once a commit after the one it names touched these
+# paths or the script its command ran (`staleness`, `--fresh`).
+PRODUCT_PATHS = ("dosppm_core", "services", "harness", ":(exclude)harness/charts.py")
+
+
+def _provenance(doc) -> dict | None:
+    p = doc.get("provenance") if isinstance(doc, dict) else None
+    if not p and isinstance(doc, dict) and doc.get("commit"):     # an evaluation before provenance
+        p = {"commit": doc["commit"], "date": doc.get("date", "?"), "machine": doc.get("machine", {})}
+    return p or None
+
+
+def _script(command: str | None) -> list[str]:
+    """The benchmark file a recorded command ran (a path, or a module run with -m)."""
+    for word in (command or "").split():
+        if word.endswith((".py", ".sh")):
+            return [word if os.path.isabs(word) else word.lstrip("./")]
+        if word.startswith(("harness.", "services.", "benchmarks.")):
+            return [word.replace(".", "/") + ".py"]
+    return []
+
+
+def _git(root: str, *args) -> subprocess.CompletedProcess:
+    return subprocess.run(["git", "-C", root, *args], capture_output=True, text=True)
+
+
+def staleness(name: str, root: str = ROOT) -> str | None:
+    """Why table `name`'s results file is older than the code it measures,
+    or None when it is fresh: it names a clean commit that every later
+    change to PRODUCT_PATHS and to its own benchmark script came before."""
+    path, _fn = TABLES[name]
+    with open(os.path.join(root, path), encoding="utf-8") as f:
+        p = _provenance(json.load(f))
+    if p is None:
+        return f"{path}: no provenance (no commit recorded)"
+    commit = str(p["commit"])
+    if commit.endswith("+dirty") or _git(root, "cat-file", "-e", commit + "^{commit}").returncode:
+        return f"{path}: measured at {commit[:16]}, not a clean commit of this repository"
+    paths = list(PRODUCT_PATHS) + [s for s in _script(p.get("command")) if os.path.exists(os.path.join(root, s))]
+    last = _git(root, "log", "-1", "--format=%H", "HEAD", "--", *paths).stdout.strip()
+    if last and _git(root, "merge-base", "--is-ancestor", last, commit).returncode:
+        return f"{path}: measured at {commit[:10]}, but {last[:10]} changed the code it measures since"
+    return None
+
+
+def quoted(files=DOCS, root: str = ROOT) -> list[str]:
+    """The tables the documents quote, in order, each once."""
+    names = []
+    for name in files:
+        full = os.path.join(root, name)
+        if os.path.exists(full):
+            with open(full, encoding="utf-8") as f:
+                names += [m.group(2) for m in MARKED.finditer(f.read())]
+    return list(dict.fromkeys(names))
+
+
 def source_line(path: str, doc: dict, doc_dir: str = "", command: bool = True) -> str:
     """Where the table came from, linked from a document in `doc_dir`;
     files written before provenance was recorded say so rather than guess.
     `command` False leaves out the command (the README's short tables,
     whose full versions in docs/ give it)."""
     link = os.path.relpath(path, doc_dir or ".")
-    p = doc.get("provenance") if isinstance(doc, dict) else None
-    if not p and isinstance(doc, dict) and doc.get("commit"):     # an evaluation before provenance
-        p = {"commit": doc["commit"], "date": doc.get("date", "?"), "machine": doc.get("machine", {})}
+    p = _provenance(doc)
     if not p:
         return f"Source: [{path}]({link}) (written before commit and machine were recorded)."
     m = p.get("machine") or {}
@@ -248,7 +318,13 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("files", nargs="*", default=list(DOCS))
     ap.add_argument("--check", action="store_true", help="fail if a table differs from its results")
+    ap.add_argument("--fresh", action="store_true",
+                    help="fail if a quoted table's results are older than the code they measure")
     args = ap.parse_args(argv)
+    if args.fresh:
+        old = list(dict.fromkeys(why for why in (staleness(n) for n in quoted(args.files)) if why))
+        print("\n".join(old) or "every quoted table is fresh", file=sys.stderr if old else sys.stdout)
+        return 1 if old else 0
     stale = []
     for name in args.files:
         path = os.path.join(ROOT, name)

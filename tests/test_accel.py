@@ -9,7 +9,7 @@ import trimesh
 
 from dosppm_core.accel import MISS, Accelerator
 from dosppm_core.chunks.subdivide import EMBREE_BYTES_PER_TRIANGLE
-from services.evaluation.embree_memory import measure_embree_bytes_per_triangle
+from harness.embree_memory import measure_embree_bytes_per_triangle
 
 
 def _sphere_rays(n, seed=1):

@@ -14,10 +14,10 @@ import pytest
 mi = pytest.importorskip("mitsuba")
 
 from dosppm_core.film import read_exr, write_exr  # noqa: E402
-from dosppm_core.metrics import mean_luminance_bias, relmse  # noqa: E402
 from dosppm_core.modes.sppm import Renderer  # noqa: E402
-from dosppm_core.reference import cached_reference, mitsuba_max_depth  # noqa: E402
 from dosppm_core.settings import RenderSettings
+from harness.metrics import mean_luminance_bias, relmse  # noqa: E402
+from harness.reference import cached_reference, mitsuba_max_depth  # noqa: E402
 from tests.helpers.paths import REPO, SHARED_SCENES, needs_shared_scenes  # noqa: E402
 from tests.helpers.scenes import small_scene  # noqa: E402
 

@@ -549,7 +549,7 @@ def test_reference_renderer_maps_the_new_lights_to_mitsuba(tmp_path):
     a directional light and a projector come out as Mitsuba reads the same
     file (means within 1.5%, both at 64 spp)."""
     mi = pytest.importorskip("mitsuba")
-    from dosppm_core.reference import render_reference
+    from harness.reference import render_reference
     emitter = f"""<integrator type="path"/>
     <emitter type="envmap"><string name="filename" value="{MUSEUM}"/><float name="scale" value="0.5"/>
         <transform name="to_world"><rotate x="0.6" y="0.8" angle="35"/></transform></emitter>

@@ -8,8 +8,8 @@ import os
 import numpy as np
 import pytest
 
+from harness import evaluate, suites
 from services.cli.main import main
-from services.evaluation import evaluate, suites
 
 pytestmark = pytest.mark.reference   # the references are Mitsuba's
 

@@ -7,10 +7,13 @@ from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
+
 import pytest
 
 from services import ledger
 from services.inproc import InProcessCluster
+from services.server.epochs import total
 from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
 from tests.helpers.cluster import assert_same_within_noise, caustic_reference, caustic_scene, settings
 
@@ -122,6 +125,31 @@ def test_epochs_go_in_order_and_skip_ids_never_used_at_once():
         e.complete(j, rng_key=j, paths=10, cull_box=None)
     assert e.due(first + 6, emitting=True) is None       # ids of it may still be made
     assert e.due(first + 6, emitting=False).index == first // 4 + 1
+
+
+def test_an_answer_whose_sums_miss_the_rounds_rows_is_refused_not_taken():
+    # The server adds answers into arrays of the round's rows without a
+    # bounds check: a tracer's rows past them, or dense sums of another
+    # length, must be refused with a line naming the field.
+    from services import wire
+    from services.server.epochs import Epochs
+    e = Epochs(jobs_per_epoch=2)
+    for j in (0, 1):
+        e.made(j)
+        e.complete(j, rng_key=j, paths=10, cull_box=None)
+    ep = e.due(2, emitting=True)
+    e.ask(ep, "sums", ["a", "b"], now=0.0, rows=5)
+
+    def answer(**f):
+        base = dict(epoch=ep.index, phase="sums", hits_version=0, deposits=3, chosen=0, flux=np.zeros(3))
+        return wire.decode(wire.encode("epoch_sums", **base, **f))
+    with pytest.raises(ValueError, match="'rows' reaches row 5, the round asked for 5"):
+        e.answer("a", answer(rows=np.array([1, 5]), m=np.ones(2), phi=np.ones((2, 3))))
+    with pytest.raises(ValueError, match="'m' has 4 rows, the round asked for 5"):
+        e.answer("a", answer(m=np.ones(4), phi=np.ones((4, 3))))
+    assert e.answer("a", answer(rows=np.array([0, 4]), m=np.ones(2), phi=np.ones((2, 3)))) is None
+    done = e.answer("b", answer(m=np.ones(5), phi=np.ones((5, 3))))
+    assert done is ep and total(done.sums, done.rows)["m"].tolist() == [2, 1, 1, 1, 2]
 
 
 def test_a_stalled_gather_stops_emission_at_the_open_epochs_bound(caustic):

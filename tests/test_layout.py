@@ -1,10 +1,16 @@
-"""The layout's rules (issue 11), checked from the source itself. Every .py
-under dosppm_core/ and services/ is parsed with `ast`; every import in it,
-at the top or inside a function, relative ones resolved, is an edge of the
-module graph.
+"""The layout's rules (issues 11 and 34), checked from the source itself.
+Every .py under dosppm_core/, services/ and harness/ is parsed with `ast`;
+every import in it, at the top or inside a function, relative ones
+resolved, is an edge of the module graph.
 
-- The library computes: nothing in dosppm_core imports services, argparse,
-  zmq, subprocess, http or socket.
+- The library computes: nothing in dosppm_core imports services, harness,
+  argparse, zmq, subprocess, http or socket.
+- The harness measures the product and is no part of it: it may import
+  dosppm_core and services, and nothing there imports it, except the
+  `dosppm` command's door to the harness's verbs
+  (services/cli/harness_verbs.py), inside a function; so importing the
+  command, as `dosppm render`, `server` and `worker` do, loads no harness
+  module.
 - One module per foreign library: zmq only in services/transport.py,
   embreex only in dosppm_core/accel.py, OpenEXR only in dosppm_core/film.py.
 - No import cycles between modules.
@@ -23,8 +29,15 @@ import pytest
 
 from tests.helpers.paths import REPO
 
-PACKAGES = ("dosppm_core", "services")
-CORE_MUST_NOT_IMPORT = ("services", "argparse", "zmq", "subprocess", "http", "socket")
+PACKAGES = ("dosppm_core", "services", "harness")
+HARNESS = "harness"
+CORE_MUST_NOT_IMPORT = ("services", HARNESS, "argparse", "zmq", "subprocess", "http", "socket")
+# The one module outside the harness that may import it, and only inside a
+# function: the door through which `dosppm bench|reference|compare|evaluate`
+# reach harness/cli/ when one of them runs.
+HARNESS_DOOR = "services/cli/harness_verbs.py"
+# What the product's processes import first: the `dosppm` command.
+PRODUCT_ENTRY = "services.cli.main"
 # library (top-level module name) -> the one file allowed to import it
 ONE_MODULE_PER_LIBRARY = {
     "zmq": "services/transport.py",
@@ -51,6 +64,7 @@ class Import:
     names: tuple[str, ...]
     line: int
     type_checking: bool    # under `if TYPE_CHECKING:`: never executed
+    deferred: bool = False  # inside a function: executed when it is called, not on import
 
 
 @dataclass(frozen=True)
@@ -96,22 +110,23 @@ def imports_of(module: Module) -> list[Import]:
     """Every import statement of the module, wherever it sits."""
     out = []
 
-    def visit(node: ast.AST, type_checking: bool) -> None:
+    def visit(node: ast.AST, type_checking: bool, deferred: bool) -> None:
         if isinstance(node, ast.Import):
-            out.extend(Import(a.name, (), node.lineno, type_checking) for a in node.names)
+            out.extend(Import(a.name, (), node.lineno, type_checking, deferred) for a in node.names)
         elif isinstance(node, ast.ImportFrom):
             target = _resolve(module, node.level, node.module) if node.level else node.module
-            out.append(Import(target, tuple(a.name for a in node.names), node.lineno, type_checking))
+            out.append(Import(target, tuple(a.name for a in node.names), node.lineno, type_checking, deferred))
         if isinstance(node, ast.If) and _is_type_checking(node.test):
             for child in node.body:
-                visit(child, True)
+                visit(child, True, deferred)
             for child in node.orelse:
-                visit(child, type_checking)
+                visit(child, type_checking, deferred)
             return
+        deferred = deferred or isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda))
         for child in ast.iter_child_nodes(node):
-            visit(child, type_checking)
+            visit(child, type_checking, deferred)
 
-    visit(ast.parse(module.text, module.path), False)
+    visit(ast.parse(module.text, module.path), False, False)
     return out
 
 
@@ -130,7 +145,8 @@ def _ancestors(name: str) -> set[str]:
     return set(_prefixes(name)[:-1])
 
 
-def module_edges(modules: dict[str, Module], include_type_checking: bool = False) -> list[Edge]:
+def module_edges(modules: dict[str, Module], include_type_checking: bool = False,
+                 include_deferred: bool = True) -> list[Edge]:
     """The modules each module makes Python execute, as Python resolves it.
 
     `import a.b.c` runs a, a.b and a.b.c; `from a.b import c` runs a and
@@ -144,7 +160,7 @@ def module_edges(modules: dict[str, Module], include_type_checking: bool = False
     edges = []
     for m in modules.values():
         for imp in imports_of(m):
-            if imp.type_checking and not include_type_checking:
+            if (imp.type_checking and not include_type_checking) or (imp.deferred and not include_deferred):
                 continue
             passed = [p for p in _prefixes(imp.target) if p not in _ancestors(m.name)]
             if imp.names:
@@ -243,7 +259,7 @@ def graph_of(edges: list[Edge]) -> dict[str, set[str]]:
 @pytest.fixture(scope="module")
 def modules():
     found = read_modules()
-    assert "dosppm_core" in found and "services" in found, f"no packages found under {REPO}"
+    assert all(p in found for p in PACKAGES), f"not every one of {PACKAGES} found under {REPO}"
     return found
 
 
@@ -274,6 +290,52 @@ def test_each_foreign_library_has_one_module(modules, library):
     others = {path: lines for path, lines in importers(modules, library).items() if path != owner}
     assert not others, f"only {owner} may import {library}; also: " + \
         ", ".join(f"{path}:{','.join(map(str, lines))}" for path, lines in sorted(others.items()))
+
+
+def harness_imports_outside_it(modules: dict[str, Module]) -> list[str]:
+    """Every import of the harness by the library or the services that the
+    rules do not allow: any, but the door's own imports inside a function."""
+    bad = []
+    for m in modules.values():
+        if m.name.split(".")[0] == HARNESS:
+            continue
+        for imp in imports_of(m):
+            if not any(n.split(".")[0] == HARNESS for n in imported_names(imp)):
+                continue
+            if m.path == HARNESS_DOOR and imp.deferred:
+                continue
+            where = "at import time" if not imp.deferred else "outside the door"
+            bad.append(f"{m.path}:{imp.line} imports {imp.target} ({where})")
+    return bad
+
+
+def loaded_on_import(modules: dict[str, Module], entry: str) -> set[str]:
+    """Every module that importing `entry` executes: its imports outside
+    functions, followed through each module they load."""
+    graph = graph_of(module_edges(modules, include_deferred=False))
+    seen, todo = {entry}, [entry]
+    while todo:
+        for child in graph.get(todo.pop(), ()):
+            if child not in seen:
+                seen.add(child)
+                todo.append(child)
+    return seen
+
+
+def test_nothing_outside_the_harness_imports_it_but_the_door(modules):
+    bad = harness_imports_outside_it(modules)
+    assert not bad, (f"harness/ measures the product; only {HARNESS_DOOR} may import it, inside a "
+                     "function:\n" + "\n".join(bad))
+
+
+def test_the_dosppm_command_loads_no_harness_module(modules):
+    """`dosppm render`, `server` and `worker` import the command and with it
+    every verb's module: none of that may load the harness (its verbs do,
+    when one runs)."""
+    loaded = loaded_on_import(modules, PRODUCT_ENTRY)
+    assert "services.cli.render" in loaded and "services.cli.harness_verbs" in loaded   # the walk walks
+    harness = sorted(m for m in loaded if m.split(".")[0] == HARNESS)
+    assert not harness, f"importing {PRODUCT_ENTRY} loads {harness}"
 
 
 def test_no_import_cycles(modules):
@@ -319,6 +381,32 @@ def _synthetic(files: dict[str, str]) -> dict[str, Module]:
         name = ".".join(parts[:-1] if is_package else parts)
         out[name] = Module(name, path, is_package, text)
     return out
+
+
+def test_the_harness_rules_catch_what_they_forbid():
+    """Each harness rule fails where it should, on a synthetic tree."""
+    tree = {"dosppm_core/__init__.py": "", "dosppm_core/film.py": "",
+            "services/__init__.py": "", "services/cli/__init__.py": "",
+            "services/cli/main.py": "from services.cli import harness_verbs, render\n",
+            "services/cli/render.py": "from dosppm_core import film\n",
+            "services/cli/harness_verbs.py": "def run():\n    from harness.cli.main import main\n",
+            "harness/__init__.py": "", "harness/cli/__init__.py": "",
+            "harness/cli/main.py": "from services.cli import render\nimport dosppm_core.film\n"}
+    assert harness_imports_outside_it(_synthetic(tree)) == []
+    assert not any(m.startswith("harness") for m in loaded_on_import(_synthetic(tree), PRODUCT_ENTRY))
+    # The door imports the harness on import; a verb, or the library, imports it at all.
+    eager_door = {**tree, "services/cli/harness_verbs.py": "from harness.cli.main import main\n"}
+    assert harness_imports_outside_it(_synthetic(eager_door)) == \
+        ["services/cli/harness_verbs.py:1 imports harness.cli.main (at import time)"]
+    assert "harness.cli.main" in loaded_on_import(_synthetic(eager_door), PRODUCT_ENTRY)
+    for path, text in (("services/cli/render.py", "def run():\n    import harness.cli.main\n"),
+                       ("dosppm_core/film.py", "from harness import cli\n")):
+        found = harness_imports_outside_it(_synthetic({**tree, path: text}))
+        assert len(found) == 1 and found[0].startswith(path), found
+    # A module the command loads that loads the harness in turn.
+    via = {**tree, "services/cli/render.py": "from services import helper\n",
+           "services/helper.py": "from harness import cli\n"}
+    assert "harness.cli" in loaded_on_import(_synthetic(via), PRODUCT_ENTRY)
 
 
 def _cycles(files: dict[str, str]) -> list[list[str]]:

@@ -128,7 +128,7 @@ MASK_SCENE = """<scene version="3.0.0">
 
 
 def _render_pair(mi, path, iterations, spp):
-    from dosppm_core.reference import render_reference
+    from harness.reference import render_reference
     scene = load_mitsuba_xml(path)
     ours = np.asarray(dp.render(scene, iterations=iterations, mode="sppm", seed=3))
     return ours, render_reference(scene, spp=spp)

@@ -5,8 +5,8 @@ import sys
 import numpy as np
 import pytest
 
-from dosppm_core import metrics
 from dosppm_core.film import write_exr
+from harness import metrics
 from services.cli.main import main as dosppm_main
 
 RNG = np.random.default_rng(7)

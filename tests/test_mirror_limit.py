@@ -8,15 +8,14 @@ ignored or the floor looked up in the wrong place."""
 import numpy as np
 import pytest
 
-from dosppm_core import metrics
-from dosppm_core import mirror_limit as ml
 from dosppm_core.accel import Accelerator
 from dosppm_core.modes.sppm import Renderer
-from dosppm_core.reference import render_reference
 from dosppm_core.scene.model import Camera, Material, SceneBuilder
 from dosppm_core.scene.suite import rectangle_mesh
 from dosppm_core.settings import RenderSettings
-from services.evaluation import evaluate
+from harness import evaluate, metrics
+from harness import mirror_limit as ml
+from harness.reference import render_reference
 from tests.helpers.scenes import small_scene
 
 MIRROR_RHO = np.array([0.5, 0.6, 0.7])

@@ -1,6 +1,6 @@
 """Issue 33, part 6: Mitsuba 3's own render-test scenes
 (../shared/scenes/mitsuba-data/tests/scenes), scored as Mitsuba scores its
-renderer (dosppm_core/render_test.py, benchmarks/mitsuba_scenes.py).
+renderer (harness/render_test.py, benchmarks/mitsuba_scenes.py).
 
 Every one of the 41 scenes is in exactly one list below. When a feature
 lands and a scene starts to load, `test_refused_scenes_still_refuse`
@@ -146,8 +146,8 @@ def test_claimed_scenes_pass_in_one_process(name):
 @pytest.mark.slow
 @pytest.mark.parametrize("name", CLAIMED)
 def test_claimed_scenes_pass_through_the_service_in_chunks(name, tmp_path):
-    from dosppm_core import render_test
     from dosppm_core.film import read_exr
+    from harness import render_test
     survey = _survey()
     path = _path(name)
     ref, var = (read_exr(f)[0] for f in survey.reference_files(path))

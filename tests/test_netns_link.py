@@ -1,6 +1,6 @@
 """A cluster on a slow link (issue 32 step 6): the replay harness's server
 on its own host whose link is capped (`tc tbf`, both directions), fed by
-two synthetic tracers on two other hosts (services/evaluation/replay.py).
+two synthetic tracers on two other hosts (harness/replay.py).
 
 - the render ends normally and its accounting is exact (photons emitted
   = completed + abandoned + discarded; completed = committed);
@@ -23,8 +23,8 @@ import time
 
 import pytest
 
-from services.evaluation import replay
-from services.evaluation.netns import NetnsUnavailable, limit_rate, link_bytes
+from harness import replay
+from harness.netns import NetnsUnavailable, limit_rate, link_bytes
 from tests.helpers import netns
 
 pytestmark = [pytest.mark.netns, pytest.mark.slow]

@@ -1,4 +1,4 @@
-"""pbrt-v4 as a peer renderer (services/evaluation/pbrt.py) and the cases
+"""pbrt-v4 as a peer renderer (harness/pbrt.py) and the cases
 that need the shared folder.
 
 With a pbrt binary ($DOSPPM_PBRT or `pbrt` on the PATH), the exported
@@ -13,11 +13,10 @@ import os
 import numpy as np
 import pytest
 
-from dosppm_core import metrics
 from dosppm_core.scene import builtin
 from dosppm_core.settings import RenderSettings
+from harness import evaluate, metrics, pbrt, suites
 from services.cli.main import main
-from services.evaluation import evaluate, pbrt, suites
 from tests.helpers import paths
 
 BANDS = 4
@@ -68,7 +67,7 @@ def test_the_exported_cornell_box_renders_in_pbrt_as_in_mitsuba(pbrt_binary, tmp
     compared: mean luminance within 2% (measured: 0.05%), and each band of
     rows and of columns within 3% (noise: under 1%; a mirrored image is
     6% off in the outer column bands, a flipped one 10x)."""
-    from dosppm_core.reference import render_reference
+    from harness.reference import render_reference
     scene = _cornell(grey=True)
     ours = _pbrt_path(scene, 256, tmp_path)
     ref = render_reference(scene, 1024, seed=3)
@@ -85,7 +84,7 @@ def test_the_red_wall_is_on_the_same_side_as_in_mitsuba(pbrt_binary, tmp_path):
     quarter of the image than in the right one (the red wall is on the
     left; the light is orange, so red leads on both sides), in pbrt and in
     Mitsuba alike."""
-    from dosppm_core.reference import render_reference
+    from harness.reference import render_reference
     scene = _cornell(grey=False)
     ours, ref = _pbrt_path(scene, 32, tmp_path), render_reference(scene, 64, seed=3)
     for image in (ours, ref):

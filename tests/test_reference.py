@@ -6,12 +6,12 @@ import sys
 import numpy as np
 import pytest
 
-from dosppm_core import reference
 from dosppm_core.film import read_exr
 from dosppm_core.scene import loaders
 from dosppm_core.scene.model import Camera, Material, SceneBuilder, SceneError
+from harness import mitsuba_probe, reference
+from harness.mitsuba_probe import best_variant
 from services.cli.main import main as dosppm_main
-from services.evaluation.mitsuba_probe import best_variant
 
 pytestmark = pytest.mark.reference   # skipped without Mitsuba (tests/conftest.py)
 
@@ -200,6 +200,17 @@ def test_reference_command_writes_exr(tmp_path, monkeypatch, capsys):
     rgb, _ = read_exr(out)
     np.testing.assert_allclose(rgb, np.broadcast_to([2.0, 3.0, 4.0], (4, 6, 3)), rtol=1e-5)
     assert "wrote" in capsys.readouterr().out
+
+
+def test_reference_command_without_variant_asks_the_probe(tmp_path, monkeypatch, capsys):
+    """No --variant: the command takes the probe's answer (harness/mitsuba_probe.py)."""
+    asked = []
+    monkeypatch.setattr(mitsuba_probe, "best_variant", lambda: asked.append(1) or VARIANT)
+    monkeypatch.setattr(loaders, "load_scene", lambda spec, **overrides: _emitter_scene(False))
+    out = str(tmp_path / "ref.exr")
+    assert _run_reference(["lamp.toml", "--spp", "1", "--out", out, "--max-depth", "0"]) == 0
+    assert asked == [1] and f"{VARIANT}," in capsys.readouterr().out
+    assert read_exr(out)[0].shape == (3, 4, 3)
 
 
 def test_reference_command_bad_scene_exits_2(tmp_path, monkeypatch, capsys):

@@ -1,5 +1,5 @@
 """Issue 33, part 6: the scorer of a render against a Mitsuba test
-reference (dosppm_core/render_test.py), on synthetic images whose truth is
+reference (harness/render_test.py), on synthetic images whose truth is
 known: unbiased noise passes, a 3% bias fails, a local error fails the
 z-test, too few seeds are refused."""
 import math
@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from dosppm_core import render_test
-from dosppm_core.render_test import MIN_SEEDS, score, student_t_two_sided
+from harness import render_test
+from harness.render_test import MIN_SEEDS, score, student_t_two_sided
 
 H, W = 48, 48
 

@@ -1,4 +1,4 @@
-"""The replay harness (services/evaluation/replay.py, issue 13): a recorded
+"""The replay harness (harness/replay.py, issue 13): a recorded
 step's results relabelled for another package must be a results message
 the wire and the server's exact accounting accept, with the recorded
 deposits per path; and a real server fed by synthetic tracers must apply
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from dosppm_core.jobs import END_NAMES, PhotonDeposits
+from harness import replay
 from services import wire
-from services.evaluation import replay
 from services.server.costs import FIELDS
 from tests.test_wire import random_record
 

@@ -12,7 +12,7 @@ import pytest
 from dosppm_core.chunks.subdivide import block_for_memory, subdivide
 from dosppm_core.scene.generate import generate_building
 from dosppm_core.scene.soupfile import open_soup
-from services.evaluation.subdivide_memory import measure
+from harness.subdivide_memory import measure
 
 MiB = 1 << 20
 

@@ -11,7 +11,7 @@ import subprocess
 
 import pytest
 
-from services.evaluation import provenance
+from harness import provenance
 from tests.helpers.paths import REPO as ROOT
 
 
@@ -72,7 +72,7 @@ def test_every_sample_is_kept_beside_the_median():
 def test_dosppm_bench_writes_every_timing_and_its_provenance(tmp_path):
     """`dosppm bench --json` (what benchmarks/core.sh runs) keeps every
     timing of every figure, not only the medians it reports."""
-    from services.evaluation import bench
+    from harness import bench
     from tests.helpers.scenes import small_scene
     result = bench.bench_scene(small_scene("cornell-box", 32), photons=20_000, repeats=3,
                                paper_hit_points=4096)

@@ -276,7 +276,7 @@ def test_mitsuba_texture_interp_scene_loads():
 def test_the_reference_export_refuses_a_textured_material():
     """Its reflectance row is (1, 1, 1): exporting it would render another scene."""
     pytest.importorskip("mitsuba")
-    from dosppm_core import reference
+    from harness import reference
     with pytest.raises(SceneError, match="'white': a textured material has no Mitsuba mapping"):
         reference.scene_to_mitsuba_dict(_checker_box(), 4)
 

@@ -51,7 +51,7 @@ MAX_DEPTH = 60           # ChunkTree.validate refuses deeper trees
 # overlapping triangles (the worst case seen): 99 B per triangle at 1M
 # triangles, 103 B at 2M. The peak exceeds the final size (builder scratch),
 # and the budget must hold at the peak.
-# `services.evaluation.embree_memory.measure_embree_bytes_per_triangle()` repeats the triangle measurement.
+# `harness.embree_memory.measure_embree_bytes_per_triangle()` repeats the triangle measurement.
 EMBREE_BYTES_PER_TRIANGLE = 110
 EMBREE_BYTES_PER_VERTEX = 12
 STORED_BYTES_PER_TRIANGLE = 12 + 4 + 4   # triangles, tri_material, global_id

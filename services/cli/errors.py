@@ -7,11 +7,22 @@ a tracer lost), 2 bad input (an unreadable scene, image or setting), 130
 interrupted."""
 from __future__ import annotations
 
+import argparse
 import contextlib
 import sys
 import warnings
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse, but a mistake is one line naming the flag and value (not
+    the whole usage), with exit status 2; subcommands inherit it. Here, not
+    in main.py, so that the harness's verbs (harness/cli/) parse alike
+    without importing the command that loads them."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
 def fail(message: str, code: int = EXIT_BAD_INPUT) -> int:

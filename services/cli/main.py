@@ -21,22 +21,15 @@ import atexit
 import logging
 import os
 
-from services import transport
-from services.cli import bench, compare, evaluate, keys, reference, render, scenes, server, subdivide, tracer
-from services.cli.errors import fail
-from services.config import ConfigError
 from dosppm_core.malloc import return_large_blocks
+from services import transport
+from services.cli import harness_verbs, keys, render, scenes, server, subdivide, tracer
+from services.cli.errors import Parser, fail
+from services.config import ConfigError
 
-# Each subcommand's module: `add_parser(sub)` registers it, with its `run`.
-COMMANDS = (render, scenes, subdivide, bench, reference, compare, evaluate, server, tracer, keys)
-
-
-class Parser(argparse.ArgumentParser):
-    """argparse, but a mistake is one line naming the flag and value (not
-    the whole usage), with exit status 2; subcommands inherit it."""
-
-    def error(self, message: str):
-        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+# Each subcommand: `add_parser(sub)` registers it, with its `run`. The
+# harness's verbs are doors that load harness/ only when one of them runs.
+COMMANDS = (render, scenes, subdivide, *harness_verbs.VERBS, server, tracer, keys)
 
 
 def build_parser() -> argparse.ArgumentParser:

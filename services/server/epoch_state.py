@@ -72,7 +72,7 @@ class EpochStateMixin:
             e = update.epoch
             if update.request is None or self.epochs.open.get(e.index) is not e:
                 return []                  # discarded meanwhile
-            self.epochs.ask(e, update.request["phase"], self.tracers, self._now)
+            self.epochs.ask(e, update.request["phase"], self.tracers, self._now, len(update.request["rows"]))
             return [Out(tid, "gather", update.request) for tid in self.tracers]
         if update.kind == "epoch":
             self.epochs.applied(update.epoch)
@@ -84,11 +84,13 @@ class EpochStateMixin:
     def _on_epoch_sums(self, tid: str, msg) -> list[Out]:
         if self.epochs is None:
             return [Out(tid, "error", dict(reason="epoch_sums: this server gathers itself", about="epoch_sums"))]
-        e = self.epochs.answer(tid, msg)
+        try:
+            e = self.epochs.answer(tid, msg)
+        except ValueError as err:
+            return [Out(tid, "error", dict(reason=str(err), about="epoch_sums"))]
         if e is None:
             return []
-        n = len(e.sums[min(e.sums)].m) if e.phase == "pilot" else self._hit_point_rows()
-        sums = total(e.sums, n)
+        sums = total(e.sums, e.rows)
         if e.phase in NEXT_STAGE:
             self.updates.append(Update("gather", epoch=e, stage=NEXT_STAGE[e.phase], sums=sums))
             return []
@@ -100,10 +102,6 @@ class EpochStateMixin:
         c["photons_committed"] += photons
         c["deposits_received"] += sums["deposits"]
         return []
-
-    def _hit_point_rows(self) -> int:
-        hits = self._hit_points_out["hits"] if self._hit_points_out else None
-        return 0 if hits is None else len(hits)
 
     def _discard_epochs(self) -> None:
         """A tracer lost or restarted: every epoch not handed to the

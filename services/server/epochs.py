@@ -64,6 +64,7 @@ class Epoch:
     waiting: set = field(default_factory=set)  # tracers whose answer to it is not in
     sums: dict = field(default_factory=dict)   # the round's answers, by tracer (`total`)
     fit: tuple | None = None        # radii fitted by its pilot, stored when it is applied
+    rows: int = 0                   # the rows the round asked sums for (each answer's M and Phi)
 
     def columns(self) -> tuple:
         """(ids, rng keys, paths, cull boxes (n, 2, 3)) of its complete jobs, by id."""
@@ -137,9 +138,10 @@ class Epochs:
         self.asking = True
         return e
 
-    def ask(self, e: Epoch, phase: str, tracers, now: float) -> None:
-        """Round `phase` of epoch `e` goes to `tracers`; answers are added up."""
-        e.phase, e.waiting, e.sums, e.asked_s = phase, set(tracers), {}, now
+    def ask(self, e: Epoch, phase: str, tracers, now: float, rows: int = 0) -> None:
+        """Round `phase` of epoch `e`, sums at `rows` rows, goes to `tracers`;
+        answers are added up."""
+        e.phase, e.waiting, e.sums, e.asked_s, e.rows = phase, set(tracers), {}, now, int(rows)
         self.counters["epoch_rounds"] += 1
 
     def round_waiting_since(self, now: float) -> float:
@@ -153,6 +155,9 @@ class Epochs:
         e = self.open.get(msg.epoch)
         if e is None or msg.phase != e.phase or tid not in e.waiting:
             return None              # a discarded epoch's, or an earlier round's
+        problem = _rows_problem(msg, e.rows)
+        if problem:                  # not taken: the watchdog discards the round unanswered
+            raise ValueError(f"epoch_sums: epoch {e.index}: {problem}")
         e.waiting.discard(tid)
         e.sums[tid] = msg
         return e if not e.waiting else None
@@ -176,6 +181,19 @@ class Epochs:
     @property
     def unapplied(self) -> int:
         return len(self.open)
+
+
+def _rows_problem(msg, n: int) -> str | None:
+    """Why an answer's sums do not fit the `n` rows its round asked for
+    (the sums are added into arrays of `n` rows without a bounds check)."""
+    if msg.phase == "count":
+        return None
+    rows = msg.fields.get("rows")
+    if rows is None and len(msg.m) != n:
+        return f"field 'm' has {len(msg.m)} rows, the round asked for {n}"
+    if rows is not None and len(rows) and rows[-1] >= n:
+        return f"field 'rows' reaches row {int(rows[-1])}, the round asked for {n}"
+    return None
 
 
 def total(answers: dict, n: int) -> dict:

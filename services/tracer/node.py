@@ -76,7 +76,7 @@ class TracerOptions:
 
 
 class TracerProcess:
-    state_class = TracerState   # the replay harness (services/evaluation/replay.py) swaps it
+    state_class = TracerState   # the replay harness (harness/replay.py) swaps it
 
     def __init__(self, options: TracerOptions, context: transport.Context | None = None, say=None):
         """`say` prints a line for the user: the server joined, rejoins."""

@@ -28,7 +28,7 @@ def write_if_asked() -> str | None:
     path = os.environ.get(ENV)
     if not path or not _FIGURES:
         return None
-    from services.evaluation.provenance import provenance, write_results
+    from harness.provenance import provenance, write_results
     try:
         with open(path, encoding="utf-8") as f:
             old = json.load(f)

@@ -1,5 +1,5 @@
 """Shared by the multi-host tests (tests/test_netns*.py): hosts as Linux
-network namespaces on a private bridge (services/evaluation/netns.py, the
+network namespaces on a private bridge (harness/netns.py, the
 recipe in RECIPES.md), processes started in them, and a status poller
 that runs inside a host. Processes and iptables rules in a namespace die
 with it."""
@@ -12,15 +12,15 @@ import subprocess
 
 import pytest
 
-from services.evaluation.netns import NetnsUnavailable, delete_namespaces, ip, netns_unavailable  # noqa: F401
-from services.evaluation.netns import lan as _lan
+from harness.netns import NetnsUnavailable, delete_namespaces, ip, netns_unavailable  # noqa: F401
+from harness.netns import lan as _lan
 from tests.helpers.cli import run_dosppm
 from tests.helpers.paths import REPO
 
 
 @contextlib.contextmanager
 def lan(prefix: str, hosts: dict[str, str]):
-    """services/evaluation/netns.lan for a test: skipped where namespaces
+    """harness/netns.lan for a test: skipped where namespaces
     cannot be made, failed (with the command) where building the bridge
     fails. Yields {host: (namespace, address)}."""
     try:

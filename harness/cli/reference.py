@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import time
 
-from dosppm_core import reference
 from dosppm_core.film import FilmError, write_exr
 from dosppm_core.scene import loaders
 from dosppm_core.scene.model import SceneError
+from harness import mitsuba_probe, reference
 from services import config
 from services.cli.errors import EXIT_FAILED, EXIT_OK, fail
 from services.config import non_negative_int, positive_int
@@ -51,7 +51,7 @@ def run(args) -> int:
         return fail(str(exc))
     start = time.perf_counter()
     try:
-        variant = args.variant or reference.best_variant()
+        variant = args.variant or mitsuba_probe.best_variant()
         image = reference.render_reference(scene, args.spp, args.max_depth, args.integrator,
                                            args.seed, variant)
     except reference.ReferenceRenderError as exc:

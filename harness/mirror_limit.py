@@ -34,9 +34,9 @@ import math
 import numpy as np
 
 from dosppm_core.accel import Accelerator
-from dosppm_core.reference import SAFE_VARIANT, cached_reference
-from dosppm_core.scene.model import DIFFUSE, MIRROR, Camera, Scene
+from dosppm_core.scene.model import Camera, DIFFUSE, MIRROR, Scene
 from dosppm_core.trace import eye_ray_job
+from harness.reference import SAFE_VARIANT, cached_reference
 
 # The top-down camera stands this far above the floor, so the mirror ring
 # (a wall seen edge-on) hides a strip of floor far narrower than a texel.

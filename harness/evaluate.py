@@ -9,7 +9,7 @@ Time is render time: scene loading, BVH builds, compiled-kernel loading and
 process start are not counted for the in-process methods and Mitsuba
 (its scene load neither). The in-process methods are progressive, so one
 run is stopped at each budget in turn; Mitsuba renders once per sample
-count (1, 2, 4, ... spp); pbrt-v4 (`services.evaluation.pbrt`) once per
+count (1, 2, 4, ... spp); pbrt-v4 (`harness.pbrt`) once per
 sample count or SPPM iteration count, each run timed as a whole process
 (its start and scene load, about 0.3 s on Sponza, count); DOSPPM runs
 `dosppm render --mode dosppm --time T` once per budget, as a user would,
@@ -46,21 +46,20 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 
 import dosppm_core as dp
-from dosppm_core import metrics
 from dosppm_core.accel import Accelerator
 from dosppm_core.film import one_line, read_exr
 from dosppm_core.kernels.bsdf import is_specular
-from dosppm_core.mirror_limit import LimitSettings, mirror_limit
-from dosppm_core.reference import cached_reference, render_reference
 from dosppm_core.scene import builtin
 from dosppm_core.scene.loaders import load_scene
 from dosppm_core.scene.model import Scene
 from dosppm_core.settings import DIRECT_MODES, RenderSettings
 from dosppm_core.trace import eye_ray_job
-from services.evaluation import pbrt
-from services.evaluation.provenance import provenance
-from services.evaluation.suites import (CAUSTIC_SCENES, METHODS, SUITES, Case, CaseSkipped, Method, Sample, Suite,
-                                        shared_dir, shared_file)
+from harness import metrics, pbrt
+from harness.mirror_limit import LimitSettings, mirror_limit
+from harness.provenance import provenance
+from harness.reference import cached_reference, render_reference
+from harness.suites import (CAUSTIC_SCENES, METHODS, SUITES, Case, CaseSkipped, Method, Sample, Suite,
+                            shared_dir, shared_file)
 
 BLUR_SIGMA_PX = 2.0
 BUDGET_FRACTIONS = (0.125, 0.25, 0.5, 1.0)
@@ -532,7 +531,7 @@ def write_results(ev: Evaluation, out_dir: str) -> list[str]:
     with open(paths[2], "w", encoding="utf-8") as f:
         f.write(summary_markdown(ev))
     try:   # the charts need matplotlib, an optional dependency (the [bench] extra)
-        from services.evaluation import charts as evaluate_charts
+        from harness import charts as evaluate_charts
     except ImportError as exc:
         print(f"charts skipped: {exc}", file=sys.stderr)
     else:

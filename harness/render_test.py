@@ -49,7 +49,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dosppm_core.metrics import luminance
+from harness.metrics import luminance
 
 SIGNIFICANCE = 0.01
 PASS_FRACTION = 0.9975

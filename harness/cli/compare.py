@@ -11,8 +11,8 @@ import json
 
 import numpy as np
 
-from dosppm_core import metrics
 from dosppm_core.film import FilmError, read_exr
+from harness import metrics
 from services.cli.errors import EXIT_OK, fail
 
 

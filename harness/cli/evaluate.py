@@ -1,5 +1,5 @@
 """`dosppm evaluate`: speed against accuracy, every method on a suite of
-scenes (the harness is `services.evaluation.evaluate`).
+scenes (the evaluation is `harness.evaluate`).
 
     dosppm evaluate SUITE [--budget-s S] [--out DIR] [--method M ...] [--scene NAME ...]
                           [--shared DIR]
@@ -15,9 +15,9 @@ from __future__ import annotations
 import dataclasses
 import sys
 
+from harness import evaluate, suites
 from services import config
 from services.cli.errors import EXIT_FAILED, EXIT_OK, fail
-from services.evaluation import evaluate, suites
 
 
 def add_parser(sub) -> None:

@@ -7,7 +7,7 @@ integrator a second independent reference beside Mitsuba 3. The binary is
 `$DOSPPM_PBRT`, else `pbrt` on the PATH (the project's peers folder has a
 script that builds one); without it the evaluation skips the pbrt methods.
 
-Mapping (our conventions follow Mitsuba's; see `dosppm_core.reference`):
+Mapping (our conventions follow Mitsuba's; see `harness.reference`):
 
 =========  ==========================================================
 ours       pbrt-v4

@@ -48,9 +48,10 @@ References are unbounded by default (-1), as the renderer's default is
 Variant: the caller's choice, `scalar_rgb` (`SAFE_VARIANT`) by default.
 `llvm_ad_rgb` is about 3x faster, but an unsupported libLLVM aborts the
 whole process while compiling a kernel (it cannot be caught), so whether it
-works here is found by trying it in a child process, which a library must
-not start: `services.evaluation.mitsuba_probe.best_variant()` does that,
-and its answer is passed in as `variant`.
+works here is found by trying it in a child process:
+`harness.mitsuba_probe.best_variant()` does that (once per process), and
+its answer is passed in as `variant`, so a caller that names its variant
+(the tests) starts no process.
 """
 from __future__ import annotations
 

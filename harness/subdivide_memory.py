@@ -5,7 +5,7 @@ tiny subdivision), then resets its peak (VmHWM, through
 /proc/self/clear_refs) and subdivides the soup; the working memory is the
 peak less the resident size before it.
 
-    python -m services.evaluation.subdivide_memory --triangles 5e6 15e6 40e6 \\
+    python -m harness.subdivide_memory --triangles 5e6 15e6 40e6 \\
         --budget 128MiB --work /tmp/sub-mem --json benchmarks/results/subdivide-memory.json
 """
 from __future__ import annotations
@@ -19,7 +19,7 @@ import sys
 
 from dosppm_core.chunks.subdivide import DEFAULT_GRID
 
-ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 _CHILD = """
 import json, os, sys
@@ -61,7 +61,7 @@ def measure(soup: str, out: str, budget_bytes: int, memory_bytes: int, grid: int
 def main(argv=None) -> int:
     from dosppm_core.scene.generate import generate_building
     from services.config import parse_bytes
-    from services.evaluation.provenance import write_results
+    from harness.provenance import write_results
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--triangles", type=float, nargs="+", default=[5e6, 15e6, 40e6])
     p.add_argument("--budget", default="128MiB", help="memory per chunk (the subdivider's --budget)")

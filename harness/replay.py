@@ -27,7 +27,7 @@ start (services/server/costs.py: the server's start-up is left out). The
 tracer side's rate is the library's photon pass on the same scene with
 one thread, measured alone in the same run.
 
-    python -m services.evaluation.replay --tracers 2 --seconds 20
+    python -m harness.replay --tracers 2 --seconds 20
 """
 from __future__ import annotations
 
@@ -51,7 +51,7 @@ from services.wire import Out
 RECORDED_STEPS = 16
 RECORDED_EPOCHS = 2
 REPLAY_RETRY_S = 10.0
-ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 class ReplayState(TracerState):
@@ -169,7 +169,7 @@ def run(scene: str, tracers: int, seconds: float, work: str, extra=(), hosts: di
     how long the server may take to end (default ten times `seconds` and 5
     minutes) before it is killed and this raises. `hosts`:
     {"server": (namespace, address), "tracers": [namespace, ...]} to run
-    each process in its own network namespace (services/evaluation/netns.py)
+    each process in its own network namespace (harness/netns.py)
     instead of all on 127.0.0.1. `replay_epochs`: the tracers answer
     epochs past the first RECORDED_EPOCHS with recorded sums
     (`ReplayedEpochs`) instead of gathering."""
@@ -191,7 +191,7 @@ def run(scene: str, tracers: int, seconds: float, work: str, extra=(), hosts: di
                                "-m", "services.cli", "server", store.path, "--bind", bind,
                                "--time", str(seconds), "--min-tracers", str(tracers), "--out", out,
                                "--http", "off", "--quiet", *extra], env=env)
-    procs = [subprocess.Popen([*w, sys.executable, "-m", "services.evaluation.replay", "--tracer", endpoint,
+    procs = [subprocess.Popen([*w, sys.executable, "-m", "harness.replay", "--tracer", endpoint,
                                "--store", store.path, *(["--replay-epochs"] if replay_epochs else [])],
                               env=env, stdout=subprocess.PIPE, text=True)
              for w in wrap["tracers"]]
@@ -229,7 +229,7 @@ def tracer_rate(scene: str, photons: int = 400_000) -> float:
     from dosppm_core.modes.sppm import Renderer
     from dosppm_core.scene import builtin
     from dosppm_core.settings import RenderSettings
-    from services.evaluation.bench import _photon_rays
+    from harness.bench import _photon_rays
     import numba
     before = numba.get_num_threads()
     numba.set_num_threads(1)        # the kernels' parallel loops too, not only Embree's
@@ -358,7 +358,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if args.tracer:
         return _tracer_main(args)
-    from services.evaluation.provenance import median_of, write_results
+    from harness.provenance import median_of, write_results
     runs = []
     with tempfile.TemporaryDirectory(prefix="dosppm-replay-") as work:
         for _ in range(args.repeats):       # alternated: drift on a shared machine hits both alike

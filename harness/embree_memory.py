@@ -19,9 +19,9 @@ def measure_embree_bytes_per_triangle(triangles: int = 1_000_000) -> float:
     EMBREE_BYTES_PER_VERTEX per vertex, per triangle. Runs in a fresh
     process: memory freed by an earlier build is reused and would hide the
     cost."""
-    code = (f"from services.evaluation.embree_memory import _embree_peak_bytes; "
+    code = (f"from harness.embree_memory import _embree_peak_bytes; "
             f"print(_embree_peak_bytes({int(triangles)}))")
-    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     env = dict(os.environ, PYTHONPATH=root + os.pathsep + os.environ.get("PYTHONPATH", ""))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          env=env, check=True).stdout

@@ -14,9 +14,9 @@ import statistics
 import subprocess
 import sys
 
-# The repository's top (services/evaluation/ is two below it): a change
+# The repository's top (harness/ is one below it): a change
 # anywhere in it, dosppm_core/ and benchmarks/ included, makes a figure dirty.
-ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def commit() -> str:

@@ -1,5 +1,5 @@
 """`dosppm bench`: tracing and statistics-update throughput of scenes (the
-harness is `services.evaluation.bench`; benchmarks/core.sh runs it)."""
+measurement is `harness.bench`; benchmarks/core.sh runs it)."""
 from __future__ import annotations
 
 import sys
@@ -7,9 +7,9 @@ import sys
 from dosppm_core.scene import builtin
 from dosppm_core.scene.loaders import load_scene
 from dosppm_core.scene.model import SceneError
+from harness import bench
 from services import config
 from services.cli.errors import EXIT_OK, fail
-from services.evaluation import bench
 
 
 def add_parser(sub) -> None:

@@ -20,9 +20,9 @@ import time
 import numpy as np
 
 from dosppm_core.modes.sppm import Renderer
-from services.evaluation.provenance import write_results
 from dosppm_core.settings import RenderSettings
 from dosppm_core.trace import NO_CULL, emit_photon_job, trace_photon_jobs
+from harness.provenance import write_results
 
 PAPER_HIT_POINTS = 640_000      # Table 4's statistics update was measured at 640k hit points
 PAPER_TABLE4 = {

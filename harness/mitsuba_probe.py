@@ -1,17 +1,17 @@
 """Which Mitsuba variant works on this machine, for the reference renders
-(`dosppm_core.reference`, which takes the answer as its `variant`).
+(`harness.reference`, which takes the answer as its `variant`).
 
 `llvm_ad_rgb` is about 3x faster than `scalar_rgb`, but a libLLVM that
 Mitsuba does not support aborts the whole process while compiling a kernel,
 which no exception handler can catch. So the fast variant is first tried in
-a child process, once per process; the library starts no processes."""
+a child process, once per process; `harness.reference` itself starts none."""
 from __future__ import annotations
 
 import functools
 import subprocess
 import sys
 
-from dosppm_core.reference import FAST_VARIANT, SAFE_VARIANT, available_variants
+from harness.reference import FAST_VARIANT, SAFE_VARIANT, available_variants
 
 PROBE_TIMEOUT_S = 300
 
