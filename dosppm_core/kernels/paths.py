@@ -379,10 +379,8 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
         st, u1, u2, u3, ur = _four_floats(st)
         ok, d0, d1, d2, t0, t1, t2 = _photon_scatter(surf, m, kind, tri, u[i], v[i], s0, s1, s2, w0, w1, w2,
                                                      u1, u2, u3)
-        if ok and mapped == MAPPED:
-            ok, t0, t1, t2 = _adjoint(t0, t1, t2, k_in, n0, n1, n2, s0, s1, s2, d0, d1, d2, front)
-        elif ok and mapped == SMOOTH:
-            ok, t0, t1, t2 = smooth_adjoint(t0, t1, t2, k_in, n0, n1, n2, s0, s1, s2, d0, d1, d2)
+        if ok and mapped != FLAT:
+            ok, t0, t1, t2 = _adjoint(mapped, t0, t1, t2, k_in, n0, n1, n2, s0, s1, s2, d0, d1, d2, front)
         if not ok:
             end[i] = ABSORBED
             continue
@@ -450,9 +448,12 @@ def _four_floats(st):
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _adjoint(t0, t1, t2, k_in, n0, n1, n2, s0, s1, s2, d0, d1, d2, front):
-    """A photon's throughput t = f |d.ns| / p at a mapped hit, made Veach's
-    adjoint: times k_in |d.ng| / |d.ns| (`kernels.shading`). Returns (ok, t)."""
+def _adjoint(mapped, t0, t1, t2, k_in, n0, n1, n2, s0, s1, s2, d0, d1, d2, front):
+    """A photon's throughput t = f |d.ns| / p at a MAPPED hit, made Veach's
+    adjoint: times k_in |d.ng| / |d.ns| (`kernels.shading`); at a SMOOTH
+    one `smooth.smooth_adjoint`'s. Returns (ok, t)."""
+    if mapped == SMOOTH:
+        return smooth_adjoint(t0, t1, t2, k_in, n0, n1, n2, s0, s1, s2, d0, d1, d2)
     g = 1.0 if front else -1.0
     cg = g * (d0 * n0 + d1 * n1 + d2 * n2)
     cs = d0 * s0 + d1 * s1 + d2 * s2
@@ -631,12 +632,8 @@ def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp,
             if m < 0:
                 continue
             kind = kinds[m]
-        hp_mat[i] = m
-        coat = False
-        s0, s1, s2 = n0, n1, n2     # the shading normal: a smooth mesh's (`kernels.smooth`)
-        if not is_mapped(bsdf, m):
-            _smooth, s0, s1, s2 = smooth_normal(normals, tris, tri, np.float64(u[i]), np.float64(v[i]),
-                                                n0, n1, n2, w0, w1, w2)
+        hp_mat[i], coat = m, False
+        s0, s1, s2 = _eye_normal(surf, m, tri, u[i], v[i], n0, n1, n2, w0, w1, w2)
         if not is_specular(kind):
             if not front and not two_sided[m]:
                 end[i] = ABSORBED
@@ -671,6 +668,18 @@ def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp,
         new_w[i, 0], new_w[i, 1], new_w[i, 2] = f0 * eta_scale, f1 * eta_scale, f2 * eta_scale
         write_spawn(new_o, new_d, i, p0, p1, p2, n0, n1, n2, d0, d1, d2, eps_rel, eps_abs)
         end[i] = CONTINUES
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def _eye_normal(surf, m, tri, u, v, n0, n1, n2, w0, w1, w2):
+    """An eye path's shading normal at the hit: a smooth mesh's
+    (`kernels.smooth`), else the geometric n (a normal or bump map
+    perturbs its hit points afterwards: `shading.perturb_hit_points`)."""
+    if is_mapped(surf.bsdf, m):
+        return n0, n1, n2
+    _smooth, s0, s1, s2 = smooth_normal(surf.normals, surf.triangles, tri, np.float64(u), np.float64(v),
+                                        n0, n1, n2, w0, w1, w2)
+    return s0, s1, s2
 
 
 @nb.njit(cache=True, error_model="numpy")
