@@ -201,7 +201,7 @@ def _cases(scene, accel, surf, inputs, args, T, H) -> dict:
         table = H.build_photon_hash(ph, hits.position, radius, args.threads)
         cases["hash_build"] = (lambda: H.build_photon_hash(ph, hits.position, radius,
                                                            args.threads), args.repeats)
-        cases["hash_gather"] = (lambda: table.gather(hits, radius, surf, args.threads),
+        cases["hash_gather"] = (lambda: table.gather(hits, radius, scene.materials, args.threads),
                                 args.repeats)
     return cases
 

@@ -27,6 +27,7 @@ import dataclasses
 import msgpack
 import numpy as np
 
+from dosppm_core import arrays
 from dosppm_core.jobs import PhotonDeposits
 from dosppm_core.settings import RenderSettings
 from dosppm_core.sppm.iteration import EyePass
@@ -38,15 +39,6 @@ RTOL = 1e-6
 
 class LedgerError(ValueError):
     """A ledger file that cannot be read; one line naming it."""
-
-
-def _array(a: np.ndarray) -> dict:
-    a = np.ascontiguousarray(a)
-    return {"dtype": a.dtype.str, "shape": list(a.shape), "data": a.tobytes()}
-
-
-def _from(d: dict) -> np.ndarray:
-    return np.frombuffer(d["data"], np.dtype(d["dtype"])).reshape(d["shape"])
 
 
 class Ledger:
@@ -73,8 +65,8 @@ class Ledger:
                          "kept": update.hits is not None})
         elif update.kind in ("photons", "epoch"):     # an epoch: its jobs, gathered at the tracers
             keys, paths, boxes = update.jobs
-            self._write({"kind": "photons", "emitted": int(update.photons_emitted), "keys": _array(keys),
-                         "paths": _array(paths), "boxes": _array(boxes)})
+            self._write({"kind": "photons", "emitted": int(update.photons_emitted), "keys": arrays.pack(keys),
+                         "paths": arrays.pack(paths), "boxes": arrays.pack(boxes)})
 
     def end(self, totals: dict) -> None:
         self._write({"kind": "end", "totals": totals})
@@ -130,7 +122,8 @@ def retrace(provider, records: list[dict], threads: int = 1) -> dict:
                 else:           # an iteration that installs no hit points (`keeps_hit_points`)
                     sppm.add_eye_emission(eye.complete()[1])
             elif rec["kind"] == "photons":
-                keys, paths, boxes = _from(rec["keys"]), _from(rec["paths"]), _from(rec["boxes"])
+                keys, paths, boxes = (arrays.unpack(rec[k], what=f"ledger record's {k!r}")
+                                      for k in ("keys", "paths", "boxes"))
                 deposits = _photons(tracer, provider.tree, header, settings, keys, paths, boxes)
                 ids = np.arange(len(keys), dtype=np.int64)
                 sppm.apply_photon_batch(within_own_boxes(deposits, (ids, keys, paths, boxes)), rec["emitted"])

@@ -24,10 +24,11 @@ A message is one ZeroMQ multipart message:
 Dtypes are numpy strings, always little-endian ("<f4", "<i4", "<u8", "|u1");
 shapes are lists of ints. Arrays travel out of band: `encode` returns
 memoryviews of the caller's arrays (sent with `copy=False`), and `decode`
-wraps each frame with `np.frombuffer`, so a 1M-ray batch is never copied by
-this module. Exception: a frame that libzmq hands over misaligned for its
-dtype (small frames over tcp sit at odd offsets in the receive buffer) is
-copied, because numba's kernels want aligned arrays. Decoded arrays may be
+wraps each frame with `np.frombuffer` (both through the one array codec,
+`dosppm_core.arrays`), so a 1M-ray batch is never copied by this module.
+Exception: a frame that libzmq hands over misaligned for its dtype (small
+frames over tcp sit at odd offsets in the receive buffer) is copied,
+because numba's kernels want aligned arrays. Decoded arrays may be
 read-only (a `bytes` frame); copy before writing in place. No pickle.
 
 Records (`RayBatch`, `PhotonDeposits`, `HitPoints`, `ShadowRays`) travel as one array per
@@ -123,6 +124,7 @@ from functools import cached_property
 import msgpack
 import numpy as np
 
+from dosppm_core import arrays
 from dosppm_core.jobs import CONTINUES, END_NAMES, HitPoints, PhotonDeposits, RayBatch, ShadowRays
 from services import credit
 
@@ -581,10 +583,8 @@ def _frame_of(spec: Spec, c: Column, a) -> tuple[dict, memoryview]:
     if a.dtype != c.dtype:
         raise WireError(f"{spec.name}: array {c.wire!r} has dtype {a.dtype.str}, the wire wants "
                         f"{c.dtype.str}", spec.name, c.wire)
-    a = np.ascontiguousarray(a)   # a no-op for the records' own arrays
-    # A flat byte view: memoryview.cast refuses shapes with a 0 in them.
-    return ({"name": c.wire, "dtype": c.dtype.str, "shape": list(a.shape)},
-            memoryview(a.reshape(-1).view(np.uint8)))
+    dtype, shape, buf = arrays.frame(a)   # no copy of the records' own arrays
+    return {"name": c.wire, "dtype": dtype, "shape": shape}, buf
 
 
 def encode(msg_type: str, **fields_) -> list:
@@ -704,12 +704,10 @@ def _check_column(spec: Spec, c: Column, dtype: str, shape: list, frame) -> np.n
     count = shape[0] * int(np.prod(c.trailing, dtype=np.int64))   # Python ints: no overflow
     if count > MAX_ELEMENTS:
         _fail(spec.name, c.wire, f"declares {shape[:4]}: over the cap of {MAX_ELEMENTS} elements")
-    buf = memoryview(frame)
-    if buf.nbytes != count * c.dtype.itemsize:
-        _fail(spec.name, c.wire, f"frame has {buf.nbytes} bytes, shape {tuple(shape)} of {c.dtype.str} "
-              f"needs {count * c.dtype.itemsize}")
-    a = np.frombuffer(buf.cast("B") if buf.ndim != 1 or buf.format != "B" else buf, c.dtype).reshape(shape)
-    return a if a.flags.aligned else a.copy()
+    try:
+        return arrays.from_bytes(frame, dtype, shape, f"{spec.name}: field {c.wire!r}")
+    except arrays.ArrayError as e:
+        raise WireError(str(e), spec.name, c.wire) from None
 
 
 def _check_values(spec: Spec, c: Column, a: np.ndarray) -> None:

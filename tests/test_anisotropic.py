@@ -11,6 +11,12 @@ from dosppm_core.kernels import anisotropic as an
 from dosppm_core.kernels.materials import B_ANISO, bsdf_rows, eval_colour, pdf_colour
 from dosppm_core.kernels.microfacet import sample_visible_aniso, sample_visible_local
 from dosppm_core.scene.model import MATERIAL_KINDS, Material, MaterialTable
+from tests.helpers.renders import (
+    assert_equal_up_to_float_noise,
+    floor_and_wall,
+    one_triangle_chunk,
+    sppm_and_osppm_images,
+)
 
 ETA, K = (0.2, 0.9, 1.1), (3.9, 2.4, 2.2)
 CASES = {
@@ -234,41 +240,17 @@ def test_direct_light_off_an_anisotropic_plane_matches_mitsuba(mi, tmp_path, dis
 # lit only by what the floor's lobe sends it (photons); far off, a
 # checkerboard diffuse (texture 0), so the floor's alpha textures (1, 2)
 # are renumbered in its chunk.
-BOUNCE = """<scene version="3.0.0">
-  <integrator type="path"><integer name="max_depth" value="3"/></integrator>
-  <sensor type="perspective"><float name="fov" value="50"/>
-    <transform name="to_world"><lookat origin="2.5,0,1.2" target="-2,0,0.6" up="0,0,1"/></transform>
-    <film type="hdrfilm"><integer name="width" value="24"/><integer name="height" value="24"/>
-      <rfilter type="box"/></film>
-  </sensor>
-  <shape type="rectangle"><transform name="to_world"><translate x="-12"/></transform>
-    <bsdf type="diffuse"><texture name="reflectance" type="checkerboard"/></bsdf></shape>
-  <shape type="rectangle"><transform name="to_world"><scale value="2"/></transform>
-    <bsdf type="roughconductor"><string name="distribution" value="beckmann"/>
+BOUNCE = floor_and_wall("""<bsdf type="roughconductor"><string name="distribution" value="beckmann"/>
       <texture name="alpha_u" type="checkerboard"><float name="color0" value="0.05"/>
         <float name="color1" value="0.4"/></texture>
       <texture name="alpha_v" type="checkerboard"><float name="color0" value="0.4"/>
-        <float name="color1" value="0.1"/></texture></bsdf></shape>
-  <shape type="rectangle"><transform name="to_world"><scale value="2"/><rotate y="1" angle="90"/>
-    <translate x="-2" z="2"/></transform>
-    <bsdf type="diffuse"><rgb name="reflectance" value="0.8"/></bsdf></shape>
-  <emitter type="spot">
-    <transform name="to_world"><lookat origin="1,0,3" target="0,0,0" up="0,1,0"/></transform>
-    <float name="cutoff_angle" value="25"/><float name="beam_width" value="20"/>
-    <rgb name="intensity" value="80"/>
-  </emitter>
-</scene>
-"""
+        <float name="color1" value="0.1"/></texture></bsdf>""", far=True)
 
 
 def test_chunked_equals_unchunked_for_a_textured_alpha(tmp_path, chunk_store):
     """The scene above cut by the real subdivider into 2 chunks and
     rendered by OSPPM from the store: the unchunked image up to float
     noise (the chunk carries its alpha textures, renumbered)."""
-    from dosppm_core.chunks.store import ChunkGeometry
-    from dosppm_core.chunks.textures import attach_textures, chunk_surface_textures
-    from dosppm_core.modes.osppm import OutOfCoreRenderer
-    from dosppm_core.modes.sppm import Renderer
     from dosppm_core.scene.mitsuba import load_mitsuba_xml
     from dosppm_core.settings import RenderSettings
     path = tmp_path / "bounce.xml"
@@ -276,27 +258,15 @@ def test_chunked_equals_unchunked_for_a_textured_alpha(tmp_path, chunk_store):
     scene = load_mitsuba_xml(str(path))
     floor = int(np.flatnonzero(scene.materials.alpha_u_texture >= 0)[0])
     assert (scene.materials.alpha_u_texture[floor], scene.materials.alpha_v_texture[floor]) == (1, 2)
-    chunk = ChunkGeometry(np.eye(3, dtype=np.float32), np.array([[0, 1, 2]], np.int32),
-                          np.array([floor], np.int32), np.zeros(1, np.int32), np.zeros((3, 2), np.float32))
-    mats, _table = chunk_surface_textures(attach_textures(chunk, scene.header()), scene.header())
+    _chunk, mats, _table = one_triangle_chunk(scene, floor)
     assert (mats.alpha_u_texture[floor], mats.alpha_v_texture[floor]) == (0, 1)
-    settings = RenderSettings(seed=11, photons_per_iteration=30_000)
     store = chunk_store(scene, chunks=2)
     assert store.chunk_count == 2
-    images = []
-    for r in (Renderer(scene, settings), OutOfCoreRenderer(store, settings, pipelined=False)):
-        try:
-            for _ in range(3):
-                r.run_iteration()
-            images.append(np.asarray(r.image()))
-        finally:
-            r.close()
-    ref, img = images
+    ref, img = sppm_and_osppm_images(scene, store, RenderSettings(seed=11, photons_per_iteration=30_000), 3)
     wall = np.zeros(ref.shape[:2], bool)
     wall[:12] = True
     assert ref[wall].mean() > 0.01 * ref.mean() > 0     # the wall sees the floor's photons
-    rel = np.abs(img - ref) / np.maximum(ref, 1e-6 * ref.max())
-    assert np.mean(rel > 1e-4) < 0.02 and rel.max() < 0.01
+    assert_equal_up_to_float_noise(img, ref)
 
 
 @pytest.mark.reference

@@ -15,13 +15,11 @@ from services import credit, ledger, wire
 from services.inproc import InProcessCluster
 from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
 from tests.helpers.cluster import caustic_scene, settings
+from tests.helpers.credit import credit_sum
 
 
 def _value(job, exp) -> dict[int, Fraction]:
-    out: dict[int, Fraction] = {}
-    for j, e in zip(np.asarray(job).tolist(), np.asarray(exp).tolist()):
-        out[j] = out.get(j, Fraction(0)) + Fraction(1, 1 << e)
-    return out
+    return credit_sum([(job, exp)])
 
 
 @pytest.mark.parametrize("seed", range(20))

@@ -28,6 +28,7 @@ from services.inproc import InProcessCluster
 from services.tracer.state import TracerState
 from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
 from tests.helpers.cluster import caustic_scene, settings
+from tests.helpers.credit import credit_sum
 
 
 def _over_the_wire(msg_type: str, fields: dict):
@@ -48,14 +49,6 @@ def _server_made(provider, seed, ids, keys, counts):
         for k, part in routed.items():
             parts.setdefault(k, []).append(part)
     return {k: RayBatch.concat(p) for k, p in parts.items()}, lost
-
-
-def _credit_sum(terms) -> dict:
-    out: dict = {}
-    for job, exp in terms:
-        for j, e in zip(np.asarray(job).tolist(), np.asarray(exp).tolist()):
-            out[j] = out.get(j, Fraction(0)) + Fraction(1, 1 << e)
-    return out
 
 
 def test_a_tracer_makes_bit_for_bit_the_photons_the_server_sent_and_returns_the_rest_of_the_credit():
@@ -97,7 +90,7 @@ def test_a_tracer_makes_bit_for_bit_the_photons_the_server_sent_and_returns_the_
     assert r.job_ids.tolist() == ids.tolist() and r.job_fed.tolist() == counts.tolist()
     assert int((r.job_fed - r.job_left).sum()) == lost == int(r.ends[ESCAPED]) == int(r.ends.sum())
     forwarded = (portal[0].fields["credit_job"], portal[0].fields["credit_exp"])
-    total = _credit_sum([(r.credit_job, r.credit_exp), forwarded, *[p.credit for p in queued]])
+    total = credit_sum([(r.credit_job, r.credit_exp), forwarded, *[p.credit for p in queued]])
     assert total == {j: Fraction(1) for j in ids.tolist()}
     assert a.counters["photons_emitted"] == counts.sum()
 

@@ -21,36 +21,18 @@ import pytest
 
 import dosppm_core as dp
 from dosppm_core.kernels.envmap import env_arrays, env_eval, env_pdf, env_sample
-from dosppm_core.modes.osppm import OutOfCoreRenderer
 from dosppm_core.modes.sppm import Renderer
 from dosppm_core.scene.envmap import distribution, texels_from_image
 from dosppm_core.scene.model import LIGHT_DIRECTIONAL, LIGHT_ENV, SceneError, SceneHeader
 from dosppm_core.settings import RenderSettings
 from dosppm_core.trace import emit_photon_job, emit_photon_jobs, environment, trace_photon_jobs
-from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
+from tests.helpers.chunks import root_box, uniform_tree
 from tests.helpers.paths import SHARED_SCENES, needs_shared_scenes
+from tests.helpers.renders import assert_chunks_render_the_scene, mitsuba_scene
 
 MITSUBA_DATA = os.path.join(SHARED_SCENES, "mitsuba-data")
 MUSEUM = os.path.join(MITSUBA_DATA, "common", "textures", "museum.exr")
 needs_museum = pytest.mark.skipif(not os.path.isfile(MUSEUM), reason="museum.exr (../shared) absent")
-
-
-def _xml(tmp_path, emitter: str, shapes: str, size=32, origin="0, 0.3, 4", fov=35, name="scene.xml", up="0, 1, 0"):
-    """A scene file: the emitter, the shapes, a camera looking at the origin."""
-    text = f"""<scene version="3.0.0">
-    {emitter}
-    <sensor type="perspective">
-        <float name="fov" value="{fov}"/>
-        <transform name="to_world"><lookat origin="{origin}" target="0, 0, 0" up="{up}"/></transform>
-        <sampler type="independent"><integer name="sample_count" value="64"/></sampler>
-        <film type="hdrfilm"><integer name="width" value="{size}"/><integer name="height" value="{size}"/>
-            <rfilter type="box"/></film>
-    </sensor>
-    {shapes}
-</scene>"""
-    path = tmp_path / name
-    path.write_text(text)
-    return str(path)
 
 
 def _sphere(albedo, centre="0, 0, 0", radius=0.8):
@@ -78,7 +60,8 @@ def test_white_furnace_sphere_under_a_constant_environment(tmp_path, direct):
     carry it with `nee`; with `photons` every photon from the disc
     deposits, so their density must be right."""
     albedo, radiance = np.array([0.8, 0.5, 0.25]), np.array([1.0, 2.0, 0.5])
-    path = _xml(tmp_path, '<emitter type="constant"><rgb name="radiance" value="1, 2, 0.5"/></emitter>',
+    path = mitsuba_scene(tmp_path,
+                         '<emitter type="constant"><rgb name="radiance" value="1, 2, 0.5"/></emitter>',
                 _sphere("0.8, 0.5, 0.25"), size=32, origin="0, 0, 6", fov=30)
     # nee: one shadow ray a pixel an iteration, few photons (they carry nothing here)
     img = _render(dp.load(path), 64, direct=direct, photons_per_iteration=10_000) if direct == "nee" else \
@@ -98,7 +81,7 @@ def test_directional_light_on_a_diffuse_plane(tmp_path, direct):
         <rgb name="irradiance" value="3, 2, 1"/></emitter>"""
     plane = """<shape type="rectangle"><transform name="to_world"><scale value="2"/><rotate x="1" angle="-90"/>
         </transform><bsdf type="diffuse"><rgb name="reflectance" value="0.6"/></bsdf></shape>"""
-    scene = dp.load(_xml(tmp_path, emitter, plane, size=24, origin="0, 4, 0", fov=30, up="0, 0, -1"))
+    scene = dp.load(mitsuba_scene(tmp_path, emitter, plane, size=24, origin="0, 4, 0", fov=30, up="0, 0, -1"))
     assert scene.lights.kind.tolist() == [LIGHT_DIRECTIONAL]
     img = _render(scene, 4 if direct == "nee" else 16, direct=direct)
     expect = 0.6 * np.array([3.0, 2.0, 1.0]) * 0.5 / math.pi
@@ -123,7 +106,7 @@ def test_directional_photons_give_its_irradiance_on_a_plane(tmp_path):
     s = math.sin(math.radians(60))
     emitter = f"""<emitter type="directional"><vector name="direction" value="{s}, -0.5, 0"/>
         <rgb name="irradiance" value="3, 2, 1"/></emitter>"""
-    scene = dp.load(_xml(tmp_path, emitter, _sphere("0.5", radius=1.5)))
+    scene = dp.load(mitsuba_scene(tmp_path, emitter, _sphere("0.5", radius=1.5)))
     flux = _flux_through_square(scene, 400_000)
     np.testing.assert_allclose(flux, np.array([3.0, 2.0, 1.0]) * 0.5, rtol=0.03)
 
@@ -146,7 +129,7 @@ def test_envmap_photons_give_its_irradiance_on_a_plane(tmp_path):
     the integral of L cos over the upper hemisphere."""
     emitter = f"""<emitter type="envmap"><string name="filename" value="{MUSEUM}"/><float name="scale" value="2"/>
         <transform name="to_world"><rotate x="0.6" z="0.8" angle="50"/></transform></emitter>"""
-    scene = dp.load(_xml(tmp_path, emitter, _sphere("0.5", radius=1.5)))
+    scene = dp.load(mitsuba_scene(tmp_path, emitter, _sphere("0.5", radius=1.5)))
     expect = _irradiance_from_above(env_arrays(scene.lights), n=150)
     flux = _flux_through_square(scene, 1_000_000, half=0.4)
     np.testing.assert_allclose(flux, expect, rtol=0.04)
@@ -221,11 +204,9 @@ def test_envmap_sampling_prefers_bright_patches():
 
 
 @needs_museum
-def test_envmap_lookup_matches_mitsuba():
+def test_envmap_lookup_matches_mitsuba(mi):
     """Our bilinear lookup of museum.exr, rotated and scaled, against
     Mitsuba 3's envmap emitter in random directions."""
-    mi = pytest.importorskip("mitsuba")
-    mi.set_variant("scalar_rgb")
     axis = np.array([1.0, 2.0, 3.0]) / math.sqrt(14)
     to_world = mi.ScalarTransform4f().rotate(axis.tolist(), 40)
     emitter = mi.load_dict({"type": "envmap", "filename": MUSEUM, "scale": 2.0, "to_world": to_world})
@@ -254,18 +235,17 @@ def _museum_scene(tmp_path, size=48):
     <shape type="rectangle"><transform name="to_world"><scale value="2"/><rotate x="1" angle="-90"/>
         <translate y="-0.5"/></transform>
         <bsdf type="diffuse"><rgb name="reflectance" value="0.5"/></bsdf></shape>"""
-    return _xml(tmp_path, emitter, shapes, size=size, origin="0, 1.2, 3.5", fov=45, name="museum.xml")
+    return mitsuba_scene(tmp_path, emitter, shapes, size=size, origin="0, 1.2, 3.5", fov=45,
+                         name="museum.xml")
 
 
 @pytest.mark.slow
 @pytest.mark.reference
 @needs_museum
-def test_envmap_scene_matches_mitsuba(tmp_path):
+def test_envmap_scene_matches_mitsuba(tmp_path, mi):
     """Two spheres (diffuse, rough conductor) on a floor under museum.exr,
     rotated: Mitsuba's path tracer reads the same file; the mean radiance
     agrees within 2%, each 12x12 tile's within 5%."""
-    mi = pytest.importorskip("mitsuba")
-    mi.set_variant("scalar_rgb")
     path = _museum_scene(tmp_path)
     theirs = np.asarray(mi.render(mi.load_file(path), spp=1024, seed=1), np.float64)[..., :3]
     ours = _render(dp.load(path), 160, photons_per_iteration=20_000)
@@ -282,7 +262,7 @@ def test_chunked_envmap_render_equals_unchunked(tmp_path):
     """OSPPM over 8 chunks renders the museum scene as SPPM does, up to
     floating-point noise (eye rays missing the scene, leaving it through
     a chunk, shadow rays to the map, photons from its disc)."""
-    _assert_chunks_render_the_scene(dp.load(_museum_scene(tmp_path, size=32)), (2, 2, 2))
+    assert_chunks_render_the_scene(dp.load(_museum_scene(tmp_path, size=32)), (2, 2, 2))
 
 
 def test_chunked_plane_under_sun_and_sky_equals_unchunked(tmp_path):
@@ -295,35 +275,15 @@ def test_chunked_plane_under_sun_and_sky_equals_unchunked(tmp_path):
         <emitter type="constant"><rgb name="radiance" value="0.3, 0.4, 0.5"/></emitter>"""
     plane = """<shape type="rectangle"><transform name="to_world"><scale value="2"/><rotate x="1" angle="-90"/>
         </transform><bsdf type="diffuse"><rgb name="reflectance" value="0.6"/></bsdf></shape>"""
-    scene = dp.load(_xml(tmp_path, emitter, plane, size=24, origin="0, 3, 0", fov=40, up="0, 0, -1"))
+    scene = dp.load(mitsuba_scene(tmp_path, emitter, plane, size=24, origin="0, 3, 0", fov=40, up="0, 0, -1"))
     assert sorted(scene.lights.kind.tolist()) == [LIGHT_DIRECTIONAL, LIGHT_ENV]
     # The box exactly the scene's (no margin): shadow rays spawned off the
     # plane start outside it, and must still reach their lights.
-    _assert_chunks_render_the_scene(scene, (2, 1, 2), box=scene.bounds())
+    assert_chunks_render_the_scene(scene, (2, 1, 2), box=scene.bounds())
     # The plane fills the view: (E cos + pi L_sky) albedo / pi.
     img = np.asarray(dp.render(scene, iterations=64, mode="sppm", seed=1, photons_per_iteration=10_000))
     expect = 0.6 * (2 * 0.8 / math.pi + np.array([0.3, 0.4, 0.5]))
     np.testing.assert_allclose(img.mean((0, 1)), expect, rtol=0.02)
-
-
-def _assert_chunks_render_the_scene(scene, cells, iterations=2, box=None):
-    settings = RenderSettings(seed=5, photons_per_iteration=30_000)
-    r = Renderer(scene, settings)
-    for _ in range(iterations):
-        r.run_iteration()
-    r.close()
-    ref = r.image()
-    provider = MemoryChunks(scene, uniform_tree(root_box(scene) if box is None else box, cells))
-    o = OutOfCoreRenderer(provider, RenderSettings(seed=5, photons_per_iteration=30_000), pipelined=False)
-    try:
-        for _ in range(iterations):
-            o.run_iteration()
-        img = o.image()
-    finally:
-        o.close()
-    rel = np.abs(img - ref) / np.maximum(ref, 1e-6 * ref.max())
-    assert np.mean(rel > 1e-4) < 0.02, f"{np.mean(rel > 1e-4):.2%} of pixels differ"
-    assert rel.max() < 0.01, rel.max()
 
 
 @needs_museum
@@ -339,7 +299,7 @@ def test_header_carries_the_environment_over_the_wire(tmp_path):
 
 
 def test_two_environments_are_refused(tmp_path):
-    path = _xml(tmp_path, '<emitter type="constant"/>\n<emitter type="constant"/>', _sphere("0.5"))
+    path = mitsuba_scene(tmp_path, '<emitter type="constant"/>\n<emitter type="constant"/>', _sphere("0.5"))
     with pytest.raises(SceneError, match=r"scene.xml:3: <emitter type=\"constant\">: only one environment"):
         dp.load(path)
 
@@ -349,7 +309,7 @@ def test_envmap_must_be_rotated_not_scaled(tmp_path):
     emitter = f"""<emitter type="envmap"><string name="filename" value="{MUSEUM}"/>
         <transform name="to_world"><scale value="2"/></transform></emitter>"""
     with pytest.raises(SceneError, match="rotation only"):
-        dp.load(_xml(tmp_path, emitter, _sphere("0.5")))
+        dp.load(mitsuba_scene(tmp_path, emitter, _sphere("0.5")))
 
 
 @needs_shared_scenes
@@ -399,7 +359,8 @@ def test_toml_environment_reads_as_the_xml_envmap(tmp_path):
     """The TOML `environment` light (file, scale, rotate) and `directional`
     give the light table Mitsuba's XML does."""
     shapes_xml = _sphere("0.5")
-    xml = dp.load(_xml(tmp_path, f"""<emitter type="envmap"><string name="filename" value="{MUSEUM}"/>
+    xml = dp.load(mitsuba_scene(tmp_path, f"""
+        <emitter type="envmap"><string name="filename" value="{MUSEUM}"/>
         <float name="scale" value="1.5"/><transform name="to_world"><rotate y="1" angle="30"/></transform></emitter>
         <emitter type="directional"><vector name="direction" value="0, -1, 0"/><rgb name="irradiance" value="2"/>
         </emitter>""", shapes_xml))
@@ -458,7 +419,8 @@ def test_lights_add_up_with_an_environment_and_an_area_light(tmp_path, floor):
         <translate y="-0.5"/></transform>{bsdf}</shape>""" + _sphere("0.5", radius=0.5)
     images = {}
     for name, emitter, shapes in (("both", env, base + lamp), ("env", env, base), ("lamp", "", base + lamp)):
-        path = _xml(tmp_path, emitter, shapes, size=32, origin="0, 1.5, 3", fov=50, name=f"{name}.xml")
+        path = mitsuba_scene(tmp_path, emitter, shapes, size=32, origin="0, 1.5, 3", fov=50,
+                             name=f"{name}.xml")
         images[name] = _render(dp.load(path), 48, photons_per_iteration=20_000)
     summed = images["env"] + images["lamp"]
     assert abs(images["both"].mean() / summed.mean() - 1) < 0.02
@@ -474,7 +436,7 @@ PROJECTOR = """<emitter type="projector"><float name="fov" value="90"/><rgb name
 def test_projector_photons_give_pi_e_on_its_image_plane(tmp_path):
     """Mitsuba's projector: its image plane at distance 1 (here y = 0,
     |x|, |z| < 1 for a 90 degree fov) receives pi E, nothing outside."""
-    scene = dp.load(_xml(tmp_path, PROJECTOR, _sphere("0.5", radius=1.5)))
+    scene = dp.load(mitsuba_scene(tmp_path, PROJECTOR, _sphere("0.5", radius=1.5)))
     inside = _flux_through_square(scene, 200_000, half=0.9)
     np.testing.assert_allclose(inside, math.pi * np.array([0.5, 1.0, 2.0]), rtol=0.03)
     ring = _flux_through_square(scene, 200_000, half=1.5) * 9 - _flux_through_square(scene, 200_000, half=1.0) * 4
@@ -487,7 +449,8 @@ def test_projector_on_a_diffuse_plane(tmp_path, direct):
     footprint, 0 outside it."""
     plane = """<shape type="rectangle"><transform name="to_world"><scale value="1.6"/><rotate x="1" angle="-90"/>
         </transform><bsdf type="diffuse"><rgb name="reflectance" value="0.6"/></bsdf></shape>"""
-    scene = dp.load(_xml(tmp_path, PROJECTOR, plane, size=32, origin="0, 3, 0", fov=60, up="0, 0, 1"))
+    scene = dp.load(mitsuba_scene(tmp_path, PROJECTOR, plane, size=32, origin="0, 3, 0", fov=60,
+                                  up="0, 0, 1"))
     img = _render(scene, 16, direct=direct)
     # The view spans |x| < 3 tan 30 = 1.73: the footprint |x| < 1 is the middle 58%.
     mid, rim = img[10:22, 10:22], np.concatenate([img[:, :3], img[:, -3:]])
@@ -513,7 +476,7 @@ def test_environment_photons_are_culled_at_the_hit_point_box(tmp_path):
     deposits no hit point could gather)."""
     floor = """<shape type="rectangle"><transform name="to_world"><scale value="6"/><rotate x="1" angle="-90"/>
         <translate y="-0.8"/></transform><bsdf type="diffuse"><rgb name="reflectance" value="0.5"/></bsdf></shape>"""
-    scene = dp.load(_xml(tmp_path, '<emitter type="constant"/>', _sphere("0.6") + floor, size=16,
+    scene = dp.load(mitsuba_scene(tmp_path, '<emitter type="constant"/>', _sphere("0.6") + floor, size=16,
                          origin="0, 0, 2.5", fov=20))
     images = {}
     for cull in (True, False):
@@ -537,7 +500,7 @@ def test_server_starts_infinite_light_photons_in_every_chunk(tmp_path):
         <translate x="0.5" y="1" z="0.5"/></transform><emitter type="area"><rgb name="radiance" value="1"/>
         </emitter></shape>"""
     for emitter, expect in (("", [7]), ('<emitter type="constant"/>', list(range(8)))):
-        scene = dp.load(_xml(tmp_path, emitter, _sphere("0.5") + lamp, name=f"{len(expect)}.xml"))
+        scene = dp.load(mitsuba_scene(tmp_path, emitter, _sphere("0.5") + lamp, name=f"{len(expect)}.xml"))
         tree = uniform_tree(root_box(scene), (2, 2, 2))
         assert light_chunks(scene.header(), tree) == expect
 
@@ -559,7 +522,8 @@ def test_reference_renderer_maps_the_new_lights_to_mitsuba(tmp_path):
         <transform name="to_world"><lookat origin="1, 2, 1" target="0, -0.5, 0" up="0, 1, 0"/></transform></emitter>"""
     floor = """<shape type="rectangle"><transform name="to_world"><scale value="3"/><rotate x="1" angle="-90"/>
         <translate y="-0.8"/></transform><bsdf type="diffuse"><rgb name="reflectance" value="0.5"/></bsdf></shape>"""
-    path = _xml(tmp_path, emitter, _sphere("0.6, 0.5, 0.4") + floor, size=24, origin="0, 1.5, 4", fov=45)
+    path = mitsuba_scene(tmp_path, emitter, _sphere("0.6, 0.5, 0.4") + floor, size=24, origin="0, 1.5, 4",
+                         fov=45)
     mi.set_variant("scalar_rgb")
     theirs = np.asarray(mi.render(mi.load_file(path), spp=64, seed=1), np.float64)[..., :3]
     mapped = render_reference(dp.load(path), spp=64, seed=2)

@@ -32,18 +32,11 @@ from services.server.balance import tile_chunks
 from services.tracer.state import SERVER, TracerState
 from tests.helpers.chunks import MemoryChunks, root_box, uniform_tree
 from tests.helpers.cluster import caustic_scene, settings
+from tests.helpers.credit import credit_sum
 
 
 def _over_the_wire(msg_type: str, fields: dict):
     return wire.decode([bytes(f) for f in wire.encode(msg_type, **fields)])
-
-
-def _credit_sum(terms) -> dict:
-    out: dict = {}
-    for job, exp in terms:
-        for j, e in zip(np.asarray(job).tolist(), np.asarray(exp).tolist()):
-            out[j] = out.get(j, Fraction(0)) + Fraction(1, 1 << e)
-    return out
 
 
 def _server_made(provider, seed, iteration, ids, starts, counts):
@@ -103,7 +96,7 @@ def test_a_tracer_makes_bit_for_bit_the_eye_rays_the_server_sent_and_returns_the
     assert r.job_ids.tolist() == ids.tolist() and r.job_fed.tolist() == counts.tolist()
     assert int((r.job_fed - r.job_left).sum()) == lost == int(r.ends[ESCAPED]) == int(r.ends.sum())
     forwarded = (portal[0].fields["credit_job"], portal[0].fields["credit_exp"])
-    total = _credit_sum([(r.credit_job, r.credit_exp), forwarded, *[p.credit for _, _, p in queued]])
+    total = credit_sum([(r.credit_job, r.credit_exp), forwarded, *[p.credit for _, _, p in queued]])
     assert total == {j: Fraction(1) for j in ids.tolist()}
     assert a.counters["eye_rays_made"] == counts.sum()
 

@@ -163,27 +163,41 @@ def test_a_hung_tracer_is_dropped_and_rejoins_when_it_wakes(tmp_path, failure_fr
     assert_same_within_noise(img, failure_free[5], failure_free[9])
 
 
-def test_the_server_killed_and_resumed_from_its_checkpoint(tmp_path, failure_free):
-    """SIGKILL the server mid-render and start it again with --resume: the
-    tracers find it again by themselves, and the render goes on from the
-    checkpoint to the same total photon count."""
-    saved = {}
-
+def _kill_and_resume(saved: dict):
+    """A `crash` for `_render`: SIGKILL the server once a quarter of the
+    photons are committed and a checkpoint is written, keep the checkpoint
+    in `saved`, and start the server again with --resume; the three
+    tracers find it by themselves."""
     def crash(c: Cluster):
         c.wait_for(lambda st: st.get("photons_committed", 0) > PHOTONS // 4)
         c.wait_for(lambda st: (c.tmp / "ckpt" / "checkpoint.msgpack").exists())
         c.server.send_signal(signal.SIGKILL)
         c.server.wait(10)
         saved.update(checkpoint.read(str(c.tmp / "ckpt")))
-        assert 0 < saved["photons_emitted"] < PHOTONS
         c.server = c.start_server("--resume", str(c.tmp / "ckpt"), log="server2.log")
         c.wait_for(lambda st: len(st.get("tracers", [])) == 3, 60)
-    img, summary = _render(tmp_path, 5, crash)
+    return crash
+
+
+def _assert_resumed(summary: dict, saved: dict, tmp_path) -> None:
+    """The image holds the checkpoint's photons and the resumed server's,
+    each counted once, and the ledger (up to the checkpoint, then the
+    second server's) re-traces to the server's totals."""
     assert summary["photons_in_image"] >= PHOTONS
     assert summary["photons_in_image"] == saved["photons_emitted"] + summary["photons_applied"]
     k = summary["counters"]
     assert k["photons_emitted"] - k["photons_discarded"] == k["photons_completed"] == k["photons_committed"]
-    _assert_ledger(tmp_path)       # the resumed ledger: up to the checkpoint, then the second server's
+    _assert_ledger(tmp_path)
+
+
+def test_the_server_killed_and_resumed_from_its_checkpoint(tmp_path, failure_free):
+    """SIGKILL the server mid-render and start it again with --resume: the
+    tracers find it again by themselves, and the render goes on from the
+    checkpoint to the same total photon count."""
+    saved = {}
+    img, summary = _render(tmp_path, 5, _kill_and_resume(saved))
+    assert 0 < saved["photons_emitted"] < PHOTONS
+    _assert_resumed(summary, saved, tmp_path)
     figures.record("server killed (SIGKILL), --resume", resumed=1,
                    photons_before_kill=saved["photons_emitted"], photons_in_image=summary["photons_in_image"])
     assert_same_within_noise(img, failure_free[5], failure_free[9])
@@ -253,19 +267,6 @@ def test_a_tracer_killed_mid_epoch_with_the_gather_at_the_tracers(tmp_path, fail
 
 def test_the_server_killed_mid_epoch_and_resumed_with_the_gather_at_the_tracers(tmp_path, failure_free):
     saved = {}
-
-    def crash(c: Cluster):
-        c.wait_for(lambda st: st.get("photons_committed", 0) > PHOTONS // 4)
-        c.wait_for(lambda st: (c.tmp / "ckpt" / "checkpoint.msgpack").exists())
-        c.server.send_signal(signal.SIGKILL)
-        c.server.wait(10)
-        saved.update(checkpoint.read(str(c.tmp / "ckpt")))
-        c.server = c.start_server("--resume", str(c.tmp / "ckpt"), log="server2.log")
-        c.wait_for(lambda st: len(st.get("tracers", [])) == 3, 60)
-    img, summary = _render(tmp_path, 5, crash, server_args=TRACERS_GATHER)
-    assert summary["photons_in_image"] >= PHOTONS
-    assert summary["photons_in_image"] == saved["photons_emitted"] + summary["photons_applied"]
-    k = summary["counters"]
-    assert k["photons_emitted"] - k["photons_discarded"] == k["photons_completed"] == k["photons_committed"]
-    _assert_ledger(tmp_path)
+    img, summary = _render(tmp_path, 5, _kill_and_resume(saved), server_args=TRACERS_GATHER)
+    _assert_resumed(summary, saved, tmp_path)
     assert_same_within_noise(img, failure_free[5], failure_free[9])

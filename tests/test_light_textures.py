@@ -16,6 +16,7 @@ import pytest
 
 import dosppm_core as dp
 from dosppm_core.scene.model import LIGHT_PROJECTOR, LIGHT_SPOT, SceneError
+from tests.helpers.renders import assert_chunks_render_the_scene, mitsuba_scene, quadrants
 
 PLANE = """<shape type="rectangle"><transform name="to_world"><scale value="3"/><rotate y="1" angle="180"/>
     <translate z="1"/></transform>
@@ -33,19 +34,8 @@ def _png(tmp_path, rgb, name="tex.png") -> str:
 def _scene(tmp_path, emitter: str, name="scene.xml", size=24) -> str:
     """The light at the origin looking along +z at a plane at z = 1 (facing
     it), the camera behind the light."""
-    text = f"""<scene version="3.0.0">
-    {emitter}
-    <sensor type="perspective"><float name="fov" value="90"/>
-        <transform name="to_world"><lookat origin="0, 0, -0.2" target="0, 0, 1" up="0, 1, 0"/></transform>
-        <sampler type="independent"><integer name="sample_count" value="64"/></sampler>
-        <film type="hdrfilm"><integer name="width" value="{size}"/><integer name="height" value="{size}"/>
-            <rfilter type="box"/></film>
-    </sensor>
-    {PLANE}
-</scene>"""
-    path = tmp_path / name
-    path.write_text(text)
-    return str(path)
+    return mitsuba_scene(tmp_path, emitter, PLANE, size, origin="0, 0, -0.2", target="0, 0, 1", fov=90,
+                         name=name)
 
 
 LOOK = '<transform name="to_world"><lookat origin="0, 0, 0" target="0, 0, 1" up="0, 1, 0"/></transform>'
@@ -122,18 +112,12 @@ def test_texture_under_another_name_is_refused(tmp_path):
 
 @pytest.mark.reference
 @pytest.mark.parametrize("light", ["spot", "projector"])
-def test_textured_light_matches_mitsuba(tmp_path, light):
+def test_textured_light_matches_mitsuba(tmp_path, light, mi):
     """Four coloured quadrants (sRGB-decoded) thrown on the plane: each
     quadrant of our image within 4% of Mitsuba 3's render of the same
     file (`direct`, box filter), so the image is neither mirrored nor
     turned, and its brightness matches."""
-    mi = pytest.importorskip("mitsuba")
-    mi.set_variant("scalar_rgb")
-    texels = np.zeros((8, 8, 3))
-    texels[:4, :4] = (255, 40, 40)
-    texels[:4, 4:] = (40, 255, 40)
-    texels[4:, :4] = (40, 40, 255)
-    texels[4:, 4:] = (255, 255, 40)
+    texels = quadrants()
     png = _png(tmp_path, texels)
     emitter = (_spot("4", _bitmap(png, "texture", raw=False)) if light == "spot" else
                _projector(texture=_bitmap(png, "irradiance", raw=False)))
@@ -200,18 +184,12 @@ def test_constant_textured_area_light_equals_the_untextured_one(tmp_path, direct
 
 @pytest.mark.reference
 @pytest.mark.parametrize("direct", ["nee", "photons"])
-def test_textured_area_light_matches_mitsuba(tmp_path, direct):
+def test_textured_area_light_matches_mitsuba(tmp_path, direct, mi):
     """Four coloured quadrants as the radiance: the light seen (each
     quadrant where Mitsuba 3 shows it) and the floor it lights within 4%
     of Mitsuba's render of the same file, whether shadow rays or photons
     carry the floor's light."""
-    mi = pytest.importorskip("mitsuba")
-    mi.set_variant("scalar_rgb")
-    texels = np.zeros((8, 8, 3))
-    texels[:4, :4] = (255, 40, 40)
-    texels[:4, 4:] = (40, 255, 40)
-    texels[4:, :4] = (40, 40, 255)
-    texels[4:, 4:] = (255, 255, 40)
+    texels = quadrants()
     path = _area_scene(tmp_path, _bitmap(_png(tmp_path, texels), "radiance", raw=False))
     ours = _render(dp.load(path), direct, iterations=32)
     scene = mi.load_file(path)
@@ -228,12 +206,11 @@ def test_chunked_textured_area_light_render_equals_unchunked(tmp_path):
     """OSPPM over 8 chunks renders the textured lamp and floor as SPPM
     does: the chunks read the light table's textures (eye rays seeing the
     lamp, BSDF-sampled rays finding it, photons and shadow rays)."""
-    from tests.test_env_lights import _assert_chunks_render_the_scene
     texels = np.zeros((8, 8, 3))
     texels[:4] = (255, 40, 40)
     texels[4:] = (40, 40, 255)
     path = _area_scene(tmp_path, _bitmap(_png(tmp_path, texels), "radiance"), size=24)
-    _assert_chunks_render_the_scene(dp.load(path), (2, 2, 2))
+    assert_chunks_render_the_scene(dp.load(path), (2, 2, 2))
 
 
 @pytest.mark.parametrize("filter_type", ["bilinear", "nearest"])

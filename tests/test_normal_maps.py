@@ -13,6 +13,12 @@ from dosppm_core.kernels.shading import shading_normal, terminator
 from dosppm_core.scene.mitsuba import load_mitsuba_xml
 from dosppm_core.scene.model import MATERIAL_KINDS, Material, MaterialTable
 from dosppm_core.scene.textures import TextureTable, bitmap
+from tests.helpers.renders import (
+    assert_equal_up_to_float_noise,
+    floor_and_wall,
+    one_triangle_chunk,
+    sppm_and_osppm_images,
+)
 
 SIDE = 2.0      # the triangle's legs: dp/du = SIDE * s, so a bump's gradient is scaled as Mitsuba scales it
 
@@ -202,27 +208,12 @@ BSDF_SPHERES = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "sc
 
 # A normal-mapped floor under a narrow spot, and a wall the spot does not
 # reach: all of the wall's light comes off the floor, by photons.
-BOUNCE = """<scene version="3.0.0">
-  <integrator type="path"><integer name="max_depth" value="3"/></integrator>
-  <sensor type="perspective"><float name="fov" value="50"/>
-    <transform name="to_world"><lookat origin="2.5,0,1.2" target="-2,0,0.6" up="0,0,1"/></transform>
-    <film type="hdrfilm"><integer name="width" value="24"/><integer name="height" value="24"/>
-      <rfilter type="box"/></film>
-  </sensor>
-  <shape type="rectangle"><transform name="to_world"><scale value="2"/></transform>
-    <bsdf type="normalmap"><texture name="normalmap" type="rawconstant">
+def _bounce(c: str, far=False) -> str:
+    """The floor-and-wall scene, the floor diffuse under a normal map of
+    the constant (raw) value `c`, the spot narrower and straight down."""
+    return floor_and_wall(f"""<bsdf type="normalmap"><texture name="normalmap" type="rawconstant">
       <vector name="value" value="{c}"/></texture>
-      <bsdf type="diffuse"><rgb name="reflectance" value="0.8"/></bsdf></bsdf></shape>
-  <shape type="rectangle"><transform name="to_world"><scale value="2"/><rotate y="1" angle="90"/>
-    <translate x="-2" z="2"/></transform>
-    <bsdf type="diffuse"><rgb name="reflectance" value="0.8"/></bsdf></shape>
-  <emitter type="spot">
-    <transform name="to_world"><lookat origin="1,0,3" target="1,0,0" up="0,1,0"/></transform>
-    <float name="cutoff_angle" value="15"/><float name="beam_width" value="10"/>
-    <rgb name="intensity" value="80"/>
-  </emitter>
-</scene>
-"""
+      <bsdf type="diffuse"><rgb name="reflectance" value="0.8"/></bsdf></bsdf>""", "1,0,0", 15, 10, far)
 
 
 @pytest.mark.reference
@@ -236,7 +227,7 @@ def test_light_off_a_normal_mapped_floor_matches_mitsuba(mi, tmp_path):
     tilt = math.radians(40)
     c = ", ".join(f"{x:.9f}" for x in 0.5 + 0.5 * np.array([-math.sin(tilt), 0.0, math.cos(tilt)]))
     path = tmp_path / "bounce.xml"
-    path.write_text(BOUNCE.format(c=c))
+    path.write_text(_bounce(c))
     ours = np.asarray(dp.render(load_mitsuba_xml(str(path)), iterations=300, mode="sppm", seed=2))
     ref = np.asarray(mi.render(mi.load_file(str(path)), spp=2048, seed=1))[..., :3]
     wall = np.zeros(ours.shape[:2], bool)
@@ -251,50 +242,25 @@ def test_chunked_equals_unchunked(tmp_path, chunk_store):
     the floor's normal map is texture 1, renumbered 0 in its chunk), cut by
     the real subdivider into 2 chunks and rendered by OSPPM from the
     store: the unchunked image up to float noise."""
-    from dosppm_core.modes.osppm import OutOfCoreRenderer
-    from dosppm_core.modes.sppm import Renderer
     from dosppm_core.settings import RenderSettings
-    floor = '<shape type="rectangle"><transform name="to_world"><scale value="2"/></transform>'
-    far = ('<shape type="rectangle"><transform name="to_world"><translate x="-12"/></transform>'
-           '<bsdf type="diffuse"><texture name="reflectance" type="checkerboard"/></bsdf></shape>\n  ')
-    text = BOUNCE.format(c="0.75, 0.5, 0.933").replace(floor, far + floor)
-    assert "checkerboard" in text
     path = tmp_path / "chunked.xml"
-    path.write_text(text)
+    path.write_text(_bounce("0.75, 0.5, 0.933", far=True))
     scene = load_mitsuba_xml(str(path))
-    settings = RenderSettings(seed=11, photons_per_iteration=30_000)
-    renderers = [Renderer(scene, settings)]
     store = chunk_store(scene, chunks=2)
     assert store.chunk_count == 2 and len(store.header.textures) == 2
     _floor_chunk_renumbers_its_map(scene)
-    renderers.append(OutOfCoreRenderer(store, settings, pipelined=False))
-    images = []
-    for r in renderers:
-        try:
-            for _ in range(3):
-                r.run_iteration()
-            images.append(np.asarray(r.image()))
-        finally:
-            r.close()
-    ref, img = images
+    ref, img = sppm_and_osppm_images(scene, store, RenderSettings(seed=11, photons_per_iteration=30_000), 3)
     assert ref.mean() > 0
-    rel = np.abs(img - ref) / np.maximum(ref, 1e-6 * ref.max())
-    assert np.mean(rel > 1e-4) < 0.02 and rel.max() < 0.01
+    assert_equal_up_to_float_noise(img, ref)
 
 
 def _floor_chunk_renumbers_its_map(scene):
     """A chunk holding only the floor carries only its normal map (texture
     1 of the scene), which its kernels then read as texture 0."""
-    from dosppm_core.chunks.store import ChunkGeometry
-    from dosppm_core.chunks.textures import attach_textures, chunk_surface_textures
     floor = int(np.flatnonzero(scene.materials.normal_map >= 0)[0])
     assert scene.materials.normal_map[floor] == 1
-    tri = np.array([[0, 1, 2]], np.int32)
-    chunk = ChunkGeometry(np.eye(3, dtype=np.float32), tri, np.array([floor], np.int32),
-                          np.zeros(1, np.int32), np.zeros((3, 2), np.float32))
-    chunk = attach_textures(chunk, scene.header())
+    chunk, mats, table = one_triangle_chunk(scene, floor)
     assert chunk.tex_ids.tolist() == [1]
-    mats, table = chunk_surface_textures(chunk, scene.header())
     assert mats.normal_map[floor] == 0 and len(table) == 1 and (mats.texture == -1).all()
 
 

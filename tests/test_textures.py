@@ -96,11 +96,9 @@ def test_exr_texels_are_linear(tmp_path):
 @pytest.mark.reference
 @pytest.mark.parametrize("filter_type", ["bilinear", "nearest"])
 @pytest.mark.parametrize("wrap", ["repeat", "mirror", "clamp"])
-def test_lookup_matches_mitsuba(tmp_path, filter_type, wrap):
+def test_lookup_matches_mitsuba(tmp_path, filter_type, wrap, mi):
     """Our lookup of an 8-bit PNG against Mitsuba 3's `bitmap` eval, at
     coordinates inside and far outside [0, 1]."""
-    mi = pytest.importorskip("mitsuba")
-    mi.set_variant("scalar_rgb")
     from PIL import Image
     img = np.random.default_rng(5).integers(0, 256, (3, 5, 3), dtype=np.uint8)
     Image.fromarray(img).save(tmp_path / "t.png")

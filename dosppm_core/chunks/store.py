@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import msgpack
 import numpy as np
 
+from dosppm_core import arrays
 from dosppm_core.chunks.tree import ChunkTree
 from dosppm_core.scene.model import SceneError, SceneHeader
 
@@ -115,6 +116,13 @@ def chunk_file_name(k: int) -> str:
 _OTHER = ((1, 2), (0, 2), (0, 1))   # the two axes spanning a face normal to axis a
 
 
+# Portals.to_wire's raw arrays: (field, dtype, shape for n records), in order.
+_PORTAL_ARRAYS = (("chunk_a", "<i4", lambda n: (n,)), ("chunk_b", "<i4", lambda n: (n,)),
+                  ("axis", "|i1", lambda n: (n,)), ("plane", "<f8", lambda n: (n,)),
+                  ("lo", "<f8", lambda n: (n, 2)), ("hi", "<f8", lambda n: (n, 2)),
+                  ("root_box", "<f8", lambda n: (2, 3)))
+
+
 @dataclass
 class Portals:
     """The shared faces between neighbouring chunks (§4.1, stage 3).
@@ -181,22 +189,14 @@ class Portals:
         return out
 
     def to_wire(self) -> dict:
-        return {"count": len(self), "chunk_a": self.chunk_a.astype("<i4").tobytes(),
-                "chunk_b": self.chunk_b.astype("<i4").tobytes(),
-                "axis": self.axis.astype("<i1").tobytes(), "plane": self.plane.astype("<f8").tobytes(),
-                "lo": self.lo.astype("<f8").tobytes(), "hi": self.hi.astype("<f8").tobytes(),
-                "root_box": self.root_box.astype("<f8").tobytes()}
+        return {"count": len(self), **{name: arrays.raw(getattr(self, name), dtype)
+                                       for name, dtype, _ in _PORTAL_ARRAYS}}
 
     @classmethod
     def from_wire(cls, d: dict) -> "Portals":
         n = int(d["count"])
-        return cls(np.frombuffer(d["chunk_a"], "<i4").astype(np.int32).reshape(n),
-                   np.frombuffer(d["chunk_b"], "<i4").astype(np.int32).reshape(n),
-                   np.frombuffer(d["axis"], "<i1").astype(np.int8).reshape(n),
-                   np.frombuffer(d["plane"], "<f8").astype(np.float64).reshape(n),
-                   np.frombuffer(d["lo"], "<f8").astype(np.float64).reshape(n, 2),
-                   np.frombuffer(d["hi"], "<f8").astype(np.float64).reshape(n, 2),
-                   np.frombuffer(d["root_box"], "<f8").astype(np.float64).reshape(2, 3))
+        return cls(*(arrays.from_bytes(d[name], dtype, shape(n), f"portals {name!r}", copy=True)
+                     for name, dtype, shape in _PORTAL_ARRAYS))
 
     def same_as(self, other: "Portals") -> bool:
         return all(np.array_equal(getattr(self, f), getattr(other, f))
@@ -228,7 +228,7 @@ def write_chunk_file(path: str, geometry) -> dict:
         for name, dtype, _cols in _arrays(uv, k, smooth):
             offset, nbytes = layout[name]
             pad = b"\0" * (offset - f.tell())
-            data = np.ascontiguousarray(getattr(geometry, name), dtype).tobytes()
+            data = arrays.raw(getattr(geometry, name), dtype)
             assert len(data) == nbytes, name
             for part in (pad, data):
                 f.write(part)
@@ -363,12 +363,12 @@ class ChunkStore:
         nt, nv = entry["triangles"], entry["vertices"]
         k = entry.get("textures", 0)
         rows = _rows(nv, k, entry.get("texels", 0))
-        arrays = {}
+        out = {}
         for name, dtype, cols in _arrays("uv" in entry["arrays"], k, "normals" in entry["arrays"]):
             offset, nbytes = entry["arrays"][name]
-            a = buf[offset:offset + nbytes].view(dtype)
-            arrays[name] = a.reshape(rows.get(name, nt), cols) if cols else a
-        return ChunkGeometry(**arrays)
+            shape = (rows.get(name, nt), cols) if cols else (rows.get(name, nt),)
+            out[name] = arrays.from_bytes(buf[offset:offset + nbytes], dtype, shape, f"{file}: {name!r}")
+        return ChunkGeometry(**out)
 
 
 def _read_manifest(path: str) -> dict:

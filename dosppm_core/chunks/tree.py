@@ -18,6 +18,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from dosppm_core import arrays
+
 LEAF = -1
 OUTSIDE = -1
 
@@ -87,20 +89,17 @@ class ChunkTree:
 
     def to_wire(self) -> dict:
         """msgpack-ready: raw little-endian bytes plus shapes."""
-        return {"axis": self.axis.astype("<i1").tobytes(), "split": self.split.astype("<f8").tobytes(),
-                "child": self.child.astype("<i4").tobytes(), "boxes": self.boxes.astype("<f8").tobytes(),
+        return {"axis": arrays.raw(self.axis, "|i1"), "split": arrays.raw(self.split, "<f8"),
+                "child": arrays.raw(self.child, "<i4"), "boxes": arrays.raw(self.boxes, "<f8"),
                 "nodes": int(self.axis.shape[0]), "chunks": self.chunk_count}
 
     @classmethod
     def from_wire(cls, d: dict) -> "ChunkTree":
         n, c = int(d["nodes"]), int(d["chunks"])
-        try:
-            tree = cls(np.frombuffer(d["axis"], "<i1").astype(np.int8),
-                       np.frombuffer(d["split"], "<f8").astype(np.float64),
-                       np.frombuffer(d["child"], "<i4").astype(np.int32).reshape(n, 2),
-                       np.frombuffer(d["boxes"], "<f8").astype(np.float64).reshape(c, 2, 3))
-        except (ValueError, TypeError) as e:
-            raise ValueError(f"chunk tree: {e}") from None
+        fields = (("axis", "|i1", (n,)), ("split", "<f8", (n,)), ("child", "<i4", (n, 2)),
+                  ("boxes", "<f8", (c, 2, 3)))
+        tree = cls(*(arrays.from_bytes(d[name], dtype, shape, f"chunk tree {name!r}", copy=True)
+                     for name, dtype, shape in fields))
         tree.validate()
         return tree
 

@@ -76,9 +76,16 @@ def smith_g1(dist, alpha, cos_v, v_dot_m):
     if v_dot_m * cos_v <= 0.0:
         return 0.0
     xy2 = alpha * alpha * max(0.0, 1.0 - cos_v * cos_v)
-    if xy2 == 0.0:
+    return _g1_from_tan2(dist, xy2 / (cos_v * cos_v))
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _g1_from_tan2(dist, tan2):
+    """G1 of a direction whose tan^2 of the angle to the normal, stretched
+    by the roughness, is `tan2`: Beckmann's rational fit or GGX's closed form
+    (the tail of both `smith_g1` and `smith_g1_aniso`)."""
+    if tan2 == 0.0:
         return 1.0
-    tan2 = xy2 / (cos_v * cos_v)
     if dist == BECKMANN:
         a = 1.0 / math.sqrt(tan2)
         if a >= 1.6:
@@ -106,16 +113,7 @@ def smith_g1_aniso(dist, alpha_u, alpha_v, x, y, z, v_dot_m):
     """Mitsuba's anisotropic smith_g1(v, m), v = (x, y, z) local."""
     if v_dot_m * z <= 0.0:
         return 0.0
-    xy2 = (alpha_u * x) ** 2 + (alpha_v * y) ** 2
-    if xy2 == 0.0:
-        return 1.0
-    tan2 = xy2 / (z * z)
-    if dist == BECKMANN:
-        a = 1.0 / math.sqrt(tan2)
-        if a >= 1.6:
-            return 1.0
-        return (3.535 * a + 2.181 * a * a) / (1.0 + 2.276 * a + 2.577 * a * a)
-    return 2.0 / (1.0 + math.sqrt(1.0 + tan2))
+    return _g1_from_tan2(dist, ((alpha_u * x) ** 2 + (alpha_v * y) ** 2) / (z * z))
 
 
 @nb.njit(cache=True, error_model="numpy")

@@ -166,16 +166,8 @@ def fold_emission(surf, prim, u, v, rgb):
     """Emission seen at hits (triangles `prim`, barycentrics u, v) times
     the texel of a textured area light there (`rgb` (n, 3), changed in
     place; `SurfaceData.emission_texture`)."""
-    for i in range(prim.shape[0]):
-        tri = prim[i]
-        t = surf.emission_texture[surf.tri_material[tri]]
-        if t < 0:
-            continue
-        s, r = hit_uv(surf.uvs, surf.triangles, tri, np.float64(u[i]), np.float64(v[i]))
-        c0, c1, c2 = texel(surf.light_tex_info, surf.light_tex_uv, surf.light_texels, t, s, r)
-        rgb[i, 0] *= c0
-        rgb[i, 1] *= c1
-        rgb[i, 2] *= c2
+    _fold(surf.emission_texture, surf.tri_material[prim], surf.light_tex_info, surf.light_tex_uv,
+          surf.light_texels, surf, prim, u, v, rgb)
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -184,17 +176,23 @@ def fold_texels(surf, prim, material, u, v, weight):
     (`material`: the hit points', which a mask or blend may have chosen
     among its parts; `weight` (n, 3) float32, changed in place; rows of
     untextured materials are left as they are)."""
+    _fold(surf.mat_texture, material, surf.tex_info, surf.tex_uv, surf.texels, surf, prim, u, v, weight)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _fold(texture_of, material, info, uv_map, texels, surf, prim, u, v, out):
+    """out[i] times the texel, in the table (info, uv_map, texels), of
+    texture `texture_of[material[i]]` (-1: none, row left as it is) at
+    hit i's texture coordinates."""
     for i in range(prim.shape[0]):
-        tri = prim[i]
-        m = material[i]
-        t = surf.mat_texture[m]
+        t = texture_of[material[i]]
         if t < 0:
             continue
-        s, r = hit_uv(surf.uvs, surf.triangles, tri, np.float64(u[i]), np.float64(v[i]))
-        c0, c1, c2 = texel(surf.tex_info, surf.tex_uv, surf.texels, t, s, r)
-        weight[i, 0] *= c0
-        weight[i, 1] *= c1
-        weight[i, 2] *= c2
+        s, r = hit_uv(surf.uvs, surf.triangles, prim[i], np.float64(u[i]), np.float64(v[i]))
+        c0, c1, c2 = texel(info, uv_map, texels, t, s, r)
+        out[i, 0] *= c0
+        out[i, 1] *= c1
+        out[i, 2] *= c2
 
 
 @nb.njit(cache=True, error_model="numpy")

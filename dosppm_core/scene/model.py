@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dosppm_core import arrays
 from dosppm_core.scene.errors import SceneError
 from dosppm_core.scene.light_textures import normalised
 from dosppm_core.scene.lights import (  # noqa: F401 (the light kinds are the scene's vocabulary too)
@@ -482,15 +483,12 @@ class SceneHeader:
 
 def _pack(v):
     if isinstance(v, np.ndarray):
-        a = np.ascontiguousarray(v)
-        return {"dtype": a.dtype.str, "shape": list(a.shape), "data": a.tobytes()}
+        return arrays.pack(v)
     return list(v) if isinstance(v, tuple) else v
 
 
 def _unpack(v):
-    if isinstance(v, dict) and set(v) == {"dtype", "shape", "data"}:
-        return np.frombuffer(v["data"], np.dtype(v["dtype"])).reshape(v["shape"]).copy()
-    return v
+    return arrays.unpack(v, copy=True) if arrays.is_packed(v) else v
 
 
 @dataclass

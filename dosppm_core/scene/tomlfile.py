@@ -116,16 +116,22 @@ def _check_keys(table: dict, allowed, path: str, table_path: str) -> None:
                              f"(known: {', '.join(allowed)})")
 
 
-def _check_typed_keys(table: dict, keys_by_type: dict, kind: str, what: str,
-                      path: str, where: str) -> None:
-    """Like `_check_keys`, but a key that another type of `what` reads is
-    reported as unused by this type rather than as unknown."""
+def _kind_of(table: dict, keys_by_type: dict, what: str, path: str, where: str) -> str:
+    """The `type` of a `what` (material, shape, light) entry, one of
+    `keys_by_type`'s, its keys checked like `_check_keys`, except that a key
+    another type of `what` reads is reported as unused by this type rather
+    than as unknown."""
+    kind = _string(table, "type", path, where)
+    if kind not in keys_by_type:
+        raise SceneError(f"{path}: {where}.type: unknown {what} type {kind!r} "
+                         f"(known: {', '.join(keys_by_type)})")
     allowed = keys_by_type[kind]
     for key in table:
         if key not in allowed and any(key in keys for keys in keys_by_type.values()):
             raise SceneError(f"{path}: {where}.{key}: not used by a {kind!r} {what} "
                              f"(its keys: {', '.join(allowed)})")
     _check_keys(table, allowed, path, where)
+    return kind
 
 
 def _table(value, path: str, where: str) -> dict:
@@ -236,11 +242,7 @@ def _read_materials(doc: dict, builder: SceneBuilder, path: str) -> dict:
     for name, mat in _table(doc.get("materials", {}), path, "materials").items():
         where = f"materials.{name}"
         mat = _table(mat, path, where)
-        kind = _string(mat, "type", path, where)
-        if kind not in _MATERIAL_KEYS:
-            raise SceneError(f"{path}: {where}.type: unknown material type {kind!r} "
-                             f"(known: {', '.join(_MATERIAL_KEYS)})")
-        _check_typed_keys(mat, _MATERIAL_KEYS, kind, "material", path, where)
+        kind = _kind_of(mat, _MATERIAL_KEYS, "material", path, where)
         material = Material(
             name, kind,
             reflectance=_rgb(mat, "reflectance", path, where,
@@ -260,11 +262,7 @@ def _read_materials(doc: dict, builder: SceneBuilder, path: str) -> dict:
 
 def _read_shape(shape: dict, builder: SceneBuilder, path: str, where: str, base_dir: str) -> str:
     """Add one `[[shapes]]` entry; returns its material's name."""
-    kind = _string(shape, "type", path, where)
-    if kind not in _SHAPE_KEYS:
-        raise SceneError(f"{path}: {where}.type: unknown shape type {kind!r} "
-                         f"(known: {', '.join(_SHAPE_KEYS)})")
-    _check_typed_keys(shape, _SHAPE_KEYS, kind, "shape", path, where)
+    kind = _kind_of(shape, _SHAPE_KEYS, "shape", path, where)
     material = builder.material_id(_string(shape, "material", path, where),
                                    f"{path}: {where}.material")
     transform = _read_transform(shape, path, where)
@@ -441,11 +439,7 @@ def _read_rotations(shape: dict, path: str, where: str) -> list[np.ndarray]:
 
 
 def _read_light(light: dict, builder: SceneBuilder, path: str, where: str, base_dir: str) -> None:
-    kind = _string(light, "type", path, where)
-    if kind not in _LIGHT_KEYS:
-        raise SceneError(f"{path}: {where}.type: unknown light type {kind!r} "
-                         f"(known: {', '.join(_LIGHT_KEYS)})")
-    _check_typed_keys(light, _LIGHT_KEYS, kind, "light", path, where)
+    kind = _kind_of(light, _LIGHT_KEYS, "light", path, where)
     if kind == "directional":
         builder.add_directional_light(_vec3(light, "direction", path, where),
                                       _rgb(light, "irradiance", path, where, _REQUIRED), f"{path}: {where}")

@@ -30,6 +30,8 @@ import os
 import msgpack
 import numpy as np
 
+from dosppm_core import arrays as codec
+
 FORMAT, VERSION = "dosppm-checkpoint", 1
 FILE = "checkpoint.msgpack"
 IDS_FILE, IDS_FORMAT = "job-ids.msgpack", "dosppm-job-ids"
@@ -57,8 +59,7 @@ def write(directory: str, stats, meta: dict) -> str:
     doc = dict(meta, format=FORMAT, version=VERSION, width=stats.width, height=stats.height,
                alpha=stats.alpha, eye_iterations=stats.eye_iterations,
                photons_emitted=int(stats.photons_emitted), sha256=_digest(arrays),
-               arrays={n: {"dtype": a.dtype.str, "shape": list(a.shape), "data": a.tobytes()}
-                       for n, a in arrays.items()})
+               arrays={n: codec.pack(a) for n, a in arrays.items()})
     path = os.path.join(directory, FILE)
     _write_atomically(directory, path, msgpack.packb(doc, use_bin_type=True))
     return path
@@ -113,11 +114,10 @@ def _arrays(path: str, doc: dict) -> dict:
     out = {}
     for name, shape in want.items():
         a = doc["arrays"].get(name) if type(doc["arrays"]) is dict else None
-        ok = (type(a) is dict and a.get("dtype") == "<f8" and tuple(a.get("shape", ())) == shape
-              and type(a.get("data")) is bytes and len(a["data"]) == 8 * int(np.prod(shape)))
-        if not ok:
-            raise CheckpointError(f"{path}: array {name!r} is malformed (expected <f8 {shape})")
-        out[name] = np.frombuffer(a["data"], "<f8").reshape(shape).copy()
+        try:
+            out[name] = codec.unpack(a, "<f8", shape, f"{path}: array {name!r} is malformed", copy=True)
+        except codec.ArrayError as e:
+            raise CheckpointError(str(e)) from None
     return out
 
 
