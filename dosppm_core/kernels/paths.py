@@ -633,7 +633,7 @@ def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp,
                 continue
             kind = kinds[m]
         hp_mat[i], coat = m, False
-        s0, s1, s2 = _eye_normal(surf, m, tri, u[i], v[i], n0, n1, n2, w0, w1, w2)
+        s0, s1, s2 = _eye_normal(bsdf, normals, tris, m, tri, u[i], v[i], n0, n1, n2, w0, w1, w2)
         if not is_specular(kind):
             if not front and not two_sided[m]:
                 end[i] = ABSORBED
@@ -671,13 +671,13 @@ def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp,
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
-def _eye_normal(surf, m, tri, u, v, n0, n1, n2, w0, w1, w2):
+def _eye_normal(bsdf, normals, tris, m, tri, u, v, n0, n1, n2, w0, w1, w2):
     """An eye path's shading normal at the hit: a smooth mesh's
     (`kernels.smooth`), else the geometric n (a normal or bump map
     perturbs its hit points afterwards: `shading.perturb_hit_points`)."""
-    if is_mapped(surf.bsdf, m):
+    if normals.shape[0] == 0 or is_mapped(bsdf, m):
         return n0, n1, n2
-    _smooth, s0, s1, s2 = smooth_normal(surf.normals, surf.triangles, tri, np.float64(u), np.float64(v),
+    _smooth, s0, s1, s2 = smooth_normal(normals, tris, tri, np.float64(u), np.float64(v),
                                         n0, n1, n2, w0, w1, w2)
     return s0, s1, s2
 
