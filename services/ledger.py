@@ -104,7 +104,7 @@ def retrace(provider, records: list[dict], threads: int = 1) -> dict:
     applied to fresh pixel statistics in the ledger's order. `threads`:
     the tracers' (Embree's BVH depends on the threads that built it, and a
     tie between two triangles at one distance may then fall otherwise)."""
-    from dosppm_core.sppm.iteration import SPPMIteration
+    from dosppm_core.sppm.iteration import SPPMStatistics
     from services.culling import within_own_boxes
     from services.tracer.state import TracerState
     settings = RenderSettings(**records[0]["settings"])
@@ -112,7 +112,7 @@ def retrace(provider, records: list[dict], threads: int = 1) -> dict:
     header.camera.width, header.camera.height = records[0]["image"]
     tracer = TracerState("ledger", provider, settings.max_depth, threads=threads, direct=settings.direct)
     tracer.set_peers(0, [["ledger"]] * provider.tree.chunk_count)
-    sppm = SPPMIteration(header, settings, threads=2)
+    sppm = SPPMStatistics(header, settings, threads=2)
     try:
         for rec in records[1:]:
             if rec["kind"] == "hits":

@@ -31,7 +31,7 @@ from dosppm_core.jobs import ESCAPED, HitPoints, PhotonDeposits, RayBatch, Shado
 from dosppm_core.kernels.light_cache import LightCache, share_of_memory
 from dosppm_core.modes.deadline import Deadline, Rate, that_fit
 from dosppm_core.settings import Progress, RenderSettings
-from dosppm_core.sppm.iteration import EyePass, SPPMIteration
+from dosppm_core.sppm.iteration import EyePass, SPPMStatistics
 from dosppm_core.trace import NO_CULL, emit_photon_job, environment, eye_ray_job, freeze_light_cache, light_arrays
 
 
@@ -100,7 +100,7 @@ class OutOfCoreRenderer:
         self._photons_since_eye = 0
         if self.paced:      # chunks will be loaded every sweep: start at a quarter of the limit
             s.photons_per_iteration = max(s.photons_per_iteration, self.max_photons_per_iteration // 4)
-        self.sppm = SPPMIteration(self.header, s)
+        self.sppm = SPPMStatistics(self.header, s)
         self.eps_abs = self.header.spawn_epsilon()
         self.lights = light_arrays(self.header.lights, LightCache(self.header.bounds, cache_bytes, frozen=True)) \
             if s.direct == "nee" else None

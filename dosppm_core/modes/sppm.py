@@ -16,7 +16,7 @@ from dosppm_core.kernels.light_cache import LightCache
 from dosppm_core.modes.deadline import Deadline, Rate, that_fit
 from dosppm_core.scene.model import Scene
 from dosppm_core.settings import Progress, RenderSettings
-from dosppm_core.sppm.iteration import EyePass, SPPMIteration
+from dosppm_core.sppm.iteration import EyePass, SPPMStatistics
 from dosppm_core.trace import (SurfaceData, emit_photon_job, environment, eye_ray_job, freeze_light_cache,
                                light_arrays, trace_eye, trace_photon_jobs)
 
@@ -33,7 +33,7 @@ class Renderer:
         self.lights = light_arrays(scene.lights, LightCache(scene.bounds(), self.settings.light_cache, frozen=True)) \
             if self.settings.direct == "nee" else None
         self.env = environment(scene.lights)
-        self.sppm = SPPMIteration(scene.header(), self.settings)
+        self.sppm = SPPMStatistics(scene.header(), self.settings)
         self.iteration = 0
         self.next_photon_job = 0
         self.seconds = 0.0

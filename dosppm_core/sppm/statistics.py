@@ -218,10 +218,8 @@ def add_rows(out: np.ndarray, rows: np.ndarray, values: np.ndarray) -> None:
     """out[rows] += values, in place, for distinct rows (a tracer's sums
     or light per hit point or pixel, summed at the server): one compiled
     pass, 10x numpy's gather-add-scatter over 65k rows. `out` float64 and
-    C-contiguous, 1-D or (n, k)."""
-    flat = out.reshape(len(out), -1)
-    if not np.shares_memory(flat, out):
-        raise ValueError("add_rows needs a contiguous float64 array to add into")
+    1-D or (n, k)."""
+    flat = out if out.ndim == 2 else out[:, None]      # a view either way, empty or not
     vals = np.ascontiguousarray(values, np.float64).reshape(len(rows), flat.shape[1])
     _add_rows(flat, np.ascontiguousarray(rows, np.int64), vals)
 
@@ -452,18 +450,18 @@ class PixelStatistics:
         self.fitted[pix] = fitted
 
     # -- eye iterations -----------------------------------------------------
-    def replace_hit_points(self, hits: HitPoints, emitted: tuple) -> None:
+    def replace_hit_points(self, hits: HitPoints, seen_light: tuple) -> None:
         """Install a complete eye iteration: its hit points (sorted along a
         Morton curve for the gather) and the emission its paths saw."""
         self.hit_points = hits.take(spatial_order(hits.position))
-        if emitted is not None:         # None: its light comes on its own (`add_light`)
-            self.add_emission(emitted)
+        if seen_light is not None:      # None: its light comes on its own (`add_light`)
+            self.add_emission(seen_light)
 
-    def add_emission(self, emitted: tuple) -> None:
+    def add_emission(self, seen_light: tuple) -> None:
         """A complete eye iteration's emission seen by its paths (direct
         light included), whether or not its hit points are installed: the
         image's emission term averages over every eye iteration."""
-        pixel, rgb = emitted
+        pixel, rgb = seen_light
         for k in range(3):
             self.emission[:, k] += np.bincount(pixel, rgb[:, k], minlength=len(self.radius))
         self.eye_iterations += 1

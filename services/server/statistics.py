@@ -1,6 +1,6 @@
 """The server's pixel statistics: `state.Update`s applied in order (hit
 points of complete eye iterations, batches of photons of complete jobs)
-through the library's `SPPMIteration`, the same steps single-process SPPM
+through the library's `SPPMStatistics`, the same steps single-process SPPM
 and OSPPM take. The server shell runs this on its own thread; the kernels
 release the GIL, so the message loop keeps going meanwhile."""
 from __future__ import annotations
@@ -11,7 +11,7 @@ import time
 import numpy as np
 
 from dosppm_core.settings import RenderSettings
-from dosppm_core.sppm.iteration import SPPMIteration
+from dosppm_core.sppm.iteration import SPPMStatistics
 from services.ledger import Ledger
 from services.server import checkpoint
 from services.server.costs import thread_cpu
@@ -30,7 +30,7 @@ class ServerStatistics:
     def __init__(self, header, settings: RenderSettings, threads: int, ledger: Ledger | None = None):
         """`ledger`: where every applied update is recorded (services/ledger.py)."""
         self.header, self.settings, self.threads = header, settings, threads
-        self.sppm = SPPMIteration(header, settings, threads=threads)
+        self.sppm = SPPMStatistics(header, settings, threads=threads)
         self.lock = threading.Lock()       # held while statistics change; snapshots take it
         self.update_seconds = 0.0
         # This thread's CPU in updates; the kernels' parallel workers are

@@ -117,9 +117,11 @@ class TracerState:
         self._paced_at: tuple[float, int] | None = None     # (time, rays traced) at the last pacing
         self.clock = clock
         self.schedule = ChunkScheduler(provider.tree.chunk_count, self.step_rays, clock=clock)
-        self.owners: list[list[str]] = [[] for _ in range(provider.tree.chunk_count)]
+        # Per chunk, the endpoints of the tracers serving it (the server's
+        # `owners` holds their ids): where portal packages go.
+        self.peer_endpoints: list[list[str]] = [[] for _ in range(provider.tree.chunk_count)]
         self.table_version = -1
-        self._next_owner = [itertools.count() for _ in self.owners]
+        self._next_owner = [itertools.count() for _ in self.peer_endpoints]
         # Portal packages for chunks no tracer serves yet (a table still
         # being built); retried when the next table arrives.
         self.unroutable: list = []
@@ -137,20 +139,20 @@ class TracerState:
         waiting for chunks this tracer no longer serves move on."""
         if table_version <= self.table_version:
             return []
-        if len(owners) != len(self.owners):
-            raise ValueError(f"peer table lists {len(owners)} chunks, the scene has {len(self.owners)}")
-        self.owners, self.table_version = [list(o) for o in owners], table_version
+        if len(owners) != len(self.peer_endpoints):
+            raise ValueError(f"peer table lists {len(owners)} chunks, the scene has {len(self.peer_endpoints)}")
+        self.peer_endpoints, self.table_version = [list(o) for o in owners], table_version
         out = []
         for k in [k for k in self.schedule.queues if not self.serves(k)]:
             out += self._hand_over(k)
         return out + self.retry_unroutable()
 
     def serves(self, chunk: int) -> bool:
-        return self.endpoint in self.owners[chunk]
+        return self.endpoint in self.peer_endpoints[chunk]
 
     @property
     def chunks(self) -> list[int]:
-        return [k for k, o in enumerate(self.owners) if self.endpoint in o]
+        return [k for k, o in enumerate(self.peer_endpoints) if self.endpoint in o]
 
     def _hand_over(self, k: int) -> list[Out]:
         q = self.schedule.pop(k)
@@ -165,8 +167,8 @@ class TracerState:
         """Queue a package for `chunk` (an eye job, photons made here or a
         portal package) with its share of credit (None: `own_credit`), or
         pass it on when another tracer serves that chunk."""
-        if not 0 <= chunk < len(self.owners):
-            raise ValueError(f"chunk {chunk} out of range (scene has {len(self.owners)})")
+        if not 0 <= chunk < len(self.peer_endpoints):
+            raise ValueError(f"chunk {chunk} out of range (scene has {len(self.peer_endpoints)})")
         if not len(batch):
             return []
         credit = own_credit(batch) if credit is None else credit
@@ -443,7 +445,7 @@ class TracerState:
         """A portal package to a tracer serving `chunk`, spreading packages
         over the tracers that share it (c < n). None while nobody serves it
         (the caller keeps it: see `unroutable`)."""
-        owners = [o for o in self.owners[chunk] if o != self.endpoint] or self.owners[chunk]
+        owners = [o for o in self.peer_endpoints[chunk] if o != self.endpoint] or self.peer_endpoints[chunk]
         if not owners:
             self.unroutable.append((kind, chunk, batch, cull_box, eye_iteration, credit))
             return None
