@@ -64,7 +64,8 @@ def test_a_smooth_mirror_sphere_reflects_about_the_exact_sphere_normal(tmp_path)
     assert np.all(prim >= 0)
     n = len(prim)
     rays = (direction, np.ones((n, 3), np.float32), np.zeros(n, np.int32), np.arange(n, dtype=np.uint64) + 1)
-    _ends, _lit, _hp, (g, no, nd, _nw, _st) = paths.advance_eye_paths_serial(rays, (prim, u, v), surf, 8, EPS_REL)
+    _ends, _lit, _hp, (g, no, nd, _nw, _st) = paths.advance_eye_paths_serial(
+        rays, (prim, u, v), surf, surf.normals, 8, EPS_REL)
     assert len(g) == n
     corners = scene.vertices[scene.triangles[prim[g]]].astype(np.float64)
     b = np.stack([1 - u[g] - v[g], u[g], v[g]], 1).astype(np.float64)

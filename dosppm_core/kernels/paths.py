@@ -115,6 +115,12 @@ class SurfaceData(NamedTuple):
         return bool(np.any(self.bsdf[:, B_ANISO] > 0))
 
     @property
+    def smooth_normals(self):
+        """`normals`, or None in a scene of flat meshes only: the eye bounce
+        is compiled for that None without the smooth meshes' lookups."""
+        return self.normals if len(self.normals) else None
+
+    @property
     def shading_mapped(self) -> bool:
         """Whether a material has a normal or bump map (`kernels.shading`)."""
         return bool(np.any(self.bsdf[:, B_NORMAL_MAP] >= 0) or np.any(self.bsdf[:, B_BUMP_MAP] >= 0))
@@ -545,7 +551,7 @@ SERIAL_BELOW = 2048
 
 
 @nb.njit(cache=True, parallel=True, error_model="numpy")
-def advance_eye_paths(rays, hits, surf, max_depth, eps_rel):
+def advance_eye_paths(rays, hits, surf, normals, max_depth, eps_rel):
     """Record emission seen along eye paths, store a hit point at the first
     non-specular surface, and continue through mirrors and glass. `rays`
     is (direction, weight, depth, rng state), `hits` (prim, u, v). Returns
@@ -553,23 +559,25 @@ def advance_eye_paths(rays, hits, surf, max_depth, eps_rel):
     position, normal, material), continuing paths (index, origin,
     direction, weight, rng state)); a hit point's outgoing direction is
     -direction and its material tri_material[prim], or the part a mask or
-    blend chose there. (`advance_eye_paths_serial`: the same on one
-    thread.)"""
+    blend chose there. `normals` is `surf.smooth_normals`: None in a flat
+    scene, whose loop numba then compiles without the smooth lookups (a
+    run-time check of the empty array made the flat bounce 1.35x slower).
+    (`advance_eye_paths_serial`: the same on one thread.)"""
     n = hits[0].shape[0]
     nblk = max(1, min(64, n // 2048))   # enough blocks to balance threads
     end, emitted, hp, nxt = _eye_buffers(n, rays)
     for b in nb.prange(nblk):
-        _advance_block(b * n // nblk, (b + 1) * n // nblk, rays, hits, surf, max_depth, eps_rel,
+        _advance_block(b * n // nblk, (b + 1) * n // nblk, rays, hits, surf, normals, max_depth, eps_rel,
                        end, emitted, hp, nxt)
     return _eye_outputs(end, emitted, hp, nxt)
 
 
 @nb.njit(cache=True, error_model="numpy")
-def advance_eye_paths_serial(rays, hits, surf, max_depth, eps_rel):
+def advance_eye_paths_serial(rays, hits, surf, normals, max_depth, eps_rel):
     """`advance_eye_paths` on this thread, for small batches."""
     n = hits[0].shape[0]
     end, emitted, hp, nxt = _eye_buffers(n, rays)
-    _advance_block(0, n, rays, hits, surf, max_depth, eps_rel, end, emitted, hp, nxt)
+    _advance_block(0, n, rays, hits, surf, normals, max_depth, eps_rel, end, emitted, hp, nxt)
     return _eye_outputs(end, emitted, hp, nxt)
 
 
@@ -608,11 +616,11 @@ def _take_rows(a, idx):
 # on through a mirror, glass or a mask's hole, adds one. At max_depth only the
 # emission counts (Mitsuba's last vertex: the light seen in a mirror).
 @nb.njit(cache=True, error_model="numpy")
-def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp, nxt):
+def _advance_block(a, e, rays, hits, surf, normals, max_depth, eps_rel, end, emitted, hp, nxt):
     """The eye bounce of rows [a, e), each written to its own row. Tuples unpacked once per block."""
     direction, weight, depth, states = rays
     (verts, tris, tri_mat, kinds, refl, emit, ior, rough, two_sided, eps_abs, bsdf,
-     uvs, mtex, tinfo, tuv, texels, _etex, _ltinfo, _ltuv, _ltexels, normals) = surf
+     uvs, mtex, tinfo, tuv, texels, _etex, _ltinfo, _ltuv, _ltexels, _normals) = surf
     prim, u, v = hits
     hp_pos, hp_n, hp_mat = hp
     new_o, new_d, new_w, new_st = nxt
@@ -674,8 +682,9 @@ def _advance_block(a, e, rays, hits, surf, max_depth, eps_rel, end, emitted, hp,
 def _eye_normal(bsdf, normals, tris, m, tri, u, v, n0, n1, n2, w0, w1, w2):
     """An eye path's shading normal at the hit: a smooth mesh's
     (`kernels.smooth`), else the geometric n (a normal or bump map
-    perturbs its hit points afterwards: `shading.perturb_hit_points`)."""
-    if normals.shape[0] == 0 or is_mapped(bsdf, m):
+    perturbs its hit points afterwards: `shading.perturb_hit_points`).
+    `normals` None (a flat scene): numba prunes the lookups at compile time."""
+    if normals is None or is_mapped(bsdf, m):
         return n0, n1, n2
     _smooth, s0, s1, s2 = smooth_normal(normals, tris, tri, np.float64(u), np.float64(v),
                                         n0, n1, n2, w0, w1, w2)
