@@ -65,7 +65,7 @@ def test_a_smooth_mirror_sphere_reflects_about_the_exact_sphere_normal(tmp_path)
     n = len(prim)
     rays = (direction, np.ones((n, 3), np.float32), np.zeros(n, np.int32), np.arange(n, dtype=np.uint64) + 1)
     _ends, _lit, _hp, (g, no, nd, _nw, _st) = paths.advance_eye_paths_serial(
-        rays, (prim, u, v), surf, surf.normals, 8, EPS_REL)
+        rays, (prim, u, v), surf, surf.normals, surf.material_extras, 8, EPS_REL)
     assert len(g) == n
     corners = scene.vertices[scene.triangles[prim[g]]].astype(np.float64)
     b = np.stack([1 - u[g] - v[g], u[g], v[g]], 1).astype(np.float64)
@@ -259,3 +259,59 @@ def test_the_service_renders_a_smooth_scene_as_one_process(tmp_path, chunk_store
     assert c.server.eye_completed == iterations
     assert per_iteration[:3] == hit_points[:3]
     assert_same_within_noise(np.asarray(c.image()), sppm[5], sppm[9])
+
+
+def _leaves(t):
+    for x in t:
+        if isinstance(x, tuple):
+            yield from _leaves(x)
+        else:
+            yield x
+
+
+def test_a_flat_plain_scene_runs_the_pruned_eye_bounce_with_the_general_ones_result():
+    """A scene of flat meshes and plain materials gets the eye bounce
+    compiled without the smooth-normal and material branches (`normals`
+    and `extras` None); the general kernel, fed the empty normals and the
+    bsdf rows, gives the same arrays bit for bit, bounce after bounce."""
+    from dosppm_core.jobs import RayBatch
+    from dosppm_core.trace import eye_ray_job
+    from tests.helpers.scenes import small_scene
+
+    scene = small_scene("cornell-glass", 32)
+    surf = SurfaceData.from_scene(scene)
+    assert surf.smooth_normals is None and surf.material_extras is None
+    accel = Accelerator(scene.vertices, scene.triangles)
+    batch, bounces = eye_ray_job(scene, 3, 0, 0, 32 * 32), 0
+    try:
+        while len(batch) and bounces < 6:
+            prim, _t, u, v = accel.intersect(batch.origin, batch.direction)
+            rays = (batch.direction, batch.weight, batch.depth, batch.rng)
+            pruned = paths.advance_eye_paths_serial(rays, (prim, u, v), surf, None, None, 10, EPS_REL)
+            general = paths.advance_eye_paths_serial(rays, (prim, u, v), surf, surf.normals, surf.bsdf, 10,
+                                                     EPS_REL)
+            for x, y in zip(_leaves(pruned), _leaves(general), strict=True):
+                np.testing.assert_array_equal(x, y)
+            g, no, nd, nw, st = pruned[3]
+            batch = RayBatch(no, nd, nw, batch.pixel[g], batch.depth[g] + 1, st)
+            bounces += 1
+    finally:
+        accel.close()
+    assert bounces >= 3
+
+
+def test_material_extras_are_there_for_a_mask_a_plastic_or_a_texture():
+    from dosppm_core.scene.model import PLASTIC
+    from tests.helpers.scenes import small_scene
+
+    for change in (None, "opacity", "kind", "texture"):
+        scene = small_scene("cornell-box", 8)
+        m = scene.materials
+        if change == "opacity":
+            m.opacity[0] = 0.5
+        elif change == "kind":
+            m.kind[0] = PLASTIC
+        elif change == "texture":
+            m.texture[0] = 0
+        extras = SurfaceData.from_scene(scene).material_extras
+        assert (extras is None) == (change is None), change

@@ -121,6 +121,15 @@ class SurfaceData(NamedTuple):
         return self.normals if len(self.normals) else None
 
     @property
+    def material_extras(self):
+        """`bsdf`, or None where no material is a mask, a blend, a plastic or
+        textured: the eye bounce is compiled for that None without those
+        branches (measured: 10% of a plain scene's eye bounce)."""
+        plain = (not np.any(self.bsdf[:, B_CHOICE] > 0.0) and not np.any(self.kind == PLASTIC)
+                 and not np.any(self.mat_texture >= 0))
+        return None if plain else self.bsdf
+
+    @property
     def shading_mapped(self) -> bool:
         """Whether a material has a normal or bump map (`kernels.shading`)."""
         return bool(np.any(self.bsdf[:, B_NORMAL_MAP] >= 0) or np.any(self.bsdf[:, B_BUMP_MAP] >= 0))
@@ -230,10 +239,11 @@ DEEP_SURVIVAL = 0.9
 
 
 @nb.njit(cache=True, error_model="numpy")
-def tinted(t0, t1, t2, texture, uvs, tris, tinfo, tuv, texels, tri, u, v):
+def tinted(t0, t1, t2, texture, uvs, tris, tinfo, tuv, texels, tri, u, v, extras=0):
     """A bounce's throughput t times the texel at the hit when its material
-    is textured (`texture` >= 0; its reflectance row is white then)."""
-    if texture < 0:
+    is textured (`texture` >= 0; its reflectance row is white then). With
+    `extras` None (`SurfaceData.material_extras`) none is."""
+    if extras is None or texture < 0:
         return t0, t1, t2
     x0, x1, x2 = texel_at(uvs, tris, tinfo, tuv, texels, texture, tri, u, v)
     return t0 * x0, t1 * x1, t2 * x2
@@ -551,7 +561,7 @@ SERIAL_BELOW = 2048
 
 
 @nb.njit(cache=True, parallel=True, error_model="numpy")
-def advance_eye_paths(rays, hits, surf, normals, max_depth, eps_rel):
+def advance_eye_paths(rays, hits, surf, normals, extras, max_depth, eps_rel):
     """Record emission seen along eye paths, store a hit point at the first
     non-specular surface, and continue through mirrors and glass. `rays`
     is (direction, weight, depth, rng state), `hits` (prim, u, v). Returns
@@ -559,25 +569,26 @@ def advance_eye_paths(rays, hits, surf, normals, max_depth, eps_rel):
     position, normal, material), continuing paths (index, origin,
     direction, weight, rng state)); a hit point's outgoing direction is
     -direction and its material tri_material[prim], or the part a mask or
-    blend chose there. `normals` is `surf.smooth_normals`: None in a flat
-    scene, whose loop numba then compiles without the smooth lookups (a
-    run-time check of the empty array made the flat bounce 1.35x slower).
+    blend chose there. `normals` is `surf.smooth_normals` and `extras`
+    `surf.material_extras`: None in a flat scene or one of plain materials,
+    whose loop numba then compiles without those branches (run-time checks
+    made the flat bounce 1.35x slower, plain materials' 1.1x).
     (`advance_eye_paths_serial`: the same on one thread.)"""
     n = hits[0].shape[0]
     nblk = max(1, min(64, n // 2048))   # enough blocks to balance threads
     end, emitted, hp, nxt = _eye_buffers(n, rays)
     for b in nb.prange(nblk):
-        _advance_block(b * n // nblk, (b + 1) * n // nblk, rays, hits, surf, normals, max_depth, eps_rel,
-                       end, emitted, hp, nxt)
+        _advance_block(b * n // nblk, (b + 1) * n // nblk, rays, hits, surf, normals, extras, max_depth,
+                       eps_rel, end, emitted, hp, nxt)
     return _eye_outputs(end, emitted, hp, nxt)
 
 
 @nb.njit(cache=True, error_model="numpy")
-def advance_eye_paths_serial(rays, hits, surf, normals, max_depth, eps_rel):
+def advance_eye_paths_serial(rays, hits, surf, normals, extras, max_depth, eps_rel):
     """`advance_eye_paths` on this thread, for small batches."""
     n = hits[0].shape[0]
     end, emitted, hp, nxt = _eye_buffers(n, rays)
-    _advance_block(0, n, rays, hits, surf, normals, max_depth, eps_rel, end, emitted, hp, nxt)
+    _advance_block(0, n, rays, hits, surf, normals, extras, max_depth, eps_rel, end, emitted, hp, nxt)
     return _eye_outputs(end, emitted, hp, nxt)
 
 
@@ -616,7 +627,7 @@ def _take_rows(a, idx):
 # on through a mirror, glass or a mask's hole, adds one. At max_depth only the
 # emission counts (Mitsuba's last vertex: the light seen in a mirror).
 @nb.njit(cache=True, error_model="numpy")
-def _advance_block(a, e, rays, hits, surf, normals, max_depth, eps_rel, end, emitted, hp, nxt):
+def _advance_block(a, e, rays, hits, surf, normals, extras, max_depth, eps_rel, end, emitted, hp, nxt):
     """The eye bounce of rows [a, e), each written to its own row. Tuples unpacked once per block."""
     direction, weight, depth, states = rays
     (verts, tris, tri_mat, kinds, refl, emit, ior, rough, two_sided, eps_abs, bsdf,
@@ -634,7 +645,7 @@ def _advance_block(a, e, rays, hits, surf, normals, max_depth, eps_rel, end, emi
         if front:  # one-sided emitters, as in Mitsuba
             for k in range(3):
                 emitted[i, k] = weight[i, k] * emit[m, k]
-        if bsdf[m, B_CHOICE] > 0.0:     # a mask or a blend: what is there
+        if extras is not None and bsdf[m, B_CHOICE] > 0.0:     # a mask or a blend: what is there
             m = _eye_choice(i, m, tri, u[i], v[i], p0, p1, p2, n0, n1, n2, w0, w1, w2, rays, surf,
                             max_depth, eps_rel, end, nxt)
             if m < 0:
@@ -646,7 +657,7 @@ def _advance_block(a, e, rays, hits, surf, normals, max_depth, eps_rel, end, emi
             if not front and not two_sided[m]:
                 end[i] = ABSORBED
                 continue
-            if kind == PLASTIC:     # the coating's mirror with probability q (kernels.materials)
+            if extras is not None and kind == PLASTIC:     # the coating's mirror with probability q
                 s = 1.0 if front else -1.0
                 coat = side_float(states[i], 1) < plastic_specular_probability(
                     bsdf[m], s * s0, s * s1, s * s2, w0, w1, w2)
@@ -668,7 +679,7 @@ def _advance_block(a, e, rays, hits, surf, normals, max_depth, eps_rel, end, emi
             end[i] = ABSORBED
             continue
         # Russian roulette as for photons (`roulette`: why not on refraction's eta^2).
-        t0, t1, t2 = tinted(t0, t1, t2, mtex[m], uvs, tris, tinfo, tuv, texels, tri, u[i], v[i])
+        t0, t1, t2 = tinted(t0, t1, t2, mtex[m], uvs, tris, tinfo, tuv, texels, tri, u[i], v[i], extras)
         ok, f0, f1, f2 = roulette(weight, i, t0, t1, t2, ur, depth[i])
         if not ok:
             end[i] = ABSORBED
