@@ -96,8 +96,8 @@ def advance_eye(surf: SurfaceData, batch: RayBatch, prim, u, v, max_depth: int,
     paths that leave the scene see the environment."""
     kernel = paths.advance_eye_paths if len(batch) >= paths.SERIAL_BELOW else paths.advance_eye_paths_serial
     ends, (lit, rgb), (h, hpos, hn, hmat), (g, no, nd, nw, st) = kernel(
-        (batch.direction, batch.weight, batch.depth, batch.rng), (prim, u, v), surf,
-        max_depth, EPS_REL)
+        (batch.direction, batch.weight, batch.depth, batch.rng), (prim, u, v), surf, surf.smooth_normals,
+        surf.material_extras, max_depth, EPS_REL)
     weight = batch.weight[h]
     if len(surf.tex_info) and len(h):
         # A textured hit point carries its texel in its weight (`kernels.texture`).

@@ -1090,7 +1090,8 @@ def test_serial_eye_and_direct_kernels_equal_the_parallel_ones():
     steps = hit_points = 0
     while len(batch):
         prim, _t, u, v = accel.intersect(batch.origin, batch.direction)
-        args = ((batch.direction, batch.weight, batch.depth, batch.rng), (prim, u, v), surf, 256, EPS_REL)
+        args = ((batch.direction, batch.weight, batch.depth, batch.rng), (prim, u, v), surf,
+                surf.smooth_normals, surf.material_extras, 256, EPS_REL)
         a, b = paths.advance_eye_paths(*args), paths.advance_eye_paths_serial(*args)
         for x, y in zip(_leaves(a), _leaves(b)):
             np.testing.assert_array_equal(x, y)

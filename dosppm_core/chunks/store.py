@@ -5,7 +5,8 @@
     DIR/chunk-0001.bin     64-byte-aligned offset given in the manifest:
     ...                      vertices float32 (nv, 3), triangles int32 (nt, 3),
                              tri_material int32 (nt,), global_id int32 (nt,),
-                             and, if its triangles are textured, uv float32 (nv, 2)
+                             and, if its triangles are textured, uv float32 (nv, 2),
+                             if any is smooth, normals float32 (nv, 3) (`kernels.smooth`),
                              and the textures they read (the store's header
                              keeps only their sizes): tex_ids int32 (k,),
                              tex_info int32 (k, 6), tex_uv float64 (k, 6),
@@ -53,17 +54,19 @@ ARRAYS = (("vertices", "<f4", 3), ("triangles", "<i4", 3),
 # the scene's table, info rows, to_uv maps, texels). A chunk without them
 # is laid out exactly as before, so old stores read unchanged.
 UV_ARRAY = ("uv", "<f4", 2)
+NORMAL_ARRAY = ("normals", "<f4", 3)     # in the chunks of scenes with smooth meshes only
 TEXTURE_ARRAYS = (("tex_ids", "<i4", 0), ("tex_info", "<i4", 6), ("tex_uv", "<f8", 6),
                   ("texels", "<f4", 3))
 
 
-def _arrays(uv: bool, textures: int = 0) -> tuple:
-    return ARRAYS + ((UV_ARRAY,) if uv else ()) + (TEXTURE_ARRAYS if textures else ())
+def _arrays(uv: bool, textures: int = 0, normals: bool = False) -> tuple:
+    return ARRAYS + ((UV_ARRAY,) if uv else ()) + ((NORMAL_ARRAY,) if normals else ()) \
+        + (TEXTURE_ARRAYS if textures else ())
 
 
 def _rows(vertices: int, textures: int, texels: int) -> dict:
     """Rows of each array not counted in triangles."""
-    return {"vertices": vertices, "uv": vertices, "tex_ids": textures, "tex_info": textures,
+    return {"vertices": vertices, "uv": vertices, "normals": vertices, "tex_ids": textures, "tex_info": textures,
             "tex_uv": textures, "texels": texels}
 
 
@@ -82,16 +85,18 @@ class ChunkGeometry:
     tex_info: np.ndarray = None  # int32 (k, 6)
     tex_uv: np.ndarray = None    # float64 (k, 6)
     texels: np.ndarray = None    # float32 (n, 3)
+    normals: np.ndarray = None   # float32 (nv, 3), or (0, 3): no smooth mesh in the chunk's scene
 
     def __post_init__(self):
-        for name, dtype, cols in (UV_ARRAY,) + TEXTURE_ARRAYS:
+        for name, dtype, cols in (UV_ARRAY, NORMAL_ARRAY) + TEXTURE_ARRAYS:
             if getattr(self, name) is None:
                 setattr(self, name, np.zeros((0, cols) if cols else 0, dtype))
 
     @property
     def nbytes(self) -> int:
         return sum(a.nbytes for a in (self.vertices, self.triangles, self.tri_material, self.global_id,
-                                      self.uv, self.tex_ids, self.tex_info, self.tex_uv, self.texels))
+                                      self.uv, self.tex_ids, self.tex_info, self.tex_uv, self.texels,
+                                      self.normals))
 
     @property
     def texture_bytes(self) -> int:
@@ -200,11 +205,11 @@ class Portals:
 
 # -- chunk files ---------------------------------------------------------------
 def chunk_layout(triangles: int, vertices: int, uv: bool = False, textures: int = 0,
-                 texels: int = 0) -> tuple[dict, int]:
+                 texels: int = 0, normals: bool = False) -> tuple[dict, int]:
     """{array name: (offset, nbytes)} and the file size, arrays 64-byte aligned."""
     rows = _rows(vertices, textures, texels)
     out, offset = {}, 0
-    for name, dtype, cols in _arrays(uv, textures):
+    for name, dtype, cols in _arrays(uv, textures, normals):
         nbytes = rows.get(name, triangles) * max(cols, 1) * np.dtype(dtype).itemsize
         out[name] = (offset, nbytes)
         offset += -(-nbytes // ALIGN) * ALIGN
@@ -216,10 +221,11 @@ def write_chunk_file(path: str, geometry) -> dict:
     name and memory estimate, which the caller adds)."""
     nt, nv = int(geometry.triangles.shape[0]), int(geometry.vertices.shape[0])
     uv, k, n = len(geometry.uv) > 0, len(geometry.tex_ids), len(geometry.texels)
-    layout, size = chunk_layout(nt, nv, uv, k, n)
+    smooth = len(geometry.normals) > 0
+    layout, size = chunk_layout(nt, nv, uv, k, n, smooth)
     h = hashlib.sha256()
     with open(path, "wb") as f:
-        for name, dtype, _cols in _arrays(uv, k):
+        for name, dtype, _cols in _arrays(uv, k, smooth):
             offset, nbytes = layout[name]
             pad = b"\0" * (offset - f.tell())
             data = arrays.raw(getattr(geometry, name), dtype)
@@ -358,7 +364,7 @@ class ChunkStore:
         k = entry.get("textures", 0)
         rows = _rows(nv, k, entry.get("texels", 0))
         out = {}
-        for name, dtype, cols in _arrays("uv" in entry["arrays"], k):
+        for name, dtype, cols in _arrays("uv" in entry["arrays"], k, "normals" in entry["arrays"]):
             offset, nbytes = entry["arrays"][name]
             shape = (rows.get(name, nt), cols) if cols else (rows.get(name, nt),)
             out[name] = arrays.from_bytes(buf[offset:offset + nbytes], dtype, shape, f"{file}: {name!r}")
@@ -401,7 +407,7 @@ def _check_entries(path: str, doc: dict, chunk_count: int, check_files: bool = T
         try:
             nt, nv = int(e["triangles"]), int(e["vertices"])
             layout, size = chunk_layout(nt, nv, "uv" in e["arrays"], int(e.get("textures", 0)),
-                                        int(e.get("texels", 0)))
+                                        int(e.get("texels", 0)), "normals" in e["arrays"])
             ok = (e["file"] == chunk_file_name(k) and int(e["file_bytes"]) == size
                   and set(e["arrays"]) == set(layout)
                   and all(tuple(e["arrays"][n]) == layout[n] for n in layout)

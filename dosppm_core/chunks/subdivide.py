@@ -57,6 +57,7 @@ EMBREE_BYTES_PER_VERTEX = 12
 STORED_BYTES_PER_TRIANGLE = 12 + 4 + 4   # triangles, tri_material, global_id
 STORED_BYTES_PER_VERTEX = 12
 STORED_BYTES_PER_UV = 8                  # a textured chunk's uv per vertex
+STORED_BYTES_PER_NORMAL = 12             # a smooth scene's chunk's vertex normal
 # Before insertion only triangle counts are known; a closed mesh has about
 # half a vertex per triangle. Guessing low never over-splits: a chunk that
 # comes out too big is split again after insertion.
@@ -65,6 +66,11 @@ GUESS_VERTICES_PER_TRIANGLE = 0.5
 RECORD = np.dtype([("corners", "<f4", (3, 3)), ("material", "<i4"), ("global_id", "<i4")])
 # The record of a source with texture coordinates: its corners' uv too.
 RECORD_UV = np.dtype(RECORD.descr + [("uv", "<f4", (3, 2))])
+NORMAL_FIELD = ("normal", "<f4", (3, 3))    # a smooth scene's corners' vertex normals
+
+
+def record_dtype(uv: bool, normals: bool = False) -> np.dtype:
+    return np.dtype((RECORD_UV if uv else RECORD).descr + ([NORMAL_FIELD] if normals else []))
 
 # Working memory per triangle of a source block during insertion: the block
 # read (40 B), its records (44), the (triangle, chunk) overlap pairs and
@@ -81,9 +87,10 @@ def block_for_memory(memory_bytes: int) -> int:
     return max(MIN_BLOCK, int(memory_bytes) // BLOCK_BYTES_PER_TRIANGLE)
 
 
-def chunk_memory_bytes(triangles: int, vertices: int, uv: bool = False) -> int:
+def chunk_memory_bytes(triangles: int, vertices: int, uv: bool = False, normals: bool = False) -> int:
     """Estimated resident bytes of a loaded chunk, BVH build peak included."""
-    per_vertex = STORED_BYTES_PER_VERTEX + EMBREE_BYTES_PER_VERTEX + (STORED_BYTES_PER_UV if uv else 0)
+    per_vertex = STORED_BYTES_PER_VERTEX + EMBREE_BYTES_PER_VERTEX + (STORED_BYTES_PER_UV if uv else 0) \
+        + (STORED_BYTES_PER_NORMAL if normals else 0)
     return int((STORED_BYTES_PER_TRIANGLE + EMBREE_BYTES_PER_TRIANGLE) * triangles + per_vertex * vertices)
 
 
@@ -474,23 +481,29 @@ def insert(records: np.ndarray, tree: ChunkTree, leaf_nodes: list[int], margin: 
     return np.bincount(tris, minlength=len(records))
 
 
-def source_records(first: int, corners: np.ndarray, material: np.ndarray, uv=None) -> np.ndarray:
-    r = np.empty(len(corners), RECORD if uv is None else RECORD_UV)
+def source_records(first: int, corners: np.ndarray, material: np.ndarray, uv=None, normals=None) -> np.ndarray:
+    r = np.empty(len(corners), record_dtype(uv is not None, normals is not None))
     r["corners"], r["material"] = corners, material
     if uv is not None:
         r["uv"] = uv
+    if normals is not None:
+        r["normal"] = normals
     r["global_id"] = np.arange(first, first + len(corners))
     return r
 
 
 def dedup_geometry(records: np.ndarray) -> ChunkGeometry:
     """Chunk-local arrays: vertices shared by bitwise-equal corners (and,
-    with texture coordinates, equal uv: a seam keeps its two vertices)."""
+    with texture coordinates, equal uv: a seam keeps its two vertices; with
+    vertex normals, equal normals: a crease keeps its two)."""
     nt = len(records)
     uv = "uv" in records.dtype.names
+    smooth = "normal" in records.dtype.names
     bits = np.ascontiguousarray(records["corners"]).reshape(-1, 3).view("<u4")
     if uv:
         bits = np.concatenate([bits, np.ascontiguousarray(records["uv"]).reshape(-1, 2).view("<u4")], axis=1)
+    if smooth:
+        bits = np.concatenate([bits, np.ascontiguousarray(records["normal"]).reshape(-1, 3).view("<u4")], axis=1)
     order = np.lexsort(bits.T[::-1])
     sorted_bits = bits[order]
     new = np.ones(len(order), bool)
@@ -500,7 +513,8 @@ def dedup_geometry(records: np.ndarray) -> ChunkGeometry:
     unique = np.ascontiguousarray(sorted_bits[new]).view("<f4")
     return ChunkGeometry(np.ascontiguousarray(unique[:, :3]), local.reshape(nt, 3),
                          records["material"].astype(np.int32), records["global_id"].astype(np.int32),
-                         np.ascontiguousarray(unique[:, 3:]) if uv else None)
+                         np.ascontiguousarray(unique[:, 3:5]) if uv else None,
+                         normals=np.ascontiguousarray(unique[:, -3:]) if smooth else None)
 
 
 # -- the whole pipeline ---------------------------------------------------------
@@ -539,7 +553,7 @@ def subdivide(source, out: str, budget_bytes: int | None = None, grid: int = DEF
     partial = chunkstore.partial_path(out)
     shutil.rmtree(partial, ignore_errors=True)
     try:
-        spill = Spill(os.path.join(partial, "spill"), RECORD_UV if _has_uv(source) else RECORD)
+        spill = Spill(os.path.join(partial, "spill"), record_dtype(_has_uv(source), _has_normals(source)))
         margin = INSERT_MARGIN * source.header.diagonal()
         _insert_source(source, kd, margin, spill, block)
         seconds["insertion"], t = time.perf_counter() - t, time.perf_counter()
@@ -581,14 +595,21 @@ def _has_uv(source) -> bool:
     return bool(getattr(source, "has_uv", False))
 
 
+def _has_normals(source) -> bool:
+    """Whether a triangle source carries vertex normals (smooth meshes)."""
+    return bool(getattr(source, "has_normals", False))
+
+
 def _insert_source(source, kd: KdBuilder, margin: float, spill: Spill, block: int) -> None:
     """Stream the source through the tree into the leaves' spill files."""
     leaves = kd.leaves()
     tree = kd.tree(leaves)
-    uv = _has_uv(source)
+    uv, smooth = _has_uv(source), _has_normals(source)
     for first, corners, material in source.blocks(block):
         corner_uv = source.corner_uv(first, len(corners)) if uv else None
-        copies = insert(source_records(first, corners, material, corner_uv), tree, leaves, margin, spill)
+        corner_n = source.corner_normals(first, len(corners)) if smooth else None
+        copies = insert(source_records(first, corners, material, corner_uv, corner_n), tree, leaves, margin,
+                        spill)
         if np.any(copies == 0):
             i = first + int(np.flatnonzero(copies == 0)[0])
             raise SceneError(f"scene {source.header.name}: triangle {i} lies outside the "
@@ -605,8 +626,8 @@ def _finish_chunks(kd: KdBuilder, spill: Spill, margin: float, partial: str,
         n = todo.pop()
         records = spill.take(n)
         geometry = attach_textures(dedup_geometry(records), header)
-        need = chunk_memory_bytes(len(geometry.triangles), len(geometry.vertices), len(geometry.uv) > 0) \
-            + geometry.texture_bytes
+        need = chunk_memory_bytes(len(geometry.triangles), len(geometry.vertices), len(geometry.uv) > 0,
+                                  len(geometry.normals) > 0) + geometry.texture_bytes
         if budget_bytes is not None and need > budget_bytes:
             if forced:
                 raise SceneError(f"chunk at {kd.where(n)} needs {format_bytes(need)}, over the "

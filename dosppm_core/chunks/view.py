@@ -36,7 +36,8 @@ class ChunkView:
         self.env = environment(header.lights)           # what eye paths leaving the scene see
         m, textures = chunk_surface_textures(geometry, header)
         self.surf = SurfaceData.from_arrays(geometry.vertices, geometry.triangles, geometry.tri_material,
-                                            m, header.spawn_epsilon(), geometry.uv, textures, header.lights)
+                                            m, header.spawn_epsilon(), geometry.uv, textures, header.lights,
+                                            geometry.normals)
         # An empty chunk (air between walls) still routes rays; Embree
         # needs one triangle, so give it one that no ray can reach.
         verts, tris = geometry.vertices, geometry.triangles

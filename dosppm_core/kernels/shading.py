@@ -2,9 +2,10 @@
 and `bumpmap` wrappers (src/bsdfs/normalmap.cpp, bumpmap.cpp, v3.9), and
 how photons and eye paths use it.
 
-The unperturbed frame is the triangle's: n its unit CCW normal (our
-surfaces are flat-shaded, so n is Mitsuba's sh_frame.n up to the vertex
-normals it would interpolate), s the tangent dp/du made orthogonal to n,
+The unperturbed frame is the triangle's: n its unit CCW normal (Mitsuba's
+sh_frame.n on a flat mesh; on a smooth one Mitsuba would start from the
+interpolated vertex normal, `kernels.smooth`, which a mapped material
+ignores here), s the tangent dp/du made orthogonal to n,
 t = n x s. dp/du and dp/dv come from the triangle's positions and UVs as
 Mitsuba's mesh computes them (p1 - p0 and p2 - p0 without UVs, an
 arbitrary basis where the UVs are degenerate). Then
@@ -41,7 +42,7 @@ Where this differs from Mitsuba's path tracer (measured: both Mitsuba
 test scenes pass its own scorer, and light off a mapped floor agrees
 within 4%, `tests/test_normal_maps.py`):
 * the unperturbed normal is the face's, not the vertex normals'
-  interpolation (our surfaces are flat-shaded everywhere);
+  interpolation, even on a smooth mesh;
 * a photon samples its next direction around the unflipped normal, so
   it never leaves into directions where Mitsuba's frame would flip
   (grazing ones below the perturbed horizon): a little indirect light is

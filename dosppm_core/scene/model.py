@@ -32,6 +32,7 @@ from dosppm_core.scene.lights import (  # noqa: F401 (the light kinds are the sc
     bounding_radius,
     light_table,
 )
+from dosppm_core.scene.normals import smooth_normals
 from dosppm_core.scene.textures import Texture, TextureTable
 
 # Material kinds, as stored in `MaterialTable.kind` and read by the kernels.
@@ -395,10 +396,15 @@ class Scene:
     # (see `textures`); (0, 2) when the scene has none, so it stores nothing.
     uvs: np.ndarray = None
     textures: TextureTable = None
+    # Per-vertex shading normals, float32 (nv, 3), of smooth meshes (zero at
+    # a flat mesh's vertices: `kernels.smooth`); (0, 3) when every mesh is flat.
+    normals: np.ndarray = None
 
     def __post_init__(self):
         if self.uvs is None:
             self.uvs = np.zeros((0, 2), np.float32)
+        if self.normals is None:
+            self.normals = np.zeros((0, 3), np.float32)
         if self.textures is None:
             self.textures = TextureTable.empty()
 
@@ -491,6 +497,7 @@ class _Mesh:
     faces: np.ndarray
     material: int
     uv: np.ndarray | None = None
+    normals: np.ndarray | None = None
 
 
 @dataclass
@@ -558,9 +565,11 @@ class SceneBuilder:
             raise SceneError(f"{where}: unknown material {name!r}") from None
 
     def add_mesh(self, vertices, faces, material: str | int, where: str,
-                 transform: np.ndarray | None = None, uv=None) -> None:
+                 transform: np.ndarray | None = None, uv=None, normals=None) -> None:
         """Add triangles. `transform` is a 4x4 object-to-world matrix; `uv`
-        (nv, 2) the vertices' texture coordinates, if the mesh has any."""
+        (nv, 2) the vertices' texture coordinates, if the mesh has any;
+        `normals` a smooth mesh's (nv, 3) vertex normals, or "computed" for
+        Mitsuba's own (`scene.normals`), None for a flat mesh."""
         v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
         f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
         if not np.all(np.isfinite(v)):
@@ -576,15 +585,17 @@ class SceneBuilder:
             v = v @ t[:3, :3].T + t[:3, 3]
             if not np.all(np.isfinite(v)):
                 raise SceneError(f"{where}: transform produced NaN or Inf vertices")
+        normals = smooth_normals(normals, vertices, v, f, transform, where)
         mid = material if isinstance(material, int) else self.material_id(material, where)
         if not self.textured(mid):
             uv = None       # only textured surfaces store UVs: the rest pay nothing
         elif uv is None:
             # Mitsuba's uv on a mesh without texture coordinates is the
             # hit's barycentrics (b1, b2): one vertex per corner gives that.
+            normals = None if normals is None else normals[f].reshape(-1, 3)
             v, f = v[f].reshape(-1, 3), np.arange(f.size).reshape(-1, 3)
             uv = np.tile([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]], (len(f), 1))
-        self._meshes.append(_Mesh(v, f, mid, uv))
+        self._meshes.append(_Mesh(v, f, mid, uv, normals))
 
     def add_point_light(self, position, intensity, where: str) -> None:
         pos, val = _rgb(position, f"{where}.position"), _rgb(intensity, f"{where}.intensity")
@@ -674,7 +685,15 @@ class SceneBuilder:
             raise SceneError(f"{self.source}: no light (no emissive material, point or spot light)")
         return Scene(verts.astype(np.float32), tris.astype(np.int32), mats.astype(np.int32),
                      mtable, lights, self.camera, self.name, self.source, uvs=self._merged_uv(),
-                     textures=TextureTable.from_textures(self._textures))
+                     textures=TextureTable.from_textures(self._textures), normals=self._merged_normals())
+
+    def _merged_normals(self) -> np.ndarray:
+        """The vertices' shading normals in merged order, zero for flat
+        meshes; (0, 3) when all are flat, so flat scenes store nothing."""
+        if all(m.normals is None for m in self._meshes):
+            return np.zeros((0, 3), np.float32)
+        return np.concatenate([np.zeros((len(m.vertices), 3)) if m.normals is None else m.normals
+                               for m in self._meshes]).astype(np.float32)
 
     def _merged_uv(self) -> np.ndarray:
         """The vertices' UVs in merged order; (0, 2) when no mesh has any

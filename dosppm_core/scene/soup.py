@@ -54,10 +54,20 @@ class SceneSource:
         triangles [first, first + count) (a source with `has_uv`)."""
         return np.take(self.scene.uvs, self.scene.triangles[first:first + count], axis=0)
 
+    @property
+    def has_normals(self) -> bool:
+        return len(self.scene.normals) > 0
+
+    def corner_normals(self, first: int, count: int) -> np.ndarray:
+        """(count, 3, 3) float32 vertex normals of the corners of triangles
+        [first, first + count) (a source with `has_normals`: smooth meshes)."""
+        return np.take(self.scene.normals, self.scene.triangles[first:first + count], axis=0)
+
     def content_hash(self) -> str:
         h = hashlib.sha256()
         s = self.scene
-        for a in (s.vertices, s.triangles, s.tri_material) + ((s.uvs,) if len(s.uvs) else ()):
+        for a in (s.vertices, s.triangles, s.tri_material) + ((s.uvs,) if len(s.uvs) else ()) \
+                + ((s.normals,) if len(s.normals) else ()):
             h.update(np.ascontiguousarray(a).tobytes())
         h.update(header_digest(self.header))
         return h.hexdigest()

@@ -294,19 +294,20 @@ def load_mesh_file(full: str, path: str, where: str):
         raise SceneError(f"{path}: {where}: {e}") from None
 
 
-def read_mesh_file(full: str, with_uv: bool = False):
+def read_mesh_file(full: str, with_uv: bool = False, with_normals: bool = False):
     """(vertices float64, triangles int64) of any mesh file trimesh reads,
     or ValueError with a one-line reason. Shared by every scene loader.
     `with_uv` adds the vertices' texture coordinates (float64 (nv, 2), or
     None if the file has none) in Mitsuba's convention: an OBJ's v is
     turned into 1 - v, as Mitsuba's OBJ reader does (v = 0 is then the
-    image's top row); a PLY's are taken as stored."""
+    image's top row); a PLY's are taken as stored. `with_normals` adds
+    the file's vertex normals (float64 (nv, 3), or None if it has none)."""
     import trimesh  # imported here: half a second that scenes without meshes never pay
     try:
         # Only geometry is used: skipping materials also keeps trimesh from
         # importing Pillow for the textures an OBJ's .mtl may name.
         loaded = trimesh.load(full, process=False, skip_materials=True)
-        vertices, faces, uv = _flatten(loaded)
+        vertices, faces, uv, normals = _flatten(loaded)
     # trimesh's readers raise many exception types on bad input (ValueError,
     # KeyError, IndexError, struct.error...): all mean "cannot read".
     except Exception as e:  # noqa: BLE001
@@ -318,14 +319,15 @@ def read_mesh_file(full: str, with_uv: bool = False):
         return vertices, faces
     if uv is not None and full.lower().endswith(".obj"):
         uv[:, 1] = 1.0 - uv[:, 1]
-    return vertices, faces, uv
+    return (vertices, faces, uv, normals) if with_normals else (vertices, faces, uv)
 
 
 def _flatten(loaded):
     """One triangle soup (vertices, faces, uv or None) from a trimesh
     Trimesh or Scene, with each node's transform applied. Done here rather
     than with force="mesh", whose Scene.dump deep-copies every visual and
-    so needs Pillow. Parts without UVs get (0, 0) beside parts with them."""
+    so needs Pillow. Parts without UVs get (0, 0) beside parts with them;
+    the file's vertex normals likewise (zero where a part has none)."""
     if hasattr(loaded, "graph"):
         parts = []
         for node in loaded.graph.nodes_geometry:
@@ -333,7 +335,7 @@ def _flatten(loaded):
             parts.append((loaded.geometry[name], transform))
     else:
         parts = [(loaded, None)]
-    vertices, faces, uvs, offset = [], [], [], 0
+    vertices, faces, uvs, normals, offset = [], [], [], [], 0
     for mesh, transform in parts:
         f = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), np.int64)
         if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
@@ -344,13 +346,31 @@ def _flatten(loaded):
         vertices.append(v)
         faces.append(f + offset)
         uvs.append(_mesh_uv(mesh, len(v)))
+        normals.append(_mesh_normals(mesh, len(v), transform))
         offset += len(v)
     if not faces:
-        return np.zeros((0, 3)), np.zeros((0, 3), np.int64), None
-    uv = None
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int64), None, None
+    uv = nrm = None
     if any(u is not None for u in uvs):
         uv = np.concatenate([np.zeros((len(v), 2)) if u is None else u for v, u in zip(vertices, uvs)])
-    return np.concatenate(vertices), np.concatenate(faces), uv
+    if any(n is not None for n in normals):
+        nrm = np.concatenate([np.zeros((len(v), 3)) if n is None else n for v, n in zip(vertices, normals)])
+    return np.concatenate(vertices), np.concatenate(faces), uv, nrm
+
+
+def _mesh_normals(mesh, count: int, transform):
+    """The vertex normals a mesh file gave (OBJ vn, PLY nx ny nz), float64,
+    moved by a node's `transform`; None without. trimesh keeps a file's in
+    its cache and would compute its own (not Mitsuba's) on `vertex_normals`."""
+    cache = getattr(mesh, "_cache", None)
+    if cache is None or "vertex_normals" not in cache:
+        return None
+    n = np.array(cache["vertex_normals"], np.float64)
+    if n.shape != (count, 3):
+        return None
+    if transform is not None and not np.array_equal(transform, np.eye(4)):
+        n = n @ np.linalg.inv(np.asarray(transform, np.float64)[:3, :3])
+    return n
 
 
 def _mesh_uv(mesh, count: int):

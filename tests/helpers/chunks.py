@@ -95,7 +95,8 @@ def bbox_chunks(scene, tree: ChunkTree) -> list[ChunkGeometry]:
         used, local = np.unique(scene.triangles[sel], return_inverse=True)
         out.append(ChunkGeometry(scene.vertices[used], local.reshape(-1, 3).astype(np.int32),
                                  scene.tri_material[sel], sel.astype(np.int32),
-                                 scene.uvs[used] if len(scene.uvs) else None))
+                                 scene.uvs[used] if len(scene.uvs) else None,
+                                 normals=scene.normals[used] if len(scene.normals) else None))
     return out
 
 

@@ -104,9 +104,14 @@ Decisions:
 * The front of a surface is its triangle winding (counter-clockwise), which
   emission and one-sided BSDFs use, and flip_normals reverses. Under a
   mirroring to_world Mitsuba keeps the front of rectangles and cubes outward
-  (so we rewind them) while spheres and meshes turn. Per-vertex normals in
-  OBJ/PLY files are ignored: Mitsuba would orient by them, and every shared
-  scene has them agreeing with the winding.
+  (so we rewind them) while spheres and meshes turn.
+* Shading normals are Mitsuba's: an OBJ or PLY interpolates its vertex
+  normals (the file's, else Mitsuba's angle-weighted ones) unless
+  face_normals is true; a sphere's and a cylinder's are the analytic
+  shape's exactly; rectangles, cubes and disks are flat
+  (`kernels.smooth`). Interpolated normals are turned to the winding's
+  side (Mitsuba would orient by them; every shared scene has them
+  agreeing with the winding).
 * Nori's XML (no ``version``, ``<mesh>``, ``<camera>``, ``<color>``) is
   cheap to support and is: it is rewritten to the Mitsuba elements it means
   (camelCase names, albedo, mirror, a film for width/height, the top-level

@@ -13,9 +13,16 @@ triangle never crosses from u = 1 back to 0. Other shapes store none.
 The front of a surface is its triangle winding (counter-clockwise), which
 emission and one-sided BSDFs use and flip_normals reverses. Under a
 mirroring to_world Mitsuba keeps the front of rectangles and cubes outward
-(so we rewind them) while spheres and meshes turn. Per-vertex normals in
-OBJ/PLY files are ignored: Mitsuba would orient by them, and every shared
-scene has them agreeing with the winding."""
+(so we rewind them) while spheres and meshes turn.
+
+Shading normals are Mitsuba's: an OBJ's or PLY's are interpolated from
+its vertex normals (the file's, or computed as Mitsuba does when it has
+none: `scene.normals`) unless the shape sets face_normals; spheres and
+cylinders, analytic in Mitsuba, get vertex normals whose interpolation
+points exactly away from the centre (axis); rectangles, cubes and disks
+are flat. The kernels turn an interpolated normal to the winding's side
+(Mitsuba would orient by the normals; every shared scene has them
+agreeing with the winding)."""
 from __future__ import annotations
 
 import functools
@@ -36,6 +43,7 @@ from dosppm_core.scene.mitsuba.params import (
 )
 from dosppm_core.scene.mitsuba.state import ReaderState
 from dosppm_core.scene.mitsuba.xmltree import Node, resolve
+from dosppm_core.scene.normals import COMPUTED, angle_weighted_normals
 from dosppm_core.scene.tomlfile import read_mesh_file
 
 
@@ -58,10 +66,13 @@ def read_shape(reader: ReaderState, obj: Obj, outer: np.ndarray | None = None) -
     if outer is not None and emitter is not None:
         emitter.node.fail("an emitter inside a shapegroup (Mitsuba does not instance emitters)")
     material = material_id(reader, bsdf, emitter, obj)
-    vertices, faces, uv = shape_geometry(reader, obj, reader.builder.textured(material))
+    vertices, faces, uv, normals = shape_geometry(reader, obj, reader.builder.textured(material))
     path = _mesh_path(reader, obj) if obj.type in ("obj", "ply") else None
     own = shape_attribute(reader, material, obj, path, vertices, faces)
     if own is not None:
+        if isinstance(normals, str):    # the corners come apart: compute Mitsuba's now (in the local frame)
+            normals = angle_weighted_normals(vertices, faces)
+        normals = None if normals is None else normals[faces].reshape(-1, 3)
         vertices, faces, uv, material = own
     to_world = get_matrix(obj)
     if obj.type == "sphere":
@@ -77,7 +88,7 @@ def read_shape(reader: ReaderState, obj: Obj, outer: np.ndarray | None = None) -
     if get_bool(obj, "flip_normals", False):
         faces = faces[:, ::-1]
     finish(obj)
-    reader.builder.add_mesh(vertices, faces, material, obj.where(), transform=to_world, uv=uv)
+    reader.builder.add_mesh(vertices, faces, material, obj.where(), transform=to_world, uv=uv, normals=normals)
 
 
 def _group_or_instance(reader: ReaderState, obj: Obj, outer) -> None:
@@ -102,17 +113,32 @@ def _group_or_instance(reader: ReaderState, obj: Obj, outer) -> None:
 
 
 def shape_geometry(reader: ReaderState, obj: Obj, with_uv: bool = False):
-    """(vertices, faces, uv) of a shape in its local frame: a mesh file's or
-    one of the built-in shapes'; uv is None unless `with_uv` (and the file
-    has some)."""
+    """(vertices, faces, uv, normals) of a shape in its local frame: a mesh
+    file's or one of the built-in shapes'; uv is None unless `with_uv` (and
+    the file has some); normals as `SceneBuilder.add_mesh` takes them."""
     if obj.type in ("obj", "ply"):
-        get_bool(obj, "face_normals")         # our normals are always the faces'
-        vertices, faces, uv = _load_mesh_file(_mesh_path(reader, obj), obj.node)
-        return vertices, faces, uv if with_uv else None
+        flat = get_bool(obj, "face_normals", False)
+        vertices, faces, uv, normals = _load_mesh_file(_mesh_path(reader, obj), obj.node)
+        if normals is None or not np.any(normals):
+            normals = COMPUTED
+        return vertices, faces, uv if with_uv else None, None if flat else normals
     if with_uv:
-        return _TEXTURED[obj.type]()
-    vertices, faces = _BUILT_IN[obj.type]()
-    return vertices, faces, None
+        vertices, faces, uv = _TEXTURED[obj.type]()
+    else:
+        (vertices, faces), uv = _BUILT_IN[obj.type](), None
+    return vertices, faces, uv, _analytic_normals(obj.type, vertices)
+
+
+def _analytic_normals(kind: str, vertices: np.ndarray):
+    """The vertex normals of Mitsuba's analytic shapes, None for flat ones.
+    The icosphere's vertices lie on the unit sphere: interpolated, they
+    give p - centre at every point p of a triangle, so normalised, the exact
+    sphere normal; the cylinder's (x, y, 0) likewise the radial one."""
+    if kind == "sphere":
+        return vertices.copy()
+    if kind == "cylinder":
+        return np.c_[vertices[:, :2], np.zeros(len(vertices))]
+    return None
 
 
 def _mesh_path(reader: ReaderState, obj: Obj) -> str:
@@ -122,7 +148,7 @@ def _mesh_path(reader: ReaderState, obj: Obj) -> str:
 
 def _load_mesh_file(path: str, node: Node):
     try:
-        return read_mesh_file(path, with_uv=True)
+        return read_mesh_file(path, with_uv=True, with_normals=True)
     except ValueError as exc:
         node.fail(str(exc))
 
