@@ -214,6 +214,11 @@ def test_direct_light_on_sponza_equals_pbrt_at_depth_one(pbrt_binary, tmp_path):
     _seconds, theirs = pbrt.render(str(tmp_path / "d1.pbrt"), out, seed=1)
     with pytest.warns(UserWarning, match="degenerate"):
         scene = load_scene(os.path.join(folder, "sponza_point.xml"))
+    # The PLY has no normals: pbrt-v4 shades it flat, Mitsuba (and we,
+    # reading its XML) with computed vertex normals, 5.3% brighter here.
+    # Compared like with like: flat.
+    assert len(scene.normals)
+    scene.normals = np.zeros((0, 3), np.float32)
     ours = render(scene, RenderSettings(max_depth=1, photons_per_iteration=1000), iterations=64)
     lum = lambda im: metrics.luminance(im)     # noqa: E731
     assert lum(ours).mean() == pytest.approx(lum(theirs).mean(), rel=0.005)
