@@ -29,6 +29,7 @@ from dosppm_core.kernels.envmap import env_arrays
 from dosppm_core.kernels.paths import ELSEWHERE
 from dosppm_core.scene.model import DIFFUSE, GLASS, GLOSSY, MIRROR, Camera, Material, SceneBuilder
 from dosppm_core.trace import light_textures
+from tests.helpers.renders import leaves
 
 ALPHA = 1e-4
 TWO_PI = 2.0 * math.pi
@@ -1093,7 +1094,7 @@ def test_serial_eye_and_direct_kernels_equal_the_parallel_ones():
         args = ((batch.direction, batch.weight, batch.depth, batch.rng), (prim, u, v), surf,
                 surf.smooth_normals, surf.material_extras, 256, EPS_REL)
         a, b = paths.advance_eye_paths(*args), paths.advance_eye_paths_serial(*args)
-        for x, y in zip(_leaves(a), _leaves(b)):
+        for x, y in zip(leaves(a), leaves(b)):
             np.testing.assert_array_equal(x, y)
         ends, _lit, (h, hpos, hn, hmat), (g, no, nd, nw, st) = a
         if len(h):
@@ -1107,10 +1108,3 @@ def test_serial_eye_and_direct_kernels_equal_the_parallel_ones():
         steps += 1
     assert steps > 3 and hit_points > 0.9 * 48 * 48
 
-
-def _leaves(t):
-    for x in t:
-        if isinstance(x, tuple):
-            yield from _leaves(x)
-        else:
-            yield x

@@ -11,6 +11,7 @@ from dosppm_core.scene.mitsuba import load_mitsuba_xml
 from dosppm_core.scene.model import Camera, Material, SceneBuilder
 from dosppm_core.scene.normals import angle_weighted_normals
 from dosppm_core.trace import EPS_REL, NO_CULL, SurfaceData
+from tests.helpers.renders import leaves
 
 MESHES = "/work/shared/scenes/mitsuba-data/common/meshes"
 
@@ -261,13 +262,6 @@ def test_the_service_renders_a_smooth_scene_as_one_process(tmp_path, chunk_store
     assert_same_within_noise(np.asarray(c.image()), sppm[5], sppm[9])
 
 
-def _leaves(t):
-    for x in t:
-        if isinstance(x, tuple):
-            yield from _leaves(x)
-        else:
-            yield x
-
 
 def test_a_flat_plain_scene_runs_the_pruned_eye_bounce_with_the_general_ones_result():
     """A scene of flat meshes and plain materials gets the eye bounce
@@ -290,7 +284,7 @@ def test_a_flat_plain_scene_runs_the_pruned_eye_bounce_with_the_general_ones_res
             pruned = paths.advance_eye_paths_serial(rays, (prim, u, v), surf, None, None, 10, EPS_REL)
             general = paths.advance_eye_paths_serial(rays, (prim, u, v), surf, surf.normals, surf.bsdf, 10,
                                                      EPS_REL)
-            for x, y in zip(_leaves(pruned), _leaves(general), strict=True):
+            for x, y in zip(leaves(pruned), leaves(general), strict=True):
                 np.testing.assert_array_equal(x, y)
             g, no, nd, nw, st = pruned[3]
             batch = RayBatch(no, nd, nw, batch.pixel[g], batch.depth[g] + 1, st)

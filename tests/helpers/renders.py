@@ -1,7 +1,7 @@
-"""Test helpers shared by the material and light tests: a Mitsuba scene
+"""Test helpers shared by the material, light and kernel tests: a Mitsuba scene
 file made of parts, a texture of four coloured quadrants, a one-triangle
 chunk's textures, and the same scene rendered by SPPM and by OSPPM from
-chunks, equal up to float noise."""
+chunks, equal up to float noise; the arrays of a kernel's nested outputs."""
 from __future__ import annotations
 
 import numpy as np
@@ -114,3 +114,12 @@ def assert_chunks_render_the_scene(scene, cells, iterations=2, box=None) -> None
     ref, img = sppm_and_osppm_images(scene, provider, RenderSettings(seed=5, photons_per_iteration=30_000),
                                      iterations)
     assert_equal_up_to_float_noise(img, ref)
+
+
+def leaves(t):
+    """The arrays of a kernel's nested tuple of outputs, in order (to compare two kernels' results)."""
+    for x in t:
+        if isinstance(x, tuple):
+            yield from leaves(x)
+        else:
+            yield x
