@@ -74,7 +74,8 @@ def scatter_photons(surf: SurfaceData, batch: RayBatch, prim, u, v,
     box = np.asarray(cull_box, np.float64)
     ends, culled, dep, nxt = paths.scatter_photons(
         (batch.direction, batch.weight, batch.depth, batch.rng, batch.job, batch.pixel),
-        (prim, u, v), surf, box, max_depth, int(deposit_from), EPS_REL)
+        (prim, u, v), surf, surf.smooth_normals, surf.material_extras, box, max_depth, int(deposit_from),
+        EPS_REL)
     no, nd, nf, st, depth, job, pixel = nxt
     return (PhotonDeposits(*dep), RayBatch(no, nd, nf, pixel, depth, st, job=job),
             ends, culled)

@@ -103,7 +103,8 @@ def test_a_photon_deposits_its_flux_times_ws_over_wn():
         rays = ((-w[None]).astype(np.float32), np.ones((1, 3), np.float32), np.zeros(1, np.int32),
                 np.ones(1, np.uint64), np.zeros(1, np.int64), np.zeros(1, np.int32))
         hits = (np.zeros(1, np.int32), np.float32(0.3) * one.astype(np.float32), np.float32(0.3) * one.astype(np.float32))
-        _ends, _culled, dep, _nxt = paths.scatter_photons(rays, hits, surf, NO_CULL, 8, 0, EPS_REL)
+        _ends, _culled, dep, _nxt = paths.scatter_photons(rays, hits, surf, surf.smooth_normals, surf.material_extras,
+                                                          NO_CULL, 8, 0, EPS_REL)
         got[smooth] = dep[3][0].astype(np.float64)
     assert got[False] == pytest.approx([1, 1, 1], abs=1e-6)
     assert got[True] == pytest.approx(np.full(3, (w @ tilt) / w[2]), rel=1e-5)
@@ -292,6 +293,38 @@ def test_a_flat_plain_scene_runs_the_pruned_eye_bounce_with_the_general_ones_res
     finally:
         accel.close()
     assert bounces >= 3
+
+
+def test_a_flat_plain_scene_runs_the_pruned_photon_bounce_with_the_general_ones_result():
+    """As for the eye bounce: the photon bounce compiled for `normals` and
+    `extras` None gives the general kernel's deposits and continuing paths
+    bit for bit, bounce after bounce (glass included: cornell-glass)."""
+    from dosppm_core.jobs import RayBatch
+    from dosppm_core.trace import emit_photon_job
+    from tests.helpers.scenes import small_scene
+
+    scene = small_scene("cornell-glass", 16)
+    surf = SurfaceData.from_scene(scene)
+    assert surf.smooth_normals is None and surf.material_extras is None
+    accel = Accelerator(scene.vertices, scene.triangles)
+    batch, bounces, deposits = emit_photon_job(scene, 7, 0, 20_000, surf.eps_abs), 0, 0
+    try:
+        while len(batch) and bounces < 6:
+            prim, _t, u, v = accel.intersect(batch.origin, batch.direction)
+            rays = (batch.direction, batch.weight, batch.depth, batch.rng, batch.job, batch.pixel)
+            args = ((prim, u, v), surf)
+            tail = (NO_CULL, 10, 0, EPS_REL)
+            pruned = paths.scatter_photons(rays, *args, None, None, *tail)
+            general = paths.scatter_photons(rays, *args, surf.normals, surf.bsdf, *tail)
+            for x, y in zip(leaves(pruned), leaves(general), strict=True):
+                np.testing.assert_array_equal(x, y)
+            deposits += len(pruned[2][0])
+            no, nd, nf, st, depth, job, pixel = pruned[3]
+            batch = RayBatch(no, nd, nf, pixel, depth, st, job=job)
+            bounces += 1
+    finally:
+        accel.close()
+    assert bounces >= 3 and deposits > 1000
 
 
 def test_material_extras_are_there_for_a_mask_a_plastic_or_a_texture():

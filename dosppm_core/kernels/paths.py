@@ -38,7 +38,7 @@ from dosppm_core.kernels.materials import (
     sample_colour,
     side_float,
 )
-from dosppm_core.scene.model import PLASTIC
+from dosppm_core.scene.model import PLASTIC, ROUGH_DIELECTRIC
 from dosppm_core.kernels.rng import next_float
 from dosppm_core.kernels.shading import is_mapped, photon_shading
 from dosppm_core.kernels.smooth import arrival_factor, smooth_adjoint, smooth_normal
@@ -122,11 +122,13 @@ class SurfaceData(NamedTuple):
 
     @property
     def material_extras(self):
-        """`bsdf`, or None where no material is a mask, a blend, a plastic or
-        textured: the eye bounce is compiled for that None without those
-        branches (measured: 10% of a plain scene's eye bounce)."""
-        plain = (not np.any(self.bsdf[:, B_CHOICE] > 0.0) and not np.any(self.kind == PLASTIC)
-                 and not np.any(self.mat_texture >= 0))
+        """`bsdf`, or None where every material is of a plain kind (diffuse,
+        mirror, glass, glossy: not `materials.is_coloured`), none a mask or
+        a blend, textured or normal- or bump-mapped: the bounces are
+        compiled for that None without those branches (measured: 10% of a
+        plain scene's eye bounce, a third of its photon bounce)."""
+        plain = (np.all(self.kind < ROUGH_DIELECTRIC) and not np.any(self.bsdf[:, B_CHOICE] > 0.0)
+                 and not self.textured and not self.shading_mapped)
         return None if plain else self.bsdf
 
     @property
@@ -182,13 +184,13 @@ def hit_setup(verts, tris, tri_material, kinds, tri, u, v, d0, d1, d2):
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
-def sample_scatter(two_sided, ior, rough, refl, bsdf, m, kind, n0, n1, n2, w0, w1, w2,
+def sample_scatter(two_sided, ior, rough, refl, bsdf, extras, m, kind, n0, n1, n2, w0, w1, w2,
                    u1, u2, u3, radiance):
-    """`sample_bsdf` (or `materials.sample_colour`) with material m's
-    parameters. Returns (ok, direction, throughput rgb, eta_scale): the
+    """`sample_bsdf` (or `materials.sample_colour`, never with `extras`
+    None: `SurfaceData.material_extras`) with material m's parameters. Returns (ok, direction, throughput rgb, eta_scale): the
     path's weight is multiplied by throughput * eta_scale, where eta_scale
     is the eta^2 of radiance refracted (Russian roulette ignores it)."""
-    if is_coloured(kind):
+    if extras is not None and is_coloured(kind):
         if not is_transmissive(kind) and n0 * w0 + n1 * w1 + n2 * w2 < 0.0:
             if not two_sided[m]:
                 return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0
@@ -320,7 +322,7 @@ def _path_rows(n):
 
 # -- the photon bounce -----------------------------------------------------------
 @nb.njit(cache=True, parallel=True, error_model="numpy")
-def scatter_photons(rays, hits, surf, cull_box, max_depth, deposit_from, eps_rel):
+def scatter_photons(rays, hits, surf, normals, extras, cull_box, max_depth, deposit_from, eps_rel):
     """Deposit photons at non-specular hits (if inside `cull_box`, rows lo
     and hi, and from surface `deposit_from` on: 1 when direct light comes
     from shadow rays, 0 for the paper's pure estimator) and scatter them
@@ -328,7 +330,9 @@ def scatter_photons(rays, hits, surf, cull_box, max_depth, deposit_from, eps_rel
     (direction, flux, depth, rng state, job, pixel), `hits` (prim, u, v).
     Returns (end counts, culled count, deposits (position, incoming,
     normal, flux, job), continuing paths (origin, direction, flux, rng
-    state, depth, job, pixel)).
+    state, depth, job, pixel)). `normals` and `extras` are
+    `surf.smooth_normals` and `surf.material_extras`, as for the eye
+    bounce: None compiles the loop without those branches.
 
     Compaction is done here, in blocks: each block of rows writes its
     deposits and survivors densely from its own start, then one parallel
@@ -343,8 +347,8 @@ def scatter_photons(rays, hits, surf, cull_box, max_depth, deposit_from, eps_rel
     counts = np.zeros((nblk, 2), np.int64)
     for b in nb.prange(nblk):
         a = b * n // nblk
-        dc, gc = _scatter_block(a, (b + 1) * n // nblk, rays, hits, surf, cull_box, max_depth,
-                                deposit_from, eps_rel, end, culled, dep, nxt)
+        dc, gc = _scatter_block(a, (b + 1) * n // nblk, rays, hits, surf, normals, extras, cull_box,
+                                max_depth, deposit_from, eps_rel, end, culled, dep, nxt)
         counts[b, 0] = dc - a
         counts[b, 1] = gc - a
     out_dep, out_nxt = _pack_blocks(counts, n, dep, nxt)
@@ -352,13 +356,13 @@ def scatter_photons(rays, hits, surf, cull_box, max_depth, deposit_from, eps_rel
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
-def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, eps_rel, end, culled,
-                   dep, nxt):
+def _scatter_block(a, e, rays, hits, surf, normals, extras, cull_box, max_depth, deposit_from, eps_rel,
+                   end, culled, dep, nxt):
     """The photon bounce of rows [a, e), deposits and continuing paths written densely
     from row a; returns (dc, gc). Tuples unpacked once per block, not per ray."""
     direction, flux, depth, states, job, pixel = rays
     (verts, tris, tri_mat, kinds, refl, _emit, ior, rough, two_sided, eps_abs, bsdf,
-     uvs, mtex, tinfo, tuv, texels, _etex, _ltinfo, _ltuv, _ltexels, normals) = surf
+     uvs, mtex, tinfo, tuv, texels, _etex, _ltinfo, _ltuv, _ltexels, _normals) = surf
     prim, u, v = hits
     dep_pos, dep_in, dep_n, dep_f, dep_job = dep
     new_o, new_d, new_f, new_st, new_depth, new_job, new_pix = nxt
@@ -371,7 +375,8 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
         p0, p1, p2, n0, n1, n2, w0, w1, w2, m, kind, front = hit_setup(
             verts, tris, tri_mat, kinds, tri, u[i], v[i], direction[i, 0], direction[i, 1], direction[i, 2])
         st = states[i]
-        mapped, s0, s1, s2, k_in = _photon_normal(surf, m, tri, u[i], v[i], n0, n1, n2, front, w0, w1, w2)
+        mapped, s0, s1, s2, k_in = _photon_normal(surf, normals, extras, m, tri, u[i], v[i], n0, n1, n2,
+                                                  front, w0, w1, w2)
         if not is_specular(kind) and (front or two_sided[m]) and k_in > 0.0 and depth[i] >= deposit_from:
             if outside(cull_box, p0, p1, p2):   # (before deposit_from shadow rays bring direct light)
                 culled[i] = True
@@ -379,13 +384,14 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
                 _deposit(dep_pos, dep_in, dep_n, dep_f, dep_job, dc, p0, p1, p2, n0, n1, n2, front,
                          direction, flux, job, i, k_in)
                 dc += 1
-        if bsdf[m, B_CHOICE] > 0.0:    # a mask or a blend (draws only here: other scenes keep their streams)
+        if extras is not None and bsdf[m, B_CHOICE] > 0.0:    # a mask or a blend (draws only here)
             st, m, gc = _photon_choice(i, gc, m, tri, u[i], v[i], st, p0, p1, p2, n0, n1, n2, w0, w1, w2,
                                        rays, surf, max_depth, eps_rel, end, nxt)
             if m < 0:
                 continue
             kind = kinds[m]
-            mapped, s0, s1, s2, k_in = _photon_normal(surf, m, tri, u[i], v[i], n0, n1, n2, front, w0, w1, w2)
+            mapped, s0, s1, s2, k_in = _photon_normal(surf, normals, extras, m, tri, u[i], v[i], n0, n1, n2,
+                                                      front, w0, w1, w2)
         if not is_specular(kind) and (not (front or two_sided[m]) or not k_in > 0.0):
             end[i] = ABSORBED
             continue
@@ -393,14 +399,12 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
             end[i] = MAX_DEPTH
             continue
         st, u1, u2, u3, ur = _four_floats(st)
-        ok, d0, d1, d2, t0, t1, t2 = _photon_scatter(surf, m, kind, tri, u[i], v[i], s0, s1, s2, w0, w1, w2,
-                                                     u1, u2, u3)
-        if ok and mapped != FLAT:
-            ok, t0, t1, t2 = _adjoint(mapped, t0, t1, t2, k_in, n0, n1, n2, s0, s1, s2, d0, d1, d2, front)
+        ok, d0, d1, d2, t0, t1, t2 = _photon_scatter(surf, extras, m, kind, tri, u[i], v[i], mapped, s0, s1, s2,
+                                                     k_in, n0, n1, n2, front, w0, w1, w2, u1, u2, u3)
         if not ok:
             end[i] = ABSORBED
             continue
-        t0, t1, t2 = tinted(t0, t1, t2, mtex[m], uvs, tris, tinfo, tuv, texels, tri, u[i], v[i])
+        t0, t1, t2 = tinted(t0, t1, t2, mtex[m], uvs, tris, tinfo, tuv, texels, tri, u[i], v[i], extras)
         ok, f0, f1, f2 = roulette(flux, i, t0, t1, t2, ur, depth[i])
         if not ok:
             end[i] = ABSORBED
@@ -414,13 +418,16 @@ def _scatter_block(a, e, rays, hits, surf, cull_box, max_depth, deposit_from, ep
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
-def _photon_normal(surf, m, tri, u, v, n0, n1, n2, front, w0, w1, w2):
+def _photon_normal(surf, normals, extras, m, tri, u, v, n0, n1, n2, front, w0, w1, w2):
     """(FLAT, MAPPED or SMOOTH, shading normal s, Veach's factor k_in) of
     material m at the hit: a normal or bump map's (`kernels.shading`: s
     facing the photon), a smooth mesh's (`kernels.smooth`: s on the
-    winding's side), else the geometric normal and 1."""
-    if not is_mapped(surf.bsdf, m):
-        smooth, s0, s1, s2 = smooth_normal(surf.normals, surf.triangles, tri, np.float64(u), np.float64(v),
+    winding's side), else the geometric normal and 1. `normals` or
+    `extras` None: numba prunes those lookups at compile time."""
+    if extras is None or not is_mapped(surf.bsdf, m):
+        if normals is None:
+            return FLAT, n0, n1, n2, 1.0
+        smooth, s0, s1, s2 = smooth_normal(normals, surf.triangles, tri, np.float64(u), np.float64(v),
                                            n0, n1, n2, w0, w1, w2)
         if smooth:
             return SMOOTH, s0, s1, s2, arrival_factor(n0, n1, n2, s0, s1, s2, w0, w1, w2)
@@ -432,14 +439,20 @@ def _photon_normal(surf, m, tri, u, v, n0, n1, n2, front, w0, w1, w2):
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
-def _photon_scatter(surf, m, kind, tri, u, v, s0, s1, s2, w0, w1, w2, u1, u2, u3):
+def _photon_scatter(surf, extras, m, kind, tri, u, v, mapped, s0, s1, s2, k_in, n0, n1, n2, front, w0, w1, w2,
+                    u1, u2, u3):
     """A photon's `sample_scatter` about its (shading) normal s, or an
     anisotropic conductor's lobe in the surface's frame there
-    (`kernels.anisotropic`). Returns (ok, direction, throughput rgb)."""
-    if surf.bsdf[m, B_ANISO] > 0.0:
-        return scatter(surf, m, tri, u, v, s0, s1, s2, w0, w1, w2, u2, u3)
-    ok, d0, d1, d2, t0, t1, t2, _es = sample_scatter(surf.two_sided, surf.ior, surf.roughness, surf.reflectance,
-                                                     surf.bsdf, m, kind, s0, s1, s2, w0, w1, w2, u1, u2, u3, False)
+    (`kernels.anisotropic`), made Veach's adjoint where s is not the
+    geometric normal n (`_adjoint`). Returns (ok, direction, throughput rgb)."""
+    if extras is not None and surf.bsdf[m, B_ANISO] > 0.0:
+        ok, d0, d1, d2, t0, t1, t2 = scatter(surf, m, tri, u, v, s0, s1, s2, w0, w1, w2, u2, u3)
+    else:
+        ok, d0, d1, d2, t0, t1, t2, _es = sample_scatter(
+            surf.two_sided, surf.ior, surf.roughness, surf.reflectance, surf.bsdf, extras, m, kind,
+            s0, s1, s2, w0, w1, w2, u1, u2, u3, False)
+    if ok and mapped != FLAT:
+        ok, t0, t1, t2 = _adjoint(mapped, t0, t1, t2, k_in, n0, n1, n2, s0, s1, s2, d0, d1, d2, front)
     return ok, d0, d1, d2, t0, t1, t2
 
 
@@ -673,7 +686,7 @@ def _advance_block(a, e, rays, hits, surf, normals, extras, max_depth, eps_rel, 
         st, ur = next_float(st)
         new_st[i] = st
         ok, d0, d1, d2, t0, t1, t2, eta_scale = sample_scatter(
-            two_sided, ior, rough, refl, bsdf, m, kind, s0, s1, s2, w0, w1, w2,
+            two_sided, ior, rough, refl, bsdf, extras, m, kind, s0, s1, s2, w0, w1, w2,
             0.0 if coat else u1, 0.5, 0.5, True)
         if not ok:
             end[i] = ABSORBED
