@@ -66,18 +66,23 @@ from harness.mirror_limit import LimitSettings, mirror_limit
 from harness.provenance import provenance
 from harness.reference import cached_reference, render_reference
 from harness.suites import (CAUSTIC_SCENES, METHODS, SUITES, Case, CaseSkipped, Method, Sample, Suite,
-                            shared_dir, shared_file)
+                            shared_dir, shared_file, with_face_normals)
 
 BLUR_SIGMA_PX = 2.0
 BUDGET_FRACTIONS = (0.125, 0.25, 0.5, 1.0)
 
 # -- scenes and references ----------------------------------------------------
 
-def suite_scene(suite: Suite, case: Case, shared: str | None = None) -> Scene:
+def suite_scene(suite: Suite, case: Case, shared: str | None = None, work: str | None = None) -> Scene:
     """The case's scene at the suite's resolution; a scene from the shared
-    folder keeps its own, which its reference image has."""
+    folder keeps its own, which its reference image has. One to be shaded
+    flat is read from a copy written into `work` (a new temporary folder
+    if None), which `dosppm render` then reads too (`Scene.source`)."""
     if case.files:
-        return load_scene(shared_file(shared, case.files.scene))
+        path = shared_file(shared, case.files.scene)
+        if case.files.face_normals:
+            path = with_face_normals(path, work or tempfile.mkdtemp(prefix="dosppm-flat-"))
+        return load_scene(path)
     scene = builtin.make(case.scene)
     scene.camera.width, scene.camera.height = suite.width, suite.height
     return scene
@@ -447,7 +452,7 @@ def _run_case(ev: Evaluation, suite: Suite, case: Case, chosen: list, budgets: l
     """Every chosen method on one case, scored; a case whose files are
     absent is skipped, a failure recorded, and the suite goes on."""
     try:
-        scene = suite_scene(suite, case, shared)
+        scene = suite_scene(suite, case, shared, work)
         reference, scored, about = case_reference(scene, case, suite, cache_dir, shared, log)
     except CaseSkipped as why:
         ev.skipped[case.scene] = str(why)

@@ -31,8 +31,10 @@ film       `hdrfilm` RGB float32, the camera's pixel filter (`box`, `tent`,
 sampler    `independent`
 =========  ==========================================================
 
-Geometry becomes one `mi.Mesh` per material, without vertex normals, so
-Mitsuba shades with face normals (flat), as our kernels do.
+Geometry becomes one `mi.Mesh` per material, and per shading: triangles
+whose three vertices carry normals (`Scene.normals`, a smooth mesh) get
+them as Mitsuba vertex normals, the others none, so Mitsuba shades each
+triangle as our kernels do (`kernels.smooth`).
 
 Depth convention: our `max_depth` counts scattering events (bounces) on a
 light path from the emitter to the camera, the surface seen by the camera
@@ -193,31 +195,51 @@ def _rfilter(cam) -> dict:
                                                                 "stddev": float(cam.filter_stddev)}
 
 
+def _smooth_triangles(scene: Scene) -> np.ndarray:
+    """Per triangle: whether all three of its vertices carry a normal."""
+    if not len(scene.normals):
+        return np.zeros(len(scene.triangles), bool)
+    has = np.any(scene.normals != 0, axis=1)
+    return has[scene.triangles].all(axis=1)
+
+
 def _meshes(mi, scene: Scene) -> dict:
-    """One flat-shaded `mi.Mesh` per used material, carrying its BSDF and,
-    when emissive, its area emitter."""
-    mats, out = scene.materials, {}
+    """One `mi.Mesh` per used material and shading (smooth or flat),
+    carrying its BSDF and, when emissive, its area emitter."""
+    smooth = _smooth_triangles(scene)
+    out = {}
     for mid in np.unique(scene.tri_material):
-        faces = scene.triangles[scene.tri_material == mid]
-        used, local = np.unique(faces, return_inverse=True)
-        props = mi.Properties()
-        props["bsdf"] = mi.load_dict(_bsdf(mats, int(mid)))
-        if mats.emission_texture[mid] >= 0:
-            raise ValueError("a textured area light has no reference render here: render the Mitsuba file itself")
-        if np.max(mats.emission[mid]) > 0:
-            props["emitter"] = mi.load_dict({"type": "area",
-                                             "radiance": _spectrum(mats.emission[mid])})
-        name = f"mesh_{int(mid)}_{_safe_name(mats.names[mid])}"
-        out[name] = _mesh(mi, name, scene.vertices[used], local.reshape(-1, 3), props)
+        for shaded in (False, True):
+            pick = (scene.tri_material == mid) & (smooth == shaded)
+            if pick.any():
+                name, mesh = _material_mesh(mi, scene, int(mid), pick, shaded)
+                out[name] = mesh
     return out
 
 
-def _mesh(mi, name: str, vertices: np.ndarray, faces: np.ndarray, props):
+def _material_mesh(mi, scene: Scene, mid: int, pick: np.ndarray, shaded: bool):
+    mats = scene.materials
+    faces = scene.triangles[pick]
+    used, local = np.unique(faces, return_inverse=True)
+    props = mi.Properties()
+    props["bsdf"] = mi.load_dict(_bsdf(mats, mid))
+    if mats.emission_texture[mid] >= 0:
+        raise ValueError("a textured area light has no reference render here: render the Mitsuba file itself")
+    if np.max(mats.emission[mid]) > 0:
+        props["emitter"] = mi.load_dict({"type": "area", "radiance": _spectrum(mats.emission[mid])})
+    name = f"mesh_{mid}_{_safe_name(mats.names[mid])}" + ("_smooth" if shaded else "")
+    normals = scene.normals[used] if shaded else None
+    return name, _mesh(mi, name, scene.vertices[used], local.reshape(-1, 3), props, normals)
+
+
+def _mesh(mi, name: str, vertices: np.ndarray, faces: np.ndarray, props, normals=None):
     mesh = mi.Mesh(name, vertex_count=len(vertices), face_count=len(faces), props=props,
-                   has_vertex_normals=False, has_vertex_texcoords=False)
+                   has_vertex_normals=normals is not None, has_vertex_texcoords=False)
     params = mi.traverse(mesh)
     params["vertex_positions"] = np.ascontiguousarray(vertices, np.float32).ravel()
     params["faces"] = np.ascontiguousarray(faces, np.uint32).ravel()
+    if normals is not None:
+        params["vertex_normals"] = np.ascontiguousarray(normals, np.float32).ravel()
     params.update()  # rebuilds the bounding box and the area sampling table
     return mesh
 

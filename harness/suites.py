@@ -1,5 +1,6 @@
 """The evaluation's suites, cases and methods (`dosppm evaluate SUITE`),
-and where a case's shared files are found: data only, so the runner
+and where a case's shared files are found (and a flat-shaded copy of one
+made): data, so the runner
 (`evaluate.py`) and its tests read one table."""
 from __future__ import annotations
 
@@ -21,6 +22,10 @@ class SharedFiles:
     reference: str                # EXR at the scene's own resolution
     about: str                    # how the reference was made
     pbrt: str = ""                # the same scene for pbrt-v4 (else it is exported)
+    # Shade the XML's meshes flat (Mitsuba's face_normals on every obj and
+    # ply shape): a PLY without normals is flat in pbrt-v4 but smooth in
+    # Mitsuba 3 and in our reader, so a pbrt-v4 reference of it needs this.
+    face_normals: bool = False
 
 
 @dataclass(frozen=True)
@@ -124,7 +129,7 @@ SUITES = {s.name: s for s in (
                  "references/sponza-point/sponza_point.xml",
                  "references/sponza-point/reference_pbrt_path_2048spp.exr",
                  "pbrt-v4 path, 2048 spp, max depth 50 (references/sponza-point/SOURCE.md)",
-                 pbrt="references/sponza-point/sponza_point.pbrt")),
+                 pbrt="references/sponza-point/sponza_point.pbrt", face_normals=True)),
     ), ("sppm-grid", "sppm-photons", "dosppm", "pbrt-sppm", "pbrt-path", "mitsuba-path")),
 )}
 
@@ -156,6 +161,27 @@ def shared_dir(given: str | None = None) -> str | None:
     $DOSPPM_SHARED, else None. The product never looks for it by itself:
     tests and benchmarks say where it is."""
     return given or os.environ.get(SHARED_ENV) or None
+
+
+def with_face_normals(path: str, folder: str) -> str:
+    """A copy of the Mitsuba XML `path`, written into `folder`, in which
+    every obj and ply shape sets face_normals (flat shading) and every
+    file name is absolute, so the copy reads the same files."""
+    import xml.etree.ElementTree as ET
+
+    tree = ET.parse(path)
+    here = os.path.dirname(os.path.abspath(path))
+    for node in tree.iter("string"):
+        if node.get("name") == "filename" and not os.path.isabs(node.get("value", "")):
+            node.set("value", os.path.normpath(os.path.join(here, node.get("value"))))
+    for shape in tree.iter("shape"):
+        if shape.get("type") in ("obj", "ply"):
+            for old in [c for c in shape if c.get("name") == "face_normals"]:
+                shape.remove(old)
+            ET.SubElement(shape, "boolean", name="face_normals", value="true")
+    out = os.path.join(folder, "flat-" + os.path.basename(path))
+    tree.write(out, encoding="utf-8")
+    return out
 
 
 def shared_file(shared: str | None, name: str) -> str:

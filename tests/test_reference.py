@@ -222,3 +222,49 @@ def test_reference_command_bad_scene_exits_2(tmp_path, monkeypatch, capsys):
     err = capsys.readouterr().err
     assert code == 2 and "nope.toml" in err and err.count("\n") == 1
     assert not (tmp_path / "x.exr").exists()
+
+
+SMOOTH_SPHERE = """<scene version="3.0.0">
+  <integrator type="path"/>
+  <sensor type="perspective"><float name="fov" value="35"/>
+    <transform name="to_world"><lookat origin="0,-5,1.5" target="0,0,0" up="0,0,1"/></transform>
+    <film type="hdrfilm"><integer name="width" value="32"/><integer name="height" value="32"/>
+      <rfilter type="box"/></film>
+  </sensor>
+  <shape type="obj"><string name="filename" value="{meshes}/sphere.obj"/>{flat}
+    <bsdf type="conductor"/></shape>
+  <shape type="rectangle"><transform name="to_world"><scale value="4"/><translate z="-1"/></transform>
+    <bsdf type="diffuse"><rgb name="reflectance" value="0.3, 0.5, 0.7"/></bsdf></shape>
+  <shape type="rectangle"><transform name="to_world"><scale value="1.5"/><rotate x="1" angle="180"/>
+    <translate x="0.5" z="3"/></transform><emitter type="area"><rgb name="radiance" value="5"/></emitter></shape>
+</scene>
+"""
+
+
+def test_a_smooth_mesh_reaches_mitsuba_with_its_vertex_normals(tmp_path):
+    """A mesh read with vertex normals (smooth, as Mitsuba reads it) is
+    handed to Mitsuba with them: the translated scene renders as Mitsuba
+    renders the XML itself, and unlike the same mesh with face_normals
+    (a faceted mirror sphere), which it used to match."""
+    import mitsuba as mi
+
+    from tests.helpers.paths import SHARED_SCENES
+    meshes = f"{SHARED_SCENES}/mitsuba-data/common/meshes"
+    images = {}
+    for flat in (False, True):
+        path = tmp_path / f"sphere-{flat}.xml"
+        path.write_text(SMOOTH_SPHERE.format(
+            meshes=meshes, flat='<boolean name="face_normals" value="true"/>' if flat else ""))
+        scene = loaders.load_scene(str(path))
+        assert bool(np.any(scene.normals)) != flat
+        images[flat] = reference.render_reference(scene, 1024, variant=VARIANT)
+        if not flat:
+            mi.set_variant(VARIANT)
+            own = mi.render(mi.load_file(str(path)), spp=1024, seed=3)
+            images["mitsuba"] = np.asarray(own, np.float32)[..., :3]
+    # 4x4 pixel blocks: noise falls by 4, the facets' reflections stay.
+    blocks = {k: v.reshape(8, 4, 8, 4, 3).mean(axis=(1, 3)) for k, v in images.items()}
+    scale = float(np.mean(blocks["mitsuba"]))
+    same = float(np.mean(np.abs(blocks[False] - blocks["mitsuba"]))) / scale
+    faceted = float(np.mean(np.abs(blocks[True] - blocks["mitsuba"]))) / scale
+    assert same < 0.5 * faceted, (same, faceted)

@@ -1,6 +1,7 @@
 """Smooth shading normals (`kernels.smooth`, `scene.normals`): Mitsuba's
 interpolated vertex normals on meshes and its analytic sphere's normal."""
 import math
+import os
 
 import numpy as np
 import pytest
@@ -11,9 +12,10 @@ from dosppm_core.scene.mitsuba import load_mitsuba_xml
 from dosppm_core.scene.model import Camera, Material, SceneBuilder
 from dosppm_core.scene.normals import angle_weighted_normals
 from dosppm_core.trace import EPS_REL, NO_CULL, SurfaceData
+from tests.helpers.paths import SHARED
 from tests.helpers.renders import leaves
 
-MESHES = "/work/shared/scenes/mitsuba-data/common/meshes"
+MESHES = os.path.join(SHARED, "scenes/mitsuba-data/common/meshes")
 
 SPHERE = """<scene version="3.0.0">
   <sensor type="perspective"><float name="fov" value="40"/>
@@ -342,3 +344,24 @@ def test_material_extras_are_there_for_a_mask_a_plastic_or_a_texture():
             m.texture[0] = 0
         extras = SurfaceData.from_scene(scene).material_extras
         assert (extras is None) == (change is None), change
+
+
+def test_the_sponza_case_reads_a_flat_copy_as_its_pbrt_reference_was_made(tmp_path):
+    """pbrt-v4 shades a PLY without normals flat, Mitsuba's reading (ours)
+    smooth: the evaluation's sponza-point case reads a copy of the XML with
+    face_normals set, the same triangles and no vertex normals, and
+    `dosppm render` gets that copy (Scene.source)."""
+    from harness import evaluate
+    from harness.suites import SUITES
+
+    shared = SHARED
+    suite = SUITES["sponza"]
+    case = suite.cases[0]
+    assert case.files.face_normals
+    smooth = load_mitsuba_xml(os.path.join(shared, case.files.scene))
+    flat = evaluate.suite_scene(suite, case, shared, str(tmp_path))
+    assert flat.source.startswith(str(tmp_path)) and os.path.isfile(flat.source)
+    assert len(smooth.normals) and np.abs(smooth.normals).sum(axis=1).min() > 0
+    assert not np.any(flat.normals)
+    np.testing.assert_array_equal(flat.vertices, smooth.vertices)
+    np.testing.assert_array_equal(flat.triangles, smooth.triangles)
