@@ -142,17 +142,17 @@ class RayBatch(_Record):
 @dataclass
 class PhotonDeposits(_Record):
     """Photons stored on non-specular surfaces. `incoming` points back
-    toward where the photon came from; `normal` faces that side."""
+    toward where the photon came from. No surface normal: a photon counts
+    by the side of the hit point gathering it, as in pbrt-v4."""
     position: np.ndarray    # float32 (n, 3)
     incoming: np.ndarray    # float32 (n, 3)
-    normal: np.ndarray      # float32 (n, 3)
     flux: np.ndarray        # float32 (n, 3)
     # The photon job that deposited it: a job's deposits count only once
     # all its paths have ended (exactly-once accounting). None means zeros.
     job: np.ndarray = None  # int64 (n,)
 
     SCHEMA = {"position": (np.float32, (3,)), "incoming": (np.float32, (3,)),
-              "normal": (np.float32, (3,)), "flux": (np.float32, (3,)), "job": (np.int64, ())}
+              "flux": (np.float32, (3,)), "job": (np.int64, ())}
 
     def __post_init__(self):
         if self.job is None:

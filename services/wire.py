@@ -134,8 +134,9 @@ from services._wire_codec import (
     Struct, WireError, pack, plain, read_fields, read_header, record, shape_text,
 )
 
-PROTOCOL_VERSION = 7   # 2 shadow rays; 3 credit; 4 photon jobs made by the tracer; 5 the gather at the
-                       # tracers; 6 eye tiles made by the tracer; 7 eye light held at the tracers
+PROTOCOL_VERSION = 8   # 2 shadow rays; 3 credit; 4 photon jobs made by the tracer; 5 the gather at the
+                       # tracers; 6 eye tiles made by the tracer; 7 eye light held at the tracers;
+                       # 8 deposits without a normal
 
 # -- policy ---------------------------------------------------------------------
 # MAX_ELEMENTS (the codec's cap on one array's declared size) bounds a frame:

@@ -33,7 +33,6 @@ def _hits(rng):
 def _deposits(rng, n):
     pos = np.c_[rng.uniform(0, 1, (n, 2)), rng.uniform(-1e-3, 1e-3, n)].astype(np.float32)
     return PhotonDeposits(position=pos, incoming=_unit(rng.normal(size=(n, 3)) * [1, 1, 0] + [0, 0, 1.5]),
-                          normal=np.tile(np.float32([0, 0, 1]), (n, 1)),
                           flux=rng.uniform(0.1, 1, (n, 3)).astype(np.float32))
 
 

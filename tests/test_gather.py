@@ -42,7 +42,6 @@ def _deposits(rng, pos, normal):
     pos, normal = np.asarray(pos, float), np.broadcast_to(np.asarray(normal, float), np.shape(pos))
     return PhotonDeposits(position=pos.astype(np.float32),
                           incoming=_hemisphere(rng, normal).astype(np.float32),
-                          normal=normal.astype(np.float32),
                           flux=rng.uniform(0.1, 1.0, (len(pos), 3)).astype(np.float32))
 
 
@@ -298,7 +297,7 @@ def test_hash_records_match_their_slots(case, opts):
         assert table.cell_count[k] == members.sum()
         assert (table.cell_shared[k] >= 0) == (len(np.unique(cells[members])) > 1)
     kept = table.cell_photon
-    for name in ("position", "incoming", "normal", "flux"):
+    for name in ("position", "incoming", "flux"):
         np.testing.assert_array_equal(getattr(table, name), getattr(ph, name)[kept])
 
 

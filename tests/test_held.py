@@ -22,7 +22,7 @@ def _deposits(rng, jobs: np.ndarray, n: int) -> PhotonDeposits:
     flux = np.zeros((n, 3), np.float32)
     flux[:, 0] = _made[0] + np.arange(n)
     _made[0] += n
-    return PhotonDeposits(pos, z, z, flux, job=rng.choice(jobs, n))
+    return PhotonDeposits(pos, z, flux, job=rng.choice(jobs, n))
 
 
 def _rows(parts) -> set:

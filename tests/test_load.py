@@ -19,9 +19,10 @@ pytestmark = pytest.mark.slow   # a server and sixteen tracer processes
 TRACERS = 16
 # The stated bound on the server's peak RSS with 16 tracers and 1k jobs in
 # flight: about 150 MiB idle (Python, numba, the kernels) plus a few copies
-# of one 1M-deposit photon batch (56 MB each: held, concatenated, split,
+# of one 1M-deposit photon batch (44 MB each: held, concatenated, split,
 # queued for the statistics thread, sorted), plus photon jobs under the
-# tracers' shared queue allowance (TOTAL_ALLOWANCE_RAYS, 64 MB). Measured 654-736 MiB.
+# tracers' shared queue allowance (TOTAL_ALLOWANCE_RAYS, 64 MB). Measured
+# 654-736 MiB when a deposit was 56 B (it carried a normal).
 SERVER_RSS_LIMIT = 900 << 20
 # Rays one tracer may hold for its peers: its queue allowance (262,144
 # rays) plus what was in flight to it when that ran out, with margin.

@@ -30,8 +30,7 @@ def _floor_deposits(rng, n, x_range=(0.25, 0.75)) -> PhotonDeposits:
     """`n` photons uniform over [x_range] x [0.25, 0.75] of the floor, from above."""
     pos = np.c_[rng.uniform(*x_range, n), rng.uniform(0.25, 0.75, n), np.zeros(n)].astype(np.float32)
     down = np.tile(np.float32([0, 0, 1]), (n, 1))
-    return PhotonDeposits(position=pos, incoming=down, normal=down,
-                          flux=np.ones((n, 3), np.float32))
+    return PhotonDeposits(position=pos, incoming=down, flux=np.ones((n, 3), np.float32))
 
 
 def _stats(hits: HitPoints, radius=None, min_radius=1e-4) -> PixelStatistics:

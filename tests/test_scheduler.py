@@ -75,7 +75,7 @@ def _results(job_ids, job_ended, deposits_job=(), credit=()):
     """Paths of each job fed into a step and ended there (none left), and
     the credit it returns: [(job, exponent)]."""
     ended = int(np.sum(job_ended))
-    dep = PhotonDeposits(*(np.zeros((len(deposits_job), 3), np.float32) for _ in range(4)),
+    dep = PhotonDeposits(*(np.zeros((len(deposits_job), 3), np.float32) for _ in range(3)),
                          job=np.asarray(deposits_job, np.int64))
     return _msg("results", chunk=0, ends=np.array([0, ended, 0, 0, 0], np.int64),
                 job_ids=np.asarray(job_ids, np.int64), job_fed=np.asarray(job_ended, np.int64),

@@ -107,7 +107,7 @@ def test_a_photon_deposits_its_flux_times_ws_over_wn():
         hits = (np.zeros(1, np.int32), np.float32(0.3) * one.astype(np.float32), np.float32(0.3) * one.astype(np.float32))
         _ends, _culled, dep, _nxt = paths.scatter_photons(rays, hits, surf, surf.smooth_normals, surf.material_extras,
                                                           NO_CULL, 8, 0, EPS_REL)
-        got[smooth] = dep[3][0].astype(np.float64)
+        got[smooth] = dep[2][0].astype(np.float64)
     assert got[False] == pytest.approx([1, 1, 1], abs=1e-6)
     assert got[True] == pytest.approx(np.full(3, (w @ tilt) / w[2]), rel=1e-5)
 

@@ -63,7 +63,7 @@ def test_a_gather_at_1e10_emitted_photons_and_a_tiny_radius_stays_finite():
     n = 16 * 8
     at = np.repeat(pos, 8, axis=0)
     up = np.tile(np.float32([0, 0, 1]), (n, 1))
-    deposits = PhotonDeposits(at, up, up, np.ones((n, 3), np.float32))
+    deposits = PhotonDeposits(at, up, np.ones((n, 3), np.float32))
     materials = builtin.cornell_box().materials
     for gather in ("grid", "hash"):
         for _ in range(3):

@@ -296,6 +296,15 @@ def _drop_array(name):
     return edit
 
 
+def _add_array(name, like):
+    """A further array `name`, a copy of array `like` (as a peer with another record layout sends)."""
+    def edit(h, f):
+        i = _index(h, like)
+        h["arrays"].append(dict(h["arrays"][i - 1], name=name))
+        f.append(bytes(f[i]))
+    return edit
+
+
 CASES = {
     # (message type, variant, edit(header, frames)), words the error must contain
     "unknown type": (_header_edit(lambda h: h.update(type="teleport")), ["unknown message type", "teleport"]),
@@ -331,6 +340,9 @@ CASES = {
                       ["portal_rays", "'batch.rng'", "missing"]),
     "unknown array": (("portal_rays", 0, lambda h, f: h["arrays"][0].update(name="batch.spin")),
                       ["portal_rays", "'batch.spin'", "not an array"]),
+    # A tracer from before deposits lost their normal (version 8) still sending one.
+    "deposit normal": (("results", 0, _add_array("deposits.normal", "deposits.incoming")),
+                       ["results", "'deposits.normal'", "not an array"]),
     "duplicate array": (("portal_rays", 0, lambda h, f: h["arrays"][1].update(name=h["arrays"][0]["name"])),
                         ["portal_rays", "listed twice"]),
     "dtype mismatch": (("portal_rays", 0, lambda h, f: _set_array(h, f, "batch.origin", np.zeros((4, 3)))),

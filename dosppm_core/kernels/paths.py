@@ -7,7 +7,7 @@ that the same step serves a whole scene or one chunk.
 
 Both kernels take the scene as one `SurfaceData` tuple and share the hit
 setup: `hit_setup` (position, normal, material, side of arrival),
-`sample_scatter`, `write_facing` (a two-sided surface's flipped normal)
+`sample_scatter`, `write_facing` (a hit point's normal, turned to the arriving ray)
 and `write_spawn` (the spawn offset). The per-ray helpers are inlined
 (inline='always') so the loops hold no calls, and each kernel hands
 blocks of rows to a function that unpacks the tuples once per block.
@@ -307,9 +307,9 @@ def _block_starts(counts, col):
 
 @nb.njit(cache=True, error_model="numpy")
 def _deposit_rows(n):
-    """position, incoming, normal, flux, job"""
+    """position, incoming, flux, job"""
     return (np.empty((n, 3), np.float32), np.empty((n, 3), np.float32),
-            np.empty((n, 3), np.float32), np.empty((n, 3), np.float32), np.empty(n, np.int64))
+            np.empty((n, 3), np.float32), np.empty(n, np.int64))
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -329,7 +329,7 @@ def scatter_photons(rays, hits, surf, normals, extras, cull_box, max_depth, depo
     with Russian roulette. `rays` is
     (direction, flux, depth, rng state, job, pixel), `hits` (prim, u, v).
     Returns (end counts, culled count, deposits (position, incoming,
-    normal, flux, job), continuing paths (origin, direction, flux, rng
+    flux, job), continuing paths (origin, direction, flux, rng
     state, depth, job, pixel)). `normals` and `extras` are
     `surf.smooth_normals` and `surf.material_extras`, as for the eye
     bounce: None compiles the loop without those branches.
@@ -364,7 +364,7 @@ def _scatter_block(a, e, rays, hits, surf, normals, extras, cull_box, max_depth,
     (verts, tris, tri_mat, kinds, refl, _emit, ior, rough, two_sided, eps_abs, bsdf,
      uvs, mtex, tinfo, tuv, texels, _etex, _ltinfo, _ltuv, _ltexels, _normals) = surf
     prim, u, v = hits
-    dep_pos, dep_in, dep_n, dep_f, dep_job = dep
+    dep_pos, dep_in, dep_f, dep_job = dep
     new_o, new_d, new_f, new_st, new_depth, new_job, new_pix = nxt
     dc, gc = a, a
     for i in range(a, e):
@@ -381,8 +381,7 @@ def _scatter_block(a, e, rays, hits, surf, normals, extras, cull_box, max_depth,
             if outside(cull_box, p0, p1, p2):   # (before deposit_from shadow rays bring direct light)
                 culled[i] = True
             else:
-                _deposit(dep_pos, dep_in, dep_n, dep_f, dep_job, dc, p0, p1, p2, n0, n1, n2, front,
-                         direction, flux, job, i, k_in)
+                _deposit(dep_pos, dep_in, dep_f, dep_job, dc, p0, p1, p2, direction, flux, job, i, k_in)
                 dc += 1
         if extras is not None and bsdf[m, B_CHOICE] > 0.0:    # a mask or a blend (draws only here)
             st, m, gc = _photon_choice(i, gc, m, tri, u[i], v[i], st, p0, p1, p2, n0, n1, n2, w0, w1, w2,
@@ -457,10 +456,10 @@ def _photon_scatter(surf, extras, m, kind, tri, u, v, mapped, s0, s1, s2, k_in, 
 
 
 @nb.njit(inline="always", cache=True, error_model="numpy")
-def _deposit(dep_pos, dep_in, dep_n, dep_f, dep_job, dc, p0, p1, p2, n0, n1, n2, front, direction, flux,
-             job, i, k_in):
-    """Row dc of the deposits: photon i at p, from -direction, its flux times k_in."""
-    write_facing(dep_pos, dep_n, dc, p0, p1, p2, n0, n1, n2, front)
+def _deposit(dep_pos, dep_in, dep_f, dep_job, dc, p0, p1, p2, direction, flux, job, i, k_in):
+    """Row dc of the deposits: photon i at p, from -direction, its flux
+    times k_in. No normal: the gather counts a photon by the hit point's side."""
+    dep_pos[dc, 0], dep_pos[dc, 1], dep_pos[dc, 2] = p0, p1, p2
     for k in range(3):
         dep_in[dc, k], dep_f[dc, k] = -direction[i, k], flux[i, k] * k_in
     dep_job[dc] = job[i]
@@ -535,11 +534,11 @@ def _pack_blocks(counts, n, dep, nxt):
     nblk = counts.shape[0]
     ds = _block_starts(counts, 0)
     gs = _block_starts(counts, 1)
-    dep_pos, dep_in, dep_n, dep_f, dep_job = dep
+    dep_pos, dep_in, dep_f, dep_job = dep
     new_o, new_d, new_f, new_st, new_depth, new_job, new_pix = nxt
     out_dep = _deposit_rows(ds[nblk])
     out_nxt = _path_rows(gs[nblk])
-    o_pos, o_in, o_n, o_f, o_job = out_dep
+    o_pos, o_in, o_f, o_job = out_dep
     c_o, c_d, c_f, c_st, c_depth, c_job, c_pix = out_nxt
     for b in nb.prange(nblk):
         a = b * n // nblk
@@ -548,7 +547,6 @@ def _pack_blocks(counts, n, dep, nxt):
             for k in range(3):
                 o_pos[o, k] = dep_pos[a + j, k]
                 o_in[o, k] = dep_in[a + j, k]
-                o_n[o, k] = dep_n[a + j, k]
                 o_f[o, k] = dep_f[a + j, k]
             o_job[o] = dep_job[a + j]
         for j in range(counts[b, 1]):

@@ -306,13 +306,13 @@ def _cell_rank(c, bitmap, first, words, d2):
 @nb.njit(cache=True, nogil=True, parallel=True)
 def _select_photons(keys, cell_prio, n_valid, bitmap, first, d2, photons, threads):
     """Keep one photon per slot: the one of smallest priority. `photons` is
-    (position, incoming, normal, flux). Returns per slot (entry, in slot
+    (position, incoming, flux). Returns per slot (entry, in slot
     order) its photon count and whether several cells share it, and per
     occupied cell (in cell order, found by its rank in the bitmap) its kept
     photon, photon count, shared entry (-1: none) and a copy of the photon,
-    (4, cells, 3): position, incoming, normal, flux.
+    (3, cells, 3): position, incoming, flux.
     A cell belongs to one slot, so no two threads write one cell."""
-    pos, inc, nrm, flux = photons
+    pos, inc, flux = photons
     words = (d2 + 63) // 64
     bounds = _run_bounds(keys, n_valid, threads)
     runs = _run_starts(keys, bounds, threads)
@@ -323,7 +323,7 @@ def _select_photons(keys, cell_prio, n_valid, bitmap, first, d2, photons, thread
     c_kept = np.full(cells, -1, np.int64)
     c_count = np.zeros(cells, np.float64)
     c_shared = np.full(cells, -1, np.int64)
-    rows = np.zeros((4, cells, 3), np.float32)
+    rows = np.zeros((3, cells, 3), np.float32)
     for t in nb.prange(threads):
         e, i, end = runs[t], bounds[t], bounds[t + 1]
         while i < end:
@@ -338,8 +338,7 @@ def _select_photons(keys, cell_prio, n_valid, bitmap, first, d2, photons, thread
                 for a in range(3):
                     rows[0, rank, a] = pos[best, a]
                     rows[1, rank, a] = inc[best, a]
-                    rows[2, rank, a] = nrm[best, a]
-                    rows[3, rank, a] = flux[best, a]
+                    rows[2, rank, a] = flux[best, a]
             e += 1
             i = j
     return e_count, e_multi, c_kept, c_count, c_shared, rows
@@ -351,7 +350,7 @@ def _gather(hp, hp_radius, grid, cells, entries, materials, threads):
     """M and Phi per hit point. `hp` is (position, normal, outgoing, eye
     weight, material), `grid` (lo, cell, dims, axes, slack, bitmap, first)
     in internal axis order, `cells` the occupied cells' records (position,
-    incoming, normal, flux, count, shared entry), `materials` (kind,
+    incoming, flux, count, shared entry), `materials` (kind,
     gather_tint, roughness, bsdf_rows). Hit points are split in `threads` ranges; each
     thread writes only its own hit points. `stamp` remembers, per thread,
     the last hit point that took each entry whose slot several cells
@@ -388,7 +387,7 @@ def _gather_hit_point(h, r, hp, shading, material, grid, cells, stamp):
     would reference-count each of them (numba), at twice the gather's time."""
     hp_pos, _hp_n, hp_out, hp_weight, _hp_mat = hp
     lo, cell, dims, axes, slack, bitmap, first = grid
-    c_pos, c_in, _c_n, c_flux, c_count, c_shared = cells
+    c_pos, c_in, c_flux, c_count, c_shared = cells
     (n0, n1, n2, kind, rough, refl0, refl1, refl2), (bsdf, mat) = shading, material
     words = (dims[2] + 63) // 64
     x, y, z = np.float64(hp_pos[h, axes[0]]), np.float64(hp_pos[h, axes[1]]), np.float64(hp_pos[h, axes[2]])
@@ -489,7 +488,6 @@ class PhotonHash:
     cell_shared: np.ndarray     # int64 (C,): its entry if several cells share it, else -1
     position: np.ndarray        # float32 (C, 3), and the kept photons' other fields
     incoming: np.ndarray
-    normal: np.ndarray
     flux: np.ndarray
     photons: int                # photons offered
     photons_binned: int         # of those, inside the grid's box
@@ -510,7 +508,7 @@ class PhotonHash:
         return _gather((hp.position, hp.normal, hp.outgoing, hp.weight, hp.material),
                        np.asarray(hp_radius, np.float64),
                        (L.lo, L.cell, L.dims, L.axes, L.slack, self.bitmap, self.first),
-                       (self.position, self.incoming, self.normal, self.flux, self.cell_count,
+                       (self.position, self.incoming, self.flux, self.cell_count,
                         self.cell_shared),
                        len(self.count), (materials.kind, gather_tint(materials),
                                          materials.roughness, bsdf_rows(materials)), int(threads))
@@ -543,15 +541,12 @@ def build_photon_hash(ph, hp_pos: np.ndarray, hp_radius: np.ndarray, threads: in
     bitmap, first = _occupancy(cell_prio, int(L.dims[0] * L.dims[1]), int(L.dims[2]))
     keys.sort()
     n_valid = int(np.searchsorted(keys, _EMPTY))
-    # The normal column is carried for the record only: no gather reads it,
-    # and a reordered batch (GatherPhotons) has none.
-    normal = np.zeros_like(pos) if ph.normal is None else np.ascontiguousarray(ph.normal, np.float32)
-    photons = (pos, inc, normal, np.ascontiguousarray(ph.flux, np.float32))
+    photons = (pos, inc, np.ascontiguousarray(ph.flux, np.float32))
     count, multi, c_kept, c_count, c_shared, rows = _select_photons(
         keys, cell_prio, n_valid, bitmap, first, int(L.dims[2]), photons, threads)
     return PhotonHash(layout=L, bitmap=bitmap, first=first, count=count, multi=multi,
                       cell_photon=c_kept, cell_count=c_count, cell_shared=c_shared,
-                      position=rows[0], incoming=rows[1], normal=rows[2], flux=rows[3],
+                      position=rows[0], incoming=rows[1], flux=rows[2],
                       photons=len(pos), photons_binned=n_valid)
 
 
@@ -566,7 +561,7 @@ def gather_hash(ph, hp, hp_radius, materials, threads: int, resolution=RESOLUTIO
     axis. table_size: hash slots (default min(cells, 2**24)); at or above
     the cell count each cell gets its own slot. seed: drives which photon a
     slot keeps; a fixed seed is fine across batches (see the module notes)."""
-    if len(hp) == 0 or len(ph.position) == 0:   # len(ph) of a GatherPhotons tuple is 4
+    if len(hp) == 0 or len(ph.position) == 0:   # len(ph) of a GatherPhotons tuple is 3
         return np.zeros(len(hp)), np.zeros((len(hp), 3))
     table = build_photon_hash(ph, hp.position, hp_radius, threads, resolution, table_size, seed)
     return table.gather(hp, hp_radius, materials, threads)

@@ -147,17 +147,15 @@ def reorder_parts(parts: list, box: np.ndarray) -> "GatherPhotons":
     out = np.empty((int(counts.sum()), 9), np.float32)
     for p, code in zip(parts, codes):
         _bucket_scatter(p.position, p.incoming, p.flux, code, where, out)
-    return GatherPhotons(out[:, 0:3], out[:, 3:6], None, out[:, 6:9])
+    return GatherPhotons(out[:, 0:3], out[:, 3:6], out[:, 6:9])
 
 
 class GatherPhotons(NamedTuple):
     """What a gather reads of photon deposits (PhotonDeposits has the same
-    attributes, so either can be gathered). No gather reads the deposit's
-    normal (a photon counts by the hit point's side, as in pbrt-v4), so a
-    reordered batch has none."""
+    attributes, so either can be gathered): a photon counts by the hit
+    point's side, as in pbrt-v4, so neither carries a surface normal."""
     position: np.ndarray
     incoming: np.ndarray
-    normal: np.ndarray | None
     flux: np.ndarray
 
 
@@ -184,7 +182,7 @@ def reorder_deposits(deposits: PhotonDeposits, box: np.ndarray | None,
     _bucket_columns(pos, deposits.incoming, deposits.flux, tuple(map(float, box[0])),
                     tuple(map(float, scale)), BUCKET_BITS, max(1, threads),
                     np.empty(len(pos), np.int32), out)
-    return GatherPhotons(out[:, 0:3], out[:, 3:6], None, out[:, 6:9])
+    return GatherPhotons(out[:, 0:3], out[:, 3:6], out[:, 6:9])
 
 
 @nb.njit(cache=True, nogil=True)
@@ -299,7 +297,7 @@ def subsample(deposits: PhotonDeposits | list, most: int, total: int | None = No
             chosen = PhotonDeposits.concat([p.slice(0, min(len(p), most)) for p in parts]).slice(0, most)
     else:
         chosen = PhotonDeposits.concat(parts)
-    return GatherPhotons(chosen.position, chosen.incoming, None, chosen.flux)
+    return GatherPhotons(chosen.position, chosen.incoming, chosen.flux)
 
 
 def _position_hash(position: np.ndarray) -> np.ndarray:
