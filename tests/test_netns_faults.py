@@ -53,6 +53,8 @@ PHOTONS_REJOIN = 4_000_000   # still rendering when the cable is back
 SEED = 11
 ZMQ_PORT, HTTP_PORT, PEER_PORT = 5555, 8080, 5600
 SERVER_TIMEOUT_S = 50     # from the server's start to its exit, fault included
+# The --tracer-timeout each test runs at, recorded beside its figures.
+SHORT_CUT_TIMEOUT_S, CUT_TIMEOUT_S, LOSS_TIMEOUT_S = 6, 3, 10
 WORKER_TIMEOUT_S = 20     # after the server has exited
 
 # A unique name prefix per test run and a /24 of its own (test_netns.py
@@ -275,7 +277,7 @@ def healthy(tmp_path_factory):
 # tries; too irregular for a strict expected failure, so not tested here.
 def test_a_short_link_cut_stalls_the_render_without_an_eviction(lan, tmp_path, healthy):
     # passed=1 only if every assertion holds; a failure records 0.
-    with figures.outcome("cable cut 2 s (< timeout)", "passed", timeout_s=6) as fig:
+    with figures.outcome("cable cut 2 s (< timeout)", "passed", timeout_s=SHORT_CUT_TIMEOUT_S) as fig:
         _short_cut(lan, tmp_path, healthy, fig)
 
 
@@ -291,7 +293,7 @@ def _short_cut(lan, tmp_path, healthy, fig: dict) -> None:
         cut["up"] = time.time()
         lan.link("t1", "up")
         cut["server_exit_at_plug"] = r.server_exit()
-    res = _render(lan.hosts, tmp_path / "short-cut", 6, pull_the_cable)
+    res = _render(lan.hosts, tmp_path / "short-cut", SHORT_CUT_TIMEOUT_S, pull_the_cable)
     # The stall: while the cable is out, jobs with paths at t1 cannot
     # complete (their credit is there), so completions nearly stop.
     stalled = _completion_rate(res["history"], cut["down"] + 0.5, cut["up"])
@@ -324,7 +326,7 @@ RETRY_S = 15
 
 def test_a_long_link_cut_evicts_the_tracer_and_the_other_finishes(lan, tmp_path, healthy):
     # evicted=1 only if every assertion holds; a failure records 0.
-    with figures.outcome("cable cut past the timeout", "evicted", timeout_s=3) as fig:
+    with figures.outcome("cable cut past the timeout", "evicted", timeout_s=CUT_TIMEOUT_S) as fig:
         _long_cut(lan, tmp_path, healthy, fig)
 
 
@@ -347,7 +349,7 @@ def _long_cut(lan, tmp_path, healthy, fig: dict) -> None:
         seen["server_exit"] = rc
         lan.link("t1", "up")
     # t1 never hears the shutdown: silent since the cut, it gives up after --retry.
-    res = _render(lan.hosts, tmp_path / "long-cut", 3, pull_the_cable, retry_s=RETRY_S,
+    res = _render(lan.hosts, tmp_path / "long-cut", CUT_TIMEOUT_S, pull_the_cable, retry_s=RETRY_S,
                   expect={"server": 0, "t1": 1, "t2": 0})
     # Photons t2 traced alone: committed in batches of 1M deposits, so with
     # direct light by shadow rays (half the deposits) the last batch may
@@ -386,12 +388,12 @@ class RejoinFailed(AssertionError):
 @pytest.mark.parametrize("run", range(int(os.environ.get("DOSPPM_REJOIN_RUNS", "1"))))
 def test_a_cut_off_tracer_rejoins_once_the_link_is_back(lan, tmp_path, healthy, run):
     # rejoined=1 only if every assertion holds; any failure records 0.
-    with figures.outcome("cable cut 8 s, then back", "rejoined", timeout_s=3):
+    with figures.outcome("cable cut 8 s, then back", "rejoined", timeout_s=CUT_TIMEOUT_S):
         _rejoin(lan, tmp_path, healthy)
 
 
 def _rejoin(lan, tmp_path, healthy) -> None:
-    r = Render(lan.hosts, tmp_path / "rejoin", 3, photons=PHOTONS_REJOIN)
+    r = Render(lan.hosts, tmp_path / "rejoin", CUT_TIMEOUT_S, photons=PHOTONS_REJOIN)
     try:
         r.mid_render()
         lan.link("t1", "down")
@@ -469,12 +471,12 @@ def test_five_percent_packet_loss_slows_the_render_down(lan, tmp_path, healthy):
     ns = lan.hosts["t1"][0]
     _add_loss_rule(ns)        # before the start: the whole render is lossy (the rule dies with the namespace)
     # passed=1 only if every assertion holds; a failure records 0.
-    with figures.outcome("5% packet loss on a tracer host", "passed", timeout_s=10) as fig:
+    with figures.outcome("5% packet loss on a tracer host", "passed", timeout_s=LOSS_TIMEOUT_S) as fig:
         _lossy_render(lan, tmp_path, healthy, ns, fig)
 
 
 def _lossy_render(lan, tmp_path, healthy, ns: str, fig: dict) -> None:
-    res = _render(lan.hosts, tmp_path / "loss", 10)
+    res = _render(lan.hosts, tmp_path / "loss", LOSS_TIMEOUT_S)
     dropped = _dropped(ns)
     print(f"packet loss: {dropped} packets dropped at t1; rendered in {res['summary']['seconds']:.1f} s, "
           f"{healthy['summary']['seconds']:.1f} s without loss")
