@@ -216,20 +216,22 @@ def test_a_fault_test_records_a_failed_run_as_a_zero(monkeypatch):
 
 
 def test_failed_pytest_runs_add_zeros_to_the_results_file(tmp_path):
-    """Two pytest runs of a test that fails, then passes, through the
-    conftest hook the repository's tests use: the file holds [0, 1]."""
+    """Three pytest runs of a test that passes, fails before measuring,
+    then passes, through the conftest hook the repository's tests use: the
+    file holds [1, 0, 1], and both measurements."""
     (tmp_path / "conftest.py").write_text(
         "from tests.helpers import figures\n\n\ndef pytest_terminal_summary():\n    figures.write_if_asked()\n")
     (tmp_path / "test_fault.py").write_text(
         "import os\nfrom tests.helpers import figures\n\n\ndef test_fault():\n"
-        "    with figures.outcome('a fault', 'resumed', timeout_s=3):\n"
-        "        assert os.environ['PASS'] == '1'\n")
+        "    with figures.outcome('a fault', 'resumed', timeout_s=3) as fig:\n"
+        "        assert os.environ['PASS'] == '1'\n"
+        "        fig['photons'] = 7\n")
     out = tmp_path / "reliability.json"
-    for passes in ("0", "1"):
+    for passes in ("1", "0", "1"):
         env = dict(os.environ, PYTHONPATH=ROOT, PASS=passes, DOSPPM_RECORD_FIGURES=str(out))
         r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", str(tmp_path)],
                            cwd=tmp_path, env=env, capture_output=True, text=True)
         assert r.returncode == (0 if passes == "1" else 1), r.stdout + r.stderr
     doc = json.loads(out.read_text())
-    assert doc["tests"]["a fault"] == {"resumed": [0, 1], "timeout_s": [3, 3]}
+    assert doc["tests"]["a fault"] == {"resumed": [1, 0, 1], "timeout_s": [3, 3, 3], "photons": [7, 7]}
     assert doc["runs"]["a fault"]["commit"] == provenance.commit()

@@ -65,7 +65,9 @@ def write_if_asked() -> str | None:
         # Runs of the same commit add samples (a test run N times gives
         # "successes of N"); a new commit starts over.
         if runs.get(test, {}).get("commit") == here["commit"]:
-            values = {k: list(tests[test].get(k, [])) + v for k, v in values.items()}
+            # Every key of either (a failed run may not have measured them all).
+            was = tests[test]
+            values = {k: list(was.get(k, [])) + values.get(k, []) for k in dict.fromkeys([*was, *values])}
         tests[test] = values
         runs[test] = {"commit": here["commit"], "date": here["date"]}
     extra = {"dirty_allowed": True} if os.environ.get(DIRTY_ENV) == "1" or old.get("dirty_allowed") else {}
