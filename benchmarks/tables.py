@@ -52,42 +52,15 @@ def _equal_work(doc: dict) -> str:
 
 
 def _reliability(doc: dict) -> str:
-    """What the fault, load and rejoin tests measured (tests/helpers/figures.py)."""
-    def fmt(key: str, values: list) -> str:
-        if key in ("rejoined", "resumed"):          # 1 per success, 0 per failure
-            return f"{sum(values)} of {len(values)} runs"
-        lo, hi = min(values), max(values)
-        return f"{lo:,}" if lo == hi else f"{lo:,}-{hi:,}"
-    lines = ["| fault or load | measured | run at |", "|---|---|---|"]
-    for test, values in doc["tests"].items():
-        measured = "; ".join(f"{k.replace('_', ' ')} {fmt(k, v)}" for k, v in values.items())
-        run = doc.get("runs", {}).get(test, {})
-        lines.append(f"| {test} | {measured} | {run.get('commit', '?')[:7]}, {run.get('date', '?')[:10]} |")
-    return "\n".join(lines)
+    """What the fault, load and rejoin tests measured (tests/helpers/figures.py), k of n."""
+    import reliability_table
+    return reliability_table.full(doc)
 
 
 def _reliability_short(doc: dict) -> str:
     """The README's cut of the same figures: what happened, one line each."""
-    t = doc["tests"]
-    med = lambda xs: sorted(xs)[len(xs) // 2]    # noqa: E731
-    runs = lambda xs: f"{sum(xs)} of {len(xs)} runs"   # noqa: E731
-    rows = [
-        ("tracer killed", lambda v: f"evicted {med(v['detected_s']):g} s after the kill"),
-        ("tracer hung (SIGSTOP), then woken", lambda v: f"rejoined in {runs(v['rejoined'])}"),
-        ("server killed (SIGKILL), --resume", lambda v: f"resumed in {runs(v['resumed'])}"),
-        ("cable cut 2 s (< timeout)", lambda v: f"completions stall to {med(v['rate_during_cut']):.0%}"),
-        ("cable cut 8 s, then back", lambda v: f"rejoined in {runs(v['rejoined'])}"),
-        ("5% packet loss on a tracer host", lambda v: f"{med(v['seconds']) / med(v['healthy_seconds']):.2f}x "
-                                                       "the healthy time"),
-        ("16 tracers, 1k jobs in flight, one stopped 8 s",
-         lambda v: f"server peak {med(v['server_peak_rss_mib'])} MiB"),
-    ]
-    lines = ["| fault or load | what happened |", "|---|---|"]
-    for name, say in rows:
-        key = next((k for k in t if k.startswith(name)), None)
-        if key is not None:
-            lines.append(f"| {key} | {say(t[key])} |")
-    return "\n".join(lines)
+    import reliability_table
+    return reliability_table.short(doc)
 
 
 def _subdivide_memory(doc: dict) -> str:
@@ -282,11 +255,12 @@ def quoted(files=DOCS, root: str = ROOT) -> list[str]:
     return list(dict.fromkeys(names))
 
 
-def source_line(path: str, doc: dict, doc_dir: str = "", command: bool = True) -> str:
+def source_line(path: str, doc: dict, doc_dir: str = "", command: bool = True, commit: str | None = None) -> str:
     """Where the table came from, linked from a document in `doc_dir`;
     files written before provenance was recorded say so rather than guess.
     `command` False leaves out the command (the README's short tables,
-    whose full versions in docs/ give it)."""
+    whose full versions in docs/ give it); `commit` replaces the file's
+    commit (the reliability tables name their runs' commits)."""
     link = os.path.relpath(path, doc_dir or ".")
     p = _provenance(doc)
     if not p:
@@ -294,14 +268,19 @@ def source_line(path: str, doc: dict, doc_dir: str = "", command: bool = True) -
     m = p.get("machine") or {}
     cpu = f"{m['cpu']} x{m.get('cpu_count', '?')}" if m.get("cpu") else f"{m.get('cpus', '?')} CPUs"
     command = f", `{p['command']}`" if p.get("command") and command else ""
-    return f"Source: [{path}]({link}), commit {p['commit'][:10]}, {p['date'][:10]}, {cpu}{command}."
+    commit = commit or f"commit {p['commit'][:10]}"
+    return f"Source: [{path}]({link}), {commit}, {p['date'][:10]}, {cpu}{command}."
 
 
 def render(name: str, root: str = ROOT, doc_dir: str = "") -> str:
     path, fn = TABLES[name]
     with open(os.path.join(root, path), encoding="utf-8") as f:
         doc = json.load(f)
-    return fn(doc).rstrip("\n") + "\n\n" + source_line(path, doc, doc_dir, not name.endswith("-short")) + "\n"
+    commit = None
+    if name.startswith("reliability"):
+        import reliability_table
+        commit = reliability_table.commits(doc, 7 if name.endswith("-short") else 10)
+    return fn(doc).rstrip("\n") + "\n\n" + source_line(path, doc, doc_dir, not name.endswith("-short"), commit) + "\n"
 
 
 def fill(text: str, root: str = ROOT, doc_dir: str = "") -> str:

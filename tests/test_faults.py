@@ -134,19 +134,22 @@ def _assert_exactly_once(summary: dict, tmp) -> None:
 
 
 def test_a_tracer_killed_mid_render(tmp_path, failure_free):
-    def kill(c: Cluster):
-        _mid_render(c)
-        t0 = time.monotonic()
-        c.workers[1].send_signal(signal.SIGKILL)
-        st = c.wait_for(lambda st: st["counters"]["tracers_evicted"] >= 1)
-        detected = time.monotonic() - t0
-        figures.record("tracer killed (SIGKILL)", detected_s=round(detected, 2), timeout_s=TIMEOUT_S)
-        assert detected < TIMEOUT_S + 3.0, f"detected after {detected:.1f} s"
-        assert {t["id"] for t in st["tracers"]} == {"w0", "w2"}
-        assert sorted(k for t in st["tracers"] for k in t["chunks"]) == [0, 1, 2, 3]
-    img, summary = _render(tmp_path, 5, kill)
-    _assert_exactly_once(summary, tmp_path)
-    assert_same_within_noise(img, failure_free[5], failure_free[9])
+    # evicted=1 only if the whole test passes (eviction in time, exact, the
+    # image within noise); a failure records 0 (tests/helpers/figures.py).
+    with figures.outcome("tracer killed (SIGKILL)", "evicted", timeout_s=TIMEOUT_S) as fig:
+        def kill(c: Cluster):
+            _mid_render(c)
+            t0 = time.monotonic()
+            c.workers[1].send_signal(signal.SIGKILL)
+            st = c.wait_for(lambda st: st["counters"]["tracers_evicted"] >= 1)
+            detected = time.monotonic() - t0
+            fig["detected_s"] = round(detected, 2)
+            assert detected < TIMEOUT_S + 3.0, f"detected after {detected:.1f} s"
+            assert {t["id"] for t in st["tracers"]} == {"w0", "w2"}
+            assert sorted(k for t in st["tracers"] for k in t["chunks"]) == [0, 1, 2, 3]
+        img, summary = _render(tmp_path, 5, kill)
+        _assert_exactly_once(summary, tmp_path)
+        assert_same_within_noise(img, failure_free[5], failure_free[9])
 
 
 def test_a_hung_tracer_is_dropped_and_rejoins_when_it_wakes(tmp_path, failure_free):
@@ -157,10 +160,10 @@ def test_a_hung_tracer_is_dropped_and_rejoins_when_it_wakes(tmp_path, failure_fr
         c.workers[2].send_signal(signal.SIGCONT)
         # Awake again, it learns it was dropped, registers and gets chunks.
         c.wait_for(lambda st: any(t["id"] == "w2" and t["chunks"] for t in st["tracers"]), 30)
-        figures.record("tracer hung (SIGSTOP), then woken", rejoined=1)
-    img, summary = _render(tmp_path, 5, hang)
-    _assert_exactly_once(summary, tmp_path)
-    assert_same_within_noise(img, failure_free[5], failure_free[9])
+    with figures.outcome("tracer hung (SIGSTOP), then woken", "rejoined", timeout_s=TIMEOUT_S):
+        img, summary = _render(tmp_path, 5, hang)
+        _assert_exactly_once(summary, tmp_path)
+        assert_same_within_noise(img, failure_free[5], failure_free[9])
 
 
 def _kill_and_resume(saved: dict):
@@ -195,12 +198,12 @@ def test_the_server_killed_and_resumed_from_its_checkpoint(tmp_path, failure_fre
     tracers find it again by themselves, and the render goes on from the
     checkpoint to the same total photon count."""
     saved = {}
-    img, summary = _render(tmp_path, 5, _kill_and_resume(saved))
-    assert 0 < saved["photons_emitted"] < PHOTONS
-    _assert_resumed(summary, saved, tmp_path)
-    figures.record("server killed (SIGKILL), --resume", resumed=1,
-                   photons_before_kill=saved["photons_emitted"], photons_in_image=summary["photons_in_image"])
-    assert_same_within_noise(img, failure_free[5], failure_free[9])
+    with figures.outcome("server killed (SIGKILL), --resume", "resumed", timeout_s=TIMEOUT_S) as fig:
+        img, summary = _render(tmp_path, 5, _kill_and_resume(saved))
+        fig.update(photons_before_kill=saved["photons_emitted"], photons_in_image=summary["photons_in_image"])
+        assert 0 < saved["photons_emitted"] < PHOTONS
+        _assert_resumed(summary, saved, tmp_path)
+        assert_same_within_noise(img, failure_free[5], failure_free[9])
 
 
 @pytest.mark.parametrize("damage, words", [

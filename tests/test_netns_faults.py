@@ -53,6 +53,8 @@ PHOTONS_REJOIN = 4_000_000   # still rendering when the cable is back
 SEED = 11
 ZMQ_PORT, HTTP_PORT, PEER_PORT = 5555, 8080, 5600
 SERVER_TIMEOUT_S = 50     # from the server's start to its exit, fault included
+# The --tracer-timeout each test runs at, recorded beside its figures.
+SHORT_CUT_TIMEOUT_S, CUT_TIMEOUT_S, LOSS_TIMEOUT_S = 6, 3, 10
 WORKER_TIMEOUT_S = 20     # after the server has exited
 
 # A unique name prefix per test run and a /24 of its own (test_netns.py
@@ -274,6 +276,12 @@ def healthy(tmp_path_factory):
 # discarding the jobs in flight, and the render stalled for good in 3 of 5
 # tries; too irregular for a strict expected failure, so not tested here.
 def test_a_short_link_cut_stalls_the_render_without_an_eviction(lan, tmp_path, healthy):
+    # passed=1 only if every assertion holds; a failure records 0.
+    with figures.outcome("cable cut 2 s (< timeout)", "passed", timeout_s=SHORT_CUT_TIMEOUT_S) as fig:
+        _short_cut(lan, tmp_path, healthy, fig)
+
+
+def _short_cut(lan, tmp_path, healthy, fig: dict) -> None:
     cut = {}
 
     def pull_the_cable(r: Render):
@@ -285,15 +293,14 @@ def test_a_short_link_cut_stalls_the_render_without_an_eviction(lan, tmp_path, h
         cut["up"] = time.time()
         lan.link("t1", "up")
         cut["server_exit_at_plug"] = r.server_exit()
-    res = _render(lan.hosts, tmp_path / "short-cut", 6, pull_the_cable)
+    res = _render(lan.hosts, tmp_path / "short-cut", SHORT_CUT_TIMEOUT_S, pull_the_cable)
     # The stall: while the cable is out, jobs with paths at t1 cannot
     # complete (their credit is there), so completions nearly stop.
     stalled = _completion_rate(res["history"], cut["down"] + 0.5, cut["up"])
     healthy_rate = healthy["summary"]["counters"]["photons_completed"] / healthy["summary"]["seconds"]
     print(f"short cut: {cut}; completions during the cut {stalled:,.0f}/s, healthy {healthy_rate:,.0f}/s")
-    figures.record("cable cut 2 s (< timeout)", seconds=round(res["summary"]["seconds"], 2),
-                   healthy_seconds=round(healthy["summary"]["seconds"], 2),
-                   rate_during_cut=round(stalled / healthy_rate, 3))
+    fig.update(seconds=round(res["summary"]["seconds"], 2), healthy_seconds=round(healthy["summary"]["seconds"], 2),
+               rate_during_cut=round(stalled / healthy_rate, 3))
     assert stalled < 0.25 * healthy_rate, (stalled, healthy_rate, res["tails"])
     _assert_exact(res, healthy)
     k = res["summary"]["counters"]
@@ -318,6 +325,12 @@ RETRY_S = 15
 
 
 def test_a_long_link_cut_evicts_the_tracer_and_the_other_finishes(lan, tmp_path, healthy):
+    # evicted=1 only if every assertion holds; a failure records 0.
+    with figures.outcome("cable cut past the timeout", "evicted", timeout_s=CUT_TIMEOUT_S) as fig:
+        _long_cut(lan, tmp_path, healthy, fig)
+
+
+def _long_cut(lan, tmp_path, healthy, fig: dict) -> None:
     seen = {}
 
     def pull_the_cable(r: Render):
@@ -326,6 +339,7 @@ def test_a_long_link_cut_evicts_the_tracer_and_the_other_finishes(lan, tmp_path,
         t_cut = time.monotonic()
         ev = r.wait_for("t1 evicted", lambda s: s["counters"].get("tracers_evicted", 0) >= 1, 15)
         seen["evicted_after_s"] = round(time.monotonic() - (time.time() - ev["t"]) - t_cut, 1)
+        fig["evicted_after_s"] = seen["evicted_after_s"]
         seen["tracers_after_eviction"] = ev["tracers"]
         seen["committed_at_eviction"] = ev["committed"]
         # The cable stays out until the render is over (at least 8 s).
@@ -335,14 +349,13 @@ def test_a_long_link_cut_evicts_the_tracer_and_the_other_finishes(lan, tmp_path,
         seen["server_exit"] = rc
         lan.link("t1", "up")
     # t1 never hears the shutdown: silent since the cut, it gives up after --retry.
-    res = _render(lan.hosts, tmp_path / "long-cut", 3, pull_the_cable, retry_s=RETRY_S,
+    res = _render(lan.hosts, tmp_path / "long-cut", CUT_TIMEOUT_S, pull_the_cable, retry_s=RETRY_S,
                   expect={"server": 0, "t1": 1, "t2": 0})
     # Photons t2 traced alone: committed in batches of 1M deposits, so with
     # direct light by shadow rays (half the deposits) the last batch may
     # only be committed at the end; the summary has it, the poll may not.
     seen["committed_alone"] = res["summary"]["counters"]["photons_committed"] - seen["committed_at_eviction"]
     print(f"long cut: {seen}")
-    figures.record("cable cut past the timeout", evicted_after_s=seen["evicted_after_s"], timeout_s=3)
     assert seen["evicted_after_s"] < 3 + 4, seen   # timeout + tick, status and poll periods
     _assert_exact(res, healthy)
     k = res["summary"]["counters"]
@@ -374,7 +387,13 @@ class RejoinFailed(AssertionError):
 # figure "rejoined in k of N runs".
 @pytest.mark.parametrize("run", range(int(os.environ.get("DOSPPM_REJOIN_RUNS", "1"))))
 def test_a_cut_off_tracer_rejoins_once_the_link_is_back(lan, tmp_path, healthy, run):
-    r = Render(lan.hosts, tmp_path / "rejoin", 3, photons=PHOTONS_REJOIN)
+    # rejoined=1 only if every assertion holds; any failure records 0.
+    with figures.outcome("cable cut 8 s, then back", "rejoined", timeout_s=CUT_TIMEOUT_S):
+        _rejoin(lan, tmp_path, healthy)
+
+
+def _rejoin(lan, tmp_path, healthy) -> None:
+    r = Render(lan.hosts, tmp_path / "rejoin", CUT_TIMEOUT_S, photons=PHOTONS_REJOIN)
     try:
         r.mid_render()
         lan.link("t1", "down")
@@ -398,10 +417,8 @@ def test_a_cut_off_tracer_rejoins_once_the_link_is_back(lan, tmp_path, healthy, 
                                    "(it never got the welcome)\n" + r.procs.tails())
             _wait_while_progressing(r, stall_s=15, limit_s=120)
         except RejoinFailed:
-            figures.record("cable cut 8 s, then back", rejoined=0)
             raise
         except AssertionError as e:
-            figures.record("cable cut 8 s, then back", rejoined=0)
             raise RejoinFailed(str(e)) from None
         res = r.finish()
     finally:
@@ -411,7 +428,6 @@ def test_a_cut_off_tracer_rejoins_once_the_link_is_back(lan, tmp_path, healthy, 
     assert k["tracers_evicted"] >= 1, k
     final = {t["id"]: t for t in res["summary"]["tracers"]}
     assert sorted(final) == ["tracer-t1", "tracer-t2"] and final["tracer-t1"]["results"] > 0, final
-    figures.record("cable cut 8 s, then back", rejoined=1)
 
 
 def _wait_while_progressing(r: Render, stall_s: float, limit_s: float) -> None:
@@ -454,14 +470,20 @@ def _dropped(ns: str) -> int:
 def test_five_percent_packet_loss_slows_the_render_down(lan, tmp_path, healthy):
     ns = lan.hosts["t1"][0]
     _add_loss_rule(ns)        # before the start: the whole render is lossy (the rule dies with the namespace)
-    res = _render(lan.hosts, tmp_path / "loss", 10)
+    # passed=1 only if every assertion holds; a failure records 0.
+    with figures.outcome("5% packet loss on a tracer host", "passed", timeout_s=LOSS_TIMEOUT_S) as fig:
+        _lossy_render(lan, tmp_path, healthy, ns, fig)
+
+
+def _lossy_render(lan, tmp_path, healthy, ns: str, fig: dict) -> None:
+    res = _render(lan.hosts, tmp_path / "loss", LOSS_TIMEOUT_S)
     dropped = _dropped(ns)
     print(f"packet loss: {dropped} packets dropped at t1; rendered in {res['summary']['seconds']:.1f} s, "
           f"{healthy['summary']['seconds']:.1f} s without loss")
+    fig.update(seconds=round(res["summary"]["seconds"], 2), healthy_seconds=round(healthy["summary"]["seconds"], 2),
+               packets_dropped=dropped)
     _assert_exact(res, healthy)
     assert dropped > 0, "the rule dropped no packets"
-    figures.record("5% packet loss on a tracer host", seconds=round(res["summary"]["seconds"], 2),
-                   healthy_seconds=round(healthy["summary"]["seconds"], 2), packets_dropped=dropped)
     assert res["summary"]["seconds"] > healthy["summary"]["seconds"], \
         ("5% packet loss did not slow the render", res["summary"]["seconds"], healthy["summary"]["seconds"])
     assert res["summary"]["counters"]["tracers_evicted"] == 0, res["summary"]["counters"]

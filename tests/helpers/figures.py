@@ -1,7 +1,10 @@
 """Figures the reliability tests measure (detection times, slowdowns, peak
 server RSS, the largest outbox, rejoins), kept as an artifact (issue 15).
 
-`record(test, **values)` notes what a test measured. With
+`record(test, **values)` notes what a test measured; `outcome(test, flag)`
+wraps a test's body so that it records `flag`=1 when the body passes and 0
+when it fails (a failed run counts, issue 34), with the values measured
+before the failure. With
 DOSPPM_RECORD_FIGURES=PATH set, the session's figures are merged into the
 JSON file at PATH when it ends, each test's under its own name with every
 sample kept (added to those of earlier runs of the same commit), plus the
@@ -11,16 +14,37 @@ Without it nothing is written (a plain test run leaves the tree alone).
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 
+import pytest
+
 ENV = "DOSPPM_RECORD_FIGURES"
+DIRTY_ENV = "DOSPPM_FIGURES_DIRTY"    # benchmarks/reliability.sh --dirty: recorded in the file
 _FIGURES: dict[str, dict[str, list]] = {}
 
 
 def record(test: str, **values) -> None:
     for k, v in values.items():
         _FIGURES.setdefault(test, {}).setdefault(k, []).append(v)
+
+
+@contextlib.contextmanager
+def outcome(test: str, flag: str, **values):
+    """Record `flag`=1 for `test` if the block ends normally, 0 if it
+    raises (a failed assertion or an error), together with `values` and
+    whatever the block adds to the dict it yields: measured values only
+    when measured. A skip or an interrupt records nothing."""
+    measured = dict(values)
+    try:
+        yield measured
+    except (pytest.skip.Exception, KeyboardInterrupt):
+        raise
+    except BaseException:
+        record(test, **{flag: 0}, **measured)
+        raise
+    record(test, **{flag: 1}, **measured)
 
 
 def write_if_asked() -> str | None:
@@ -41,8 +65,11 @@ def write_if_asked() -> str | None:
         # Runs of the same commit add samples (a test run N times gives
         # "successes of N"); a new commit starts over.
         if runs.get(test, {}).get("commit") == here["commit"]:
-            values = {k: list(tests[test].get(k, [])) + v for k, v in values.items()}
+            # Every key of either (a failed run may not have measured them all).
+            was = tests[test]
+            values = {k: list(was.get(k, [])) + values.get(k, []) for k in dict.fromkeys([*was, *values])}
         tests[test] = values
         runs[test] = {"commit": here["commit"], "date": here["date"]}
-    write_results(path, {"tests": tests, "runs": runs})
+    extra = {"dirty_allowed": True} if os.environ.get(DIRTY_ENV) == "1" or old.get("dirty_allowed") else {}
+    write_results(path, {"tests": tests, "runs": runs, **extra})
     return path
