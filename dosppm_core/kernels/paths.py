@@ -187,9 +187,10 @@ def hit_setup(verts, tris, tri_material, kinds, tri, u, v, d0, d1, d2):
 def sample_scatter(two_sided, ior, rough, refl, bsdf, extras, m, kind, n0, n1, n2, w0, w1, w2,
                    u1, u2, u3, radiance):
     """`sample_bsdf` (or `materials.sample_colour`, never with `extras`
-    None: `SurfaceData.material_extras`) with material m's parameters. Returns (ok, direction, throughput rgb, eta_scale): the
-    path's weight is multiplied by throughput * eta_scale, where eta_scale
-    is the eta^2 of radiance refracted (Russian roulette ignores it)."""
+    None: `SurfaceData.material_extras`) with material m's parameters.
+    Returns (ok, direction, throughput rgb, eta_scale): the path's weight
+    is multiplied by throughput * eta_scale, where eta_scale is the eta^2
+    of radiance refracted (Russian roulette ignores it)."""
     if extras is not None and is_coloured(kind):
         if not is_transmissive(kind) and n0 * w0 + n1 * w1 + n2 * w2 < 0.0:
             if not two_sided[m]:
