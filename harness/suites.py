@@ -1,7 +1,6 @@
 """The evaluation's suites, cases and methods (`dosppm evaluate SUITE`),
-and where a case's shared files are found (and a flat-shaded copy of one
-made): data, so the runner
-(`evaluate.py`) and its tests read one table."""
+and where a case's shared files are found (or a flat-shaded copy made):
+data, so the runner (`evaluate.py`) and its tests read one table."""
 from __future__ import annotations
 
 import math

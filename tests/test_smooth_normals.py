@@ -354,12 +354,11 @@ def test_the_sponza_case_reads_a_flat_copy_as_its_pbrt_reference_was_made(tmp_pa
     from harness import evaluate
     from harness.suites import SUITES
 
-    shared = SHARED
     suite = SUITES["sponza"]
     case = suite.cases[0]
     assert case.files.face_normals
-    smooth = load_mitsuba_xml(os.path.join(shared, case.files.scene))
-    flat = evaluate.suite_scene(suite, case, shared, str(tmp_path))
+    smooth = load_mitsuba_xml(os.path.join(SHARED, case.files.scene))
+    flat = evaluate.suite_scene(suite, case, SHARED, str(tmp_path))
     assert flat.source.startswith(str(tmp_path)) and os.path.isfile(flat.source)
     assert len(smooth.normals) and np.abs(smooth.normals).sum(axis=1).min() > 0
     assert not np.any(flat.normals)
