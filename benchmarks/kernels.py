@@ -1,4 +1,4 @@
-"""The bounce kernels and the hash gather alone, on recorded inputs, and the
+"""The bounce kernels and the gathers alone, on recorded inputs, and the
 whole photon pass (issue 11: the shared hit setup must not slow the hot
 loop).
 
@@ -10,7 +10,8 @@ Inputs are recorded once per run from the default scene ('cornell-glass'):
   concatenated; timed: `trace.advance_eye`;
 - hash gather: the hit points of one eye pass and the deposits of the
   photon pass, Morton-ordered as the statistics update orders them; timed:
-  `build_photon_hash` (binning and `_select_photons`) and the gather;
+  `build_photon_hash` (binning and `_select_photons`) and the gather, and
+  the exact grid gather (`gather_grid`, the default) of the same inputs;
 - photon pass: `trace_photon_jobs` over `--photons` photons, end to end.
 Every input is a pure function of the scene and the seed, so two trees run
 the same inputs (the checksums printed show it).
@@ -60,6 +61,7 @@ from dosppm_core import trace
 from dosppm_core.accel import Accelerator
 from dosppm_core.jobs import HitPoints, RayBatch
 from dosppm_core.scene import builtin
+from dosppm_core.sppm import grid as grid_gather
 from dosppm_core.sppm import hash as hash_gather
 from dosppm_core.sppm.statistics import pixel_footprint, reorder_deposits, spatial_order
 from harness.provenance import provenance
@@ -147,11 +149,12 @@ def _checksum(*arrays) -> float:
 
 
 def _load_against(tree: str):
-    """The tracing steps and hash of the checkout `tree`, loaded under other
-    names beside this one's (their other imports resolve to this tree); its
-    tracing steps call its own bounce kernels."""
+    """The tracing steps, hash and grid of the checkout `tree`, loaded under
+    other names beside this one's (their other imports resolve to this
+    tree); its tracing steps call its own bounce kernels."""
     mods = {}
-    for name, rel in (("paths", "kernels/paths.py"), ("trace", "trace.py"), ("hash", "sppm/hash.py")):
+    for name, rel in (("paths", "kernels/paths.py"), ("trace", "trace.py"), ("hash", "sppm/hash.py"),
+                      ("grid", "sppm/grid.py")):
         spec = importlib.util.spec_from_file_location(
             f"against_{name}", os.path.join(tree, "dosppm_core", rel))
         mod = importlib.util.module_from_spec(spec)
@@ -159,7 +162,7 @@ def _load_against(tree: str):
         spec.loader.exec_module(mod)
         mods[name] = mod
     mods["trace"].paths = mods["paths"]
-    return mods["trace"], mods["hash"]
+    return mods["trace"], mods["hash"], mods["grid"]
 
 
 def _record_inputs(scene, accel, surf, args, parts) -> dict:
@@ -182,8 +185,8 @@ def _record_inputs(scene, accel, surf, args, parts) -> dict:
     return inputs
 
 
-def _cases(scene, accel, surf, inputs, args, T, H) -> dict:
-    """name -> (call, repeats) with tracing steps T and hash module H."""
+def _cases(scene, accel, surf, inputs, args, T, H, G) -> dict:
+    """name -> (call, repeats) with tracing steps T, hash module H and grid G."""
     cases = {}
     if "photon" in inputs:
         pb, prim, u, v = inputs["photon"]
@@ -202,6 +205,9 @@ def _cases(scene, accel, surf, inputs, args, T, H) -> dict:
         cases["hash_build"] = (lambda: H.build_photon_hash(ph, hits.position, radius,
                                                            args.threads), args.repeats)
         cases["hash_gather"] = (lambda: table.gather(hits, radius, scene.materials, args.threads),
+                                args.repeats)
+        # The exact gather (the default), its grid built inside the call.
+        cases["grid_gather"] = (lambda: G.gather_grid(ph, hits, radius, scene.materials, args.threads),
                                 args.repeats)
     return cases
 
@@ -239,14 +245,14 @@ def run(args) -> dict:
     surf = trace.SurfaceData.from_scene(scene)
     parts = set(args.only.split(","))
     inputs = _record_inputs(scene, accel, surf, args, parts)
-    cases = _cases(scene, accel, surf, inputs, args, trace, hash_gather)
+    cases = _cases(scene, accel, surf, inputs, args, trace, hash_gather, grid_gather)
     old = {}
     if args.against:
-        old_trace, old_hash = _load_against(args.against)
+        old_trace, old_hash, old_grid = _load_against(args.against)
         # That checkout's kernels read its own SurfaceData: the fields it has.
         fields = old_trace.paths.SurfaceData._fields
         old_surf = old_trace.paths.SurfaceData(*(getattr(surf, f) for f in fields))
-        old = _cases(scene, accel, old_surf, inputs, args, old_trace, old_hash)
+        old = _cases(scene, accel, old_surf, inputs, args, old_trace, old_hash, old_grid)
     results: dict = {}
     for name, (call, repeats) in cases.items():
         out = _flat(call())

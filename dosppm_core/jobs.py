@@ -30,6 +30,10 @@ class _Record:
             setattr(cls, "_first_field", name)
         return int(getattr(self, name).shape[0])
 
+    # Columns a record may lack (None): only scenes that need them carry
+    # them, and every helper here keeps them absent (`HitPoints.frame`).
+    OPTIONAL: frozenset = frozenset()
+
     def take(self, index, replace: dict | None = None) -> "_Record":
         """Rows at `index` (an integer array or a boolean mask), with the
         columns in `replace` (name: full-length array) taken from there
@@ -38,12 +42,16 @@ class _Record:
         if index.dtype == np.bool_:
             index = np.flatnonzero(index)
         replace = replace or {}
-        return type(self)(**{f.name: np.take(replace.get(f.name, getattr(self, f.name)), index, axis=0)
-                             for f in fields(self)})
+        out = {}
+        for f in fields(self):
+            a = replace.get(f.name, getattr(self, f.name))
+            out[f.name] = None if a is None else np.take(a, index, axis=0)
+        return type(self)(**out)
 
     def slice(self, start: int, stop: int) -> "_Record":
         """Rows [start, stop) as views, no copy."""
-        return type(self)(**{f.name: getattr(self, f.name)[start:stop] for f in fields(self)})
+        cols = {f.name: getattr(self, f.name) for f in fields(self)}
+        return type(self)(**{k: None if a is None else a[start:stop] for k, a in cols.items()})
 
     def partition(self, keys: np.ndarray, rows: np.ndarray | None = None,
                   replace: dict | None = None) -> dict:
@@ -73,15 +81,25 @@ class _Record:
             return cls.empty()
         if len(parts) == 1:
             return parts[0]     # records are not changed in place: no copy needed
-        return cls(**{f.name: np.concatenate([getattr(p, f.name) for p in parts])
-                      for f in fields(cls)})
+        return cls(**{f.name: cls._concat_column(f.name, parts) for f in fields(cls)})
+
+    @classmethod
+    def _concat_column(cls, name: str, parts: list):
+        """One column of `concat`. An optional column absent from every part
+        stays absent; absent from some, those parts' rows get zeros."""
+        cols = [getattr(p, name) for p in parts]
+        if all(c is None for c in cols):
+            return None
+        dtype, shape = cls.SCHEMA[name]
+        return np.concatenate([np.zeros((len(p),) + shape, dtype) if c is None else c
+                               for p, c in zip(parts, cols)])
 
     def arrays(self) -> dict:
         return {f.name: getattr(self, f.name) for f in fields(self)}
 
     @classmethod
     def empty(cls) -> "_Record":
-        return cls(**{name: np.empty((0,) + shape, dtype)
+        return cls(**{name: None if name in cls.OPTIONAL else np.empty((0,) + shape, dtype)
                       for name, (dtype, shape) in cls.SCHEMA.items()})
 
 
@@ -169,10 +187,17 @@ class HitPoints(_Record):
     weight: np.ndarray      # float32 (n, 3): camera path throughput
     material: np.ndarray    # int32 (n,)
     pixel: np.ndarray       # int32 (n,)
+    # The lobe of a hit point on an anisotropic rough conductor, or one with
+    # textured roughness: its tangent s (3) and alpha_u, alpha_v there
+    # (`kernels.anisotropic.hit_point_frames`; zeros at other hit points),
+    # so the gather weighs photons by the BSDF direct light uses. None in
+    # a scene without such a material: other scenes carry nothing.
+    frame: np.ndarray = None  # float32 (n, 5)
 
     SCHEMA = {"position": (np.float32, (3,)), "normal": (np.float32, (3,)),
               "outgoing": (np.float32, (3,)), "weight": (np.float32, (3,)),
-              "material": (np.int32, ()), "pixel": (np.int32, ())}
+              "material": (np.int32, ()), "pixel": (np.int32, ()), "frame": (np.float32, (5,))}
+    OPTIONAL = frozenset({"frame"})
 
 
 @dataclass

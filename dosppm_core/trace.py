@@ -110,13 +110,14 @@ def advance_eye(surf: SurfaceData, batch: RayBatch, prim, u, v, max_depth: int,
     if surf.shading_mapped and len(h):
         # Normal and bump maps: the hit point keeps the perturbed normal (`kernels.shading`).
         mapped = shading.perturb_hit_points(surf, prim[h], hmat, u[h], v[h], hn, outgoing)
-    hits = HitPoints(hpos, hn, outgoing, weight, hmat, batch.pixel[h])
+    frames = None
+    if surf.anisotropic:    # the tangent frames of anisotropic hit points (`kernels.anisotropic`)
+        frames = anisotropic.hit_point_frames(surf, prim[h], hmat, u[h], v[h], hn)
+    hits = HitPoints(hpos, hn, outgoing, weight, hmat, batch.pixel[h],
+                     None if frames is None else frames.astype(np.float32))
     nxt = RayBatch(no, nd, nw, batch.pixel[g], batch.depth[g] + 1, st, job=batch.job[g])
     shadows = ShadowRays.empty()
     if lights is not None and len(hits):
-        frames = None
-        if surf.anisotropic:    # the tangent frames of anisotropic hit points (`kernels.anisotropic`)
-            frames = anisotropic.hit_point_frames(surf, prim[h], hmat, u[h], v[h], hn)
         shadows = shadow_rays(surf, lights, hits, batch.rng[h], batch.job[h], mapped, frames)
         ends[STORED] -= len(shadows)
     seen = (batch.pixel[lit], rgb)

@@ -136,6 +136,7 @@ class Column:
     dtype: np.dtype
     trailing: tuple
     values: str | None   # FINITE, NOT_NAN or None (no check)
+    optional: bool = False   # a record's column it may lack (`_Record.OPTIONAL`)
 
 
 @dataclass(frozen=True)
@@ -161,7 +162,7 @@ def _le(dtype) -> np.dtype:
 def record(name: str, cls, optional: bool = False) -> Group:
     """A record group from the class's SCHEMA; every float column finite."""
     cols = tuple(Column(f"{name}.{col}", col, _le(dt), tuple(shape),
-                        FINITE if np.dtype(dt).kind == "f" else None)
+                        FINITE if np.dtype(dt).kind == "f" else None, col in cls.OPTIONAL)
                  for col, (dt, shape) in cls.SCHEMA.items())
     return Group(name, cols, record=cls, optional=optional)
 
@@ -213,7 +214,9 @@ def _group_columns(spec: Spec, g: Group, given: dict) -> dict | None:
         if not isinstance(rec, g.record):
             raise WireError(f"{spec.name}: field {g.name!r} must be a {g.record.__name__}, "
                             f"got {type(rec).__name__}", spec.name, g.name)
-        return {c.wire: getattr(rec, c.key) for c in g.columns}
+        # An optional column the record lacks is left out of the message.
+        return {c.wire: getattr(rec, c.key) for c in g.columns
+                if not (c.optional and getattr(rec, c.key) is None)}
     cols = {c.wire: given.pop(c.key, None) for c in g.columns}
     present = [k for k, a in cols.items() if a is not None]
     if not present:
@@ -244,6 +247,8 @@ def pack(spec: Spec, header: dict, given: dict) -> list:
     for g in spec.groups:
         cols = _group_columns(spec, g, given)
         for c in g.columns if cols is not None else ():
+            if c.wire not in cols:
+                continue
             entry, frame = _frame_of(spec, c, cols[c.wire])
             entries.append(entry)
             frames.append(frame)
@@ -349,11 +354,13 @@ def _decode_group(spec: Spec, g: Group, entries: dict, frames, check_values: boo
     present = [c.wire for c in g.columns if c.wire in entries]
     if not present and g.optional:
         return dict.fromkeys(g.keys)
-    if len(present) < len(g.columns):
-        missing = next(c.wire for c in g.columns if c.wire not in entries)
-        _fail(spec.name, missing, "is missing from the arrays")
+    missing = [c.wire for c in g.columns if c.wire not in entries and not c.optional]
+    if missing:
+        _fail(spec.name, missing[0], "is missing from the arrays")
     cols = {}
     for c in g.columns:
+        if c.wire not in entries:
+            continue        # an optional column left out: the record gets None
         dtype, shape, i = entries.pop(c.wire)
         cols[c] = _check_column(spec, c, dtype, shape, frames[i])
     lengths = {c.wire: a.shape[0] for c, a in cols.items()}

@@ -38,6 +38,8 @@ Records (`RayBatch`, `PhotonDeposits`, `HitPoints`, `ShadowRays`) travel as one 
 field, named "<field>.<column>" (e.g. "batch.origin"), with dtypes and
 trailing shapes taken from the record class's SCHEMA, so the wire follows
 the library. A decoded message rebuilds them: `msg.batch` is a `RayBatch`.
+A record's optional column (`_Record.OPTIONAL`: the hit points' `frame`)
+travels only when the record has it; decoded without it, it is None.
 
 Validation
 ----------
@@ -134,9 +136,9 @@ from services._wire_codec import (
     Struct, WireError, pack, plain, read_fields, read_header, record, shape_text,
 )
 
-PROTOCOL_VERSION = 8   # 2 shadow rays; 3 credit; 4 photon jobs made by the tracer; 5 the gather at the
+PROTOCOL_VERSION = 9   # 2 shadow rays; 3 credit; 4 photon jobs made by the tracer; 5 the gather at the
                        # tracers; 6 eye tiles made by the tracer; 7 eye light held at the tracers;
-                       # 8 deposits without a normal
+                       # 8 deposits without a normal; 9 hit points' optional frame
 
 # -- policy ---------------------------------------------------------------------
 # MAX_ELEMENTS (the codec's cap on one array's declared size) bounds a frame:

@@ -3,7 +3,7 @@ tracers) against a plain stable sort."""
 import numpy as np
 import pytest
 
-from dosppm_core.jobs import RayBatch
+from dosppm_core.jobs import HitPoints, RayBatch
 
 
 def _batch(n, seed=0):
@@ -60,3 +60,24 @@ def test_concat_of_one_part_is_that_part_and_of_several_is_their_rows():
     both = RayBatch.concat([a, None, b])
     np.testing.assert_array_equal(both.origin, np.concatenate([a.origin, b.origin]))
     assert len(RayBatch.concat([])) == 0
+
+
+def _hits(n, frame):
+    z = np.zeros((n, 3), np.float32)
+    return HitPoints(position=z + np.arange(n, dtype=np.float32)[:, None], normal=z, outgoing=z, weight=z,
+                     material=np.zeros(n, np.int32), pixel=np.arange(n, dtype=np.int32),
+                     frame=np.ones((n, 5), np.float32) if frame else None)
+
+
+def test_an_optional_column_stays_absent_and_fills_with_zeros_beside_one_present():
+    """HitPoints.frame: absent in the empty record and through take, slice
+    and partition; concat of parts without it has none, and with it in
+    some parts the others' rows get zeros."""
+    assert HitPoints.empty().frame is None
+    plain = _hits(4, frame=False)
+    assert plain.take([2, 0]).frame is None and plain.slice(1, 3).frame is None
+    assert all(p.frame is None for p in plain.partition(np.array([0, 1, 0, 1])).values())
+    assert HitPoints.concat([plain, HitPoints.empty(), plain]).frame is None
+    mixed = HitPoints.concat([plain, _hits(2, frame=True), HitPoints.empty()])
+    np.testing.assert_array_equal(mixed.frame, np.r_[np.zeros((4, 5)), np.ones((2, 5))])
+    np.testing.assert_array_equal(mixed.take([5, 0]).frame, [[1] * 5, [0] * 5])

@@ -40,8 +40,11 @@ FIRST_QUEUE_RAYS = 262_144
 
 
 def _row_bytes(record) -> int:
-    """Bytes per row of a job record (its SCHEMA's columns)."""
-    return sum(np.dtype(dt).itemsize * int(np.prod(shape, dtype=np.int64)) for dt, shape in record.SCHEMA.values())
+    """Bytes per row of a job record: its SCHEMA's columns, less the
+    optional ones (a hit point's frame: 20 B more, in the few scenes with
+    an anisotropic material)."""
+    return sum(np.dtype(dt).itemsize * int(np.prod(shape, dtype=np.int64))
+               for name, (dt, shape) in record.SCHEMA.items() if name not in record.OPTIONAL)
 
 
 RAY_BYTES = _row_bytes(RayBatch)

@@ -27,6 +27,7 @@ from dosppm_core.kernels.materials import (
     B_ANISO,
     B_DIST,
     conductor_tint,
+    gather_f,
     hit_point_eval,
     hit_point_pdf,
     hit_point_sample,
@@ -35,6 +36,7 @@ from dosppm_core.kernels.materials import (
 from dosppm_core.kernels.microfacet import distribution_d_aniso, sample_visible_aniso, smith_g1_aniso
 from dosppm_core.kernels.shading import tangents
 from dosppm_core.kernels.texture import LUMINANCE
+from dosppm_core.scene.model import ROUGH_CONDUCTOR
 from dosppm_core.scene.textures import CHECKERBOARD, INFO_KIND, INFO_OFFSET
 
 _NONE = (False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
@@ -247,3 +249,43 @@ def hp_sample(kind, row, frames, i, n0, n1, n2, w0, w1, w2, u1, u2, u3):
         s, t, au, av = _hit_frame(frames, i, n0, n1, n2)
         return sample_world(row, au, av, s, t, (n0, n1, n2), w0, w1, w2, u2, u3)
     return hit_point_sample(kind, row, n0, n1, n2, w0, w1, w2, u1, u2, u3)
+
+
+# -- the gather -------------------------------------------------------------------------
+@nb.njit(cache=True, error_model="numpy")
+def framed_f(row, s0, s1, s2, au, av, n0, n1, n2, w0, w1, w2, i0, i1, i2):
+    """f (rgb) of an anisotropic hit point whose frame (`hit_point_frames`)
+    is s, alpha_u, alpha_v, about its normal n: what direct light weighs
+    the same hit point by (`hp_eval`). Called only at such hit points, so
+    the gathers' common path takes no call with an array."""
+    t = (n1 * s2 - n2 * s1, n2 * s0 - n0 * s2, n0 * s1 - n1 * s0)
+    return eval_world(row, au, av, (s0, s1, s2), t, (n0, n1, n2), w0, w1, w2, i0, i1, i2)
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def has_frame(kind, bsdf, mat, frames, h):
+    """Whether hit point h (material mat of `kind`) is gathered in its frame
+    `frames[h]`: its material is anisotropic or has textured roughness.
+    `frames` is `HitPoints.frame`, or None in a scene without one: numba
+    then compiles the gathers without the framed branch (as `extras`
+    prunes the bounces)."""
+    if frames is None:
+        return False
+    return kind == ROUGH_CONDUCTOR and h < frames.shape[0] and bsdf[mat, B_ANISO] > 0.0
+
+
+@nb.njit(inline="always", cache=True, error_model="numpy")
+def gather_f_framed(framed, kind, alpha, bsdf, mat, frames, h, n0, n1, n2, w0, w1, w2, i0, i1, i2):
+    """`materials.gather_f` of hit point h, in its frame where `framed`
+    (`has_frame`, which a caller may ask once per hit point)."""
+    if frames is not None and framed:
+        return framed_f(bsdf[mat], np.float64(frames[h, 0]), np.float64(frames[h, 1]),
+                        np.float64(frames[h, 2]), np.float64(frames[h, 3]), np.float64(frames[h, 4]),
+                        n0, n1, n2, w0, w1, w2, i0, i1, i2)
+    return gather_f(kind, alpha, bsdf, mat, n0, n1, n2, w0, w1, w2, i0, i1, i2)
+
+
+def frames_of(hp) -> np.ndarray | None:
+    """The gathers' `frames` argument for hit points `hp`: float32 (n, 5),
+    or None (the gathers compiled without frames)."""
+    return None if hp.frame is None else np.ascontiguousarray(hp.frame, np.float32)

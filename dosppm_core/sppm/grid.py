@@ -13,7 +13,8 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
-from dosppm_core.kernels.materials import bsdf_rows, gather_f, gather_tint
+from dosppm_core.kernels.anisotropic import frames_of, gather_f_framed, has_frame
+from dosppm_core.kernels.materials import bsdf_rows, gather_tint
 from dosppm_core.scene.model import ROUGH_DIELECTRIC
 
 CELL_FACTOR = 2.0  # cell size in median radii
@@ -150,13 +151,12 @@ def pack_hit_points(hp, materials) -> np.ndarray:
 
 @nb.njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def gather_photons(ph_pos, ph_in, ph_flux, start, entry_hp, slot_key, entry_pos, mask, longest,
-                   lo, cell, dims, rows, bsdf, acc):
-    """Accumulate, per hit point, the photon count M and the BRDF-weighted
-    flux Phi (eq. 3, times the eye path weight). numba has no atomics on
-    the CPU, so each thread owns an accumulator (M, Phi) over a contiguous
-    range of the (spatially sorted) photons, in `acc` (threads, hit points,
-    4), zeros when called (see _sum_threads). `bsdf`: materials.bsdf_rows,
-    for the coloured kinds."""
+                   lo, cell, dims, rows, frames, bsdf, acc):
+    """Accumulate, per hit point, the photon count M and the BRDF-weighted flux Phi
+    (eq. 3, times the eye path weight). numba has no atomics on the CPU, so each thread
+    owns an accumulator (M, Phi) over a contiguous range of the (spatially sorted) photons,
+    in `acc` (threads, hit points, 4), zeros when called (see _sum_threads). `bsdf`:
+    materials.bsdf_rows, for the coloured kinds; `frames`: `anisotropic.frames_of`."""
     n = ph_pos.shape[0]
     threads = acc.shape[0]
     for t in nb.prange(threads):
@@ -197,9 +197,11 @@ def gather_photons(ph_pos, ph_in, ph_flux, start, entry_hp, slot_key, entry_pos,
                 kind = int(rows[h, HP_KIND])
                 if n0 * wi0 + n1 * wi1 + n2 * wi2 <= 0.0 and kind != ROUGH_DIELECTRIC:
                     continue
-                f0, f1, f2 = gather_f(kind, np.float64(rows[h, HP_ALPHA]), bsdf, int(rows[h, HP_MAT]),
-                                      n0, n1, n2, rows[h, HP_OUT], rows[h, HP_OUT + 1], rows[h, HP_OUT + 2],
-                                      wi0, wi1, wi2)
+                mat = int(rows[h, HP_MAT])
+                f0, f1, f2 = gather_f_framed(has_frame(kind, bsdf, mat, frames, h), kind,
+                                             np.float64(rows[h, HP_ALPHA]), bsdf, mat, frames, h, n0, n1, n2,
+                                             rows[h, HP_OUT], rows[h, HP_OUT + 1], rows[h, HP_OUT + 2],
+                                             wi0, wi1, wi2)
                 # The hit point's reflectance (the older kinds') times eye
                 # weight is the same for every photon: it multiplies the sum
                 # once, at the end (materials.gather_tint).
@@ -284,5 +286,5 @@ def gather_grid(ph, hp, hp_radius, materials, threads: int, grid: HitPointGrid |
     g = grid if grid is not None else build_hit_point_grid(hp, hp_radius, materials)
     acc = np.zeros((max(1, threads), len(hp), 4))
     gather_photons(ph.position, ph.incoming, ph.flux, g.start, g.entry_hp, g.slot_key, g.entry_pos,
-                   g.mask, g.longest, g.lo, g.cell, g.dims, g.rows, bsdf_rows(materials), acc)
+                   g.mask, g.longest, g.lo, g.cell, g.dims, g.rows, frames_of(hp), bsdf_rows(materials), acc)
     return _sum_threads(acc, g.rows, gather_tint(materials))

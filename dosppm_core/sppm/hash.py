@@ -51,7 +51,8 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from dosppm_core.kernels.materials import bsdf_rows, gather_f, gather_tint
+from dosppm_core.kernels.anisotropic import frames_of, gather_f_framed, has_frame
+from dosppm_core.kernels.materials import bsdf_rows, gather_tint
 from dosppm_core.scene.model import ROUGH_DIELECTRIC
 from dosppm_core.kernels.rng import mix64
 
@@ -346,12 +347,13 @@ def _select_photons(keys, cell_prio, n_valid, bitmap, first, d2, photons, thread
 
 # -- the gather --------------------------------------------------------------------
 @nb.njit(cache=True, nogil=True, parallel=True)
-def _gather(hp, hp_radius, grid, cells, entries, materials, threads):
+def _gather(hp, frames, hp_radius, grid, cells, entries, materials, threads):
     """M and Phi per hit point. `hp` is (position, normal, outgoing, eye
-    weight, material), `grid` (lo, cell, dims, axes, slack, bitmap, first)
-    in internal axis order, `cells` the occupied cells' records (position,
-    incoming, flux, count, shared entry), `materials` (kind,
-    gather_tint, roughness, bsdf_rows). Hit points are split in `threads` ranges; each
+    weight, material), `frames` their lobes' (`anisotropic.frames_of`: None
+    compiles the gather without them), `grid` (lo, cell, dims, axes, slack,
+    bitmap, first) in internal axis order, `cells` the occupied cells'
+    records (position, incoming, flux, count, shared entry), `materials`
+    (kind, gather_tint, roughness, bsdf_rows). Hit points are split in `threads` ranges; each
     thread writes only its own hit points. `stamp` remembers, per thread,
     the last hit point that took each entry whose slot several cells
     share: only those can be reached twice."""
@@ -360,13 +362,13 @@ def _gather(hp, hp_radius, grid, cells, entries, materials, threads):
     phi = np.zeros((nhp, 3))
     stamp = np.zeros((threads, entries), np.int64)
     for t in nb.prange(threads):
-        _gather_range(nhp * t // threads, nhp * (t + 1) // threads, hp, hp_radius, grid, cells,
+        _gather_range(nhp * t // threads, nhp * (t + 1) // threads, hp, frames, hp_radius, grid, cells,
                       materials, stamp[t], m, phi)
     return m, phi
 
 
 @nb.njit(cache=True, nogil=True)
-def _gather_range(first_hp, end_hp, hp, hp_radius, grid, cells, materials, stamp, m, phi):
+def _gather_range(first_hp, end_hp, hp, frames, hp_radius, grid, cells, materials, stamp, m, phi):
     """M and Phi of hit points [first_hp, end_hp), one thread's range."""
     hp_n, hp_mat = hp[1], hp[4]
     mat_kind, mat_refl, mat_rough, mat_bsdf = materials
@@ -374,21 +376,21 @@ def _gather_range(first_hp, end_hp, hp, hp_radius, grid, cells, materials, stamp
         mat = hp_mat[h]
         shading = (hp_n[h, 0], hp_n[h, 1], hp_n[h, 2], mat_kind[mat], np.float64(mat_rough[mat]),
                    mat_refl[mat, 0], mat_refl[mat, 1], mat_refl[mat, 2])
+        framed = has_frame(mat_kind[mat], mat_bsdf, mat, frames, h)     # asked once, not per photon
         m[h], phi[h, 0], phi[h, 1], phi[h, 2] = _gather_hit_point(
-            h, hp_radius[h], hp, shading, (mat_bsdf, mat), grid, cells, stamp)
+            h, hp_radius[h], hp, frames, shading, (mat_bsdf, mat, framed), grid, cells, stamp)
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _gather_hit_point(h, r, hp, shading, material, grid, cells, stamp):
-    """(M, Phi) of hit point h of radius r: the columns of cells its sphere
-    overlaps, in each the occupied cells (found in the bitmap, their records
-    by rank), and their kept photons' distance and BRDF tests. The
-    loops stay in one function: a call taking arrays, per word or photon,
-    would reference-count each of them (numba), at twice the gather's time."""
+def _gather_hit_point(h, r, hp, frames, shading, material, grid, cells, stamp):
+    """(M, Phi) of hit point h of radius r: the columns of cells its sphere overlaps, in
+    each the occupied cells (found in the bitmap, their records by rank), and their kept
+    photons' distance and BRDF tests. The loops stay in one function: a call taking arrays,
+    per word or photon, would reference-count each of them (numba), at twice the time."""
     hp_pos, _hp_n, hp_out, hp_weight, _hp_mat = hp
     lo, cell, dims, axes, slack, bitmap, first = grid
     c_pos, c_in, c_flux, c_count, c_shared = cells
-    (n0, n1, n2, kind, rough, refl0, refl1, refl2), (bsdf, mat) = shading, material
+    (n0, n1, n2, kind, rough, refl0, refl1, refl2), (bsdf, mat, framed) = shading, material
     words = (dims[2] + 63) // 64
     x, y, z = np.float64(hp_pos[h, axes[0]]), np.float64(hp_pos[h, axes[1]]), np.float64(hp_pos[h, axes[2]])
     reach = r * (1.0 + _RADIUS_SLACK) + slack
@@ -430,8 +432,9 @@ def _gather_hit_point(h, r, hp, shading, material, grid, cells, stamp):
                             or (n0 * c_in[k, 0] + n1 * c_in[k, 1] + n2 * c_in[k, 2] <= 0.0
                                 and kind != ROUGH_DIELECTRIC)):
                         continue    # outside the sphere, or from behind the surface (grid.py)
-                    f0, f1, f2 = gather_f(kind, rough, bsdf, mat, n0, n1, n2, hp_out[h, 0], hp_out[h, 1],
-                                          hp_out[h, 2], c_in[k, 0], c_in[k, 1], c_in[k, 2])
+                    f0, f1, f2 = gather_f_framed(framed, kind, rough, bsdf, mat, frames, h, n0, n1, n2,
+                                                 hp_out[h, 0], hp_out[h, 1], hp_out[h, 2],
+                                                 c_in[k, 0], c_in[k, 1], c_in[k, 2])
                     cnt = c_count[k]
                     acc_m += cnt
                     if f0 + f1 + f2 > 0.0:
@@ -505,7 +508,7 @@ class PhotonHash:
         """(M, Phi) per hit point: M the expected photon count, Phi the
         expected BRDF-weighted flux times the eye path weight."""
         L = self.layout
-        return _gather((hp.position, hp.normal, hp.outgoing, hp.weight, hp.material),
+        return _gather((hp.position, hp.normal, hp.outgoing, hp.weight, hp.material), frames_of(hp),
                        np.asarray(hp_radius, np.float64),
                        (L.lo, L.cell, L.dims, L.axes, L.slack, self.bitmap, self.first),
                        (self.position, self.incoming, self.flux, self.cell_count,

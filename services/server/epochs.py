@@ -40,7 +40,8 @@ BYTES_PER_PHOTON = 8.0
 OPEN_EPOCHS = 3
 DENSE_SUMS_BYTES = 32            # M and Phi (f64) of one hit point, from one tracer
 LIGHT_BYTES = 16                 # a pixel's light in a round, from one tracer (pixel i32, rgb f32)
-HIT_POINT_BYTES = 56             # one hit point on the wire (dosppm_core.jobs.HitPoints), once
+HIT_POINT_BYTES = 56             # one hit point on the wire (dosppm_core.jobs.HitPoints), once;
+                                 # 76 with its frame (scenes with an anisotropic material)
 
 
 def jobs_per_epoch(photon_batch: int, photons_per_job: int, tracers: int, pixels: int) -> int:
