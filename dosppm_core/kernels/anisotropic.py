@@ -277,7 +277,10 @@ def has_frame(kind, bsdf, mat, frames, h):
 @nb.njit(inline="always", cache=True, error_model="numpy")
 def gather_f_framed(framed, kind, alpha, bsdf, mat, frames, h, n0, n1, n2, w0, w1, w2, i0, i1, i2):
     """`materials.gather_f` of hit point h, in its frame where `framed`
-    (`has_frame`, which a caller may ask once per hit point)."""
+    (`has_frame`, which a caller may ask once per hit point). The test of
+    None repeats has_frame's on purpose: numba prunes a branch only on a
+    test of an argument itself, and without it would type frames[h, 0] on
+    None."""
     if frames is not None and framed:
         return framed_f(bsdf[mat], np.float64(frames[h, 0]), np.float64(frames[h, 1]),
                         np.float64(frames[h, 2]), np.float64(frames[h, 3]), np.float64(frames[h, 4]),
