@@ -174,11 +174,12 @@ class ReplayedEpochs(EpochDeposits):
                 self.recorded.append(dict(out, m=m, phi=phi))
             return out
         rec = self.recorded[self.counters["epochs_gathered"] % len(self.recorded)]
-        self.held.pop(int(msg.epoch), None)
+        k = int(msg.epochs)             # a merged gather: as many epochs' sums
+        self.take_held(int(msg.epoch), k)
         rows = np.arange(len(self._hits(msg.hits_version))) % max(len(rec["m"]), 1)
         self.counters["epochs_gathered"] += 1
-        return dict(epoch=int(msg.epoch), phase="sums", hits_version=msg.hits_version, deposits=rec["deposits"],
-                    chosen=0, flux=rec["flux"], **sparse_sums(rec["m"][rows], rec["phi"][rows]))
+        return dict(epoch=int(msg.epoch), phase="sums", hits_version=msg.hits_version, deposits=k * rec["deposits"],
+                    chosen=0, flux=k * rec["flux"], **sparse_sums(k * rec["m"][rows], k * rec["phi"][rows]))
 
 
 def _runs(jobs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from dosppm_core.settings import (DEFAULT_BUDGET_BYTES, DIRECT_MODES, SERVICE_JOB_SIZES, RenderSettings,
                                   GATHER_AT_TRACERS_PHOTONS_PER_JOB, service_job_sizes,
                                   default_store_cache, scene_settings)
+from services.server.epochs import MOST_MERGED
 
 
 @dataclass(frozen=True)
@@ -172,6 +173,9 @@ SERVICE = (
     _opt("hit_point_stride", int, None, "install the hit points of one eye iteration in N; the others add "
          "only the light their paths saw (default: one set per epoch gathering at the tracers; 1, every "
          "iteration, the paper's, gathering at the server)", rule="count"),
+    _opt("batch_growth", int, MOST_MERGED, "gathering at the tracers, one statistics update may merge up to N epochs "
+         "while the tracers finish them faster than the server's rounds gather them (1: each epoch its own "
+         "batch, the paper's; docs/how-it-works.md)", rule="count"),
     _opt("tracer_timeout", float, 10.0, "drop a tracer silent this long (its jobs are re-emitted); "
          "raise it for chunks that take longer than this to load", rule="positive"),
 )

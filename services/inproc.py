@@ -10,6 +10,7 @@ from collections import deque
 from dosppm_core.settings import RenderSettings
 from services import wire
 from services.ledger import Ledger
+from services.server.epochs import MOST_MERGED
 from services.server.options import ServerOptions
 from services.server.state import ServerState
 from services.server.statistics import ServerStatistics
@@ -27,15 +28,18 @@ class InProcessCluster:
     def __init__(self, store, settings: RenderSettings, tracers: int = 2, min_photon_jobs: int = 64,
                  queue_target_rays: int = 65_536, step_rays: int = 16_384,
                  memory_bytes: float | None = None, tracer_timeout_s: float = 10.0, tamper=None,
-                 gather_at: str = "server", hit_point_stride: int | None = None):
+                 gather_at: str = "server", hit_point_stride: int | None = None,
+                 batch_growth: int = MOST_MERGED):
         """`tamper(sender, dest, msg)`: the messages to deliver instead of
-        `msg` (a faulty transport, for the ledger's negative controls)."""
+        `msg` (a faulty transport, for the ledger's negative controls; it
+        may hold one back with `later`)."""
         self.settings = settings
         self.server = ServerState(store.header, store.tree, settings, getattr(store, "key", "memory"),
                                   getattr(store, "manifest", None),
                                   ServerOptions(min_photon_jobs=min_photon_jobs, queue_target_rays=queue_target_rays,
                                                 min_tracers=tracers, tracer_timeout_s=tracer_timeout_s,
-                                                gather_at=gather_at, hit_point_stride=hit_point_stride))
+                                                gather_at=gather_at, hit_point_stride=hit_point_stride,
+                                                batch_growth=batch_growth))
         self.statistics = ServerStatistics(store.header, settings, threads=settings.threads,
                                            ledger=Ledger(settings, (store.header.camera.width, store.header.camera.height)))
         self.tamper = tamper
@@ -43,6 +47,8 @@ class InProcessCluster:
         self.tracers: dict[str, TracerState] = {}
         self.by_endpoint: dict[str, str] = {}
         self.mail: deque = deque()       # (sender, dest, message)
+        self._later: list = []           # (round due, sender, dest, message): a slow link's (`later`)
+        self.rounds = 0
         self.dead: set[str] = set()      # killed tracers: they neither send nor receive
         self.messages = 0
         self.wire_bytes = 0
@@ -88,6 +94,11 @@ class InProcessCluster:
             for m in (self.tamper(sender, o.dest, msg) if self.tamper else [msg]):
                 self.mail.append((sender, o.dest, m))
 
+    def later(self, rounds: int, sender: str, dest: str, msg) -> None:
+        """Deliver `msg` `rounds` rounds from now (for a `tamper` that
+        plays a slow link)."""
+        self._later.append((self.rounds + int(rounds), sender, dest, msg))
+
     def _deliver(self) -> None:
         while self.mail:
             sender, dest, msg = self.mail.popleft()
@@ -112,6 +123,10 @@ class InProcessCluster:
         """One tick of the server (10 ms of cluster time), then one step of
         every live tracer with work; heartbeats every second."""
         self.now += 0.01
+        self.rounds += 1
+        due = [m for m in self._later if m[0] <= self.rounds]
+        self._later = [m for m in self._later if m[0] > self.rounds]
+        self.mail.extend(m[1:] for m in due)
         if round(self.now * 100) % 100 == 0:
             for tid in self.tracers:
                 self._post(tid, [Out(SERVER, "heartbeat", dict(status={}))])

@@ -137,7 +137,8 @@ def _server(store, settings, v: dict, http, limits: Limits, reporter, resume, sa
         min_tracers_timeout_s=v["min_tracers_timeout"], tracer_timeout_s=v["tracer_timeout"],
         concurrent=v["concurrent"], client_batching=v["client_batching"],
         held_bytes=config.parse_bytes(v.get("queue_memory"), "--queue-memory"),
-        gather_at=v.get("gather_at", "server"), hit_point_stride=v.get("hit_point_stride"))
+        gather_at=v.get("gather_at", "server"), hit_point_stride=v.get("hit_point_stride"),
+        batch_growth=v["batch_growth"])
     return ServerProcess(store, settings, options, resume=resume, reporter=reporter, say=say)
 
 

@@ -98,7 +98,8 @@ Messages
       heartbeat, shutdown (reason)
       hit_points     hits_version (the eye iteration), hits: HitPoints, in the
                      order the server's statistics hold them (gather at tracers)
-      gather         epoch, phase "count"|"pilot"|"sums", hits_version, total +
+      gather         epoch, epochs (merged: epoch .. epoch + epochs - 1), phase
+                     "count"|"pilot"|"sums", hits_version, total +
                      most (the pilot's subsample), job_ids + job_boxes f64 (k, 2, 3)
                      (the epoch's jobs, own cull boxes), rows i64 + radius f64
                      (m,) (hit point rows: fresh ones for a pilot, all for sums)
@@ -136,9 +137,9 @@ from services._wire_codec import (
     Struct, WireError, pack, plain, read_fields, read_header, record, shape_text,
 )
 
-PROTOCOL_VERSION = 9   # 2 shadow rays; 3 credit; 4 photon jobs made by the tracer; 5 the gather at the
+PROTOCOL_VERSION = 10  # 2 shadow rays; 3 credit; 4 photon jobs made by the tracer; 5 the gather at the
                        # tracers; 6 eye tiles made by the tracer; 7 eye light held at the tracers;
-                       # 8 deposits without a normal; 9 hit points' optional frame
+                       # 8 deposits without a normal; 9 hit points' optional frame; 10 merged epochs
 
 # -- policy ---------------------------------------------------------------------
 # MAX_ELEMENTS (the codec's cap on one array's declared size) bounds a frame:
@@ -315,11 +316,11 @@ _SPECS = (
          (plain("data", ("data", np.uint8, (), None)),), check=_check_chunk_data),
     Spec("shutdown", _S2T, {"reason": STR}, defaults={"reason": ""}),
     Spec("hit_points", _S2T, {"hits_version": INT}, (record("hits", HitPoints),)),
-    Spec("gather", _S2T, {"epoch": INT, "phase": Choice(*GATHER_PHASES), "hits_version": INT, "total": INT,
-                          "most": INT},
+    Spec("gather", _S2T, {"epoch": INT, "epochs": Int(1), "phase": Choice(*GATHER_PHASES),
+                          "hits_version": INT, "total": INT, "most": INT},
          (plain("jobs", ("job_ids", np.int64, (), None), ("job_boxes", np.float64, (2, 3), NOT_NAN)),
           plain("radii", ("rows", np.int64, (), None), ("radius", np.float64, (), FINITE))),
-         check=_check_gather, defaults={"total": 0, "most": 0}),
+         check=_check_gather, defaults={"epochs": 1, "total": 0, "most": 0}),
     Spec("drop_epoch", _S2T, {"epoch": INT}),
     Spec("light_request", _S2T, {"round": INT}, (plain("iterations", ("eye_iterations", np.int64, (), None)),),
          check=_increasing_field("eye_iterations")),

@@ -127,6 +127,91 @@ def test_epochs_go_in_order_and_skip_ids_never_used_at_once():
     assert e.due(first + 6, emitting=False).index == first // 4 + 1
 
 
+def test_complete_epochs_merge_into_one_gather_within_the_window_and_the_memory():
+    """When an epoch's turn comes and the epochs after it are complete too
+    (the tracers outpaced the last gather's round trips), one gather takes
+    them all, up to `most_merged`; an epoch with a job in flight, or ids
+    still to make, ends the run. The window of ids photon jobs may take
+    grows with the merge (2g + 1 epochs), within the held-deposit memory;
+    a merged gather discarded drops every epoch in it."""
+    from services.server.epochs import OPEN_EPOCHS, Epochs
+
+    def complete(e, ids):
+        for j in ids:
+            e.made(j)
+            e.complete(j, rng_key=j, paths=10, cull_box=None)
+    e = Epochs(jobs_per_epoch=2, most_merged=3, held_bytes=44 * 1000)
+    assert e.window() == OPEN_EPOCHS
+    complete(e, range(0, 8))                    # epochs 0 .. 3
+    e.made(8)                                   # epoch 4: a job in flight
+    g = e.due(9, emitting=True)
+    assert (g.index, g.last, g.count, sorted(g.jobs)) == (0, 2, 3, list(range(6)))     # most_merged
+    assert set(e.open) == {0, 3, 4} and e.window() == 7
+    e.applied(g, deposits=3 * 100)              # 100 deposits (4,400 B) an epoch: 10 fit
+    assert e.next == 3 and e.counters["epochs_applied"] == 3 and e.counters["epoch_gathers"] == 1
+    assert e.window() == 7
+    e.deposit_bytes = 44 * 250                  # 4 epochs fit in the tracers' memory
+    assert e.window() == 4 and e.room_for(2 * (3 + 3)) and not e.room_for(2 * (3 + 4))
+    g = e.due(9, emitting=True)                 # epoch 4 is not complete: 3 alone
+    assert (g.index, g.count) == (3, 1) and e.merged == 1 and e.window() == OPEN_EPOCHS
+    e.applied(g, deposits=100)
+    e.complete(8, rng_key=8, paths=10, cull_box=None)
+    complete(e, [9, 10])                        # epochs 4 and 5; 5's id 11 not yet made
+    assert e.due(11, emitting=True).count == 1  # 5 may still get a job
+    assert e.due(11, emitting=True) is None     # one gather at a time
+    # A merged gather lost with a tracer: every epoch in it is discarded.
+    f = Epochs(jobs_per_epoch=2, most_merged=8)
+    complete(f, range(0, 6))
+    g = f.due(6, emitting=False)
+    assert g.count == 3
+    assert f.discard_unapplied() == [g] and f.discarded == {0, 1, 2}
+    assert f.counters["epochs_discarded"] == 3
+
+
+def _slow_sums(rounds: int, cluster_of):
+    """A tamper that delivers every `epoch_sums` `rounds` rounds late: the
+    gather's round trips, not the tracers, hold the render."""
+    def tamper(sender, dest, msg):
+        if msg.type != "epoch_sums":
+            return [msg]
+        cluster_of["c"].later(rounds, sender, dest, msg)
+        return []
+    return tamper
+
+
+@pytest.mark.parametrize("growth", [8, 1])
+def test_a_slow_gather_merges_epochs_and_a_tracer_lost_mid_merge_costs_no_photon(caustic, growth):
+    """Behind a slow link, complete epochs merge into one gather (growth 8)
+    or wait their turn (1, the control). A tracer killed while merged
+    epochs are held discards them whole; every photon is applied once, the
+    ledger re-traces the render and the image agrees with SPPM."""
+    scene, ref = caustic
+    provider = MemoryChunks(scene, uniform_tree(root_box(scene), (2, 2, 1)))
+    holder = {}
+    s = dataclasses.replace(_settings(), photon_batch=20_000)
+    # Epochs of about 78k photons here (4,096 pixels' sums from 2 tracers).
+    c = holder["c"] = InProcessCluster(provider, s, tracers=2, tracer_timeout_s=2.0, gather_at="tracers",
+                                       tamper=_slow_sums(25, holder), batch_growth=growth)
+    c.render(photons=PHOTONS)
+    assert c.tracers["t1"].epochs.rows > 0
+    c.kill("t1")
+    c.run(photons=2 * PHOTONS)
+    c.close()
+    k, e = c.server.counters, c.server.epochs
+    assert k["tracers_evicted"] == 1 and e.counters["epochs_discarded"] >= 1
+    if growth > 1:
+        assert e.counters["epochs_merged_most"] > 1
+        assert e.counters["epoch_gathers"] < e.counters["epochs_applied"]
+    else:
+        assert e.counters["epochs_merged_most"] == 1
+        assert e.counters["epoch_gathers"] == e.counters["epochs_applied"]
+    assert k["photons_emitted"] - k["photons_discarded"] == k["photons_completed"] == k["photons_committed"]
+    assert c.statistics.stats.photons_emitted == k["photons_committed"]
+    assert all(t.epochs.rows == 0 for tid, t in c.tracers.items() if tid != "t1")
+    assert ledger.check(provider, c.statistics.ledger.records) == []
+    assert_same_within_noise(c.image(), ref[5][0], ref[9][0])
+
+
 def test_an_answer_whose_sums_miss_the_rounds_rows_is_refused_not_taken():
     # The server adds answers into arrays of the round's rows without a
     # bounds check: a tracer's rows past them, or dense sums of another

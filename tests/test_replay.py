@@ -173,7 +173,7 @@ def test_replayed_epochs_answer_with_a_recorded_sums_answer_and_keep_no_deposit(
     ep.add(random_record(PhotonDeposits, 50, rng))
     assert ep.rows == 0                                        # nothing held once replaying
     ep.set_hit_points(3, random_record(HitPoints, 7, rng))
-    msg = SimpleNamespace(epoch=9, phase="sums", hits_version=3)
+    msg = SimpleNamespace(epoch=9, epochs=1, phase="sums", hits_version=3)
     out = ep.reply(msg)
     got = wire.decode(wire.encode("epoch_sums", **out))
     assert got.epoch == 9 and got.deposits == 70
@@ -181,3 +181,8 @@ def test_replayed_epochs_answer_with_a_recorded_sums_answer_and_keep_no_deposit(
     m, phi = dense_sums(7, got.m, got.phi, got.fields.get("rows"))
     assert m.tolist() == [0, 2, 1, 0, 2, 1, 0]
     assert np.array_equal(phi[4], [3.0, 4.0, 5.0])
+    # Three epochs merged into one gather: three recorded answers' worth.
+    got = wire.decode(wire.encode("epoch_sums", **ep.reply(SimpleNamespace(epoch=10, epochs=3, phase="sums",
+                                                                           hits_version=3))))
+    assert got.epoch == 10 and got.deposits == 210 and got.flux.tolist() == [3, 3, 3]
+    assert dense_sums(7, got.m, got.phi, got.fields.get("rows"))[0].tolist() == [0, 6, 3, 0, 6, 3, 0]

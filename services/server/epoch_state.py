@@ -27,7 +27,7 @@ NEXT_STAGE = {"count": "count", "pilot": "pilot"}    # a round answered -> the "
 class EpochStateMixin:
     epochs: Epochs | None = None
 
-    def _init_epochs(self, gather_at: str, tracers: int) -> None:
+    def _init_epochs(self, gather_at: str, tracers: int, batch_growth: int, held_bytes: float) -> None:
         if gather_at not in ("server", "tracers"):
             raise ValueError(f"gather_at must be 'server' or 'tracers', got {gather_at!r}")
         self.gather_at = gather_at
@@ -35,7 +35,8 @@ class EpochStateMixin:
         self._hit_points_out: dict | None = None     # the last broadcast, for tracers joining later
         if gather_at == "tracers":
             s = self.settings
-            self.epochs = Epochs(jobs_per_epoch(s.photon_batch, s.photons_per_job, max(1, tracers), self.n_pixels))
+            per = jobs_per_epoch(s.photon_batch, s.photons_per_job, max(1, tracers), self.n_pixels)
+            self.epochs = Epochs(per, most_merged=batch_growth, held_bytes=held_bytes)
 
     def epoch_settings(self) -> dict:
         """What a tracer's welcome says about epochs (none: it sends its deposits)."""
@@ -75,7 +76,7 @@ class EpochStateMixin:
             self.epochs.ask(e, update.request["phase"], self.tracers, self._now, len(update.request["rows"]))
             return [Out(tid, "gather", update.request) for tid in self.tracers]
         if update.kind == "epoch":
-            self.epochs.applied(update.epoch)
+            self.epochs.applied(update.epoch, update.sums["deposits"])
             while self._hits_waiting:
                 self.updates.append(self._hits_waiting.popleft())
             self._maybe_gather()
@@ -114,7 +115,7 @@ class EpochStateMixin:
             return
         for e in lost:
             e.phase = "discarded"
-        self.next_job = max(self.next_job, self.epochs.first_id_after(max(e.index for e in lost)))
+        self.next_job = max(self.next_job, self.epochs.first_id_after(max(e.last for e in lost)))
         again, c = [], self.counters
         for e in lost:
             for j, (key, paths, _box) in sorted(e.jobs.items()):
@@ -135,7 +136,7 @@ class EpochStateMixin:
             dead = set(pending)
             self._photon_pending = deque([j for j in self._photon_pending if j not in dead])
             self._photon_pending.extend(again[-len(pending):])
-        self._drops = [e.index for e in lost]
+        self._drops = [i for e in lost for i in range(e.index, e.last + 1)]
 
     def _drop_messages(self) -> list[Out]:
         drops, self._drops = getattr(self, "_drops", []), []

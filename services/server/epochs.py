@@ -25,6 +25,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+# HIT_POINT_BYTES: one hit point on the wire, once (76 B with its frame, in
+# scenes with an anisotropic material; 56 without, the bound counts those).
+from dosppm_core.chunks.pacing import DEPOSIT_BYTES, HIT_POINT_BYTES
 from dosppm_core.sppm.statistics import add_rows
 from dosppm_core.trace import NO_CULL
 
@@ -33,15 +36,18 @@ from dosppm_core.trace import NO_CULL
 # of its eye iterations (a round an epoch, `hit_point_stride`), and the
 # one set of hit points the epoch is gathered at.
 BYTES_PER_PHOTON = 8.0
-# Epochs photon jobs may be made in, from the next one to apply: the one
-# being gathered and two filling behind it keep the tracers busy while a
-# gather's rounds travel, and bound what they hold to about three epochs'
-# deposits however slowly the gathers go (a saturated link, a slow tracer).
+# Epochs photon jobs may be made in, from the next one to apply, at least:
+# the one being gathered and two filling behind it keep the tracers busy
+# while a gather's rounds travel, and bound what they hold to about three
+# epochs' deposits however slowly the gathers go (a saturated link, a slow
+# tracer). Merged gathers widen it (`Epochs.window`).
 OPEN_EPOCHS = 3
+# Epochs one gather may merge, by default (`--batch-growth`): the
+# statistics batch grows to this many epochs while the tracers finish
+# epochs faster than the server's rounds gather them.
+MOST_MERGED = 8
 DENSE_SUMS_BYTES = 32            # M and Phi (f64) of one hit point, from one tracer
 LIGHT_BYTES = 16                 # a pixel's light in a round, from one tracer (pixel i32, rgb f32)
-HIT_POINT_BYTES = 56             # one hit point on the wire (dosppm_core.jobs.HitPoints), once;
-                                 # 76 with its frame (scenes with an anisotropic material)
 
 
 def jobs_per_epoch(photon_batch: int, photons_per_job: int, tracers: int, pixels: int) -> int:
@@ -57,7 +63,7 @@ def jobs_per_epoch(photon_batch: int, photons_per_job: int, tracers: int, pixels
 
 @dataclass
 class Epoch:
-    index: int
+    index: int                      # its first epoch; a merged gather's runs to `last`
     made: int = 0                   # photon jobs made in it, not yet complete or dropped
     jobs: dict = field(default_factory=dict)   # complete: id -> (rng key, paths, cull box)
     phase: str | None = None        # the round asked, None before the first
@@ -66,6 +72,22 @@ class Epoch:
     sums: dict = field(default_factory=dict)   # the round's answers, by tracer (`total`)
     fit: tuple | None = None        # radii fitted by its pilot, stored when it is applied
     rows: int = 0                   # the rows the round asked sums for (each answer's M and Phi)
+    last: int = -1                  # the last epoch merged into it (`Epochs.due`); -1: itself
+
+    def __post_init__(self):
+        if self.last < self.index:
+            self.last = self.index
+
+    @property
+    def count(self) -> int:
+        """Epochs it gathers: 1, or more once merged."""
+        return self.last - self.index + 1
+
+    def merge(self, later: "Epoch") -> None:
+        """The next epoch's jobs, gathered and applied with these as one batch."""
+        assert later.index == self.last + 1 and later.made == 0 and self.phase is None
+        self.jobs.update(later.jobs)
+        self.last = later.index
 
     def columns(self) -> tuple:
         """(ids, rng keys, paths, cull boxes (n, 2, 3)) of its complete jobs, by id."""
@@ -78,13 +100,24 @@ class Epoch:
 
 
 class Epochs:
-    def __init__(self, jobs_per_epoch: int, first_job: int = 0):
+    """`most_merged`: epochs one gather may merge (1: every epoch its own
+    batch). `held_bytes`: what the tracers' held deposits may take, all
+    together, which bounds the window merged gathers widen (None: no bound)."""
+
+    def __init__(self, jobs_per_epoch: int, first_job: int = 0, most_merged: int = 1,
+                 held_bytes: float | None = None):
+        if most_merged < 1:
+            raise ValueError(f"most_merged (--batch-growth) must be >= 1, got {most_merged}")
         self.jobs_per_epoch = int(jobs_per_epoch)
+        self.most_merged, self.held_bytes = int(most_merged), held_bytes
         self.open: dict[int, Epoch] = {}
         self.next = self.of(first_job)         # the next epoch to apply
         self.discarded: set[int] = set()
         self.asking = False                    # an epoch's gather is under way
-        self.counters = {"epochs_applied": 0, "epochs_discarded": 0, "epoch_rounds": 0}
+        self.merged = 1                        # epochs the last gather merged
+        self.deposit_bytes = 0.0               # held per epoch, as the last gather counted
+        self.counters = {"epochs_applied": 0, "epochs_discarded": 0, "epoch_rounds": 0, "epoch_gathers": 0,
+                         "epochs_merged_most": 1}
 
     def of(self, job: int) -> int:
         return int(job) // self.jobs_per_epoch
@@ -93,8 +126,18 @@ class Epochs:
         return (int(epoch) + 1) * self.jobs_per_epoch
 
     def room_for(self, j: int) -> bool:
-        """Whether photon job id `j` may be made now (OPEN_EPOCHS)."""
-        return self.of(j) < self.next + OPEN_EPOCHS
+        """Whether photon job id `j` may be made now (`window`)."""
+        return self.of(j) < self.next + self.window()
+
+    def window(self) -> int:
+        """Epochs photon jobs may be made in, from the next to apply: room
+        for the gather under way, as many behind it and one more, so a
+        gather that merged g epochs is followed by one of g + 1 while the
+        tracers outpace the rounds; never more than the tracers may hold."""
+        w = max(OPEN_EPOCHS, 2 * self.merged + 1)
+        if self.held_bytes and self.deposit_bytes > 0:
+            w = min(w, max(OPEN_EPOCHS, int(self.held_bytes // self.deposit_bytes)))
+        return w
 
     def made(self, j: int) -> None:
         self._epoch(self.of(j)).made += 1
@@ -136,8 +179,25 @@ class Epochs:
             del self.open[e.index]
             self.next += 1
             return self.due(next_job, emitting)
+        self._merge_complete(e, next_job, emitting)
         self.asking = True
         return e
+
+    def _merge_complete(self, e: Epoch, next_job: int, emitting: bool) -> None:
+        """Merge into `e` the epochs after it that are complete too, up to
+        `most_merged`: the tracers finished them while the last gather's
+        rounds travelled, so the round trips, not the tracers, hold the
+        render, and one gather of them all costs the round trips of one.
+        While the tracers are what holds it, the next epoch is not complete
+        when its turn comes, and each epoch is its own batch, the paper's."""
+        while e.count < self.most_merged:
+            later = self.open.get(e.last + 1)
+            if later is None or later.made > 0 or (emitting and next_job < self.first_id_after(later.index)):
+                break
+            e.merge(later)
+            del self.open[later.index]
+        self.merged = e.count
+        self.counters["epochs_merged_most"] = max(self.counters["epochs_merged_most"], e.count)
 
     def ask(self, e: Epoch, phase: str, tracers, now: float, rows: int = 0) -> None:
         """Round `phase` of epoch `e`, sums at `rows` rows, goes to `tracers`;
@@ -163,10 +223,13 @@ class Epochs:
         e.sums[tid] = msg
         return e if not e.waiting else None
 
-    def applied(self, e: Epoch) -> None:
+    def applied(self, e: Epoch, deposits: int = 0) -> None:
+        """Epoch `e` (and those merged into it) applied, `deposits` held for them."""
         del self.open[e.index]
-        self.next, self.asking = e.index + 1, False
-        self.counters["epochs_applied"] += 1
+        self.next, self.asking = e.last + 1, False
+        self.deposit_bytes = DEPOSIT_BYTES * deposits / e.count
+        self.counters["epochs_applied"] += e.count
+        self.counters["epoch_gathers"] += 1
 
     def discard_unapplied(self) -> list[Epoch]:
         """Every epoch not yet handed to the statistics: (their jobs to make
@@ -174,9 +237,9 @@ class Epochs:
         lost = [e for e in self.open.values() if e.phase != "applying"]
         for e in lost:
             del self.open[e.index]
-            self.discarded.add(e.index)
+            self.discarded.update(range(e.index, e.last + 1))
         self.asking = any(e.phase == "applying" for e in self.open.values())
-        self.counters["epochs_discarded"] += len(lost)
+        self.counters["epochs_discarded"] += sum(e.count for e in lost)
         return lost
 
     @property

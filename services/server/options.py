@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 from dosppm_core.chunks.pacing import FIRST_QUEUE_RAYS
 from services import config
+from services.server.epochs import MOST_MERGED
 
 
 @dataclass
@@ -62,3 +63,6 @@ class ServerOptions:
     # their emission only): None, one set per statistics update
     # (`dosppm_core.sppm.iteration.hit_point_stride`) gathering at the tracers, 1 at the server.
     hit_point_stride: int | None = None
+    # Gathering at the tracers, epochs one gather may merge into one
+    # statistics batch while the round trips hold the render (1: never).
+    batch_growth: int = MOST_MERGED

@@ -141,7 +141,7 @@ class ServerState(MembershipMixin, EmissionMixin, EyeScheduleMixin, EpochStateMi
         self._latencies: deque = deque(maxlen=LATENCIES_KEPT)     # of the last photon jobs complete
         self._latency_median: float | None = None
         self.job_making_cpu_s = 0.0     # a part of the server's cost per photon (costs.py)
-        self._init_epochs(o.gather_at, o.min_tracers)
+        self._init_epochs(o.gather_at, o.min_tracers, o.batch_growth, o.held_bytes or default_queue_memory())
         self.hit_point_stride = self._hit_point_stride(o.hit_point_stride)
         self._init_light()
 

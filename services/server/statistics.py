@@ -103,7 +103,7 @@ class ServerStatistics:
         if e.phase == "discarded":
             return None
         ids, _keys, _paths, boxes = e.columns()
-        base = dict(epoch=e.index, hits_version=self.hits_version, job_ids=ids, job_boxes=boxes)
+        base = dict(epoch=e.index, epochs=e.count, hits_version=self.hits_version, job_ids=ids, job_boxes=boxes)
         pilot = st.pilot_request()
         if u.stage == "start" and pilot is not None:
             return dict(base, phase="count", rows=np.zeros(0, np.int64), radius=np.zeros(0))

@@ -5,9 +5,10 @@ An epoch is a fixed range of photon job ids, `jobs_per_epoch` of them
 from id 0. The tracer keeps the deposits its steps make, grouped by
 epoch, instead of sending them to the server. Once every job of an epoch
 is complete and the epoch before it applied, the server asks for the
-epoch's sums at the hit points it broadcast and the radii the pixels have
-now (eqs. 1-5 need a batch gathered at the radii it is applied to), in
-up to three rounds (`GATHER_PHASES`):
+epoch's sums (or those of a run of complete epochs it merged into one
+batch, `epochs` of them) at the hit points it broadcast and the radii the
+pixels have now (eqs. 1-5 need a batch gathered at the radii it is
+applied to), in up to three rounds (`GATHER_PHASES`):
 
 - "count": how many held deposits lie in their own job's box (the
   pilot's subsample is chosen by a cut that needs the whole epoch's count);
@@ -88,7 +89,7 @@ class EpochDeposits:
     def reply(self, msg) -> dict:
         """The `epoch_sums` fields answering a `gather` request."""
         e, phase = int(msg.epoch), msg.phase
-        own = self._own(e, msg.job_ids, msg.job_boxes)
+        own = self._own(e, int(msg.epochs), msg.job_ids, msg.job_boxes)
         out = dict(epoch=e, phase=phase, hits_version=msg.hits_version, deposits=len(own), chosen=0,
                    flux=own.flux.sum(axis=0, dtype=np.float64) if len(own) else np.zeros(3),
                    m=np.zeros(0), phi=np.zeros((0, 3)))
@@ -110,19 +111,24 @@ class EpochDeposits:
         self.counters["epochs_gathered"] += 1
         return dict(out, **sparse_sums(np.asarray(m, np.float64), np.asarray(phi, np.float64)))
 
-    def _own(self, epoch: int, job_ids: np.ndarray, job_boxes: np.ndarray) -> PhotonDeposits:
-        """The epoch's deposits inside their own job's box, once: a step
+    def _own(self, epoch: int, count: int, job_ids: np.ndarray, job_boxes: np.ndarray) -> PhotonDeposits:
+        """The deposits of epochs `epoch` .. `epoch + count - 1` (one
+        gather, merged by the server) inside their own job's box, once: a step
         culls against the union of its packages' boxes, which keeps more;
         culling again here makes what a job adds a function of the job
         alone, as the server's held deposits did (the ledger re-traces it)."""
         if epoch not in self._culled:
-            parts = self.held.pop(epoch, [])
+            parts = self.take_held(epoch, count)
             deposits = PhotonDeposits.concat(parts) if parts else PhotonDeposits.empty()
             listed = np.isin(deposits.job, job_ids)    # an abandoned job's deposits never count
             deposits = deposits if listed.all() else deposits.take(listed)
             jobs = (job_ids, None, None, job_boxes)
             self._culled[epoch] = within_own_boxes(deposits, jobs) if len(deposits) else deposits
         return self._culled[epoch]
+
+    def take_held(self, epoch: int, count: int = 1) -> list[PhotonDeposits]:
+        """The held deposits of `count` epochs from `epoch`, no longer held."""
+        return [p for e in range(epoch, epoch + count) for p in self.held.pop(e, [])]
 
     def _hits(self, version: int) -> HitPoints:
         hp = self.hit_points.get(int(version))
