@@ -328,6 +328,8 @@ def figures(s: dict, per_core: float) -> dict:
             "update_s": s.get("update_seconds", 0.0), "update_share_of_cpu": s.get("update_seconds", 0.0) / cpu,
             **cpu_shares(r, cpu),
             "tracer_photons_per_core_s": per_core,
+            # Gathering at the tracers: the most epochs one gather merged (1: none).
+            "epochs_merged_most": c.get("epochs_merged_most", 1),
             "tracer_cores_per_server_core": server_rate / max(per_core, 1e-9)}
 
 
