@@ -157,6 +157,11 @@ def _mitsuba_scenes(doc: dict) -> str:
     return mitsuba_scenes.report(doc)
 
 
+def _sppm_phases(doc: dict) -> str:
+    import sppm_phases
+    return sppm_phases.report(doc)
+
+
 def _eye_pass(doc: dict) -> str:
     import eye_pass
     return eye_pass.report(doc)
@@ -183,6 +188,7 @@ TABLES = {
     "replay": ("benchmarks/results/replay.json", _replay),
     "replay-gather-tracers": ("benchmarks/results/replay-gather-tracers.json", _replay),
     "slow-link": ("benchmarks/results/slow-link.json", _slow_link),
+    "sppm-phases": ("benchmarks/results/sppm-phases.json", _sppm_phases),
     "texture-lookup": ("benchmarks/results/texture-lookup.json", _texture_lookup),
     "render-default": ("benchmarks/results/render-default.json", _render_default),
     "reliability": ("benchmarks/results/reliability.json", _reliability),

@@ -1085,6 +1085,25 @@ def test_rows_whose_hit_is_elsewhere_are_skipped_as_if_absent(kind):
             np.testing.assert_array_equal(column, getattr(b, name), err_msg=name)
 
 
+def test_a_materials_tables_flags_are_its_own_when_cached():
+    """`SurfaceData`'s flags are computed once per materials table: a plain
+    table and a textured, mapped, anisotropic one each get their own,
+    asked in turn, and equal to what their arrays say."""
+    from dosppm_core.kernels import paths
+    from dosppm_core.kernels.materials import B_ANISO, B_NORMAL_MAP
+    from tests.helpers.scenes import small_scene
+
+    plain = paths.SurfaceData.from_scene(small_scene("cornell-caustic", 16))
+    bsdf, tex = plain.bsdf.copy(), plain.mat_texture.copy()
+    bsdf[0, B_ANISO], bsdf[1, B_NORMAL_MAP], tex[2] = 0.3, 0, 0
+    other = plain._replace(bsdf=bsdf, mat_texture=tex)
+    for _ in range(2):
+        assert (plain.textured, plain.anisotropic, plain.shading_mapped) == (False, False, False)
+        assert plain.material_extras is None
+        assert (other.textured, other.anisotropic, other.shading_mapped) == (True, True, True)
+        assert other.material_extras is bsdf
+
+
 def test_serial_eye_and_direct_kernels_equal_the_parallel_ones():
     """Small batches run the eye bounce and the light sampling on one
     thread (`paths.SERIAL_BELOW`); each gives the parallel kernel's output
@@ -1112,9 +1131,14 @@ def test_serial_eye_and_direct_kernels_equal_the_parallel_ones():
         ends, _lit, (h, hpos, hn, hmat), (g, no, nd, nw, st) = a
         if len(h):
             hits = (hpos, hn, -batch.direction[h], batch.weight[h], hmat, np.zeros((0, 5)))
-            dargs = (hits, np.ascontiguousarray(batch.rng[h]), surf, lights[:LIGHT_CACHE], lights[LIGHT_CACHE],
-                     lights[INFINITE], True, EPS_REL)
+            dargs = (hits, np.ascontiguousarray(batch.rng[h]), surf, surf.bsdf,
+                     lights[:LIGHT_CACHE], lights[LIGHT_CACHE], lights[INFINITE], True, EPS_REL)
             for x, y in zip(direct.sample_direct(*dargs), direct.sample_direct_serial(*dargs)):
+                np.testing.assert_array_equal(x, y)
+            # Compiled without the coloured kinds and the infinite lights
+            # (None: the scene has neither), the same rays.
+            pruned = dargs[:3] + (None,) + dargs[4:6] + (None,) + dargs[7:]
+            for x, y in zip(direct.sample_direct(*dargs), direct.sample_direct(*pruned)):
                 np.testing.assert_array_equal(x, y)
             hit_points += len(h)
         batch = tracing.RayBatch(no, nd, nw, batch.pixel[g], batch.depth[g] + 1, st, job=batch.job[g])
