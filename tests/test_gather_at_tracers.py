@@ -168,6 +168,24 @@ def test_complete_epochs_merge_into_one_gather_within_the_window_and_the_memory(
     assert f.counters["epochs_discarded"] == 3
 
 
+def test_the_epochs_drain_counts_the_gathers_still_to_come():
+    """Once emission stops, the unapplied epochs take the gather under way
+    and then one per `most_merged` of the rest, each as long as the last
+    gather took from its first round to applied; the deadline adds it."""
+    from services.server.epochs import Epochs
+    e = Epochs(jobs_per_epoch=1, most_merged=4)
+    assert e.drain_s() == 0.0
+    for j in range(11):
+        e.made(j)
+        e.complete(j, rng_key=j, paths=10, cull_box=None)
+    g = e.due(11, emitting=True)                  # 0 .. 3 merged
+    e.ask(g, "count", ["a"], now=1.0)
+    e.ask(g, "sums", ["a"], now=2.5)
+    e.applied(g, deposits=40, now=3.0)
+    assert e.gather_s == 2.0 and len(e.open) == 7
+    assert e.drain_s() == 2.0 * (1 + 2)           # the next gather, then 6 more epochs: 2 gathers of 4
+
+
 def _slow_sums(rounds: int, cluster_of):
     """A tamper that delivers every `epoch_sums` `rounds` rounds late: the
     gather's round trips, not the tracers, hold the render."""

@@ -76,7 +76,7 @@ class EpochStateMixin:
             self.epochs.ask(e, update.request["phase"], self.tracers, self._now, len(update.request["rows"]))
             return [Out(tid, "gather", update.request) for tid in self.tracers]
         if update.kind == "epoch":
-            self.epochs.applied(update.epoch, update.sums["deposits"])
+            self.epochs.applied(update.epoch, update.sums["deposits"], self._now)
             while self._hits_waiting:
                 self.updates.append(self._hits_waiting.popleft())
             self._maybe_gather()
@@ -141,6 +141,10 @@ class EpochStateMixin:
     def _drop_messages(self) -> list[Out]:
         drops, self._drops = getattr(self, "_drops", []), []
         return [Out(tid, "drop_epoch", dict(epoch=e)) for e in drops for tid in self.tracers]
+
+    def epochs_drain_s(self) -> float:
+        """Seconds the epochs not yet applied take to gather (0 gathering at the server)."""
+        return 0.0 if self.epochs is None else self.epochs.drain_s()
 
     @property
     def epochs_drained(self) -> bool:

@@ -73,6 +73,7 @@ class Epoch:
     fit: tuple | None = None        # radii fitted by its pilot, stored when it is applied
     rows: int = 0                   # the rows the round asked sums for (each answer's M and Phi)
     last: int = -1                  # the last epoch merged into it (`Epochs.due`); -1: itself
+    first_asked_s: float | None = None     # when its first round was asked
 
     def __post_init__(self):
         if self.last < self.index:
@@ -116,6 +117,7 @@ class Epochs:
         self.asking = False                    # an epoch's gather is under way
         self.merged = 1                        # epochs the last gather merged
         self.deposit_bytes = 0.0               # held per epoch, as the last gather counted
+        self.gather_s = 0.0                    # the last gather, from its first round asked to applied
         self.counters = {"epochs_applied": 0, "epochs_discarded": 0, "epoch_rounds": 0, "epoch_gathers": 0,
                          "epochs_merged_most": 1}
 
@@ -203,6 +205,8 @@ class Epochs:
         """Round `phase` of epoch `e`, sums at `rows` rows, goes to `tracers`;
         answers are added up."""
         e.phase, e.waiting, e.sums, e.asked_s, e.rows = phase, set(tracers), {}, now, int(rows)
+        if e.first_asked_s is None:
+            e.first_asked_s = now
         self.counters["epoch_rounds"] += 1
 
     def round_waiting_since(self, now: float) -> float:
@@ -223,13 +227,23 @@ class Epochs:
         e.sums[tid] = msg
         return e if not e.waiting else None
 
-    def applied(self, e: Epoch, deposits: int = 0) -> None:
-        """Epoch `e` (and those merged into it) applied, `deposits` held for them."""
+    def applied(self, e: Epoch, deposits: int = 0, now: float | None = None) -> None:
+        """Epoch `e` (and those merged into it) applied at `now`, `deposits` held for them."""
         del self.open[e.index]
         self.next, self.asking = e.last + 1, False
         self.deposit_bytes = DEPOSIT_BYTES * deposits / e.count
+        if now is not None and e.first_asked_s is not None:
+            self.gather_s = max(0.0, now - e.first_asked_s)
         self.counters["epochs_applied"] += e.count
         self.counters["epoch_gathers"] += 1
+
+    def drain_s(self) -> float:
+        """Seconds the epochs not yet applied take once emission stops: the
+        gather under way, then the rest, merged `most_merged` at a time,
+        each as long as the last gather took. A time limit counts it:
+        photons of an epoch unapplied at the deadline are lost work."""
+        n = len(self.open)
+        return self.gather_s * (1 + -(-(n - 1) // self.most_merged)) if n else 0.0
 
     def discard_unapplied(self) -> list[Epoch]:
         """Every epoch not yet handed to the statistics: (their jobs to make

@@ -249,9 +249,11 @@ class ServerProcess:
         behind photons emitted after it at every chunk it reaches; once
         it stops the queues only shrink. Out of core (the 5M building, one
         chunk resident a tracer) jobs took 15.5 s from emission to commit,
-        the drain 6 s, and a 60 s render ended at 47.5 s."""
+        the drain 6 s, and a 60 s render ended at 47.5 s. Gathering at the
+        tracers, the epochs still to gather come after (`Epochs.drain_s`)."""
         latency = self.state.latency_estimate_s()
-        return min(latency, max(2.0 * self.state.drain_estimate_s() + 1.0, 0.5 * latency))
+        jobs = min(latency, max(2.0 * self.state.drain_estimate_s() + 1.0, 0.5 * latency))
+        return jobs + self.state.epochs_drain_s()     # gathering at the tracers, then their epochs
 
     def _past_deadline(self, now: float) -> bool:
         """A time limit T is a deadline: the image is written within
