@@ -14,7 +14,8 @@ median over the runs and the median of the per-pair ratios.
 Whole-process timing (`farm-bench` on `dosppm render --mode sppm`) says
 whether a change costs; this says where. It found what the recorded-input
 kernel benchmark (kernels.py) did not: the direct light's per-ray call of
-`light_le` with the whole light tuple (a third of `sample_direct`) and
+`light_le` with the whole light tuple (about a quarter of `sample_direct`'s
+time) and
 the materials' flags recomputed at every bounce call.
 
     python benchmarks/sppm_phases.py --against /tmp/wt-old [--photons 5e6] [--pairs 3]

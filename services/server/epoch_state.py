@@ -136,7 +136,7 @@ class EpochStateMixin:
             dead = set(pending)
             self._photon_pending = deque([j for j in self._photon_pending if j not in dead])
             self._photon_pending.extend(again[-len(pending):])
-        self._drops = [i for e in lost for i in range(e.index, e.last + 1)]
+        self._drops = [i for e in lost for i in e.indices]
 
     def _drop_messages(self) -> list[Out]:
         drops, self._drops = getattr(self, "_drops", []), []

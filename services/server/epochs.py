@@ -84,6 +84,11 @@ class Epoch:
         """Epochs it gathers: 1, or more once merged."""
         return self.last - self.index + 1
 
+    @property
+    def indices(self) -> range:
+        """The epochs it gathers."""
+        return range(self.index, self.last + 1)
+
     def merge(self, later: "Epoch") -> None:
         """The next epoch's jobs, gathered and applied with these as one batch."""
         assert later.index == self.last + 1 and later.made == 0 and self.phase is None
@@ -251,7 +256,7 @@ class Epochs:
         lost = [e for e in self.open.values() if e.phase != "applying"]
         for e in lost:
             del self.open[e.index]
-            self.discarded.update(range(e.index, e.last + 1))
+            self.discarded.update(e.indices)
         self.asking = any(e.phase == "applying" for e in self.open.values())
         self.counters["epochs_discarded"] += sum(e.count for e in lost)
         return lost
