@@ -138,10 +138,12 @@ class Epochs:
 
     def window(self) -> int:
         """Epochs photon jobs may be made in, from the next to apply: room
-        for the gather under way, as many behind it and one more, so a
-        gather that merged g epochs is followed by one of g + 1 while the
-        tracers outpace the rounds; never more than the tracers may hold."""
-        w = max(OPEN_EPOCHS, 2 * self.merged + 1)
+        for the gather under way and twice as many behind it, so a gather
+        that merged g epochs is followed by one of up to 2g while the
+        tracers outpace the rounds (the batch doubles, 1, 2, 4, 8: one
+        more epoch a gather took seven gathers to reach 8, most of a
+        30 s render); never more than the tracers may hold."""
+        w = max(OPEN_EPOCHS, 3 * self.merged)
         if self.held_bytes and self.deposit_bytes > 0:
             w = min(w, max(OPEN_EPOCHS, int(self.held_bytes // self.deposit_bytes)))
         return w
