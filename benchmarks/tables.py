@@ -15,6 +15,7 @@ differs from what its results file gives (the test suite runs it).
 """
 from __future__ import annotations
 
+import ast
 import argparse
 import json
 import os
@@ -208,6 +209,10 @@ TABLES = {
 # results file is stale once a commit after the one it names touched these
 # paths or the script its command ran (`staleness`, `--fresh`).
 PRODUCT_PATHS = ("dosppm_core", "services", "harness", ":(exclude)harness/charts.py")
+# Tables that time the rendering library alone, in one process: a change
+# to the services (the server, the tracers, the wire) leaves them fresh.
+LIBRARY_PATHS = ("dosppm_core", "harness", ":(exclude)harness/charts.py")
+MEASURES = dict.fromkeys(("sppm-phases", "texture-lookup", "many-lights", "eye-pass"), LIBRARY_PATHS)
 
 
 def _provenance(doc) -> dict | None:
@@ -233,8 +238,10 @@ def _git(root: str, *args) -> subprocess.CompletedProcess:
 
 def staleness(name: str, root: str = ROOT) -> str | None:
     """Why table `name`'s results file is older than the code it measures,
-    or None when it is fresh: it names a clean commit that every later
-    change to PRODUCT_PATHS and to its own benchmark script came before."""
+    or None when it is fresh: it names a clean commit, and no file of the
+    paths it measures (MEASURES, else PRODUCT_PATHS) or of its own
+    benchmark script differs from that commit
+    but in comments and docstrings (`_same_code`)."""
     path, _fn = TABLES[name]
     with open(os.path.join(root, path), encoding="utf-8") as f:
         p = _provenance(json.load(f))
@@ -243,11 +250,42 @@ def staleness(name: str, root: str = ROOT) -> str | None:
     commit = str(p["commit"])
     if commit.endswith("+dirty") or _git(root, "cat-file", "-e", commit + "^{commit}").returncode:
         return f"{path}: measured at {commit[:16]}, not a clean commit of this repository"
-    paths = list(PRODUCT_PATHS) + [s for s in _script(p.get("command")) if os.path.exists(os.path.join(root, s))]
-    last = _git(root, "log", "-1", "--format=%H", "HEAD", "--", *paths).stdout.strip()
-    if last and _git(root, "merge-base", "--is-ancestor", last, commit).returncode:
-        return f"{path}: measured at {commit[:10]}, but {last[:10]} changed the code it measures since"
+    script = [s for s in _script(p.get("command")) if os.path.exists(os.path.join(root, s))]
+    paths = list(MEASURES.get(name, PRODUCT_PATHS)) + script
+    changed = _git(root, "diff", "--name-only", commit, "HEAD", "--", *paths).stdout.split()
+    changed = [f for f in changed if not _same_code(root, commit, f)]
+    if changed:
+        last = _git(root, "log", "-1", "--format=%H", f"{commit}..HEAD", "--", *changed).stdout.strip() or "HEAD"
+        return f"{path}: measured at {commit[:10]}, but {last[:10]} changed the code it measures since " \
+               f"({changed[0]}{f' and {len(changed) - 1} more' if len(changed) > 1 else ''})"
     return None
+
+
+def _same_code(root: str, commit: str, path: str) -> bool:
+    """Whether Python file `path` at HEAD is `commit`'s but for comments and
+    docstrings: a review that rewords them changes no figure, and a three
+    hour run_all should not be owed for it."""
+    if not path.endswith(".py"):
+        return False
+    trees = [_git(root, "show", f"{rev}:{path}") for rev in (commit, "HEAD")]
+    if any(t.returncode for t in trees):
+        return False                      # added or deleted
+    try:
+        return _code_of(trees[0].stdout) == _code_of(trees[1].stdout)
+    except SyntaxError:
+        return False
+
+
+def _code_of(source: str) -> str:
+    """The module's syntax tree without its docstrings (positions left out)."""
+    tree = ast.parse(source)
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and body \
+                and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant) \
+                and isinstance(body[0].value.value, str):
+            node.body = body[1:] or [ast.Pass()]
+    return ast.dump(tree)
 
 
 def quoted(files=DOCS, root: str = ROOT) -> list[str]:
