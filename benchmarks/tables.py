@@ -208,11 +208,20 @@ TABLES = {
 # runs) and the harness that drives and times it (its charts aside). A
 # results file is stale once a commit after the one it names touched these
 # paths or the script its command ran (`staleness`, `--fresh`).
-PRODUCT_PATHS = ("dosppm_core", "services", "harness", ":(exclude)harness/charts.py")
+# The peers' drivers and the evaluation (Mitsuba 3, pbrt-v4, the suites,
+# their scoring) count only for the tables that run them.
+PEERS = ("harness/pbrt.py", "harness/reference.py", "harness/evaluate.py", "harness/suites.py",
+         "harness/mirror_limit.py", "harness/mitsuba_probe.py", "harness/render_test.py")
+_HARNESS = ("harness", ":(exclude)harness/charts.py", *(f":(exclude){p}" for p in PEERS))
+PRODUCT_PATHS = ("dosppm_core", "services", *_HARNESS)
 # Tables that time the rendering library alone, in one process: a change
 # to the services (the server, the tracers, the wire) leaves them fresh.
-LIBRARY_PATHS = ("dosppm_core", "harness", ":(exclude)harness/charts.py")
-MEASURES = dict.fromkeys(("sppm-phases", "texture-lookup", "many-lights", "eye-pass"), LIBRARY_PATHS)
+LIBRARY_PATHS = ("dosppm_core", *_HARNESS)
+EVALUATION_PATHS = ("dosppm_core", "services", "harness", ":(exclude)harness/charts.py")   # (an exclude wins)
+MEASURES = {**dict.fromkeys(("sppm-phases", "texture-lookup", "many-lights", "eye-pass"), LIBRARY_PATHS),
+            **dict.fromkeys(("accuracy-failure-modes", "accuracy-failure-modes-mirror", "accuracy-sponza-20s",
+                             "accuracy-sponza-80s", "radius-20s", "radius-80s", "pbrt-side-by-side",
+                             "many-lights-pbrt", "out-of-core-eye", "mitsuba-scenes"), EVALUATION_PATHS)}
 
 
 def _provenance(doc) -> dict | None:

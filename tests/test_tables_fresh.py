@@ -107,6 +107,20 @@ def test_a_library_table_is_not_aged_by_the_services(repo):
     assert tables.staleness("sppm-phases", str(root)) is not None
 
 
+def test_a_peer_driver_ages_only_the_tables_that_run_the_peers(repo):
+    """harness/pbrt.py writes pbrt-v4's scenes: the Sponza evaluation
+    measures it, the replay does not."""
+    root, code = repo
+    peer = tables.TABLES["accuracy-sponza-80s"][0]
+    for rel in (RESULTS, peer):
+        _write(root, rel, json.dumps({"provenance": {"commit": code, "command": "x"}}))
+    _commit(root, "results")
+    _write(root, "harness/pbrt.py", "depth = 100\n")
+    _commit(root, "pbrt")
+    assert tables.staleness("replay", str(root)) is None
+    assert "harness/pbrt.py" in tables.staleness("accuracy-sponza-80s", str(root))
+
+
 def test_a_dirty_or_unknown_commit_or_none_is_stale(repo):
     root, code = repo
     for commit, words in ((code + "+dirty", "not a clean commit"), ("0" * 40, "not a clean commit")):
