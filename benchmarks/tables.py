@@ -163,6 +163,11 @@ def _sppm_phases(doc: dict) -> str:
     return sppm_phases.report(doc)
 
 
+def _pbrt_dark(doc: dict) -> str:
+    import pbrt_dark
+    return pbrt_dark.report(doc)
+
+
 def _eye_pass(doc: dict) -> str:
     import eye_pass
     return eye_pass.report(doc)
@@ -201,6 +206,7 @@ TABLES = {
     "out-of-core-pipeline-defaults": ("benchmarks/results/out-of-core-pipeline-defaults.json",
                                       _out_of_core_pipeline),
     "pbrt-side-by-side": ("benchmarks/results/pbrt-side-by-side.json", _pbrt_side_by_side),
+    "pbrt-dark": ("benchmarks/results/pbrt-dark.json", _pbrt_dark),
 }
 
 
@@ -220,7 +226,7 @@ LIBRARY_PATHS = ("dosppm_core", *_HARNESS)
 EVALUATION_PATHS = ("dosppm_core", "services", "harness", ":(exclude)harness/charts.py")   # (an exclude wins)
 MEASURES = {**dict.fromkeys(("sppm-phases", "texture-lookup", "many-lights", "eye-pass"), LIBRARY_PATHS),
             **dict.fromkeys(("accuracy-failure-modes", "accuracy-failure-modes-mirror", "accuracy-sponza-20s",
-                             "accuracy-sponza-80s", "radius-20s", "radius-80s", "pbrt-side-by-side",
+                             "accuracy-sponza-80s", "radius-20s", "radius-80s", "pbrt-side-by-side", "pbrt-dark",
                              "many-lights-pbrt", "out-of-core-eye", "mitsuba-scenes"), EVALUATION_PATHS)}
 
 

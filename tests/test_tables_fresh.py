@@ -143,7 +143,7 @@ def test_run_all_regenerates_every_quoted_file():
     with open(os.path.join(REPO, "benchmarks", "run_all"), encoding="utf-8") as f:
         text = f.read()
     corpus = [text]
-    for word in re.findall(r"^step (?:python )?(?:-m )?(\S+)", text, re.M):
+    for word in re.findall(r"^\s*step (?:python )?(?:-m )?(\S+)", text, re.M):
         script = word if word.endswith((".py", ".sh")) else word.replace(".", "/") + ".py"
         if script != "benchmarks/tables.py" and os.path.exists(os.path.join(REPO, script)):
             with open(os.path.join(REPO, script), encoding="utf-8") as f:
