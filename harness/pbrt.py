@@ -51,10 +51,10 @@ colour made the grey of its luminance; table `pbrt-dark` in
 docs/accuracy.md; the figures below are from its first run):
 
 - **Depth.** Issue 12 ran pbrt at depth 10; the references are unbounded.
-  At depth 100, grey: many-lights -1.21% -> +0.08%, glass-small-light
-  (a lamp in glass) -9.5% -> +0.5%.
-- **Spectra.** As is, at depth 100: cornell-box -1.36% (grey -0.22%),
-  glossy-floor -1.35% (-0.41%), many-lights -4.5% (+0.08%: coloured
+  Grey, from depth 10 to 256 (ours): many-lights -1.21% to +0.08%,
+  glass-small-light (a lamp in glass) -9.5% to +0.5%.
+- **Spectra.** As is, at depth 256: cornell-box -1.36% (grey -0.22%),
+  glossy-floor -1.35% (-0.45%), many-lights -4.5% (+0.08%: coloured
   lamps), glass-small-light -9.0% (+0.5%).
 - far-from-origin stays -0.9% grey: pbrt's float32 at 1e5, what that
   scene tests.

@@ -90,14 +90,18 @@ def test_comments_and_docstrings_do_not_age_it_but_code_in_the_same_file_does(re
     assert why is not None and later[:10] in why and "dosppm_core/kernel.py" in why
 
 
+def _measured_with(root, code, table) -> None:
+    """The replay's results file and `table`'s, both measured at `code`."""
+    for rel in (RESULTS, tables.TABLES[table][0]):
+        _write(root, rel, json.dumps({"provenance": {"commit": code, "command": "x"}}))
+    _commit(root, "results")
+
+
 def test_a_library_table_is_not_aged_by_the_services(repo):
     """sppm-phases times the library in one process: a server change leaves
     it fresh, a library change does not; replay measures both."""
     root, code = repo
-    library = tables.TABLES["sppm-phases"][0]
-    for rel in (RESULTS, library):
-        _write(root, rel, json.dumps({"provenance": {"commit": code, "command": "x"}}))
-    _commit(root, "results")
+    _measured_with(root, code, "sppm-phases")
     _write(root, "services/server/state.py", "y = 1\n")
     _commit(root, "server")
     assert tables.staleness("sppm-phases", str(root)) is None
@@ -111,10 +115,7 @@ def test_a_peer_driver_ages_only_the_tables_that_run_the_peers(repo):
     """harness/pbrt.py writes pbrt-v4's scenes: the Sponza evaluation
     measures it, the replay does not."""
     root, code = repo
-    peer = tables.TABLES["accuracy-sponza-80s"][0]
-    for rel in (RESULTS, peer):
-        _write(root, rel, json.dumps({"provenance": {"commit": code, "command": "x"}}))
-    _commit(root, "results")
+    _measured_with(root, code, "accuracy-sponza-80s")
     _write(root, "harness/pbrt.py", "depth = 100\n")
     _commit(root, "pbrt")
     assert tables.staleness("replay", str(root)) is None
