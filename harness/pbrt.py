@@ -33,7 +33,7 @@ film       `rgb` film, EXR, the camera's filter (`pixel_filter`: box, triangle
            for our tent, gaussian), `independent` sampler
            (not pmj02bn: its tables are stand-ins in the shared build)
 depth      pbrt's `maxdepth` counts bounces as our `max_depth` does; the
-           evaluation runs pbrt at ours (`suites.PEER_DEPTH`), since the
+           evaluation runs pbrt at 100 (`suites.PEER_DEPTH`), since the
            references are unbounded
 =========  ==========================================================
 

@@ -157,7 +157,7 @@ def test_pbrt_at_our_depth_sees_the_lamp_in_glass_as_mitsuba_does(pbrt_binary, t
     """pbrt-v4's dark exports were its depth: glass-small-light's lamp
     shines through glass (internal reflections), and at pbrt's depth 10 the
     grey scene came out 10.5% dark against Mitsuba's unbounded paths; at
-    the evaluation's depth (ours, 256) -0.9% (both measured at 32x32)."""
+    the evaluation's depth (at 256, -0.9%; both measured at 32x32)."""
     from harness.reference import render_reference
     scene = builtin.make("glass-small-light")
     scene.camera.width = scene.camera.height = 32
@@ -171,13 +171,13 @@ def test_pbrt_at_our_depth_sees_the_lamp_in_glass_as_mitsuba_does(pbrt_binary, t
     assert abs(metrics.mean_luminance_bias(deep, ref)) < 0.025
 
 
-def test_the_peers_trace_as_deep_as_ours():
-    """Every reference is unbounded and our paths end at max_depth (with
-    Russian roulette): the peers' must end there too, or light past their
-    depth reads as their error."""
+def test_the_peers_trace_as_deep_as_the_light_goes():
+    """Every reference is unbounded: the peers' paths must not end at
+    issue 12's depth 10, or light past it reads as their error. (100, not
+    our 256: pbrt-v4's SPPM crashes at 256 on scenes with glass.)"""
     for m in evaluate.METHODS.values():
         if m.kind == "pbrt":
-            assert m.options["max_depth"] == RenderSettings().max_depth, m.name
+            assert m.options["max_depth"] >= 100, m.name
 
 
 def test_methods_choose_the_estimator_and_depth():
