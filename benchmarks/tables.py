@@ -224,10 +224,15 @@ PRODUCT_PATHS = ("dosppm_core", "services", *_HARNESS)
 # to the services (the server, the tracers, the wire) leaves them fresh.
 LIBRARY_PATHS = ("dosppm_core", *_HARNESS)
 EVALUATION_PATHS = ("dosppm_core", "services", "harness", ":(exclude)harness/charts.py")   # (an exclude wins)
+# Mitsuba's render tests run our renderer and score it (render_test.py),
+# no peer: the pbrt-v4 and Mitsuba drivers do not age them.
+MITSUBA_TEST_PATHS = ("dosppm_core", "services", "harness", ":(exclude)harness/charts.py",
+                      *(f":(exclude){p}" for p in PEERS if p != "harness/render_test.py"))
 MEASURES = {**dict.fromkeys(("sppm-phases", "texture-lookup", "many-lights", "eye-pass"), LIBRARY_PATHS),
             **dict.fromkeys(("accuracy-failure-modes", "accuracy-failure-modes-mirror", "accuracy-sponza-20s",
                              "accuracy-sponza-80s", "radius-20s", "radius-80s", "pbrt-side-by-side", "pbrt-dark",
-                             "many-lights-pbrt", "out-of-core-eye", "mitsuba-scenes"), EVALUATION_PATHS)}
+                             "many-lights-pbrt", "out-of-core-eye"), EVALUATION_PATHS),
+            "mitsuba-scenes": MITSUBA_TEST_PATHS}
 
 
 def _provenance(doc) -> dict | None:
