@@ -218,16 +218,23 @@ TABLES = {
 # their scoring) count only for the tables that run them.
 PEERS = ("harness/pbrt.py", "harness/reference.py", "harness/evaluate.py", "harness/suites.py",
          "harness/mirror_limit.py", "harness/mitsuba_probe.py", "harness/render_test.py")
-_HARNESS = ("harness", ":(exclude)harness/charts.py", *(f":(exclude){p}" for p in PEERS))
-PRODUCT_PATHS = ("dosppm_core", "services", *_HARNESS)
+
+
+def _measuring(*roots: str, peers: tuple = ()) -> tuple:
+    """`roots` and the harness, its charts and every peer driver not in
+    `peers` left out (in a git pathspec an exclude wins over any path)."""
+    return (*roots, "harness", ":(exclude)harness/charts.py",
+            *(f":(exclude){p}" for p in PEERS if p not in peers))
+
+
+PRODUCT_PATHS = _measuring("dosppm_core", "services")
 # Tables that time the rendering library alone, in one process: a change
 # to the services (the server, the tracers, the wire) leaves them fresh.
-LIBRARY_PATHS = ("dosppm_core", *_HARNESS)
-EVALUATION_PATHS = ("dosppm_core", "services", "harness", ":(exclude)harness/charts.py")   # (an exclude wins)
+LIBRARY_PATHS = _measuring("dosppm_core")
+EVALUATION_PATHS = _measuring("dosppm_core", "services", peers=PEERS)
 # Mitsuba's render tests run our renderer and score it (render_test.py),
 # no peer: the pbrt-v4 and Mitsuba drivers do not age them.
-MITSUBA_TEST_PATHS = ("dosppm_core", "services", "harness", ":(exclude)harness/charts.py",
-                      *(f":(exclude){p}" for p in PEERS if p != "harness/render_test.py"))
+MITSUBA_TEST_PATHS = _measuring("dosppm_core", "services", peers=("harness/render_test.py",))
 MEASURES = {**dict.fromkeys(("sppm-phases", "texture-lookup", "many-lights", "eye-pass"), LIBRARY_PATHS),
             **dict.fromkeys(("accuracy-failure-modes", "accuracy-failure-modes-mirror", "accuracy-sponza-20s",
                              "accuracy-sponza-80s", "radius-20s", "radius-80s", "pbrt-side-by-side", "pbrt-dark",
@@ -283,8 +290,8 @@ def staleness(name: str, root: str = ROOT) -> str | None:
 
 def _same_code(root: str, commit: str, path: str) -> bool:
     """Whether Python file `path` at HEAD is `commit`'s but for comments and
-    docstrings: a review that rewords them changes no figure, and a three
-    hour run_all should not be owed for it."""
+    docstrings: a review that rewords them changes no figure, and a
+    run_all of hours should not be owed for it."""
     if not path.endswith(".py"):
         return False
     trees = [_git(root, "show", f"{rev}:{path}") for rev in (commit, "HEAD")]

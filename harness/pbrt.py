@@ -45,22 +45,12 @@ upsampling: products of saturated colours differ from an RGB renderer's by
 a few percent.
 
 Why the evaluation's pbrt-v4 images came out 1-34% dark against Mitsuba 3's
-references (`benchmarks/pbrt_dark.py`: 128x128, 64 spp, pbrt `path`
-against Mitsuba's scalar_rgb `path`, each scene as it is and with every
-colour made the grey of its luminance; table `pbrt-dark` in
-docs/accuracy.md; the figures below are from its first run):
-
-- **Depth.** Issue 12 ran pbrt at depth 10; the references are unbounded.
-  Grey, from depth 10 to 256 (ours): many-lights -1.21% to +0.08%,
-  glass-small-light (a lamp in glass) -9.5% to +0.5%.
-- **Spectra.** As is, at depth 256: cornell-box -1.36% (grey -0.22%),
-  glossy-floor -1.35% (-0.45%), many-lights -4.5% (+0.08%: coloured
-  lamps), glass-small-light -9.0% (+0.5%).
-- far-from-origin stays -0.9% grey: pbrt's float32 at 1e5, what that
-  scene tests.
-- cardioid's -6.5% for `path` is path tracing's blind spot (a point
-  light's caustic off a mirror; Mitsuba's path misses the same 6.4%), and
-  pbrt's SPPM is within 0.1% there.
+references (`benchmarks/pbrt_dark.py`, table `pbrt-dark` in
+docs/accuracy.md, which separates the causes scene by scene): its depth
+(issue 12 ran it at 10, the references are unbounded; a lamp in glass
+lost most), its spectra (coloured walls and lamps), and on
+`far-from-origin` its float32 at 1e5. cardioid's deficit for `path` is
+path tracing's blind spot, a point light's caustic off a mirror.
 """
 from __future__ import annotations
 
